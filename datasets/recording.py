@@ -1,0 +1,219 @@
+"""The Recording: everything an estimator reads, on one uniform time grid.
+
+A Recording is what simulated and real data have in common (DESIGN.md, "Data flow"): per step
+the paper's local-frame inputs, the IMU placement and motion in the local frame, the active
+contacts with their rest placements, the IMU readings; optionally reference signals (F/T
+wrenches, motion capture) and, for simulated data, the ground truth.
+
+Array shapes use ``N`` for the number of steps, ``C`` for the number of contacts (all contacts
+the robot has, active or not) and ``J`` for the number of joints.  Time is kept as integer
+nanoseconds (``t_ns``); :attr:`Recording.time` gives float seconds from the first sample.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from flexforce.errors import DataError
+from flexforce.factors.physics import GRAVITY, ImuPlacement, Inputs
+
+
+@dataclass
+class Truth:
+    """Ground truth of a simulated recording (world frame unless stated)."""
+
+    R: np.ndarray
+    """(N, 3, 3) flexibility rotation, local to world."""
+    t: np.ndarray
+    """(N, 3) flexibility translation, m."""
+    w: np.ndarray
+    """(N, 3) flexibility angular velocity (world), rad/s."""
+    v: np.ndarray
+    """(N, 3) flexibility linear velocity, m/s."""
+    dw: np.ndarray
+    """(N, 3) angular acceleration, rad/s^2."""
+    a: np.ndarray
+    """(N, 3) linear acceleration, m/s^2."""
+    wrench: np.ndarray
+    """(N, C, 6) per-contact wrench (F [N], T [N m] about the world origin); zero when inactive."""
+    external_wrench: np.ndarray
+    """(N, 6) hidden external wrench (F, T about the world origin) acting on the robot."""
+    cop: np.ndarray
+    """(N, 3) centre of pressure of the total contact wrench on the ground plane, m."""
+    links: dict[str, np.ndarray] = field(default_factory=dict)
+    """World positions (N, 3) of chosen links (the hands), m."""
+    gyro_bias: np.ndarray | None = None
+    """(N, 3) gyrometer bias, rad/s (IMU frame)."""
+    accel_bias: np.ndarray | None = None
+    """(N, 3) accelerometer bias, m/s^2 (IMU frame)."""
+
+    @property
+    def total_wrench(self) -> np.ndarray:
+        """(N, 6) sum of the contact wrenches."""
+        return self.wrench.sum(axis=1)
+
+
+@dataclass
+class Recording:
+    """Inputs, measurements, references and (optionally) ground truth on a uniform time grid."""
+
+    t_ns: np.ndarray
+    """(N,) int64 time stamps, ns."""
+    robot: str
+    """Name of the robot configuration (a built-in name or a path)."""
+    contact_names: tuple[str, ...]
+    """Names of the C contacts."""
+    mass: float
+    """Total mass in the robot's model, kg."""
+    com: np.ndarray
+    """(N, 3) CoM c_l in the local frame, m."""
+    com_vel: np.ndarray
+    """(N, 3) dc_l/dt, m/s."""
+    com_acc: np.ndarray
+    """(N, 3) d2c_l/dt2, m/s^2."""
+    inertia: np.ndarray
+    """(N, 3, 3) I_l about the local origin, kg m^2."""
+    inertia_dot: np.ndarray
+    """(N, 3, 3) dI_l/dt, kg m^2/s."""
+    sigma: np.ndarray
+    """(N, 3) angular momentum sigma_l about the local origin, kg m^2/s."""
+    sigma_dot: np.ndarray
+    """(N, 3) d sigma_l/dt, N m."""
+    imu_R: np.ndarray
+    """(N, 3, 3) IMU orientation in the local frame."""
+    imu_p: np.ndarray
+    """(N, 3) IMU position in the local frame, m."""
+    imu_v: np.ndarray
+    """(N, 3) IMU velocity in the local frame, m/s."""
+    imu_a: np.ndarray
+    """(N, 3) IMU acceleration in the local frame, m/s^2."""
+    imu_w: np.ndarray
+    """(N, 3) IMU angular velocity relative to the local frame, expressed in it, rad/s."""
+    contact_active: np.ndarray
+    """(N, C) bool, contact in force."""
+    contact_p: np.ndarray
+    """(N, C, 3) contact rest position in the local frame, m (meaningful while active)."""
+    contact_R: np.ndarray
+    """(N, C, 3, 3) contact rest orientation in the local frame."""
+    gyro: np.ndarray
+    """(N, 3) gyrometer readings in the IMU frame, rad/s."""
+    accel: np.ndarray
+    """(N, 3) accelerometer readings in the IMU frame, m/s^2."""
+    joint_names: tuple[str, ...] = ()
+    """Names of the J joints of ``joint_q``."""
+    joint_q: np.ndarray | None = None
+    """(N, J) joint positions, rad or m."""
+    joint_v: np.ndarray | None = None
+    """(N, J) joint velocities."""
+    ft: np.ndarray | None = None
+    """(N, C, 6) F/T readings: wrench of the environment on the robot, expressed in the contact
+    frame about its origin (F [N], T [N m]); NaN where a component is not measured."""
+    mocap: dict[str, np.ndarray] = field(default_factory=dict)
+    """Motion capture: link name -> (N, 7) world pose (x, y, z, qx, qy, qz, qw); NaN when lost."""
+    truth: Truth | None = None
+    """Ground truth (simulated recordings only)."""
+    gravity: float = GRAVITY
+    """Gravity, m/s^2."""
+    meta: dict = field(default_factory=dict)
+    """Free-form description: scenario, noise model, hidden effects (JSON-serialisable)."""
+
+    # ------------------------------------------------------------------------------------------
+    @property
+    def n(self) -> int:
+        """Number of steps."""
+        return int(self.t_ns.shape[0])
+
+    @property
+    def time(self) -> np.ndarray:
+        """(N,) float seconds from the first sample."""
+        return (self.t_ns - self.t_ns[0]).astype(float) * 1e-9
+
+    @property
+    def dt(self) -> float:
+        """Nominal sample period, s (median of the time steps)."""
+        if self.n < 2:
+            return 0.0
+        return float(np.median(np.diff(self.t_ns))) * 1e-9
+
+    def inputs(self, k: int) -> Inputs:
+        """The paper's inputs at step ``k``."""
+        return Inputs(self.mass, self.com[k], self.com_vel[k], self.com_acc[k], self.inertia[k],
+                      self.inertia_dot[k], self.sigma[k], self.sigma_dot[k])
+
+    def imu(self, k: int) -> ImuPlacement:
+        """The IMU placement and motion in the local frame at step ``k``."""
+        return ImuPlacement(self.imu_R[k], self.imu_p[k], self.imu_v[k], self.imu_a[k], self.imu_w[k])
+
+    def active_contacts(self, k: int) -> list[int]:
+        """Indices of the contacts active at step ``k``."""
+        return [int(i) for i in np.flatnonzero(self.contact_active[k])]
+
+    def imu_measurement(self, k: int) -> np.ndarray:
+        """(6,) gyro then accelerometer readings at step ``k``."""
+        return np.concatenate([self.gyro[k], self.accel[k]])
+
+    def slice(self, start: int, stop: int) -> "Recording":
+        """The steps ``start:stop`` as a new Recording (arrays are copied)."""
+        sl = slice(start, stop)
+
+        def cut(value):
+            if isinstance(value, np.ndarray) and value.ndim >= 1 and value.shape[0] == self.n:
+                return value[sl].copy()
+            if isinstance(value, dict):
+                return {k: cut(v) for k, v in value.items()}
+            return value
+
+        kwargs = {f.name: cut(getattr(self, f.name)) for f in dataclasses.fields(self) if f.name != "truth"}
+        truth = None
+        if self.truth is not None:
+            truth = Truth(**{f.name: cut(getattr(self.truth, f.name)) for f in dataclasses.fields(Truth)})
+        return Recording(**kwargs, truth=truth)
+
+    # ------------------------------------------------------------------------------------------
+    def validate(self) -> "Recording":
+        """Check shapes, finiteness and time order; raise :class:`DataError` naming the problem.
+
+        Returns the recording itself so that calls can be chained.
+        """
+        n = self.n
+        if n < 2:
+            raise DataError(f"recording has {n} sample(s); at least 2 are needed")
+        c = len(self.contact_names)
+        dts = np.diff(self.t_ns)
+        if np.any(dts <= 0):
+            k = int(np.flatnonzero(dts <= 0)[0])
+            raise DataError(
+                f"time stamps do not increase at sample {k + 1} (t = {self.t_ns[k + 1] * 1e-9:.6f} s after "
+                f"{self.t_ns[k] * 1e-9:.6f} s); expected strictly increasing time")
+        med = np.median(dts)
+        if np.any(np.abs(dts - med) > 0.01 * med):
+            k = int(np.flatnonzero(np.abs(dts - med) > 0.01 * med)[0])
+            raise DataError(
+                f"time grid is not uniform: step {k} lasts {dts[k] * 1e-6:.3f} ms against a median of "
+                f"{med * 1e-6:.3f} ms; resample the data onto a uniform grid first")
+        shapes = {
+            "com": (n, 3), "com_vel": (n, 3), "com_acc": (n, 3), "inertia": (n, 3, 3),
+            "inertia_dot": (n, 3, 3), "sigma": (n, 3), "sigma_dot": (n, 3), "imu_R": (n, 3, 3),
+            "imu_p": (n, 3), "imu_v": (n, 3), "imu_a": (n, 3), "imu_w": (n, 3),
+            "contact_active": (n, c), "contact_p": (n, c, 3), "contact_R": (n, c, 3, 3),
+            "gyro": (n, 3), "accel": (n, 3),
+        }
+        for name, shape in shapes.items():
+            arr = getattr(self, name)
+            if not isinstance(arr, np.ndarray) or arr.shape != shape:
+                got = getattr(arr, "shape", type(arr).__name__)
+                raise DataError(f"field '{name}' has shape {got}; expected {shape}")
+            if arr.dtype != bool and not np.all(np.isfinite(arr)):
+                k = int(np.flatnonzero(~np.isfinite(arr.reshape(n, -1)).all(axis=1))[0])
+                raise DataError(f"field '{name}' is not finite (NaN or inf) at sample {k}, "
+                                f"t = {(self.t_ns[k] - self.t_ns[0]) * 1e-9:.3f} s")
+        if not (np.isfinite(self.mass) and self.mass > 0):
+            raise DataError(f"mass must be a positive number of kg, got {self.mass}")
+        if self.ft is not None and self.ft.shape != (n, c, 6):
+            raise DataError(f"field 'ft' has shape {self.ft.shape}; expected {(n, c, 6)}")
+        if self.joint_q is not None and self.joint_q.shape != (n, len(self.joint_names)):
+            raise DataError(f"field 'joint_q' has shape {self.joint_q.shape}; expected {(n, len(self.joint_names))}")
+        return self
