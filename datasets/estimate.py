@@ -1,0 +1,126 @@
+"""The Estimate: what every estimator (EKF, batch and fixed-lag smoothers) returns.
+
+One type for all, so that every comparison is like for like (DESIGN.md, "Data flow").  Shapes:
+``N`` steps, ``C`` contacts.  The state covariance is over world-frame increments in the order of
+:mod:`flexforce.factors.physics`: ``(theta, t, w, v, dw, a)``, 18 components.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from flexforce.errors import DataError
+
+STATE_LABELS = ("theta_x", "theta_y", "theta_z", "t_x", "t_y", "t_z", "w_x", "w_y", "w_z",
+                "v_x", "v_y", "v_z", "dw_x", "dw_y", "dw_z", "a_x", "a_y", "a_z")
+"""Names of the 18 state components (rad, m, rad/s, m/s, rad/s^2, m/s^2)."""
+
+
+@dataclass
+class Estimate:
+    """Per-step estimate of the flexibility state, contact wrenches and CoP, with uncertainty."""
+
+    estimator: str
+    """``ekf``, ``batch``, ``fixed_lag`` (or a user's name)."""
+    t_ns: np.ndarray
+    """(N,) int64 time stamps, ns (those of the Recording)."""
+    contact_names: tuple[str, ...]
+    R: np.ndarray
+    """(N, 3, 3) flexibility rotation, local to world."""
+    t: np.ndarray
+    """(N, 3) flexibility translation, m."""
+    w: np.ndarray
+    """(N, 3) angular velocity (world), rad/s."""
+    v: np.ndarray
+    """(N, 3) linear velocity, m/s."""
+    dw: np.ndarray
+    """(N, 3) angular acceleration, rad/s^2."""
+    a: np.ndarray
+    """(N, 3) linear acceleration, m/s^2."""
+    wrench: np.ndarray
+    """(N, C, 6) per-contact wrench (F [N], T [N m] about the world origin); zero when inactive."""
+    cop: np.ndarray
+    """(N, 3) centre of pressure, m (NaN without vertical force)."""
+    cov: np.ndarray | None = None
+    """(N, 18, 18) marginal covariance of the state (world-frame increments)."""
+    wrench_cov: np.ndarray | None = None
+    """(N, 6, 6) covariance of the total contact wrench."""
+    cop_cov: np.ndarray | None = None
+    """(N, 2, 2) covariance of the CoP's x and y, m^2."""
+    residuals: dict[str, np.ndarray] = field(default_factory=dict)
+    """Whitened residual of each factor family: name -> (N, k), NaN where the family is absent."""
+    residual_labels: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    """Axis labels of each residual family, with units, e.g. ``("F_x [N]", ...)``."""
+    innovation: np.ndarray | None = None
+    """(N, 6) EKF innovation (gyro, accelerometer), rad/s and m/s^2."""
+    innovation_cov: np.ndarray | None = None
+    """(N, 6, 6) its covariance."""
+    time_per_step: np.ndarray | None = None
+    """(N,) wall-clock seconds spent on each step (update time for the fixed-lag smoother)."""
+    total_time: float = 0.0
+    """Wall-clock seconds for the whole run."""
+    effects: dict = field(default_factory=dict)
+    """Estimated effect parameters (name -> JSON-serialisable values)."""
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        return int(self.t_ns.shape[0])
+
+    @property
+    def time(self) -> np.ndarray:
+        """(N,) seconds from the first sample."""
+        return (self.t_ns - self.t_ns[0]).astype(float) * 1e-9
+
+    @property
+    def total_wrench(self) -> np.ndarray:
+        """(N, 6) sum of the contact wrenches."""
+        return self.wrench.sum(axis=1)
+
+    def state_std(self) -> np.ndarray | None:
+        """(N, 18) standard deviations of the state components."""
+        if self.cov is None:
+            return None
+        return np.sqrt(np.maximum(np.diagonal(self.cov, axis1=1, axis2=2), 0.0))
+
+    # ------------------------------------------------------------------------------------------
+    def save(self, path: str | Path) -> Path:
+        """Write to a compressed ``.npz`` file (arrays plus a JSON header)."""
+        path = Path(path)
+        if path.suffix != ".npz":
+            path = path.with_suffix(path.suffix + ".npz") if path.suffix else path.with_suffix(".npz")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        arrays = {}
+        for name in ("t_ns", "R", "t", "w", "v", "dw", "a", "wrench", "cop", "cov", "wrench_cov", "cop_cov",
+                     "innovation", "innovation_cov", "time_per_step"):
+            value = getattr(self, name)
+            if value is not None:
+                arrays[name] = value
+        for fam, value in self.residuals.items():
+            arrays[f"residual/{fam}"] = value
+        header = {"estimator": self.estimator, "contact_names": list(self.contact_names),
+                  "total_time": self.total_time, "effects": self.effects, "meta": self.meta,
+                  "residual_labels": {k: list(v) for k, v in self.residual_labels.items()}}
+        arrays["header"] = np.array(json.dumps(header))
+        np.savez_compressed(path, **arrays)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> "Estimate":
+        """Read a file written by :meth:`save`."""
+        path = Path(path)
+        try:
+            with np.load(path, allow_pickle=False) as f:
+                header = json.loads(str(f["header"]))
+                data = {k: f[k] for k in f.files if k != "header"}
+        except (OSError, ValueError, KeyError) as err:
+            raise DataError(f"cannot read estimate {path}: {err}; expected a file written by flexforce run") from err
+        residuals = {k.split("/", 1)[1]: data.pop(k) for k in list(data) if k.startswith("residual/")}
+        return cls(estimator=header["estimator"], contact_names=tuple(header["contact_names"]),
+                   total_time=header["total_time"], effects=header["effects"], meta=header["meta"],
+                   residuals=residuals,
+                   residual_labels={k: tuple(v) for k, v in header["residual_labels"].items()}, **data)

@@ -1,0 +1,363 @@
+"""Robot model: a URDF through pinocchio plus a small TOML configuration.
+
+The configuration names the contact frames, the IMU frame, the links whose world position is
+tracked (the hands), the contact stiffness and damping, and the sensor noise.  Files for
+``romeo`` (the default), ``talos`` and ``icub`` ship in ``flexforce/datasets/robots``.
+
+:meth:`RobotModel.kinematics` turns a configuration of the robot *in the local frame* (its own
+belief: free-flyer placement and joints, with their velocities and accelerations) into the
+paper's inputs (sec. II-C, correction 3 of DESIGN.md), the IMU placement and motion (eq. 26-28)
+and the contact placements.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import site
+import sys
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+
+from flexforce.errors import ConfigError
+from flexforce.factors.physics import GRAVITY, ContactParams, ImuPlacement, Inputs
+
+ROBOTS_DIR = Path(__file__).resolve().parent / "robots"
+DEFAULT_ROBOT = "romeo"
+
+
+def example_robot_data_dir() -> Path:
+    """The ``robots`` folder of example-robot-data (installed by the ``example-robot-data`` wheel)."""
+    roots = list(site.getsitepackages()) + [site.getusersitepackages(), sys.prefix]
+    for root in roots:
+        candidate = Path(root) / "cmeel.prefix" / "share" / "example-robot-data" / "robots"
+        if candidate.is_dir():
+            return candidate
+    raise ConfigError("example-robot-data is not installed: its robots folder "
+                      "(cmeel.prefix/share/example-robot-data/robots) was not found; pip install example-robot-data")
+
+
+@dataclass(frozen=True)
+class Stiffness:
+    """Contact spring-damper, the same for every contact of the robot (eq. 6, 11).
+
+    Scalars are isotropic; 3-vectors are diagonal in the contact frame.
+    """
+
+    k_fs: float | tuple = 40000.0
+    """Translational stiffness, N/m."""
+    k_fd: float | tuple = 600.0
+    """Translational damping, N s/m."""
+    k_ts: float | tuple = 400.0
+    """Rotational stiffness, N m/rad."""
+    k_td: float | tuple = 10.0
+    """Rotational damping, N m s/rad."""
+
+    def params(self) -> ContactParams:
+        """The :class:`ContactParams` of one contact."""
+        return ContactParams.make(self.k_fs, self.k_fd, self.k_ts, self.k_td)
+
+
+@dataclass(frozen=True)
+class ImuNoise:
+    """IMU noise model (continuous-time densities; discrete sigma = density * sqrt(rate)).
+
+    Defaults are representative of an old MEMS IMU such as the ten-year-old units of the seed's
+    HRP-2: gyro angle random walk 0.05 deg/s/sqrt(Hz), accelerometer velocity random walk
+    400 ug/sqrt(Hz), bias instabilities drifting slowly as random walks.
+    """
+
+    gyro_density: float = 8.7e-4
+    """Gyro white noise, rad/s/sqrt(Hz)."""
+    accel_density: float = 3.9e-3
+    """Accelerometer white noise, m/s^2/sqrt(Hz)."""
+    gyro_bias_rw: float = 2e-5
+    """Gyro bias random walk, rad/s^2/sqrt(Hz)."""
+    accel_bias_rw: float = 2e-4
+    """Accelerometer bias random walk, m/s^3/sqrt(Hz)."""
+
+    def gyro_sigma(self, rate: float) -> float:
+        """Per-sample gyro standard deviation (rad/s) at ``rate`` Hz."""
+        return self.gyro_density * math.sqrt(rate)
+
+    def accel_sigma(self, rate: float) -> float:
+        """Per-sample accelerometer standard deviation (m/s^2) at ``rate`` Hz."""
+        return self.accel_density * math.sqrt(rate)
+
+
+@dataclass(frozen=True)
+class FtNoise:
+    """Force/torque sensor noise, per-sample standard deviations."""
+
+    force: float = 2.0
+    """N."""
+    torque: float = 0.2
+    """N m."""
+
+
+@dataclass(frozen=True)
+class ContactConfig:
+    """One contact of the robot."""
+
+    name: str
+    """Name used in recordings and reports (e.g. ``left_foot``)."""
+    frame: str
+    """Frame of the URDF at the contact (sole), whose origin is the contact point."""
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    """A robot: URDF, frames, stiffness and sensor noise (one TOML file, see ``robots/*.toml``)."""
+
+    name: str
+    urdf: str
+    """Path of the URDF; ``erd:`` prefixes a path inside example-robot-data's robots folder;
+    a relative path is taken from the configuration file's folder."""
+    contacts: tuple[ContactConfig, ...]
+    imu_frame: str
+    """Frame of the IMU (gyrometer and accelerometer axes)."""
+    srdf: str | None = None
+    """SRDF holding the reference posture (same path rules as ``urdf``)."""
+    reference: str = "half_sitting"
+    """Name of the SRDF reference configuration; the neutral configuration when absent."""
+    reference_joints: dict = field(default_factory=dict)
+    """Joint values (rad) overriding the reference posture."""
+    lock_joints: str | None = None
+    """Regular expression of joint names locked at the reference posture (fingers...)."""
+    links: tuple[str, ...] = ()
+    """Frames whose world position is tracked in the ground truth (the hands)."""
+    stiffness: Stiffness = Stiffness()
+    imu_noise: ImuNoise = ImuNoise()
+    ft_noise: FtNoise = FtNoise()
+    gravity: float = GRAVITY
+    source: str = ""
+    """Where the configuration was read from."""
+
+    @classmethod
+    def load(cls, name_or_path: str | Path) -> "RobotConfig":
+        """Read a built-in configuration by name (``romeo``, ``talos``, ``icub``) or a TOML file."""
+        path = Path(name_or_path)
+        if not path.suffix:
+            path = ROBOTS_DIR / f"{name_or_path}.toml"
+            if not path.exists():
+                known = ", ".join(sorted(p.stem for p in ROBOTS_DIR.glob("*.toml")))
+                raise ConfigError(f"unknown robot '{name_or_path}'; built-in robots: {known}, or give a .toml path")
+        if not path.exists():
+            raise ConfigError(f"robot configuration not found: {path}")
+        try:
+            raw = tomllib.loads(path.read_text())
+        except tomllib.TOMLDecodeError as err:
+            raise ConfigError(f"robot configuration {path} is not valid TOML: {err}") from err
+        return cls.from_dict(raw, base=path.parent, source=str(path))
+
+    @classmethod
+    def from_dict(cls, raw: dict, base: Path | None = None, source: str = "") -> "RobotConfig":
+        """Build from the dictionary of a TOML file; unknown keys are refused."""
+        raw = dict(raw)
+        known = {f for f in cls.__dataclass_fields__}
+        unknown = set(raw) - known
+        if unknown:
+            raise ConfigError(f"unknown key(s) {sorted(unknown)} in robot configuration {source}; "
+                              f"known keys: {sorted(known - {'source'})}")
+        for key in ("name", "urdf", "contacts", "imu_frame"):
+            if key not in raw:
+                raise ConfigError(f"robot configuration {source} lacks '{key}'")
+        try:
+            contacts = tuple(ContactConfig(**c) for c in raw.pop("contacts"))
+            stiffness = Stiffness(**{k: tuple(v) if isinstance(v, list) else v
+                                     for k, v in raw.pop("stiffness", {}).items()})
+            imu_noise = ImuNoise(**raw.pop("imu_noise", {}))
+            ft_noise = FtNoise(**raw.pop("ft_noise", {}))
+        except TypeError as err:
+            raise ConfigError(f"robot configuration {source}: {err}") from err
+        for key in ("urdf", "srdf"):
+            if raw.get(key):
+                raw[key] = _resolve(raw[key], base)
+        raw["links"] = tuple(raw.get("links", ()))
+        raw.pop("source", None)
+        return cls(contacts=contacts, stiffness=stiffness, imu_noise=imu_noise, ft_noise=ft_noise,
+                   source=source, **raw)
+
+    @property
+    def contact_names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.contacts)
+
+
+def _resolve(path: str, base: Path | None) -> str:
+    if path.startswith("erd:"):
+        return str(example_robot_data_dir() / path[4:])
+    p = Path(path)
+    if not p.is_absolute() and base is not None:
+        p = base / p
+    return str(p.resolve())
+
+
+@dataclass
+class LocalKinematics:
+    """What the robot's own model says at one instant, in the local frame."""
+
+    inputs: Inputs
+    imu: ImuPlacement
+    contact_p: np.ndarray
+    """(C, 3) contact positions, m."""
+    contact_R: np.ndarray
+    """(C, 3, 3) contact orientations."""
+    links: np.ndarray
+    """(L, 3) positions of the tracked links, m."""
+
+
+class RobotModel:
+    """Pinocchio model of a robot with a free-flyer root, built from a :class:`RobotConfig`.
+
+    Configuration vectors are pinocchio's: ``q = (x, y, z, qx, qy, qz, qw, joints...)`` and
+    ``v = (body linear velocity, body angular velocity, joint velocities)``.
+    """
+
+    def __init__(self, config: RobotConfig | str | Path = DEFAULT_ROBOT):
+        if not isinstance(config, RobotConfig):
+            config = RobotConfig.load(config)
+        self.config = config
+        if not Path(config.urdf).exists():
+            raise ConfigError(f"URDF of robot '{config.name}' not found: {config.urdf}")
+        try:
+            full = pin.buildModelFromUrdf(config.urdf, pin.JointModelFreeFlyer())
+        except Exception as err:  # pinocchio raises plain RuntimeError/ValueError
+            raise ConfigError(f"cannot read URDF {config.urdf}: {err}") from err
+        q_ref = pin.neutral(full)
+        if config.srdf:
+            try:
+                pin.loadReferenceConfigurations(full, config.srdf, False)
+            except Exception as err:
+                raise ConfigError(f"cannot read SRDF {config.srdf}: {err}") from err
+            refs = full.referenceConfigurations
+            if config.reference in refs:
+                q_ref = np.array(refs[config.reference])
+        for jname, value in config.reference_joints.items():
+            if not full.existJointName(jname):
+                raise ConfigError(f"reference_joints names unknown joint '{jname}' of robot '{config.name}'")
+            q_ref[full.joints[full.getJointId(jname)].idx_q] = value
+        if config.lock_joints:
+            pattern = re.compile(config.lock_joints)
+            locked = [full.getJointId(n) for n in full.names[2:] if pattern.search(n)]
+            self.model = pin.buildReducedModel(full, locked, q_ref) if locked else full
+            keep = [i for i, n in enumerate(full.names) if not (i >= 2 and pattern.search(n))]
+            q_ref = np.concatenate([q_ref[:7]] + [
+                q_ref[full.joints[i].idx_q:full.joints[i].idx_q + full.joints[i].nq] for i in keep[2:]])
+        else:
+            self.model = full
+        self.data = self.model.createData()
+        model = self.model
+        for frame in [c.frame for c in config.contacts] + [config.imu_frame] + list(config.links):
+            if not model.existFrame(frame):
+                raise ConfigError(f"frame '{frame}' of robot configuration '{config.name}' is not in the URDF "
+                                  f"{config.urdf}")
+        self.contact_frame_ids = [model.getFrameId(c.frame) for c in config.contacts]
+        self.imu_frame_id = model.getFrameId(config.imu_frame)
+        self.link_frame_ids = [model.getFrameId(f) for f in config.links]
+        self.mass = float(sum(model.inertias[i].mass for i in range(1, model.njoints)))
+        self.joint_names: tuple[str, ...] = tuple(model.names[2:])
+        self.q_reference = self._place_on_ground(q_ref)
+
+    # ------------------------------------------------------------------------------------------
+    @property
+    def name(self) -> str:
+        return self.config.name
+
+    @property
+    def contact_names(self) -> tuple[str, ...]:
+        return self.config.contact_names
+
+    @property
+    def link_names(self) -> tuple[str, ...]:
+        return tuple(self.config.links)
+
+    def contact_params(self) -> list[ContactParams]:
+        """The nominal spring-damper of each contact."""
+        p = self.config.stiffness.params()
+        return [p for _ in self.config.contacts]
+
+    def _place_on_ground(self, q: np.ndarray) -> np.ndarray:
+        """Move the free-flyer so that the contacts' mean lies at the origin, on the plane z = 0."""
+        q = q.copy()
+        q[:3] = 0.0
+        q[3:7] = [0.0, 0.0, 0.0, 1.0]
+        pin.framesForwardKinematics(self.model, self.data, q)
+        mean = np.mean([self.data.oMf[i].translation for i in self.contact_frame_ids], axis=0)
+        q[:3] = -mean
+        return q
+
+    def joint_index(self, name: str) -> int:
+        """Index of joint ``name`` in the joint part of q (after the 7 free-flyer entries)."""
+        if not self.model.existJointName(name):
+            raise ConfigError(f"robot '{self.name}' has no joint '{name}'")
+        jid = self.model.getJointId(name)
+        return self.model.joints[jid].idx_q - 7
+
+    # ------------------------------------------------------------------------------------------
+    def kinematics(self, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> LocalKinematics:
+        """The paper's inputs, the IMU placement and motion, and the contacts, in the local frame.
+
+        Args:
+            q, v, a: configuration, velocity and acceleration of the robot in the local frame
+                (pinocchio conventions, free-flyer velocity in the body frame).
+        """
+        model, data = self.model, self.data
+        pin.forwardKinematics(model, data, q, v, a)
+        pin.updateFramePlacements(model, data)
+        m = self.mass
+        c = pin.centerOfMass(model, data, q, v, a, False).copy()
+        dc = data.vcom[0].copy()
+        ddc = data.acom[0].copy()
+        pin.computeCentroidalMomentumTimeVariation(model, data, q, v, a)
+        hg_ang = data.hg.angular.copy()
+        dhg_ang = data.dhg.angular.copy()
+        pin.ccrba(model, data, q, v)
+        I_G = data.Ig.inertia.copy()
+        Sc = _skew(c)
+        I_l = I_G - m * Sc @ Sc
+        sigma = hg_ang + m * Sc @ dc
+        dsigma = dhg_ang + m * Sc @ ddc
+        dI = self._inertia_rate()
+        inputs = Inputs(m, c, dc, ddc, I_l, dI, sigma, dsigma)
+        fid = self.imu_frame_id
+        oMf = data.oMf[fid]
+        vel = pin.getFrameVelocity(model, data, fid, pin.LOCAL_WORLD_ALIGNED)
+        acc = pin.getFrameClassicalAcceleration(model, data, fid, pin.LOCAL_WORLD_ALIGNED)
+        imu = ImuPlacement(oMf.rotation.copy(), oMf.translation.copy(), vel.linear.copy(),
+                           acc.linear.copy(), vel.angular.copy())
+        cp = np.array([data.oMf[i].translation for i in self.contact_frame_ids])
+        cR = np.array([data.oMf[i].rotation for i in self.contact_frame_ids])
+        links = np.array([data.oMf[i].translation for i in self.link_frame_ids]).reshape(-1, 3)
+        return LocalKinematics(inputs, imu, cp, cR, links)
+
+    def _inertia_rate(self) -> np.ndarray:
+        r"""dI_l/dt, I_l = sum_i (R_i I_i R_i^T - m_i [c_i]x^2) about the origin (after forwardKinematics).
+
+        d(R I R^T)/dt = [w]x R I R^T - R I R^T [w]x and d(-m [c]x^2)/dt = -m ([dc]x [c]x + [c]x [dc]x).
+        """
+        model, data = self.model, self.data
+        dI = np.zeros((3, 3))
+        for i in range(1, model.njoints):
+            Y = model.inertias[i]
+            if Y.mass == 0.0:
+                continue
+            M = data.oMi[i]
+            R = M.rotation
+            vi = data.v[i]
+            w = R @ vi.angular
+            c = M.translation + R @ Y.lever
+            dc = R @ (vi.linear + _skew(vi.angular) @ Y.lever)
+            IR = R @ Y.inertia @ R.T
+            Sw = _skew(w)
+            Sc = _skew(c)
+            Sdc = _skew(dc)
+            dI += Sw @ IR - IR @ Sw - Y.mass * (Sdc @ Sc + Sc @ Sdc)
+        return dI
+
+
+def _skew(v):
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])

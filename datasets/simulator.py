@@ -1,0 +1,695 @@
+"""Ground-truth simulator, independent of the hand-written equations of :mod:`flexforce.factors.physics`.
+
+The robot is a pinocchio free-flyer multibody.  Its joints follow a prescribed trajectory (stiff
+position control: the joint motion is imposed, whatever the torque); the only free motion is the
+6-D flexibility.  Each contact in force is held to its rest placement by a 6-D spring-damper
+acting on the contact frame's actual placement (forward kinematics), and the free-flyer rows of
+the multibody dynamics (pinocchio's CRBA and RNEA)::
+
+    M_bb a_b + (M_bj qdd_j + h_b) = sum_c J_c,b^T f_c + J_e,b^T f_e
+
+give the base acceleration.  The flexibility is the rigid transform from the robot's own belief
+(the local frame, where the contacts sit at their rest placements) to the world:
+``world_T_base = flex * local_T_base``.  The state (flexibility pose and velocity) is integrated
+with the classical 4th-order Runge-Kutta scheme at ``sim_rate`` (1 kHz by default) and sampled at
+``rate`` (200 Hz by default).
+
+The local-frame motion is computed exactly (inverse kinematics with analytic velocities and
+accelerations) at the sample instants and interpolated between them with quintic Hermite
+polynomials, which match position, velocity and acceleration at every sample.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import pinocchio as pin
+
+from flexforce.errors import ConfigError, ModelError
+from flexforce.factors import so3
+from flexforce.factors.physics import ContactParams, center_of_pressure
+from flexforce.datasets.effects import HiddenEffect, parse_effects
+from flexforce.datasets.recording import Recording, Truth
+from flexforce.datasets.robot import ROBOTS_DIR, FtNoise, ImuNoise, RobotConfig, RobotModel
+from flexforce.datasets.scenario import Scenario
+
+E_Z = np.array([0.0, 0.0, 1.0])
+
+
+def _cross(a, b):
+    # np.cross costs ~50 us on 3-vectors (axis handling); this costs ~1 us.
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+# ----------------------------------------------------------------------------------------------
+# Local-frame motion
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass
+class LocalSample:
+    """The robot in its local frame at one instant: pinocchio q, v, a (free-flyer body twist)."""
+
+    q: np.ndarray
+    v: np.ndarray
+    a: np.ndarray
+    active: np.ndarray
+    """(C,) bool, contacts in force."""
+
+
+class LocalMotion:
+    """The prescribed motion of the robot in its local frame.
+
+    The pelvis follows the scenario's ``[[base]]`` segments (translation only, orientation of the
+    reference posture), the upper-body joints its ``[[joint]]`` segments, and the leg joints are
+    solved by inverse kinematics so that every contact stays at its placement -- its rest
+    placement while in contact, the ``[[swing]]`` trajectory in the air.
+    """
+
+    def __init__(self, robot: RobotModel, scenario: Scenario):
+        self.robot = robot
+        self.model = robot.model
+        self.data = self.model.createData()
+        model = self.model
+        self.q_ref = robot.q_reference.copy()
+        pin.framesForwardKinematics(model, self.data, self.q_ref)
+        self.fids = robot.contact_frame_ids
+        self.placements0 = [self.data.oMf[f].copy() for f in self.fids]
+        # Leg chains: the joints supporting each contact frame (free-flyer excluded).
+        self.leg_q, self.leg_v = [], []
+        for fid in self.fids:
+            chain = [j for j in model.supports[model.frames[fid].parentJoint] if j > 1]
+            if sum(model.joints[j].nv for j in chain) != 6:
+                raise ConfigError(f"contact frame '{model.frames[fid].name}' must be carried by a 6-joint leg "
+                                  f"for the simulator's inverse kinematics; its chain has "
+                                  f"{sum(model.joints[j].nv for j in chain)} degrees of freedom")
+            self.leg_q.append(np.array([model.joints[j].idx_q for j in chain]))
+            self.leg_v.append(np.array([model.joints[j].idx_v for j in chain]))
+        names = robot.contact_names
+        self.swings = scenario.swings()
+        for sw in self.swings:
+            if sw.contact not in names:
+                raise ConfigError(f"swing names contact '{sw.contact}'; robot '{robot.name}' has {list(names)}")
+        self.swing_index = [names.index(sw.contact) for sw in self.swings]
+        self.joint_segments = []
+        for name, seg in scenario.segments(scenario.joint, robot.name, 1):
+            if not model.existJointName(name):
+                raise ConfigError(f"scenario '{scenario.name}' moves joint '{name}', unknown to robot '{robot.name}'")
+            jid = model.getJointId(name)
+            iq, iv = model.joints[jid].idx_q, model.joints[jid].idx_v
+            if any(iv in lv for lv in self.leg_v):
+                raise ConfigError(f"joint '{name}' belongs to a leg; legs follow the contacts, move the base instead")
+            self.joint_segments.append((iq, iv, seg))
+        base_segments = scenario.segments(self._resolve_toward(scenario.base), robot.name, 3)
+        self.base_segments = []
+        com_map = None
+        for target, seg in base_segments:
+            if target == "com":
+                if com_map is None:
+                    com_map = np.linalg.inv(self._com_jacobian())
+                seg = type(seg)(seg.kind, seg.start, seg.duration, com_map @ seg.value, seg.frequency, seg.ramp)
+            elif target not in (None, "base"):
+                raise ConfigError(f"base segment target must be 'base' or 'com', got '{target}'")
+            self.base_segments.append(seg)
+        self._q_guess = self.q_ref.copy()
+
+    # ------------------------------------------------------------------------------------------
+    def _resolve_toward(self, items: list[dict]) -> list[dict]:
+        """Turn ``toward = CONTACT|"middle"`` (with ``fraction``) into a CoM offset.
+
+        The CoM moves by ``fraction`` of the horizontal way from where the previous segments left
+        it to the contact's placement (or the middle of all contacts) at the segment's start.
+        """
+        out = []
+        com = pin.centerOfMass(self.model, self.data, self.q_ref).copy()
+        names = self.robot.contact_names
+        for item in sorted(items, key=lambda it: it.get("start", 0.0)):
+            item = dict(item)
+            toward = item.pop("toward", None)
+            fraction = float(item.pop("fraction", 1.0))
+            if toward is not None:
+                placements = self.contact_targets(float(item.get("start", 0.0)))[0]
+                if toward == "middle":
+                    goal = np.mean([M.translation for M in placements], axis=0)
+                elif toward in names:
+                    goal = placements[names.index(toward)].translation
+                else:
+                    raise ConfigError(f"base segment toward '{toward}': expected 'middle' or one of {list(names)}")
+                item["offset"] = [fraction * (goal[0] - com[0]), fraction * (goal[1] - com[1]), 0.0]
+                item["target"] = "com"
+                item["kind"] = "step"
+            if item.get("kind", "step") == "step" and item.get("target") == "com" and "offset" in item:
+                com = com + np.asarray(item["offset"], dtype=float)
+            out.append(item)
+        return out
+
+    def _com_jacobian(self) -> np.ndarray:
+        """d CoM / d pelvis translation with the contacts held (3x3, by central differences)."""
+        J = np.zeros((3, 3))
+        h = 1e-4
+        targets = self.placements0
+        for i in range(3):
+            cols = []
+            for sgn in (1.0, -1.0):
+                q = self.q_ref.copy()
+                q[i] += sgn * h
+                q = self._ik(q, targets)
+                cols.append(pin.centerOfMass(self.model, self.data, q))
+            J[:, i] = (cols[0] - cols[1]) / (2 * h)
+        return J
+
+    def _ik(self, q: np.ndarray, targets) -> np.ndarray:
+        model, data = self.model, self.data
+        for ci, fid in enumerate(self.fids):
+            lq, lv = self.leg_q[ci], self.leg_v[ci]
+            for _ in range(50):
+                pin.forwardKinematics(model, data, q)
+                M = pin.updateFramePlacement(model, data, fid)
+                err = pin.log6(M.actInv(targets[ci])).vector
+                if np.max(np.abs(err)) < 1e-13:
+                    break
+                J = pin.computeFrameJacobian(model, data, q, fid, pin.LOCAL)[:, lv]
+                q[lq] += np.linalg.solve(J, err)
+            else:
+                raise ModelError(f"inverse kinematics of contact {ci} did not converge (residual {np.abs(err).max():.2e}); "
+                                 "the scenario asks for an unreachable placement")
+        return q
+
+    def contact_targets(self, t: float):
+        """Per contact: placement (SE3), LWA velocity and classical acceleration (6,), active flag."""
+        n = len(self.fids)
+        disp = [np.zeros(3) for _ in range(n)]
+        vel = [np.zeros(3) for _ in range(n)]
+        acc = [np.zeros(3) for _ in range(n)]
+        active = np.ones(n, dtype=bool)
+        for ci, sw in zip(self.swing_index, self.swings):
+            d, dv, da = sw(min(max(t, sw.lift), sw.land))
+            disp[ci] = disp[ci] + d
+            if sw.lift <= t < sw.land:
+                active[ci] = False
+                vel[ci] = vel[ci] + dv
+                acc[ci] = acc[ci] + da
+        placements = [pin.SE3(M0.rotation, M0.translation + d) for M0, d in zip(self.placements0, disp)]
+        v6 = [np.concatenate([v, np.zeros(3)]) for v in vel]
+        a6 = [np.concatenate([a, np.zeros(3)]) for a in acc]
+        return placements, v6, a6, active
+
+    def sample(self, t: float) -> LocalSample:
+        """The exact local-frame q, v, a at time ``t`` (s)."""
+        model, data = self.model, self.data
+        q = self._q_guess.copy()
+        v = np.zeros(model.nv)
+        a = np.zeros(model.nv)
+        p, dp, ddp = self.q_ref[:3].copy(), np.zeros(3), np.zeros(3)
+        for seg in self.base_segments:
+            x, dx, ddx = seg(t)
+            p += x
+            dp += dx
+            ddp += ddx
+        q[:3] = p
+        q[3:7] = self.q_ref[3:7]
+        R_l = pin.Quaternion(self.q_ref[3:7]).matrix()
+        v[:3] = R_l.T @ dp  # body twist; the pelvis does not rotate in the local frame
+        a[:3] = R_l.T @ ddp
+        for iq, iv, seg in self.joint_segments:
+            x, dx, ddx = seg(t)
+            q[iq] = self.q_ref[iq] + x[0]
+            v[iv] = dx[0]
+            a[iv] = ddx[0]
+        placements, vt, at, active = self.contact_targets(t)
+        q = self._ik(q, placements)
+        self._q_guess = q.copy()
+        pin.forwardKinematics(model, data, q, v)
+        Js = []
+        for ci, fid in enumerate(self.fids):
+            J = pin.computeFrameJacobian(model, data, q, fid, pin.LOCAL_WORLD_ALIGNED)[:, self.leg_v[ci]]
+            Js.append(J)
+        pin.forwardKinematics(model, data, q, v)
+        for ci, fid in enumerate(self.fids):
+            part = pin.getFrameVelocity(model, data, fid, pin.LOCAL_WORLD_ALIGNED).vector
+            v[self.leg_v[ci]] = np.linalg.solve(Js[ci], vt[ci] - part)
+        pin.forwardKinematics(model, data, q, v, a)
+        for ci, fid in enumerate(self.fids):
+            part = pin.getFrameClassicalAcceleration(model, data, fid, pin.LOCAL_WORLD_ALIGNED).vector
+            a[self.leg_v[ci]] = np.linalg.solve(Js[ci], at[ci] - part)
+        return LocalSample(q, v, a, active)
+
+
+def _hermite5(s: float, h: float):
+    """Quintic Hermite basis at s in [0, 1] for an interval of length h, with time derivatives.
+
+    Returns three 6-vectors (value, d/dt, d2/dt2) of the weights of (y0, v0, a0, y1, v1, a1).
+    """
+    s2, s3, s4, s5 = s * s, s**3, s**4, s**5
+    H = np.array([1 - 10 * s3 + 15 * s4 - 6 * s5, (s - 6 * s3 + 8 * s4 - 3 * s5) * h,
+                  0.5 * (s2 - 3 * s3 + 3 * s4 - s5) * h * h, 10 * s3 - 15 * s4 + 6 * s5,
+                  (-4 * s3 + 7 * s4 - 3 * s5) * h, 0.5 * (s3 - 2 * s4 + s5) * h * h])
+    dH = np.array([-30 * s2 + 60 * s3 - 30 * s4, (1 - 18 * s2 + 32 * s3 - 15 * s4) * h,
+                   0.5 * (2 * s - 9 * s2 + 12 * s3 - 5 * s4) * h * h, 30 * s2 - 60 * s3 + 30 * s4,
+                   (-12 * s2 + 28 * s3 - 15 * s4) * h, 0.5 * (3 * s2 - 8 * s3 + 5 * s4) * h * h]) / h
+    ddH = np.array([-60 * s + 180 * s2 - 120 * s3, (-36 * s + 96 * s2 - 60 * s3) * h,
+                    0.5 * (2 - 18 * s + 36 * s2 - 20 * s3) * h * h, 60 * s - 180 * s2 + 120 * s3,
+                    (-24 * s + 84 * s2 - 60 * s3) * h, 0.5 * (6 * s - 24 * s2 + 20 * s3) * h * h]) / (h * h)
+    return H, dH, ddH
+
+
+# ----------------------------------------------------------------------------------------------
+# World dynamics
+# ----------------------------------------------------------------------------------------------
+
+
+def _quat_to_R(qw):
+    w, x, y, z = qw
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+def _quat_rate(qw, w):
+    """d/dt of a (w, x, y, z) quaternion under world angular velocity w: 0.5 (0, w) * q."""
+    a, b, c, d = qw
+    x, y, z = w
+    return 0.5 * np.array([-x * b - y * c - z * d, x * a + y * d - z * c, -x * d + y * a + z * b,
+                           x * c - y * b + z * a])
+
+
+@dataclass
+class WorldEval:
+    """Result of one evaluation of the world dynamics."""
+
+    dw: np.ndarray
+    a: np.ndarray
+    wrenches: np.ndarray
+    """(C, 6) contact wrenches (F, T about the world origin)."""
+    local_wrenches: np.ndarray
+    """(C, 6) contact wrenches in the contact frame about its origin (what an F/T sensor reads)."""
+    external: np.ndarray
+    """(6,) external wrench about the world origin."""
+    q_w: np.ndarray
+    v_w: np.ndarray
+    a_w: np.ndarray
+
+
+class Simulator:
+    """Simulates a scenario on a robot and returns a :class:`Recording` with ground truth."""
+
+    def __init__(self, scenario: Scenario | str, robot: RobotModel | RobotConfig | str | None = None,
+                 noise: bool | None = None):
+        if not isinstance(scenario, Scenario):
+            scenario = Scenario.load(scenario)
+        self.scenario = scenario
+        if robot is None:
+            robot = scenario.robot
+        self.robot = robot if isinstance(robot, RobotModel) else RobotModel(robot)
+        self.noise = scenario.noise if noise is None else noise
+        self.effects: list[HiddenEffect] = parse_effects(scenario.effects)
+        cfg = self.robot.config
+        try:
+            self.imu_noise = ImuNoise(**{**cfg.imu_noise.__dict__, **scenario.imu_noise})
+            self.ft_noise = FtNoise(**{**cfg.ft_noise.__dict__, **scenario.ft_noise})
+        except TypeError as err:
+            raise ConfigError(f"scenario '{scenario.name}': bad noise override: {err}") from err
+        self.g = cfg.gravity
+        self.motion = LocalMotion(self.robot, scenario)
+        # The simulated robot: the nominal model, with the hidden mass-model error if any.
+        self.sim_model = pin.Model(self.robot.model)
+        self.sim_model.gravity = pin.Motion(np.array([0.0, 0.0, -self.g]), np.zeros(3))
+        self._apply_com_offset()
+        self.sim_data = self.sim_model.createData()
+        self.contact_params = self._true_contact_params()
+        self.ext_effects = []
+        for eff in self.effects:
+            if eff.type == "external-wrench":
+                self.ext_effects.append((eff, self._frame_of(eff.params.get("link", "@base")),
+                                         eff.vector("force"), eff.vector("torque")))
+
+    # ------------------------------------------------------------------------------------------
+    def _frame_of(self, link: str) -> int:
+        model = self.sim_model
+        if link == "@base":
+            return model.getFrameId(model.names[1])  # the free-flyer joint's frame
+        if link.startswith("@link:"):
+            i = int(link.split(":")[1])
+            return self.robot.link_frame_ids[i]
+        if not model.existFrame(link):
+            raise ConfigError(f"external wrench on unknown link '{link}' of robot '{self.robot.name}'")
+        return model.getFrameId(link)
+
+    def _apply_com_offset(self):
+        offsets = [e.vector("offset") for e in self.effects if e.type == "com-offset"]
+        if not offsets:
+            return
+        offset = np.sum(offsets, axis=0)
+        model = self.sim_model
+        masses = [model.inertias[i].mass for i in range(model.njoints)]
+        j = int(np.argmax(masses))
+        data = model.createData()
+        pin.forwardKinematics(model, data, self.robot.q_reference)
+        R = data.oMi[j].rotation
+        Y = model.inertias[j]
+        shift = R.T @ offset * (self.robot.mass / Y.mass)
+        # Keep the rotational inertia about the body's own CoM: rebuild with the moved lever.
+        model.inertias[j] = pin.Inertia(Y.mass, Y.lever + shift, Y.inertia)
+
+    def _true_contact_params(self) -> list[ContactParams]:
+        params = self.robot.contact_params()
+        out = []
+        for p in params:
+            Kfs, Kfd, Kts, Ktd = p.K_fs.copy(), p.K_fd.copy(), p.K_ts.copy(), p.K_td.copy()
+            bf, bt = p.beta_f, p.beta_t
+            for e in self.effects:
+                if e.type == "stiffness":
+                    s = float(e.params.get("stiffness", 1.0))
+                    d = float(e.params.get("damping", 1.0))
+                    Kfs, Kts, Kfd, Ktd = Kfs * s, Kts * s, Kfd * d, Ktd * d
+                elif e.type == "anisotropic-stiffness":
+                    Kfs = np.diag(e.vector("k_fs", (1.0, 1.0, 1.0))) @ Kfs
+                    Kts = np.diag(e.vector("k_ts", (1.0, 1.0, 1.0))) @ Kts
+                elif e.type == "nonlinear-stiffness":
+                    bf += float(e.params.get("beta_f", 0.0))
+                    bt += float(e.params.get("beta_t", 0.0))
+            out.append(ContactParams(Kfs, Kfd, Kts, Ktd, bf, bt))
+        return out
+
+    # ------------------------------------------------------------------------------------------
+    def world_dynamics(self, t: float, R, tr, w, v, local: LocalSample, rest) -> WorldEval:
+        """Flexibility acceleration from pinocchio's multibody dynamics.
+
+        Args:
+            R, tr, w, v: flexibility rotation, translation, angular and linear velocity (world).
+            local: the robot's local-frame q, v, a at ``t``.
+            rest: per contact, its rest placement (SE3) when in contact, else None.
+        """
+        model, data = self.sim_model, self.sim_data
+        ql, vl, al = local.q, local.v, local.a
+        R_l = _quat_to_R(np.array([ql[6], ql[3], ql[4], ql[5]]))
+        p_l = ql[:3]
+        dp_l = R_l @ vl[:3]
+        w_l = R_l @ vl[3:6]
+        dw_l = R_l @ al[3:6]
+        ddp_l = R_l @ (al[:3] + _cross(vl[3:6], vl[:3]))
+        R_b = R @ R_l
+        Rp = R @ p_l
+        p_b = Rp + tr
+        w_b = w + R @ w_l
+        dp_b = _cross(w, Rp) + R @ dp_l + v
+        q_w = ql.copy()
+        q_w[:3] = p_b
+        quat = pin.Quaternion(R_b)
+        quat.normalize()
+        q_w[3:7] = quat.coeffs()
+        v_w = vl.copy()
+        v_w[:3] = R_b.T @ dp_b
+        v_w[3:6] = R_b.T @ w_b
+        pin.forwardKinematics(model, data, q_w, v_w)
+        nc = len(rest)
+        wrenches = np.zeros((nc, 6))
+        local_wrenches = np.zeros((nc, 6))
+        F_sum = np.zeros(3)
+        M_sum = np.zeros(3)  # moment about the base origin
+        for ci, (fid, M0, par) in enumerate(zip(self.robot.contact_frame_ids, rest, self.contact_params)):
+            if M0 is None:
+                continue
+            M = pin.updateFramePlacement(model, data, fid)
+            vel = pin.getFrameVelocity(model, data, fid, pin.LOCAL_WORLD_ALIGNED)
+            Rc = M.rotation
+            s = M.translation - M0.translation
+            Omega = so3.log(Rc @ M0.rotation.T)
+            Kfs, Kfd, Kts, Ktd = (Rc @ K @ Rc.T for K in (par.K_fs, par.K_fd, par.K_ts, par.K_td))
+            F = -Kfs @ (s * (1.0 + par.beta_f * (s @ s))) - Kfd @ vel.linear
+            tau = -Kts @ (Omega * (1.0 + par.beta_t * (Omega @ Omega))) - Ktd @ vel.angular
+            wrenches[ci, :3] = F
+            wrenches[ci, 3:] = tau + _cross(M.translation, F)
+            local_wrenches[ci, :3] = Rc.T @ F
+            local_wrenches[ci, 3:] = Rc.T @ tau
+            F_sum += F
+            M_sum += tau + _cross(M.translation - p_b, F)
+        external = np.zeros(6)
+        for eff, fid, force, torque in self.ext_effects:
+            k = eff.profile(t)
+            if k == 0.0:
+                continue
+            M = pin.updateFramePlacement(model, data, fid)
+            F = k * force
+            tau = k * torque
+            external[:3] += F
+            external[3:] += tau + _cross(M.translation, F)
+            F_sum += F
+            M_sum += tau + _cross(M.translation - p_b, F)
+        a0 = al.copy()
+        a0[:6] = 0.0
+        b = pin.rnea(model, data, q_w, v_w, a0)[:6]
+        Mfull = pin.crba(model, data, q_w)
+        Mbb = np.triu(Mfull[:6, :6]) + np.triu(Mfull[:6, :6], 1).T
+        f_b = np.concatenate([R_b.T @ F_sum, R_b.T @ M_sum])
+        a_b = np.linalg.solve(Mbb, f_b - b)
+        dw_b = R_b @ a_b[3:]
+        ddp_b = R_b @ (a_b[:3] + _cross(v_w[3:6], v_w[:3]))
+        dw = dw_b - _cross(w, R @ w_l) - R @ dw_l
+        a = ddp_b - _cross(dw, Rp) - _cross(w, _cross(w, Rp)) - 2.0 * _cross(w, R @ dp_l) - R @ ddp_l
+        a_w = al.copy()
+        a_w[:6] = a_b
+        return WorldEval(dw, a, wrenches, local_wrenches, external, q_w, v_w, a_w)
+
+    def _equilibrium(self, local: LocalSample, rest) -> tuple[np.ndarray, np.ndarray]:
+        """Static flexibility (R, t) at the start: zero velocity and zero acceleration."""
+        k_total = sum(float(np.trace(p.K_fs)) / 3.0 for p, M0 in zip(self.contact_params, rest) if M0 is not None)
+        if k_total <= 0:
+            raise ConfigError("the scenario must start with at least one contact in force")
+        R = np.eye(3)
+        tr = np.array([0.0, 0.0, -self.robot.mass * self.g / k_total])
+        zero = np.zeros(3)
+
+        def acc(R, tr):
+            ev = self.world_dynamics(0.0, R, tr, zero, zero, local, rest)
+            return np.concatenate([ev.dw, ev.a])
+
+        for _ in range(30):
+            f0 = acc(R, tr)
+            if np.max(np.abs(f0)) < 1e-11:
+                break
+            J = np.zeros((6, 6))
+            h = 1e-7
+            for i in range(6):
+                d = np.zeros(6)
+                d[i] = h
+                Rp, tp = so3.exp(d[:3]) @ R, tr + d[3:]
+                d[i] = -h
+                Rm, tm = so3.exp(d[:3]) @ R, tr + d[3:]
+                J[:, i] = (acc(Rp, tp) - acc(Rm, tm)) / (2 * h)
+            step = np.linalg.solve(J, -f0)
+            R = so3.exp(step[:3]) @ R
+            tr = tr + step[3:]
+        else:
+            raise ModelError("no static equilibrium found at the start of the scenario: "
+                             "check that the stiffness keeps the robot stable (DESIGN.md, Stability)")
+        return R, tr
+
+    # ------------------------------------------------------------------------------------------
+    def run(self, progress: Callable[[float], None] | None = None) -> Recording:
+        """Simulate the scenario; ``progress`` is called with the fraction done."""
+        sc = self.scenario
+        robot = self.robot
+        n = int(round(sc.duration * sc.rate)) + 1
+        dt = 1.0 / sc.rate
+        sub = int(round(sc.sim_rate / sc.rate))
+        h = dt / sub
+        nc = len(robot.contact_names)
+        times = np.arange(n) * dt
+        # Local motion at the samples (exact), then quintic Hermite in between.
+        samples = [self.motion.sample(float(tk)) for tk in times]
+        rest = [pin.SE3(M) if act else None for M, act in zip(self.motion.placements0, samples[0].active)]
+        R, tr = self._equilibrium(samples[0], rest)
+        quat = pin.Quaternion(R)
+        y = np.concatenate([[quat.w, quat.x, quat.y, quat.z], tr, np.zeros(6)])
+
+        truth = {k: np.zeros((n, 3)) for k in ("t", "w", "v", "dw", "a", "cop")}
+        truth_R = np.zeros((n, 3, 3))
+        truth_wrench = np.zeros((n, nc, 6))
+        truth_ext = np.zeros((n, 6))
+        links = np.zeros((n, len(robot.link_frame_ids), 3))
+        ft_true = np.zeros((n, nc, 6))
+        gyro_true = np.zeros((n, 3))
+        accel_true = np.zeros((n, 3))
+        rec_rest_p = np.zeros((n, nc, 3))
+        rec_rest_R = np.tile(np.eye(3), (n, nc, 1, 1))
+        active = np.zeros((n, nc), dtype=bool)
+
+        def deriv(t, y, local, rest):
+            qw = y[:4] / np.linalg.norm(y[:4])
+            Rm = _quat_to_R(qw)
+            ev = self.world_dynamics(t, Rm, y[4:7], y[7:10], y[10:13], local, rest)
+            return np.concatenate([_quat_rate(qw, y[7:10]), y[10:13], ev.dw, ev.a]), ev
+
+        def local_at(k, s):
+            if s == 0.0:
+                return samples[k]
+            s0, s1 = samples[k], samples[k + 1]
+            H, dH, ddH = _hermite5(s, dt)
+            ql = s0.q.copy()
+            vl = s0.v.copy()
+            al = s0.a.copy()
+            J0 = slice(7, None)
+            V0 = slice(6, None)
+            basis = np.array([s0.q[J0], s0.v[V0], s0.a[V0], s1.q[J0], s1.v[V0], s1.a[V0]])
+            ql[J0] = H @ basis
+            vl[V0] = dH @ basis
+            al[V0] = ddH @ basis
+            # pelvis: analytic
+            base = self.motion
+            p, dp, ddp = base.q_ref[:3].copy(), np.zeros(3), np.zeros(3)
+            for seg in base.base_segments:
+                x, dx, ddx = seg(k * dt + s * dt)
+                p += x
+                dp += dx
+                ddp += ddx
+            R_l = _quat_to_R(np.array([ql[6], ql[3], ql[4], ql[5]]))
+            ql[:3] = p
+            vl[:3] = R_l.T @ dp
+            al[:3] = R_l.T @ ddp
+            return LocalSample(ql, vl, al, s0.active)
+
+        for k in range(n):
+            tk = float(times[k])
+            local = samples[k]
+            # contact set for the interval starting at t_k: rest placement taken when a contact lands
+            for ci in range(nc):
+                if local.active[ci] and rest[ci] is None:
+                    pin.framesForwardKinematics(self.motion.model, self.motion.data, local.q)
+                    rest[ci] = self.motion.data.oMf[robot.contact_frame_ids[ci]].copy()
+                elif not local.active[ci]:
+                    rest[ci] = None
+            _, ev = deriv(tk, y, local, rest)
+            qw = y[:4] / np.linalg.norm(y[:4])
+            truth_R[k] = _quat_to_R(qw)
+            truth["t"][k] = y[4:7]
+            truth["w"][k] = y[7:10]
+            truth["v"][k] = y[10:13]
+            truth["dw"][k] = ev.dw
+            truth["a"][k] = ev.a
+            truth_wrench[k] = ev.wrenches
+            truth_ext[k] = ev.external
+            ft_true[k] = ev.local_wrenches
+            active[k] = local.active
+            for ci in range(nc):
+                if rest[ci] is not None:
+                    rec_rest_p[k, ci] = rest[ci].translation
+                    rec_rest_R[k, ci] = rest[ci].rotation
+                else:
+                    # placement in the air: where the contact frame is in the local frame
+                    pin.framesForwardKinematics(self.motion.model, self.motion.data, local.q)
+                    M = self.motion.data.oMf[robot.contact_frame_ids[ci]]
+                    rec_rest_p[k, ci] = M.translation
+                    rec_rest_R[k, ci] = M.rotation
+            # sensors from pinocchio's kinematics of the simulated robot in the world
+            model, data = self.sim_model, self.sim_data
+            pin.forwardKinematics(model, data, ev.q_w, ev.v_w, ev.a_w)
+            fid = robot.imu_frame_id
+            M = pin.updateFramePlacement(model, data, fid)
+            gyro_true[k] = pin.getFrameVelocity(model, data, fid, pin.LOCAL).angular
+            accel_true[k] = (pin.getFrameClassicalAcceleration(model, data, fid, pin.LOCAL).linear
+                             + M.rotation.T @ (self.g * E_Z))
+            for li, lf in enumerate(robot.link_frame_ids):
+                links[k, li] = pin.updateFramePlacement(model, data, lf).translation
+            truth["cop"][k] = center_of_pressure(ev.wrenches.sum(axis=0), z0=0.0)
+            if k == n - 1:
+                break
+            for j in range(sub):
+                s0 = j / sub
+                l0 = local_at(k, s0)
+                lm = local_at(k, s0 + 0.5 / sub)
+                l1 = local_at(k, s0 + 1.0 / sub) if j < sub - 1 else LocalSample(
+                    samples[k + 1].q, samples[k + 1].v, samples[k + 1].a, local.active)
+                t0 = tk + j * h
+                k1, _ = deriv(t0, y, l0, rest)
+                k2, _ = deriv(t0 + 0.5 * h, y + 0.5 * h * k1, lm, rest)
+                k3, _ = deriv(t0 + 0.5 * h, y + 0.5 * h * k2, lm, rest)
+                k4, _ = deriv(t0 + h, y + h * k3, l1, rest)
+                y = y + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+                y[:4] /= np.linalg.norm(y[:4])
+            if not np.all(np.isfinite(y)) or np.max(np.abs(y[4:7])) > 1.0:
+                raise ModelError(f"simulation diverged at t = {tk:.3f} s (flexibility translation "
+                                 f"{np.abs(y[4:7]).max():.3g} m): the stiffness cannot hold the robot")
+            if progress is not None and k % 20 == 0:
+                progress(k / (n - 1))
+        if progress is not None:
+            progress(1.0)
+        return self._recording(times, samples, truth_R, truth, truth_wrench, truth_ext, links, ft_true,
+                               gyro_true, accel_true, rec_rest_p, rec_rest_R, active)
+
+    # ------------------------------------------------------------------------------------------
+    def _recording(self, times, samples, truth_R, truth, truth_wrench, truth_ext, links, ft_true,
+                   gyro_true, accel_true, rest_p, rest_R, active) -> Recording:
+        sc = self.scenario
+        robot = self.robot
+        n = len(times)
+        rng = np.random.default_rng(sc.seed)
+        kin = [robot.kinematics(s.q, s.v, s.a) for s in samples]
+        inp = [k.inputs for k in kin]
+        imu = [k.imu for k in kin]
+        # IMU: white noise, bias random walk, hidden constant biases.
+        gyro_bias = np.zeros((n, 3))
+        accel_bias = np.zeros((n, 3))
+        for e in self.effects:
+            if e.type == "gyro-bias":
+                gyro_bias += e.vector("value")
+            elif e.type == "accel-bias":
+                accel_bias += e.vector("value")
+        gyro = gyro_true + gyro_bias
+        accel = accel_true + accel_bias
+        ft = ft_true.copy()
+        if self.noise:
+            dt = 1.0 / sc.rate
+            walk_g = np.cumsum(rng.normal(0.0, self.imu_noise.gyro_bias_rw * math.sqrt(dt), (n, 3)), axis=0)
+            walk_a = np.cumsum(rng.normal(0.0, self.imu_noise.accel_bias_rw * math.sqrt(dt), (n, 3)), axis=0)
+            gyro_bias = gyro_bias + walk_g - walk_g[0]
+            accel_bias = accel_bias + walk_a - walk_a[0]
+            gyro = gyro_true + gyro_bias + rng.normal(0.0, self.imu_noise.gyro_sigma(sc.rate), (n, 3))
+            accel = accel_true + accel_bias + rng.normal(0.0, self.imu_noise.accel_sigma(sc.rate), (n, 3))
+            ft[..., :3] += rng.normal(0.0, self.ft_noise.force, ft[..., :3].shape)
+            ft[..., 3:] += rng.normal(0.0, self.ft_noise.torque, ft[..., 3:].shape)
+        truth_obj = Truth(
+            R=truth_R, t=truth["t"], w=truth["w"], v=truth["v"], dw=truth["dw"], a=truth["a"],
+            wrench=truth_wrench, external_wrench=truth_ext, cop=truth["cop"],
+            links={name: links[:, i].copy() for i, name in enumerate(robot.link_names)},
+            gyro_bias=gyro_bias, accel_bias=accel_bias)
+        step_ns = int(round(1e9 / sc.rate))
+        meta = {
+            "source": "simulation",
+            "scenario": sc.to_dict(),
+            "noise": self.noise,
+            "imu_noise": dict(self.imu_noise.__dict__),
+            "ft_noise": dict(self.ft_noise.__dict__),
+            "stiffness": {k: (list(v) if isinstance(v, tuple) else v)
+                          for k, v in robot.config.stiffness.__dict__.items()},
+            "hidden_effects": [{"type": e.type, **e.params} for e in self.effects],
+        }
+        return Recording(
+            t_ns=np.arange(n, dtype=np.int64) * step_ns,
+            robot=robot.name if robot.config.source.startswith(str(ROBOTS_DIR)) else (robot.config.source or robot.name),
+            contact_names=robot.contact_names,
+            mass=robot.mass,
+            com=np.array([i.c for i in inp]), com_vel=np.array([i.dc for i in inp]),
+            com_acc=np.array([i.ddc for i in inp]), inertia=np.array([i.I for i in inp]),
+            inertia_dot=np.array([i.dI for i in inp]), sigma=np.array([i.sigma for i in inp]),
+            sigma_dot=np.array([i.dsigma for i in inp]),
+            imu_R=np.array([m.R for m in imu]), imu_p=np.array([m.p for m in imu]),
+            imu_v=np.array([m.v for m in imu]), imu_a=np.array([m.a for m in imu]),
+            imu_w=np.array([m.w for m in imu]),
+            contact_active=active, contact_p=rest_p, contact_R=rest_R,
+            gyro=gyro, accel=accel,
+            joint_names=robot.joint_names,
+            joint_q=np.array([s.q[7:] for s in samples]), joint_v=np.array([s.v[6:] for s in samples]),
+            ft=ft, truth=truth_obj, gravity=self.g, meta=meta,
+        ).validate()
+
+
+def simulate(scenario: Scenario | str, robot: str | RobotModel | None = None, noise: bool | None = None,
+             progress: Callable[[float], None] | None = None) -> Recording:
+    """Simulate a built-in scenario (by name) or a scenario file; see :class:`Simulator`."""
+    return Simulator(scenario, robot, noise).run(progress)
