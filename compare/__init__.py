@@ -1,1 +1,1 @@
-"""flexforce.compare."""
+"""flexforce.compare: the seed paper's EKF (the baseline), metrics, diagnostics and reports."""

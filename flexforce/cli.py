@@ -59,6 +59,25 @@ def _cmd_simulate(args) -> int:
     return 0
 
 
+def _cmd_run(args) -> int:
+    from flexforce.datasets.bagio import load_recording
+    from flexforce.estimators import run_estimator
+    from flexforce.factors.model import ModelConfig
+
+    rec = load_recording(args.recording)
+    model = ModelConfig.from_recording(rec, robot=args.robot, use_ft=args.ft)
+    options = {}
+    if args.lag is not None:
+        options["lag"] = args.lag
+    est = run_estimator(args.estimator, rec, model, progress=Progress(f"{args.estimator}", enabled=not args.quiet and None),
+                        **options)
+    out = est.save(args.output)
+    tps = est.time_per_step
+    timing = f", {1e6 * float(sorted(tps)[len(tps) // 2]):.0f} us per step (median)" if tps is not None else ""
+    print(f"wrote {out}: {est.n} steps in {est.total_time:.2f} s{timing}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="flexforce",
@@ -77,6 +96,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="overwrite an existing output")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_simulate)
+
+    p = sub.add_parser("run", help="run one estimator on a recording and save its estimate (.npz)")
+    p.add_argument("recording", type=Path, help="bag written by 'flexforce simulate' (or a flexforce recording)")
+    p.add_argument("--estimator", default="ekf", help="ekf (the seed paper's filter), fixed-lag or batch")
+    p.add_argument("-o", "--output", required=True, type=Path, help="estimate file to write (.npz)")
+    p.add_argument("--robot", help="robot name or .toml configuration (default: the recording's)")
+    p.add_argument("--ft", action="store_true", help="fuse the recording's F/T readings as measurements")
+    p.add_argument("--lag", type=float, help="fixed-lag window, s (default 1)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_run)
     return parser
 
 

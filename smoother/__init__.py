@@ -1,1 +1,1 @@
-"""flexforce.smoother."""
+"""flexforce.smoother: factor-graph smoothing of the flexible-contact model (batch and fixed-lag)."""

@@ -1,0 +1,64 @@
+"""ModelConfig: what an estimator assumes about the robot and its sensors.
+
+Shared by the EKF and the smoothers so that they are compared under the same assumptions: the
+nominal contact spring-dampers, the sensor noise, gravity, and the enabled model effects.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+from flexforce.factors.physics import GRAVITY, ContactParams
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Model assumptions of an estimator."""
+
+    contact_params: tuple[ContactParams, ...]
+    """Nominal spring-damper of each contact of the recording (eq. 6, 11)."""
+    gyro_sigma: float
+    """Per-sample gyrometer noise standard deviation, rad/s."""
+    accel_sigma: float
+    """Per-sample accelerometer noise standard deviation, m/s^2."""
+    gravity: float = GRAVITY
+    """m/s^2."""
+    ft_force_sigma: float = 2.0
+    """Per-sample F/T force noise, N (used only with ``use_ft``)."""
+    ft_torque_sigma: float = 0.2
+    """Per-sample F/T torque noise, N m (used only with ``use_ft``)."""
+    use_ft: bool = False
+    """Fuse the recording's F/T readings as measurements."""
+    effects: tuple = field(default_factory=tuple)
+    """Enabled model effects (see the diagnostics); empty for the nominal model."""
+
+    @classmethod
+    def from_recording(cls, rec, robot=None, **overrides) -> "ModelConfig":
+        """Nominal model for a recording: the robot's configured stiffness and the noise model.
+
+        The noise densities are taken from the recording's metadata when it carries them (the
+        simulator stores its noise model there), else from the robot configuration; the per-sample
+        sigma is ``density * sqrt(rate)``.
+        """
+        from flexforce.datasets.robot import RobotConfig, RobotModel
+
+        if robot is None:
+            robot = RobotConfig.load(rec.robot)
+        elif isinstance(robot, RobotModel):
+            robot = robot.config
+        elif not isinstance(robot, RobotConfig):
+            robot = RobotConfig.load(robot)
+        rate = 1.0 / rec.dt
+        noise = rec.meta.get("imu_noise") or robot.imu_noise.__dict__
+        ft = rec.meta.get("ft_noise") or robot.ft_noise.__dict__
+        params = robot.stiffness.params()
+        cfg = cls(
+            contact_params=tuple(params for _ in rec.contact_names),
+            gyro_sigma=float(noise["gyro_density"]) * math.sqrt(rate),
+            accel_sigma=float(noise["accel_density"]) * math.sqrt(rate),
+            gravity=rec.gravity,
+            ft_force_sigma=float(ft["force"]),
+            ft_torque_sigma=float(ft["torque"]),
+        )
+        return replace(cfg, **overrides) if overrides else cfg
