@@ -1,0 +1,51 @@
+"""The command line: thin over the library, one-line errors."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from flexforce.cli import main
+from flexforce.datasets.bagio import load_recording
+from flexforce.datasets.scenario import Scenario, builtin_scenarios
+
+
+def test_builtin_scenarios_parse():
+    names = builtin_scenarios()
+    for name in ("stand", "com-step", "push-pitch", "push-roll", "sway", "weight-shift", "step"):
+        assert name in names
+        sc = Scenario.load(name)
+        assert sc.description and sc.duration > 0
+
+
+def test_simulate_writes_a_bag(tmp_path, capsys):
+    out = tmp_path / "rec"
+    assert main(["simulate", "push-pitch", "--duration", "0.5", "-o", str(out), "-q"]) == 0
+    assert "wrote" in capsys.readouterr().out
+    rec = load_recording(out)
+    assert rec.n == 101 and rec.truth is not None
+    assert rec.meta["scenario"]["name"] == "push-pitch"
+    # refuses to overwrite
+    assert main(["simulate", "stand", "--duration", "0.1", "-o", str(out), "-q"]) == 1
+    assert "exists" in capsys.readouterr().err
+
+
+def test_unknown_scenario_is_one_line_error(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "flexforce.cli", "simulate", "jump", "-o", str(tmp_path / "x")],
+                          capture_output=True, text=True)
+    assert proc.returncode == 1
+    assert proc.stderr.count("\n") == 1
+    assert "unknown scenario 'jump'" in proc.stderr and "push-pitch" in proc.stderr
+
+
+def test_bad_scenario_file(tmp_path):
+    f = tmp_path / "s.toml"
+    f.write_text('name = "s"\nduration = 1.0\n[[swing]]\ncontact = "left_hand"\nlift = 0.2\nland = 0.5\n')
+    with pytest.raises(Exception, match="swing names contact 'left_hand'"):
+        from flexforce.datasets.simulator import Simulator
+
+        Simulator(Scenario.load(f))
+    f.write_text('name = "s"\nduration = 1.0\nrate = 300.0\n')
+    assert main(["simulate", str(f), "-o", str(tmp_path / "o"), "-q"]) == 1
