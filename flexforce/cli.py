@@ -78,6 +78,104 @@ def _cmd_run(args) -> int:
     return 0
 
 
+def _load_or_simulate(source: str, seed: int | None, quiet: bool, robot: str | None = None):
+    """A recording from a bag, or simulated from a built-in scenario name or scenario file."""
+    from flexforce.datasets.bagio import load_recording
+    from flexforce.datasets.scenario import Scenario, builtin_scenarios
+    from flexforce.datasets.simulator import Simulator
+
+    path = Path(source)
+    if path.exists() and not (path.suffix == ".toml"):
+        return load_recording(path)
+    if path.suffix == ".toml" or source in builtin_scenarios():
+        scenario = Scenario.load(source)
+        if robot:
+            scenario.robot = robot
+        if seed is not None:
+            scenario.seed = seed
+        label = f"simulate {scenario.name}" + (f" #{seed}" if seed is not None else "")
+        return Simulator(scenario).run(progress=Progress(label, enabled=not quiet and None))
+    return load_recording(path)  # raises the clear "does not exist" error
+
+
+def _compare_one(rec, args, out: Path):
+    from flexforce.compare.report import write_report
+    from flexforce.compare.runner import compare
+    from flexforce.factors.model import ModelConfig
+
+    model = ModelConfig.from_recording(rec, robot=args.robot, use_ft=args.ft)
+    bars = {}
+
+    def progress(name, fraction):
+        if name not in bars:
+            bars[name] = Progress(f"  {name}", enabled=not args.quiet and None)
+        bars[name](fraction)
+
+    comp = compare(rec, estimators=args.estimators, model=model, progress=progress)
+    write_report(comp, rec, out)
+    return comp
+
+
+def _print_table(comp) -> None:
+    print(f"{'estimator':10s} {'force[N]':>9s} {'CoP[mm]':>8s} {'rot[mrad]':>9s} {'hand[mm]':>8s} {'NEES':>7s} {'step[us]':>9s}")
+    for key, m in comp.metrics.items():
+        r = m.rmse
+
+        def f(x, s=1.0):
+            return f"{x * s:.3g}" if x is not None else "-"
+
+        med = m.time_per_step.get("median") if m.time_per_step else None
+        print(f"{key:10s} {f(r.get('force_N')):>9s} {f(r.get('cop_m'), 1e3):>8s} {f(r.get('rotation_rad'), 1e3):>9s} "
+              f"{f(r.get('hand_m'), 1e3):>8s} {f(m.nees):>7s} {f(med, 1e6):>9s}")
+    for key, msg in comp.failures.items():
+        print(f"{key:10s} failed: {msg}")
+
+
+def _cmd_compare(args) -> int:
+    import json
+
+    from flexforce.compare.runner import aggregate
+
+    args.estimators = [e.strip() for e in args.estimators.split(",") if e.strip()]
+    sources = []
+    for src in args.recordings:
+        if args.seeds and args.seeds > 1:
+            sources += [(f"{Path(src).stem}-seed{s}", src, s) for s in range(args.seeds)]
+        else:
+            sources.append((Path(src).stem or str(src), src, None))
+    out = Path(args.output)
+    comps = []
+    for label, src, seed in sources:
+        rec = _load_or_simulate(src, seed, args.quiet, args.robot)
+        target = out if len(sources) == 1 else out / label
+        comp = _compare_one(rec, args, target)
+        comps.append(comp)
+        if len(sources) > 1:
+            print(f"{label}:")
+        _print_table(comp)
+    if len(comps) > 1:
+        agg = aggregate(comps)
+        (out / "summary.json").write_text(json.dumps(agg, indent=2, allow_nan=False))
+        index = "".join(f'<li><a href="{label}/index.html">{label}</a></li>' for label, _, _ in sources)
+        (out / "index.html").write_text(f"<!DOCTYPE html><html><body><h1>flexforce comparison</h1><ul>{index}</ul>"
+                                        f"<pre>{json.dumps(agg['estimators'], indent=1)}</pre></body></html>")
+    print(f"report: {out / 'index.html'}")
+    return 0
+
+
+def _cmd_demo(args) -> int:
+    from flexforce.datasets.scenario import DEFAULT_SCENARIO
+
+    args.recordings = [args.scenario or DEFAULT_SCENARIO]
+    args.seeds = None
+    args.robot = None
+    args.ft = False
+    args.estimators = "ekf,fixed-lag,batch"
+    print(f"flexforce demo: simulate '{args.recordings[0]}' (Romeo, pushed on the torso then the hand), "
+          f"run the EKF, the fixed-lag and the batch smoothers, compare them against ground truth")
+    return _cmd_compare(args)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="flexforce",
@@ -106,6 +204,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lag", type=float, help="fixed-lag window, s (default 1)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser("compare", help="EKF vs fixed-lag vs batch on recordings: report folder with summary.json")
+    p.add_argument("recordings", nargs="+", help="bags, or built-in scenario names / scenario files to simulate")
+    p.add_argument("-o", "--output", required=True, type=Path, help="report folder")
+    p.add_argument("--estimators", default="ekf,fixed-lag,batch", help="comma-separated list")
+    p.add_argument("--seeds", type=int, help="simulate each scenario with this many noise seeds and aggregate")
+    p.add_argument("--robot", help="robot name or .toml configuration (default: the recording's)")
+    p.add_argument("--ft", action="store_true", help="fuse the recording's F/T readings as measurements")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=_cmd_compare)
+
+    p = sub.add_parser("demo", help="simulate the default scenario, compare the estimators, write a report")
+    p.add_argument("-o", "--output", type=Path, default=Path("flexforce-demo"), help="report folder (./flexforce-demo)")
+    p.add_argument("--scenario", help="another built-in scenario or file")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=_cmd_demo)
     return parser
 
 

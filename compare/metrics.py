@@ -1,0 +1,238 @@
+"""Accuracy, consistency and cost of an Estimate, against ground truth or reference sensors.
+
+Computing stays apart from reporting: :func:`evaluate` returns a :class:`Metrics` object (plain
+numbers and per-step error series); :mod:`flexforce.compare.report` draws figures from it.
+
+Errors are taken per step and summarised as RMSE and max:
+
+- ``rotation_rad``: angle of ``R_est R_true^T``;
+- ``translation_m``: norm of the translation error;
+- ``angular_velocity_rad_s``, ``linear_velocity_m_s``: norms of the velocity errors;
+- ``force_N``, ``moment_Nm``: norms of the total contact force and moment errors (moment about
+  the world origin, which the simulator puts at the ground between the feet);
+- ``contact_force_N``: norm of the per-contact force error, over the steps where it is active;
+- ``cop_m``: horizontal distance between estimated and true CoP;
+- ``hand_m``: world position error of the tracked links (the hands) when the estimated
+  flexibility is used to place them: the paper's hand-compensation experiment.
+
+Consistency: NEES of the 18-D state (mean over the run, with its 95% two-sided chi-square band
+for the mean of N independent draws) and, for filters, NIS of the 6-D innovation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import stats
+
+from flexforce.factors import so3
+
+RMSE_KEYS = ("force_N", "moment_Nm", "cop_m", "rotation_rad", "translation_m", "hand_m")
+"""The headline errors of a comparison (summary.json's ``rmse`` keys)."""
+
+ALL_KEYS = RMSE_KEYS + ("angular_velocity_rad_s", "linear_velocity_m_s", "contact_force_N",
+                        "vertical_force_N")
+
+
+@dataclass
+class Metrics:
+    """Accuracy, consistency and cost of one estimator on one recording."""
+
+    estimator: str
+    rmse: dict[str, float | None] = field(default_factory=dict)
+    max: dict[str, float | None] = field(default_factory=dict)
+    errors: dict[str, np.ndarray] = field(default_factory=dict)
+    """Per-step error series (N,) behind each key (NaN where undefined)."""
+    nees: float | None = None
+    """Mean NEES of the 18-D state (expected value 18 for a consistent estimator)."""
+    nees_bounds: tuple[float, float] | None = None
+    """95% band of the mean NEES over the run for a consistent estimator."""
+    nees_series: np.ndarray | None = None
+    nis: float | None = None
+    """Mean NIS of the innovation (expected 6), filters only."""
+    nis_bounds: tuple[float, float] | None = None
+    nis_series: np.ndarray | None = None
+    time_per_step: dict[str, float] = field(default_factory=dict)
+    """median and p99 of the per-step wall time, s."""
+    total_time: float | None = None
+    peak_memory_mb: float | None = None
+    reference: str = "truth"
+    """``truth`` (simulated) or ``sensors`` (real logs: F/T, motion capture)."""
+    extra: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        """JSON-serialisable summary (no series)."""
+        def clean(x):
+            if x is None:
+                return None
+            x = float(x)
+            return x if math.isfinite(x) else None
+
+        return {
+            "rmse": {k: clean(v) for k, v in self.rmse.items()},
+            "max": {k: clean(v) for k, v in self.max.items()},
+            "time_per_step_s": {k: clean(v) for k, v in self.time_per_step.items()},
+            "total_time_s": clean(self.total_time),
+            "peak_memory_mb": clean(self.peak_memory_mb),
+            "nees": clean(self.nees),
+            "nees_bounds": list(self.nees_bounds) if self.nees_bounds else None,
+            "nis": clean(self.nis),
+            "nis_bounds": list(self.nis_bounds) if self.nis_bounds else None,
+            "reference": self.reference,
+            **({"extra": self.extra} if self.extra else {}),
+        }
+
+
+def _summ(err: np.ndarray) -> tuple[float | None, float | None]:
+    e = err[np.isfinite(err)]
+    if e.size == 0:
+        return None, None
+    return float(np.sqrt(np.mean(e * e))), float(np.max(np.abs(e)))
+
+
+def chi2_mean_bounds(dof: int, n: int, level: float = 0.95) -> tuple[float, float]:
+    """Two-sided band of the mean of ``n`` chi-square(dof) draws (the NEES test of Bar-Shalom)."""
+    lo = stats.chi2.ppf((1 - level) / 2, dof * n) / n
+    hi = stats.chi2.ppf(1 - (1 - level) / 2, dof * n) / n
+    return float(lo), float(hi)
+
+
+def state_error(est, truth) -> np.ndarray:
+    """(N, 18) error in world-frame increments (theta, t, w, v, dw, a): estimate minus truth."""
+    n = est.n
+    e = np.zeros((n, 18))
+    for k in range(n):
+        e[k, :3] = so3.log(est.R[k] @ truth.R[k].T)
+    e[:, 3:6] = est.t - truth.t
+    e[:, 6:9] = est.w - truth.w
+    e[:, 9:12] = est.v - truth.v
+    e[:, 12:15] = est.dw - truth.dw
+    e[:, 15:18] = est.a - truth.a
+    return e
+
+
+def nees_series(est, truth) -> np.ndarray | None:
+    """(N,) normalised estimation error squared of the 18-D state."""
+    if est.cov is None:
+        return None
+    e = state_error(est, truth)
+    out = np.full(est.n, np.nan)
+    for k in range(est.n):
+        try:
+            out[k] = e[k] @ np.linalg.solve(est.cov[k], e[k])
+        except np.linalg.LinAlgError:
+            pass
+    return out
+
+
+def evaluate(est, rec, skip: float = 0.0, peak_memory_mb: float | None = None) -> Metrics:
+    """Metrics of ``est`` on recording ``rec`` (ground truth if any, else reference sensors).
+
+    Args:
+        skip: seconds at the start left out of the statistics (filter convergence).
+    """
+    m = Metrics(est.estimator, peak_memory_mb=peak_memory_mb)
+    keep = rec.time >= skip
+    if est.time_per_step is not None and len(est.time_per_step):
+        m.time_per_step = {"median": float(np.median(est.time_per_step)),
+                           "p99": float(np.percentile(est.time_per_step, 99))}
+    m.total_time = est.total_time
+    if est.innovation is not None and est.innovation_cov is not None:
+        nis = np.full(est.n, np.nan)
+        for k in range(est.n):
+            if np.all(np.isfinite(est.innovation[k])):
+                try:
+                    nis[k] = est.innovation[k] @ np.linalg.solve(est.innovation_cov[k], est.innovation[k])
+                except np.linalg.LinAlgError:
+                    pass
+        m.nis_series = nis
+        ok = keep & np.isfinite(nis)
+        if ok.any():
+            m.nis = float(np.mean(nis[ok]))
+            m.nis_bounds = chi2_mean_bounds(6, int(ok.sum()))
+    if rec.truth is not None:
+        _against_truth(m, est, rec, keep)
+    else:
+        _against_sensors(m, est, rec, keep)
+    return m
+
+
+def _against_truth(m: Metrics, est, rec, keep):
+    tr = rec.truth
+    e = state_error(est, tr)
+    err = {
+        "rotation_rad": np.linalg.norm(e[:, 0:3], axis=1),
+        "translation_m": np.linalg.norm(e[:, 3:6], axis=1),
+        "angular_velocity_rad_s": np.linalg.norm(e[:, 6:9], axis=1),
+        "linear_velocity_m_s": np.linalg.norm(e[:, 9:12], axis=1),
+    }
+    W_est = est.total_wrench
+    W_true = tr.total_wrench
+    err["force_N"] = np.linalg.norm(W_est[:, :3] - W_true[:, :3], axis=1)
+    err["moment_Nm"] = np.linalg.norm(W_est[:, 3:] - W_true[:, 3:], axis=1)
+    err["vertical_force_N"] = np.abs(W_est[:, 2] - W_true[:, 2])
+    cf = np.linalg.norm(est.wrench[..., :3] - tr.wrench[..., :3], axis=2)
+    cf[~rec.contact_active] = np.nan
+    with np.errstate(invalid="ignore"):
+        err["contact_force_N"] = np.sqrt(np.nanmean(cf * cf, axis=1))
+    err["cop_m"] = np.linalg.norm(est.cop[:, :2] - tr.cop[:, :2], axis=1)
+    if tr.links:
+        hand = []
+        moved = []
+        for name, p_w in tr.links.items():
+            p_l = np.einsum("nji,nj->ni", tr.R, p_w - tr.t)  # local position: R^T (p - t)
+            p_est = np.einsum("nij,nj->ni", est.R, p_l) + est.t
+            hand.append(np.linalg.norm(p_est - p_w, axis=1))
+            moved.append(np.linalg.norm(p_w - p_l, axis=1))
+        err["hand_m"] = np.max(hand, axis=0)
+        m.extra["hand_displacement_by_flexibility_max_m"] = float(np.max(moved))
+    else:
+        err["hand_m"] = np.full(est.n, np.nan)
+    for key, series in err.items():
+        s = series.copy()
+        s[~keep] = np.nan
+        m.errors[key] = series
+        m.rmse[key], m.max[key] = _summ(s)
+    ns = nees_series(est, tr)
+    if ns is not None:
+        m.nees_series = ns
+        ok = keep & np.isfinite(ns)
+        if ok.any():
+            m.nees = float(np.mean(ns[ok]))
+            m.nees_bounds = chi2_mean_bounds(18, int(ok.sum()))
+
+
+def _against_sensors(m: Metrics, est, rec, keep):
+    """Real logs: F/T wrenches (NaN components skipped), per-contact vertical force, mocap."""
+    m.reference = "sensors"
+    for key in RMSE_KEYS:
+        m.rmse.setdefault(key, None)
+        m.max.setdefault(key, None)
+    if rec.ft is not None:
+        # Estimated per-contact wrench in the contact frame about its origin, like the sensor.
+        n, c = rec.n, len(rec.contact_names)
+        local = np.full((n, c, 6), np.nan)
+        for k in range(n):
+            for i in range(c):
+                if not rec.contact_active[k, i]:
+                    local[k, i] = 0.0
+                    continue
+                Rc = est.R[k] @ rec.contact_R[k, i]
+                p = est.R[k] @ rec.contact_p[k, i] + est.t[k]
+                F = est.wrench[k, i, :3]
+                T = est.wrench[k, i, 3:] - np.cross(p, F)
+                local[k, i, :3] = Rc.T @ F
+                local[k, i, 3:] = Rc.T @ T
+        diff = local - rec.ft
+        fz = np.abs(diff[:, :, 2])
+        fz[~keep] = np.nan
+        m.errors["vertical_force_N"] = np.sqrt(np.nanmean(fz * fz, axis=1))
+        m.rmse["vertical_force_N"], m.max["vertical_force_N"] = _summ(fz.ravel())
+        ff = diff[:, :, :3]
+        if np.isfinite(ff).any():
+            norm = np.sqrt(np.nansum(ff * ff, axis=2))
+            norm[~np.isfinite(ff).any(axis=2)] = np.nan
+            norm[~keep] = np.nan
+            m.rmse["contact_force_N"], m.max["contact_force_N"] = _summ(norm.ravel())

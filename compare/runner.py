@@ -1,0 +1,172 @@
+"""Run the EKF and the smoothers on the same recording and compare them like for like."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from flexforce.compare.metrics import RMSE_KEYS, Metrics, evaluate
+from flexforce.errors import FlexforceError
+
+DEFAULT_ESTIMATORS = ("ekf", "fixed-lag", "batch")
+
+
+def summary_key(name: str) -> str:
+    """``fixed-lag`` -> ``fixed_lag`` (the keys of summary.json)."""
+    return name.replace("-", "_")
+
+
+class PeakMemory:
+    """Peak growth of the process's resident memory during a block, sampled every ``period`` s.
+
+    Reads /proc/self/statm (Linux); gives None where it is not available.  Sampling misses
+    allocations that live shorter than the period, not the sustained peak of an estimator.
+    """
+
+    def __init__(self, period: float = 0.005):
+        self.period = period
+        self.peak_mb: float | None = None
+        self._page = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
+
+    def _rss(self) -> int | None:
+        try:
+            with open("/proc/self/statm") as f:
+                return int(f.read().split()[1]) * self._page
+        except OSError:
+            return None
+
+    def __enter__(self):
+        self._start = self._rss()
+        self._peak = self._start
+        self._stop = threading.Event()
+        if self._start is not None:
+            self._thread = threading.Thread(target=self._run, daemon=True)
+            self._thread.start()
+        return self
+
+    def _run(self):
+        while not self._stop.wait(self.period):
+            rss = self._rss()
+            if rss is not None and rss > self._peak:
+                self._peak = rss
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        if self._start is not None:
+            self._thread.join()
+            rss = self._rss()
+            self._peak = max(self._peak, rss or 0)
+            self.peak_mb = (self._peak - self._start) / 2**20
+        return False
+
+
+@dataclass
+class Comparison:
+    """Estimates and metrics of several estimators on one recording."""
+
+    recording: dict
+    """Description of the recording (robot, scenario, duration, hidden effects)."""
+    estimates: dict = field(default_factory=dict)
+    """summary key -> Estimate."""
+    metrics: dict[str, Metrics] = field(default_factory=dict)
+    failures: dict[str, str] = field(default_factory=dict)
+    """summary key -> error message of an estimator that failed."""
+
+    def summary(self) -> dict:
+        """The numbers of the report's table (summary.json)."""
+        out = {"recording": self.recording,
+               "estimators": {k: m.to_dict() for k, m in self.metrics.items()}}
+        if self.failures:
+            out["failures"] = self.failures
+        ekf = self.metrics.get("ekf")
+        if ekf is not None:
+            rel = {}
+            for key, m in self.metrics.items():
+                if key == "ekf":
+                    continue
+                rel[key] = {k: (m.rmse[k] / ekf.rmse[k] if m.rmse.get(k) is not None and ekf.rmse.get(k) else None)
+                            for k in RMSE_KEYS}
+            out["rmse_relative_to_ekf"] = rel
+        return out
+
+
+def describe(rec) -> dict:
+    """Short description of a recording for reports."""
+    sc = rec.meta.get("scenario", {})
+    return {
+        "robot": rec.robot,
+        "scenario": sc.get("name"),
+        "description": sc.get("description"),
+        "samples": rec.n,
+        "rate_hz": round(1.0 / rec.dt, 6) if rec.dt else None,
+        "duration_s": float(rec.time[-1]) if rec.n else 0.0,
+        "hidden_effects": rec.meta.get("hidden_effects", []),
+        "has_truth": rec.truth is not None,
+        "contacts": list(rec.contact_names),
+    }
+
+
+def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
+            progress: Callable[[str, float], None] | None = None, options: dict | None = None) -> Comparison:
+    """Run each estimator on ``rec`` and evaluate it.
+
+    Args:
+        estimators: names for :func:`flexforce.estimators.run_estimator`.
+        skip: seconds at the start left out of the statistics (filter convergence).
+        progress: called with (estimator name, fraction done).
+        options: estimator name -> keyword options.
+    """
+    from flexforce.estimators import run_estimator
+    from flexforce.factors.model import ModelConfig
+
+    rec.validate()
+    if model is None:
+        model = ModelConfig.from_recording(rec)
+    result = Comparison(recording=describe(rec))
+    for name in estimators:
+        key = summary_key(name)
+        cb = (lambda f, _n=name: progress(_n, f)) if progress else None
+        t0 = time.perf_counter()
+        try:
+            with PeakMemory() as mem:
+                est = run_estimator(name, rec, model, progress=cb, **(options or {}).get(name, {}))
+        except FlexforceError as err:
+            result.failures[key] = f"{type(err).__name__}: {err}"
+            continue
+        if not est.total_time:
+            est.total_time = time.perf_counter() - t0
+        result.estimates[key] = est
+        result.metrics[key] = evaluate(est, rec, skip=skip, peak_memory_mb=mem.peak_mb)
+    return result
+
+
+def aggregate(comparisons: list[Comparison]) -> dict:
+    """Mean and spread (standard deviation, min, max) of every number over several recordings."""
+    keys = sorted({k for c in comparisons for k in c.metrics})
+    out = {"recordings": [c.recording for c in comparisons], "estimators": {}}
+    for key in keys:
+        ms = [c.metrics[key] for c in comparisons if key in c.metrics]
+        entry = {"count": len(ms), "rmse": {}, "rmse_std": {}, "rmse_min": {}, "rmse_max": {}}
+        for k in RMSE_KEYS:
+            vals = np.array([m.rmse.get(k) for m in ms if m.rmse.get(k) is not None], dtype=float)
+            if vals.size:
+                entry["rmse"][k] = float(vals.mean())
+                entry["rmse_std"][k] = float(vals.std())
+                entry["rmse_min"][k] = float(vals.min())
+                entry["rmse_max"][k] = float(vals.max())
+            else:
+                entry["rmse"][k] = entry["rmse_std"][k] = entry["rmse_min"][k] = entry["rmse_max"][k] = None
+        med = [m.time_per_step.get("median") for m in ms if m.time_per_step]
+        p99 = [m.time_per_step.get("p99") for m in ms if m.time_per_step]
+        entry["time_per_step_s"] = {"median": float(np.median(med)) if med else None,
+                                    "p99": float(np.max(p99)) if p99 else None}
+        nees = [m.nees for m in ms if m.nees is not None]
+        entry["nees"] = float(np.mean(nees)) if nees else None
+        entry["nees_std"] = float(np.std(nees)) if nees else None
+        out["estimators"][key] = entry
+    return out
