@@ -55,6 +55,9 @@ class Estimate:
     """Whitened residual of each factor family: name -> (N, k), NaN where the family is absent."""
     residual_labels: dict[str, tuple[str, ...]] = field(default_factory=dict)
     """Axis labels of each residual family, with units, e.g. ``("F_x [N]", ...)``."""
+    residual_sigma: dict[str, np.ndarray] = field(default_factory=dict)
+    """Noise standard deviation behind each whitened residual, in the physical unit of its
+    labels: name -> (k,) or (N, k).  Physical residual = whitened residual * sigma."""
     innovation: np.ndarray | None = None
     """(N, 6) EKF innovation (gyro, accelerometer), rad/s and m/s^2."""
     innovation_cov: np.ndarray | None = None
@@ -102,6 +105,8 @@ class Estimate:
                 arrays[name] = value
         for fam, value in self.residuals.items():
             arrays[f"residual/{fam}"] = value
+        for fam, value in self.residual_sigma.items():
+            arrays[f"residual_sigma/{fam}"] = np.asarray(value)
         header = {"estimator": self.estimator, "contact_names": list(self.contact_names),
                   "total_time": self.total_time, "effects": self.effects, "meta": self.meta,
                   "residual_labels": {k: list(v) for k, v in self.residual_labels.items()}}
@@ -120,7 +125,8 @@ class Estimate:
         except (OSError, ValueError, KeyError) as err:
             raise DataError(f"cannot read estimate {path}: {err}; expected a file written by flexforce run") from err
         residuals = {k.split("/", 1)[1]: data.pop(k) for k in list(data) if k.startswith("residual/")}
+        sigmas = {k.split("/", 1)[1]: data.pop(k) for k in list(data) if k.startswith("residual_sigma/")}
         return cls(estimator=header["estimator"], contact_names=tuple(header["contact_names"]),
                    total_time=header["total_time"], effects=header["effects"], meta=header["meta"],
-                   residuals=residuals,
+                   residuals=residuals, residual_sigma=sigmas,
                    residual_labels={k: tuple(v) for k, v in header["residual_labels"].items()}, **data)
