@@ -110,6 +110,63 @@ class ContactConfig:
 
 
 @dataclass(frozen=True)
+class RosConfig:
+    """How raw robot bags map onto the robot (the optional ``[ros]`` table of a robot config).
+
+    Read by :func:`flexforce.datasets.rosimport.import_bag`; docs/real-logs.md describes the method.
+    """
+
+    imu_topic: str = "/imu"
+    """sensor_msgs/Imu topic: gyrometer (rad/s) and accelerometer (m/s^2) in ``imu_frame``."""
+    joint_states_topic: str = "/joint_states"
+    """sensor_msgs/JointState topic: joint positions (rad or m), optionally velocities."""
+    ft_topics: dict = field(default_factory=dict)
+    """Contact name -> geometry_msgs/WrenchStamped topic (wrench of the environment on the robot)."""
+    mocap_topics: dict = field(default_factory=dict)
+    """URDF frame name -> geometry_msgs/PoseStamped topic (world pose of that frame)."""
+    contact_on: float | None = None
+    """Schmitt trigger: a contact becomes active when its normal force rises above this, N;
+    default 0.25 m g."""
+    contact_off: float | None = None
+    """Schmitt trigger: an active contact is released when its normal force falls below this, N;
+    default 0.15 m g.  Must be below ``contact_on``."""
+    fixed_contacts: tuple = ()
+    """Contacts active throughout with ``contacts="fixed"``; empty means all contacts."""
+    anchor: str | None = None
+    """Contact preferred as the first stance-foot anchor (default: the most loaded active one)."""
+    rate: float | None = None
+    """Grid rate, Hz; default the IMU's median message rate."""
+    gap_factor: float = 2.0
+    """Source intervals longer than this many grid periods are reported in ``meta['gaps']``."""
+    max_gap: float = 0.25
+    """Longest interval, s, bridged by interpolation on the IMU and joint topics (DataError beyond;
+    F/T and motion capture become NaN instead)."""
+    joint_velocity: str = "message"
+    """``message``: use JointState.velocity when every message has it; ``differentiate``: always
+    differentiate the positions (Savitzky-Golay)."""
+    savgol_window: float = 0.1
+    """Savitzky-Golay window, s (rounded to an odd number of grid samples, at least order + 2)."""
+    savgol_order: int = 3
+    """Savitzky-Golay polynomial order."""
+    ignore_joints: str | None = None
+    """Regular expression of JointState names to ignore (joints the URDF does not have)."""
+
+    def __post_init__(self):
+        if self.contact_on is not None and self.contact_off is not None and not self.contact_off < self.contact_on:
+            raise ConfigError(f"ros.contact_off = {self.contact_off} N must be below ros.contact_on = "
+                              f"{self.contact_on} N (Schmitt trigger hysteresis)")
+        if self.joint_velocity not in ("message", "differentiate"):
+            raise ConfigError(f"ros.joint_velocity = {self.joint_velocity!r}; expected 'message' or 'differentiate'")
+        if self.rate is not None and not self.rate > 0:
+            raise ConfigError(f"ros.rate = {self.rate} Hz; expected a positive rate")
+        if not self.max_gap > 0 or not self.gap_factor > 0:
+            raise ConfigError("ros.max_gap (s) and ros.gap_factor must be positive")
+        if self.savgol_window <= 0 or self.savgol_order < 2:
+            raise ConfigError(f"ros.savgol_window = {self.savgol_window} s must be positive and "
+                              f"ros.savgol_order = {self.savgol_order} at least 2")
+
+
+@dataclass(frozen=True)
 class RobotConfig:
     """A robot: URDF, frames, stiffness and sensor noise (one TOML file, see ``robots/*.toml``)."""
 
@@ -134,6 +191,8 @@ class RobotConfig:
     imu_noise: ImuNoise = ImuNoise()
     ft_noise: FtNoise = FtNoise()
     gravity: float = GRAVITY
+    ros: RosConfig | None = None
+    """Mapping of raw ROS bags onto the robot (``[ros]`` table), for :mod:`flexforce.datasets.rosimport`."""
     source: str = ""
     """Where the configuration was read from."""
 
@@ -172,6 +231,16 @@ class RobotConfig:
                                      for k, v in raw.pop("stiffness", {}).items()})
             imu_noise = ImuNoise(**raw.pop("imu_noise", {}))
             ft_noise = FtNoise(**raw.pop("ft_noise", {}))
+            ros = raw.pop("ros", None)
+            if ros is not None:
+                ros = dict(ros)
+                unknown = set(ros) - set(RosConfig.__dataclass_fields__)
+                if unknown:
+                    raise ConfigError(f"unknown key(s) {sorted(unknown)} in [ros] of robot configuration {source}; "
+                                      f"known keys: {sorted(RosConfig.__dataclass_fields__)}")
+                if "fixed_contacts" in ros:
+                    ros["fixed_contacts"] = tuple(ros["fixed_contacts"])
+                ros = RosConfig(**ros)
         except TypeError as err:
             raise ConfigError(f"robot configuration {source}: {err}") from err
         for key in ("urdf", "srdf"):
@@ -180,7 +249,7 @@ class RobotConfig:
         raw["links"] = tuple(raw.get("links", ()))
         raw.pop("source", None)
         return cls(contacts=contacts, stiffness=stiffness, imu_noise=imu_noise, ft_noise=ft_noise,
-                   source=source, **raw)
+                   ros=ros, source=source, **raw)
 
     @property
     def contact_names(self) -> tuple[str, ...]:

@@ -1,0 +1,283 @@
+r"""Export an :class:`Estimate` to CSV, and into a ROS 2 bag (MCAP) beside the input topics.
+
+CSV (:func:`export_csv`): one row per step, a header row of column names with units:
+
+* ``time_s`` (from the first step), ``t_ns`` (absolute stamp, as in the input bag);
+* flexibility pose (local frame -> world): ``t_x t_y t_z`` [m], ``q_x q_y q_z q_w`` (ROS order),
+  ``theta_x theta_y theta_z`` [rad] (rotation vector of R);
+* ``w_*`` [rad/s], ``v_*`` [m/s], ``dw_*`` [rad/s^2], ``a_*`` [m/s^2] (world);
+* per contact ``<contact>_F_*`` [N], ``<contact>_T_*`` [N m] (about the world origin), then the
+  total ``total_F_*``, ``total_T_*``;
+* ``cop_x cop_y cop_z`` [m];
+* when the estimate has covariances: ``std_<state label>`` for the 18 state components
+  (:data:`flexforce.datasets.estimate.STATE_LABELS`), ``std_cop_x std_cop_y``.
+
+MCAP (:func:`export_mcap`): a ROS 2 bag directory (MCAP storage, Humble message definitions
+embedded) for PlotJuggler or Foxglove, with under ``/estimate/<estimator>/``:
+
+========================  ========================================  ==========
+topic                     message                                   frame_id
+========================  ========================================  ==========
+``flexibility``           geometry_msgs/PoseStamped (t, R)          ``world``
+``flexibility_cov``       geometry_msgs/PoseWithCovarianceStamped   ``world``
+                          (only with covariances; ROS order x y z,
+                          rot x y z of the world-frame increments)
+``velocity``              geometry_msgs/TwistStamped (w, v)         ``world``
+``acceleration``          geometry_msgs/AccelStamped (dw, a)        ``world``
+``wrench/<contact>``      geometry_msgs/WrenchStamped               ``world``
+``total_wrench``          geometry_msgs/WrenchStamped               ``world``
+``cop``                   geometry_msgs/PointStamped                ``world``
+========================  ========================================  ==========
+
+Every topic of the input is copied unchanged beside them (ROS 1 messages converted to ROS 2
+CDR); given a :class:`Recording` instead of a bag, its ``/imu``, ``/joint_states``,
+``/ft/<contact>`` and ``/mocap/<link>`` are written on its grid.  Stamps are the input's
+absolute times, so estimates and measurements line up.
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from flexforce.datasets.estimate import STATE_LABELS, Estimate
+from flexforce.datasets.recording import Recording
+from flexforce.errors import BagError, DataError
+
+__all__ = ["csv_columns", "export_csv", "export_mcap"]
+
+_NS = 1_000_000_000
+
+
+def csv_columns(estimate: Estimate) -> list[str]:
+    """Column names of :func:`export_csv` for this estimate."""
+    cols = ["time_s", "t_ns", "t_x", "t_y", "t_z", "q_x", "q_y", "q_z", "q_w", "theta_x", "theta_y", "theta_z"]
+    for prefix in ("w", "v", "dw", "a"):
+        cols += [f"{prefix}_{ax}" for ax in "xyz"]
+    for name in list(estimate.contact_names) + ["total"]:
+        cols += [f"{name}_F_{ax}" for ax in "xyz"] + [f"{name}_T_{ax}" for ax in "xyz"]
+    cols += ["cop_x", "cop_y", "cop_z"]
+    if estimate.cov is not None:
+        cols += [f"std_{label}" for label in STATE_LABELS]
+    if estimate.cop_cov is not None:
+        cols += ["std_cop_x", "std_cop_y"]
+    return cols
+
+
+def _check(estimate: Estimate) -> None:
+    n = estimate.n
+    if estimate.R.shape != (n, 3, 3) or estimate.wrench.shape != (n, len(estimate.contact_names), 6):
+        raise DataError(f"estimate has R {estimate.R.shape} and wrench {estimate.wrench.shape}; expected "
+                        f"{(n, 3, 3)} and {(n, len(estimate.contact_names), 6)}")
+
+
+def export_csv(estimate: Estimate, path) -> Path:
+    """Write one row per step (columns in the module docstring); return the path."""
+    _check(estimate)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    rot = Rotation.from_matrix(estimate.R)
+    parts = [estimate.time[:, None], estimate.t_ns[:, None].astype(float), estimate.t, rot.as_quat(),
+             rot.as_rotvec(), estimate.w, estimate.v, estimate.dw, estimate.a,
+             estimate.wrench.reshape(estimate.n, -1), estimate.total_wrench, estimate.cop]
+    if estimate.cov is not None:
+        parts.append(estimate.state_std())
+    if estimate.cop_cov is not None:
+        parts.append(np.sqrt(np.maximum(np.diagonal(estimate.cop_cov, axis1=1, axis2=2), 0.0)))
+    table = np.concatenate(parts, axis=1)
+    cols = csv_columns(estimate)
+    with path.open("w") as f:
+        f.write(",".join(cols) + "\n")
+        for k, row in enumerate(table):
+            cells = [repr(float(x)) for x in row]
+            cells[1] = str(int(estimate.t_ns[k]))  # exact ns, not through a float
+            f.write(",".join(cells) + "\n")
+    return path
+
+
+# ------------------------------------------------------------------------------------------------
+def _typestore():
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_HUMBLE)
+
+
+def _token(name: str) -> str:
+    token = re.sub(r"[^A-Za-z0-9_]", "_", name)
+    return token if re.match(r"^[A-Za-z]", token) else f"e_{token}"
+
+
+def export_mcap(estimate: Estimate, source, out_path, *, overwrite: bool = False) -> Path:
+    """Write the estimate, beside copies of the inputs, into a ROS 2 bag (MCAP) at ``out_path``.
+
+    Args:
+        estimate: the estimate to export.
+        source: the input bag (path) whose topics are copied, a :class:`Recording` whose sensor
+            topics are written, or ``None`` for the estimate alone.
+        out_path: bag directory to create; an existing one is refused unless ``overwrite``
+            (and even then only a ROS 2 bag directory is replaced).
+    """
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    _check(estimate)
+    out_path = Path(out_path)
+    if out_path.exists():
+        if not overwrite:
+            raise BagError(f"{out_path} exists already; expected a new path (or overwrite=True)")
+        if not (out_path / "metadata.yaml").is_file():
+            raise BagError(f"cannot overwrite {out_path}: it is not a ROS 2 bag directory; remove it yourself")
+        shutil.rmtree(out_path)
+    if isinstance(source, (str, Path)) and Path(source).resolve() == out_path.resolve():
+        raise BagError(f"output {out_path} is the input bag; expected a new path beside it")
+    ts = _typestore()
+    try:
+        with Writer(out_path, version=8, storage_plugin=StoragePlugin.MCAP) as writer:
+            if isinstance(source, Recording):
+                _write_recording(writer, ts, source)
+            elif source is not None:
+                _copy_bag(writer, ts, Path(source))
+            _write_estimate(writer, ts, estimate)
+    except BagError:
+        shutil.rmtree(out_path, ignore_errors=True)
+        raise
+    except Exception as err:  # noqa: BLE001 -- a writer failure: report one line
+        shutil.rmtree(out_path, ignore_errors=True)
+        raise BagError(f"cannot write bag {out_path}: {' '.join(str(err).split()) or type(err).__name__}") from err
+    return out_path
+
+
+def _copy_bag(writer, ts, path: Path) -> None:
+    from rosbags.highlevel import AnyReader
+
+    if not path.exists():
+        raise BagError(f"input bag {path} does not exist")
+    try:
+        with AnyReader([path], default_typestore=ts) as reader:
+            conns = {}
+            for rconn in reader.connections:
+                if rconn.topic.startswith("/estimate/"):
+                    continue  # a previous export: the new estimate replaces it
+                if reader.is2:
+                    store = reader.typestore
+                elif rconn.msgtype in ts.fielddefs:
+                    store = ts
+                else:
+                    continue  # a ROS 1 type without a ROS 2 counterpart cannot be converted
+                if rconn.topic not in {c.topic for c in writer.connections}:
+                    conns[rconn.id] = writer.add_connection(rconn.topic, rconn.msgtype, typestore=store)
+                else:
+                    conns[rconn.id] = next(c for c in writer.connections if c.topic == rconn.topic)
+            for rconn, t, raw in reader.messages(connections=[c for c in reader.connections if c.id in conns]):
+                data = raw if reader.is2 else ts.ros1_to_cdr(raw, rconn.msgtype)
+                writer.write(conns[rconn.id], t, data)
+    except BagError:
+        raise
+    except Exception as err:  # noqa: BLE001
+        raise BagError(f"cannot read input bag {path}: {' '.join(str(err).split())}") from err
+
+
+class _Msgs:
+    """Small builders over the Humble typestore."""
+
+    def __init__(self, ts):
+        self.T = ts.types
+        self.ts = ts
+
+    def header(self, t_ns: int, frame: str):
+        sec, nanosec = divmod(int(t_ns), _NS)
+        return self.T["std_msgs/msg/Header"](stamp=self.T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec),
+                                             frame_id=frame)
+
+    def vec(self, v):
+        return self.T["geometry_msgs/msg/Vector3"](x=float(v[0]), y=float(v[1]), z=float(v[2]))
+
+    def point(self, v):
+        return self.T["geometry_msgs/msg/Point"](x=float(v[0]), y=float(v[1]), z=float(v[2]))
+
+    def pose(self, p):
+        return self.T["geometry_msgs/msg/Pose"](position=self.point(p[:3]), orientation=self.T[
+            "geometry_msgs/msg/Quaternion"](x=float(p[3]), y=float(p[4]), z=float(p[5]), w=float(p[6])))
+
+    def wrench(self, w):
+        return self.T["geometry_msgs/msg/Wrench"](force=self.vec(w[:3]), torque=self.vec(w[3:]))
+
+
+def _write_estimate(writer, ts, est: Estimate) -> None:
+    M = _Msgs(ts)
+    T = M.T
+    base = f"/estimate/{_token(est.estimator)}"
+    quat = Rotation.from_matrix(est.R).as_quat()
+    pose = np.concatenate([est.t, quat], axis=1)
+    streams = [
+        (f"{base}/flexibility", "geometry_msgs/msg/PoseStamped",
+         lambda k, h: T["geometry_msgs/msg/PoseStamped"](header=h, pose=M.pose(pose[k]))),
+        (f"{base}/velocity", "geometry_msgs/msg/TwistStamped",
+         lambda k, h: T["geometry_msgs/msg/TwistStamped"](header=h, twist=T["geometry_msgs/msg/Twist"](
+             linear=M.vec(est.v[k]), angular=M.vec(est.w[k])))),
+        (f"{base}/acceleration", "geometry_msgs/msg/AccelStamped",
+         lambda k, h: T["geometry_msgs/msg/AccelStamped"](header=h, accel=T["geometry_msgs/msg/Accel"](
+             linear=M.vec(est.a[k]), angular=M.vec(est.dw[k])))),
+        (f"{base}/total_wrench", "geometry_msgs/msg/WrenchStamped",
+         lambda k, h: T["geometry_msgs/msg/WrenchStamped"](header=h, wrench=M.wrench(est.total_wrench[k]))),
+        (f"{base}/cop", "geometry_msgs/msg/PointStamped",
+         lambda k, h: T["geometry_msgs/msg/PointStamped"](header=h, point=M.point(est.cop[k]))),
+    ]
+    for i, name in enumerate(est.contact_names):
+        streams.append((f"{base}/wrench/{_token(name)}", "geometry_msgs/msg/WrenchStamped",
+                        lambda k, h, i=i: T["geometry_msgs/msg/WrenchStamped"](header=h, wrench=M.wrench(est.wrench[k, i]))))
+    if est.cov is not None:
+        # state order (theta, t, ...) -> ROS pose covariance order (x, y, z, rot x, rot y, rot z)
+        idx = np.r_[3:6, 0:3]
+        cov6 = est.cov[:, idx][:, :, idx]
+        streams.append((f"{base}/flexibility_cov", "geometry_msgs/msg/PoseWithCovarianceStamped",
+                        lambda k, h: T["geometry_msgs/msg/PoseWithCovarianceStamped"](
+                            header=h, pose=T["geometry_msgs/msg/PoseWithCovariance"](
+                                pose=M.pose(pose[k]), covariance=np.ascontiguousarray(cov6[k].reshape(36))))))
+    _write_streams(writer, ts, streams, est.t_ns, "world")
+
+
+def _write_streams(writer, ts, streams, t_ns, frame) -> None:
+    conns = [(writer.add_connection(topic, msgtype, typestore=ts), msgtype, make) for topic, msgtype, make in streams]
+    M = _Msgs(ts)
+    for k, t in enumerate(t_ns):
+        for conn, msgtype, make in conns:
+            f = frame(conn.topic) if callable(frame) else frame
+            writer.write(conn, int(t), ts.serialize_cdr(make(k, M.header(t, f)), msgtype))
+
+
+def _write_recording(writer, ts, rec: Recording) -> None:
+    M = _Msgs(ts)
+    T = M.T
+    zero9 = np.zeros(9)
+    no_orientation = np.zeros(9)
+    no_orientation[0] = -1.0
+    streams = [("/imu", "sensor_msgs/msg/Imu", lambda k, h: T["sensor_msgs/msg/Imu"](
+        header=h, orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+        orientation_covariance=no_orientation, angular_velocity=M.vec(rec.gyro[k]),
+        angular_velocity_covariance=zero9, linear_acceleration=M.vec(rec.accel[k]),
+        linear_acceleration_covariance=zero9))]
+    frames = {"/imu": "imu"}
+    if rec.joint_q is not None:
+        names = list(rec.joint_names)
+        empty = np.zeros(0)
+        streams.append(("/joint_states", "sensor_msgs/msg/JointState", lambda k, h: T["sensor_msgs/msg/JointState"](
+            header=h, name=names, position=np.ascontiguousarray(rec.joint_q[k], dtype=float),
+            velocity=np.ascontiguousarray(rec.joint_v[k], dtype=float) if rec.joint_v is not None else empty,
+            effort=empty)))
+        frames["/joint_states"] = ""
+    if rec.ft is not None:
+        for i, name in enumerate(rec.contact_names):
+            topic = f"/ft/{_token(name)}"
+            streams.append((topic, "geometry_msgs/msg/WrenchStamped", lambda k, h, i=i: T[
+                "geometry_msgs/msg/WrenchStamped"](header=h, wrench=M.wrench(rec.ft[k, i]))))
+            frames[topic] = name
+    for name, poses in rec.mocap.items():
+        topic = f"/mocap/{_token(name)}"
+        streams.append((topic, "geometry_msgs/msg/PoseStamped", lambda k, h, p=poses: T[
+            "geometry_msgs/msg/PoseStamped"](header=h, pose=M.pose(p[k]))))
+        frames[topic] = "world"
+    _write_streams(writer, ts, streams, rec.t_ns, lambda topic: frames[topic])

@@ -1,0 +1,161 @@
+r"""The local (control) frame of a walking robot: leg kinematics anchored on the stance foot.
+
+The local frame is the robot's own belief (DESIGN.md, "The local (control) frame"): its
+kinematics with the contacts at their rest placements.  On a real robot it is leg odometry.
+Given the joint trajectory and which contacts are in force, this module places the free-flyer
+(root link) in the local frame, step by step:
+
+1. **Anchor.** One active contact is the anchor (stance foot).  At the first sample it is the
+   configured one, else the most loaded active contact, else the first.  Its rest placement is
+   the identity: the local frame starts *on the anchor sole*, flat, x forward (the sole frame's
+   own axes; not the root link's, whose x points backwards on iCub).
+2. **Base placement.** ``local_T_base = local_T_anchor_rest * (base_T_anchor)^-1``, where
+   ``base_T_anchor`` is forward kinematics of the joints alone.
+3. **Rest placements.** A contact that comes into force at step k gets the rest placement
+   ``local_T_base(k) * base_T_contact(k)`` and keeps it, fixed, while it stays in force.  While a
+   contact is not in force its reported placement is its kinematic one (meaningless to the model).
+4. **Switch.** When the anchor leaves contact, the anchor passes to another contact in force
+   (the most loaded one) and its *held* rest placement becomes the new anchor placement, so every
+   contact's rest placement stays fixed while it is in contact.  If the kinematics disagrees
+   slightly with the held placement (the flexibility, encoder errors), the base placement jumps
+   by that amount at the switch; ``LocalFrame.drift`` reports the largest disagreement.
+   With no contact in force (flight, a sensor gap) the last anchor is kept.
+5. **Velocity and acceleration** of the free-flyer follow analytically from the anchor
+   constraint (the anchor frame neither moves nor accelerates), so a switch makes no spike:
+   with the anchor frame Jacobian ``J = [J_b | J_j]`` (pinocchio LOCAL, body-frame free-flyer
+   velocity first)::
+
+       J_b v_b + J_j v_j = 0                      ->  v_b = -J_b^-1 J_j v_j
+       J_b a_b + J_j a_j + dJ v = 0               ->  a_b = -J_b^-1 (J_j a_j + dJ v)
+
+   ``J_j a_j + dJ v`` is the anchor frame's spatial acceleration computed with ``a_b = 0``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pinocchio as pin
+
+from flexforce.errors import DataError
+
+__all__ = ["LocalFrame", "anchored_local_frame"]
+
+
+@dataclass
+class LocalFrame:
+    """Free-flyer trajectory in the local frame and the contacts' rest placements."""
+
+    q: np.ndarray
+    """(N, nq) pinocchio configurations (x, y, z, qx, qy, qz, qw, joints) in the local frame."""
+    v: np.ndarray
+    """(N, nv) velocities (body-frame free-flyer, joints)."""
+    a: np.ndarray
+    """(N, nv) accelerations."""
+    anchor: np.ndarray
+    """(N,) index of the anchor contact at each step."""
+    contact_p: np.ndarray
+    """(N, C, 3) rest position of each contact in the local frame (kinematic when inactive), m."""
+    contact_R: np.ndarray
+    """(N, C, 3, 3) rest orientation (kinematic when inactive)."""
+    switches: list = field(default_factory=list)
+    """Anchor changes: ``(step, from contact index, to contact index, jump [m])``."""
+    drift: float = 0.0
+    """Largest distance between an active contact's held rest position and its kinematic
+    position, m (zero for a rigid, consistent robot; the flexibility makes it grow)."""
+
+    @property
+    def base_pose(self) -> np.ndarray:
+        """(N, 7) root link pose in the local frame: x, y, z, qx, qy, qz, qw (ROS order)."""
+        return self.q[:, :7].copy()
+
+
+def anchored_local_frame(model, q_joints: np.ndarray, v_joints: np.ndarray, a_joints: np.ndarray,
+                         active: np.ndarray, load: np.ndarray | None = None, anchor: int | None = None,
+                         progress=None) -> LocalFrame:
+    """Place the free-flyer of ``model`` (a :class:`RobotModel`) by stance-foot leg odometry.
+
+    Args:
+        q_joints: (N, nq - 7) joint part of the configurations.
+        v_joints, a_joints: (N, nv - 6) joint velocities and accelerations.
+        active: (N, C) bool, contacts in force.
+        load: (N, C) normal forces, N, used to pick the most loaded contact (NaN = unknown).
+        anchor: index of the contact preferred as the first anchor.
+        progress: optional callable receiving the fraction done.
+    """
+    pmodel = model.model
+    data = pmodel.createData()
+    fids = model.contact_frame_ids
+    n, c = active.shape
+    if q_joints.shape != (n, pmodel.nq - 7) or v_joints.shape != (n, pmodel.nv - 6) or a_joints.shape != v_joints.shape:
+        raise DataError(f"joint arrays have shapes {q_joints.shape}, {v_joints.shape}, {a_joints.shape}; "
+                        f"expected {(n, pmodel.nq - 7)} and {(n, pmodel.nv - 6)}")
+    load = np.zeros((n, c)) if load is None else np.where(np.isfinite(load), load, -np.inf)
+
+    def pick(k: int, candidates) -> int:
+        candidates = list(candidates)
+        return max(candidates, key=lambda i: (load[k, i], -i))
+
+    q_out = np.zeros((n, pmodel.nq))
+    v_out = np.zeros((n, pmodel.nv))
+    a_out = np.zeros((n, pmodel.nv))
+    anchors = np.zeros(n, dtype=int)
+    cp = np.zeros((n, c, 3))
+    cR = np.zeros((n, c, 3, 3))
+    rest: list[pin.SE3 | None] = [None] * c
+    switches = []
+    drift = 0.0
+    q = pin.neutral(pmodel)
+    base = pin.SE3.Identity()
+    current = None
+    for k in range(n):
+        q[:7] = (0, 0, 0, 0, 0, 0, 1)
+        q[7:] = q_joints[k]
+        pin.framesForwardKinematics(pmodel, data, q)
+        b_T_c = [data.oMf[f].copy() for f in fids]
+        was = active[k - 1] if k > 0 else np.zeros(c, dtype=bool)
+        for i in range(c):  # released contacts lose their rest placement
+            if not active[k, i]:
+                rest[i] = None
+        if current is None:
+            on = np.flatnonzero(active[k])
+            if anchor is not None and (active[k, anchor] or not on.size):
+                current = anchor
+            else:
+                current = pick(k, on if on.size else range(c))
+            rest[current] = pin.SE3.Identity()
+        elif not active[k, current] and active[k].any():
+            new = pick(k, np.flatnonzero(active[k]))
+            if rest[new] is None:  # touched down at this very step: where the kinematics puts it
+                rest[new] = base * b_T_c[new]
+            jump = float(np.linalg.norm((base * b_T_c[new]).translation - rest[new].translation))
+            switches.append((k, int(current), int(new), jump))
+            current = new
+        if rest[current] is None:  # virtual anchor (no contact in force): hold its last placement
+            rest[current] = base * b_T_c[current]
+        base = rest[current] * b_T_c[current].inverse()
+        for i in range(c):
+            if active[k, i] and (rest[i] is None or not was[i]) and i != current:
+                rest[i] = base * b_T_c[i]
+            placement = rest[i] if active[k, i] else base * b_T_c[i]
+            cp[k, i] = placement.translation
+            cR[k, i] = placement.rotation
+            if active[k, i]:
+                drift = max(drift, float(np.linalg.norm(placement.translation - (base * b_T_c[i]).translation)))
+        anchors[k] = current
+
+        # free-flyer velocity and acceleration from the anchor constraint (module docstring, 5)
+        q[:7] = pin.SE3ToXYZQUAT(base)
+        fid = fids[current]
+        J = pin.computeFrameJacobian(pmodel, data, q, fid, pin.LOCAL)
+        Jb_inv = np.linalg.inv(J[:, :6])
+        v = np.concatenate([-Jb_inv @ (J[:, 6:] @ v_joints[k]), v_joints[k]])
+        a0 = np.concatenate([np.zeros(6), a_joints[k]])
+        pin.forwardKinematics(pmodel, data, q, v, a0)
+        gamma = pin.getFrameAcceleration(pmodel, data, fid, pin.LOCAL).vector
+        a = np.concatenate([-Jb_inv @ gamma, a_joints[k]])
+        q_out[k], v_out[k], a_out[k] = q, v, a
+        if progress is not None and (k % 50 == 0 or k == n - 1):
+            progress((k + 1) / n)
+    return LocalFrame(q_out, v_out, a_out, anchors, cp, cR, switches, drift)

@@ -1,0 +1,553 @@
+r"""Import raw robot bags (ROS 1 ``.bag``, ROS 2 sqlite3 or MCAP) into a :class:`Recording`.
+
+All formats go through rosbags' one reader (:class:`rosbags.highlevel.AnyReader`); the robot
+configuration's ``[ros]`` table (:class:`flexforce.datasets.robot.RosConfig`) maps the topics:
+
+====================================  ==========================  ===========================================
+message                               topic (config key)          becomes
+====================================  ==========================  ===========================================
+``sensor_msgs/Imu``                   ``imu_topic``               ``gyro``, ``accel`` (IMU frame)
+``sensor_msgs/JointState``            ``joint_states_topic``      ``joint_q``, ``joint_v`` and, through the
+                                                                  local frame, every local-frame input
+``geometry_msgs/WrenchStamped``       ``ft_topics[contact]``      ``ft[:, contact]`` (contact frame) and the
+                                                                  contact states (Schmitt trigger)
+``geometry_msgs/PoseStamped``         ``mocap_topics[frame]``     ``mocap[frame]`` (world pose, NaN if lost)
+====================================  ==========================  ===========================================
+
+Method (docs/real-logs.md has the long form):
+
+* **Time.** A message's time is its ``header.stamp`` (the robot's clock), or the bag's log time
+  when the stamp is zero.  A stamp earlier than its predecessor on the same topic is a
+  :class:`DataError`; a repeated stamp keeps the first message.
+* **Grid.** Uniform, from the latest first stamp to the earliest last stamp of the IMU and joint
+  topics, at ``rate`` (argument, else ``ros.rate``, else the IMU's median message rate; the
+  period is rounded to whole ns).
+* **Resampling.** Linear interpolation onto the grid of the IMU readings, joint positions (and
+  message velocities), F/T components; motion-capture positions linearly and orientations by
+  normalised linear interpolation of sign-aligned quaternions (nlerp; at 100 Hz it differs from
+  slerp by < 1e-6 rad).  Every source interval longer than ``gap_factor`` grid periods is listed
+  in ``meta['gaps']``.  Intervals longer than ``max_gap`` s are a :class:`DataError` on the IMU
+  and joint topics (no inputs can be made up there); F/T and mocap samples inside them are NaN.
+* **Derivatives.** Joint velocities: the message's (interpolated) when every message has them
+  and ``ros.joint_velocity = "message"``, else a Savitzky-Golay first derivative of the
+  positions.  Joint accelerations: a Savitzky-Golay first derivative of the velocities taken
+  from messages, or the second derivative of the positions (scipy.signal.savgol_filter, window
+  ``savgol_window`` s, order ``savgol_order``, ``mode="interp"``).
+* **Contacts.** ``contacts="ft"``: Schmitt trigger on the F/T normal force (``contact_on`` /
+  ``contact_off``; :mod:`flexforce.datasets.contacts`); ``contacts="fixed"``: ``fixed_contacts``
+  (all contacts by default) active throughout.
+* **Local frame.** Stance-foot leg odometry (:mod:`flexforce.datasets.localframe`), then
+  :meth:`RobotModel.kinematics` gives the inputs, the IMU placement and the contacts.
+
+``meta`` holds the source, the grid, the method, the gaps, the contact phases, the anchor
+switches and ``base_pose`` ((N, 7) root-link pose in the local frame, x y z qx qy qz qw, as a
+list) so that motion capture can be compared.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+from scipy.signal import savgol_filter
+
+from flexforce.datasets.contacts import fixed_contacts, phases, schmitt_trigger
+from flexforce.datasets.localframe import anchored_local_frame
+from flexforce.datasets.recording import Recording
+from flexforce.datasets.robot import RobotConfig, RobotModel, RosConfig
+from flexforce.errors import BagError, ConfigError, DataError
+
+__all__ = ["import_bag", "is_flexforce_bag", "read_topics"]
+
+T_IMU = "sensor_msgs/msg/Imu"
+T_JOINTS = "sensor_msgs/msg/JointState"
+T_WRENCH = "geometry_msgs/msg/WrenchStamped"
+T_POSE = "geometry_msgs/msg/PoseStamped"
+META_TOPIC = "/flexforce/meta"
+_NS = 1_000_000_000
+_EXPECTED = "expected a ROS 2 bag directory, .mcap/.db3 file or ROS 1 .bag file"
+
+
+def _typestore():
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_HUMBLE)
+
+
+def _check_path(path: Path) -> None:
+    if not path.exists():
+        raise BagError(f"bag {path} does not exist; {_EXPECTED}")
+
+
+def _reader_error(path: Path, err: Exception) -> BagError:
+    detail = " ".join(str(err).split()) or type(err).__name__
+    return BagError(f"cannot read bag {path}: corrupt, truncated or not a bag ({detail}); {_EXPECTED}")
+
+
+def is_flexforce_bag(path) -> bool:
+    """True when the bag at ``path`` is a flexforce recording (it has ``/flexforce/meta``).
+
+    Raises :class:`BagError` when the path is missing or not a readable bag.
+    """
+    from rosbags.highlevel import AnyReader
+
+    path = Path(path)
+    _check_path(path)
+    try:
+        with AnyReader([path], default_typestore=_typestore()) as reader:
+            return any(c.topic == META_TOPIC for c in reader.connections)
+    except Exception as err:  # noqa: BLE001 -- any library failure means an unreadable bag
+        raise _reader_error(path, err) from err
+
+
+@dataclass
+class _Topic:
+    """Messages of one topic: stamps (ns, strictly increasing) and messages, in that order."""
+
+    name: str
+    msgtype: str
+    t_ns: np.ndarray
+    msgs: list
+    duplicates: int = 0
+
+
+def read_topics(path, wanted: dict[str, str]) -> tuple[dict[str, _Topic], dict[str, str], str]:
+    """Read the topics ``wanted`` (topic -> expected msgtype) of a bag.
+
+    Returns ``(topics found, all topics of the bag -> msgtype, storage description)``.  A wanted
+    topic that is absent is simply not in the first dict; the caller decides if it is required.
+    """
+    from rosbags.highlevel import AnyReader
+
+    path = Path(path)
+    _check_path(path)
+    found: dict[str, list] = {}
+    try:
+        with AnyReader([path], default_typestore=_typestore()) as reader:
+            types = {c.topic: c.msgtype for c in reader.connections}
+            storage = "ROS 2" if reader.is2 else "ROS 1"
+            for topic, msgtype in wanted.items():
+                if topic in types and types[topic] != msgtype:
+                    raise BagError(f"topic {topic} of bag {path} has type {types[topic]}; expected {msgtype}")
+            conns = [c for c in reader.connections if c.topic in wanted]
+            for conn, log_ns, raw in reader.messages(connections=conns):
+                found.setdefault(conn.topic, []).append((log_ns, reader.deserialize(raw, conn.msgtype)))
+    except BagError:
+        raise
+    except Exception as err:  # noqa: BLE001
+        raise _reader_error(path, err) from err
+    topics = {}
+    for topic, items in found.items():
+        stamps = np.array([_stamp(m, log) for log, m in items], dtype=np.int64)
+        back = np.flatnonzero(np.diff(stamps) < 0)
+        if back.size:
+            k = int(back[0]) + 1
+            raise DataError(
+                f"time goes backwards on topic {topic}: message {k} is stamped {stamps[k] * 1e-9:.6f} s, "
+                f"{(stamps[k - 1] - stamps[k]) * 1e-6:.3f} ms before message {k - 1}; "
+                "expected non-decreasing header stamps")
+        keep = np.concatenate([[True], np.diff(stamps) > 0])
+        topics[topic] = _Topic(topic, types[topic], stamps[keep], [m for (_, m), ok in zip(items, keep) if ok],
+                               int((~keep).sum()))
+    return topics, types, storage
+
+
+def _stamp(msg, log_ns: int) -> int:
+    header = getattr(msg, "header", None)
+    if header is not None:
+        t = int(header.stamp.sec) * _NS + int(header.stamp.nanosec)
+        if t != 0:
+            return t
+    return int(log_ns)
+
+
+# ------------------------------------------------------------------------------------------------
+# resampling
+# ------------------------------------------------------------------------------------------------
+def _interp(t_src: np.ndarray, values: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """Linear interpolation of (M, ...) ``values`` at ``grid``; NaN outside the source span."""
+    shape = values.shape[1:]
+    v = values.reshape(len(t_src), -1)
+    j = np.clip(np.searchsorted(t_src, grid, side="right") - 1, 0, len(t_src) - 2)
+    t0, t1 = t_src[j], t_src[j + 1]
+    w = ((grid - t0) / (t1 - t0).astype(float))[:, None]
+    out = (1.0 - w) * v[j] + w * v[j + 1]
+    exact = grid == t1  # keep an exact sample exactly (no 0 * NaN from the other end)
+    out[exact] = v[j[exact] + 1]
+    exact = grid == t0
+    out[exact] = v[j[exact]]
+    out[(grid < t_src[0]) | (grid > t_src[-1])] = np.nan
+    return out.reshape((len(grid),) + shape)
+
+
+def _gaps(topic: str, t_src: np.ndarray, t0: int, report: float, grid: np.ndarray) -> list[dict]:
+    """Source intervals longer than ``report`` s that overlap the grid, as meta entries."""
+    d = np.diff(t_src) * 1e-9
+    out = []
+    for j in np.flatnonzero(d > report):
+        if t_src[j + 1] < grid[0] or t_src[j] > grid[-1]:
+            continue
+        out.append({"topic": topic, "start": round((t_src[j] - t0) * 1e-9, 6),
+                    "end": round((t_src[j + 1] - t0) * 1e-9, 6), "duration": round(float(d[j]), 6)})
+    return out
+
+
+def _in_long_gap(t_src: np.ndarray, grid: np.ndarray, max_gap: float) -> np.ndarray:
+    """(N,) bool: grid points inside a source interval longer than ``max_gap`` s."""
+    j = np.clip(np.searchsorted(t_src, grid, side="right") - 1, 0, len(t_src) - 2)
+    inside = (grid > t_src[j]) & (grid < t_src[j + 1])
+    return inside & ((t_src[j + 1] - t_src[j]) * 1e-9 > max_gap)
+
+
+def _require_finite(topic: _Topic, values: np.ndarray, what: str, t0: int, labels=None) -> None:
+    bad = ~np.isfinite(values.reshape(len(values), -1))
+    if bad.any():
+        k, col = (int(x[0]) for x in np.nonzero(bad))
+        name = f" ({labels[col]})" if labels is not None else ""
+        raise DataError(f"topic {topic.name} message {k} (t = {(topic.t_ns[k] - t0) * 1e-9:.3f} s) has NaN or "
+                        f"inf in {what}{name}; expected finite values")
+
+
+def _savgol(x: np.ndarray, dt: float, deriv: int, ros: RosConfig) -> np.ndarray:
+    win = int(round(ros.savgol_window / dt)) | 1
+    win = max(win, ros.savgol_order + 2 + ((ros.savgol_order + 1) % 2))
+    if win > len(x):
+        raise DataError(f"recording has {len(x)} samples, fewer than the Savitzky-Golay window of {win} "
+                        f"samples (ros.savgol_window = {ros.savgol_window} s); expected a longer log")
+    return savgol_filter(x, win, ros.savgol_order, deriv=deriv, delta=dt, axis=0, mode="interp")
+
+
+# ------------------------------------------------------------------------------------------------
+def import_bag(path, robot_config, rate: float | None = None, contacts: str = "ft",
+               progress=None) -> Recording:
+    """Read a raw robot bag into a validated :class:`Recording` on a uniform grid.
+
+    Args:
+        path: ROS 1 ``.bag`` file, ROS 2 bag directory, or ``.mcap``/``.db3`` file.
+        robot_config: :class:`RobotConfig`, :class:`RobotModel`, built-in robot name or TOML path;
+            its ``[ros]`` table maps the topics (defaults of :class:`RosConfig` when absent).
+        rate: grid rate, Hz (overrides ``ros.rate``; default the IMU's median rate).
+        contacts: ``"ft"`` (Schmitt trigger on the F/T normal forces) or ``"fixed"``.
+        progress: optional callable receiving the fraction done (0..1).
+
+    Raises:
+        BagError: missing/unreadable/truncated bag, missing topic, wrong message type,
+            unknown joint or frame.
+        DataError: NaN, time going backwards, gaps longer than ``ros.max_gap``.
+        ConfigError: inconsistent configuration.
+    """
+    path = Path(path)
+    model = robot_config if isinstance(robot_config, RobotModel) else RobotModel(robot_config)
+    config: RobotConfig = model.config
+    ros = config.ros or RosConfig()
+    if contacts not in ("ft", "fixed"):
+        raise ConfigError(f"contacts = {contacts!r}; expected 'ft' (from F/T normal forces) or 'fixed'")
+    for name in ros.ft_topics:
+        if name not in config.contact_names:
+            raise ConfigError(f"ros.ft_topics names contact '{name}'; robot '{config.name}' has contacts "
+                              f"{list(config.contact_names)}")
+    if contacts == "ft":
+        missing = [c for c in config.contact_names if c not in ros.ft_topics]
+        if missing:
+            raise ConfigError(f"contacts='ft' needs an F/T topic for every contact; ros.ft_topics lacks "
+                              f"{missing} (or use contacts='fixed')")
+    for frame in ros.mocap_topics:
+        if not model.model.existFrame(frame):
+            raise ConfigError(f"ros.mocap_topics names frame '{frame}', which is not in the URDF of robot "
+                              f"'{config.name}'")
+    report = progress or (lambda f: None)
+
+    wanted = {ros.imu_topic: T_IMU, ros.joint_states_topic: T_JOINTS}
+    wanted.update({topic: T_WRENCH for topic in ros.ft_topics.values()})
+    wanted.update({topic: T_POSE for topic in ros.mocap_topics.values()})
+    topics, all_types, storage = read_topics(path, wanted)
+    report(0.15)
+    required = [ros.imu_topic, ros.joint_states_topic]
+    if contacts == "ft":
+        required += [ros.ft_topics[c] for c in config.contact_names]
+    for topic in required:
+        if topic not in topics:
+            have = ", ".join(f"{t} ({m})" for t, m in sorted(all_types.items())) or "none"
+            raise BagError(f"bag {path} lacks topic {topic} ({wanted[topic]}) named by robot config "
+                           f"'{config.name}'; the bag has: {have}")
+    imu, joints = topics[ros.imu_topic], topics[ros.joint_states_topic]
+    for topic in (imu, joints):
+        if len(topic.t_ns) < 2:
+            raise BagError(f"topic {topic.name} has {len(topic.t_ns)} message(s); expected at least 2")
+    t_first = int(min(t.t_ns[0] for t in topics.values()))
+
+    # ---- grid ----
+    rate = rate or ros.rate or 1e9 / float(np.median(np.diff(imu.t_ns)))
+    period = int(round(1e9 / rate))
+    start = max(imu.t_ns[0], joints.t_ns[0])
+    stop = min(imu.t_ns[-1], joints.t_ns[-1])
+    if stop <= start:
+        raise DataError(f"topics {imu.name} and {joints.name} do not overlap in time; expected simultaneous logs")
+    n = int((stop - start) // period) + 1
+    grid = start + period * np.arange(n, dtype=np.int64)
+    dt = period * 1e-9
+    report_gap = ros.gap_factor * dt
+    gaps = []
+
+    def check_gaps(topic: _Topic, fatal: bool) -> np.ndarray:
+        gaps.extend(_gaps(topic.name, topic.t_ns, int(grid[0]), report_gap, grid))
+        long = _in_long_gap(topic.t_ns, grid, ros.max_gap)
+        if fatal and long.any():
+            k = int(np.flatnonzero(long)[0])
+            j = int(np.searchsorted(topic.t_ns, grid[k]) - 1)
+            raise DataError(
+                f"topic {topic.name} has a gap of {(topic.t_ns[j + 1] - topic.t_ns[j]) * 1e-9:.3f} s from "
+                f"t = {(topic.t_ns[j] - grid[0]) * 1e-9:.3f} s to {(topic.t_ns[j + 1] - grid[0]) * 1e-9:.3f} s; "
+                f"expected gaps shorter than ros.max_gap = {ros.max_gap} s")
+        return long
+
+    # ---- IMU ----
+    frames = {m.header.frame_id for m in imu.msgs} - {""}
+    for frame in frames:
+        if frame != config.imu_frame:
+            known = "a frame of the URDF" if model.model.existFrame(frame) else "unknown to the URDF"
+            raise BagError(f"topic {imu.name} is in frame '{frame}' ({known}); expected the IMU frame "
+                           f"'{config.imu_frame}' of robot config '{config.name}'")
+    gyro_src = np.array([(m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z) for m in imu.msgs])
+    acc_src = np.array([(m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z)
+                        for m in imu.msgs])
+    _require_finite(imu, gyro_src, "angular_velocity", t_first, "xyz")
+    _require_finite(imu, acc_src, "linear_acceleration", t_first, "xyz")
+    check_gaps(imu, fatal=True)
+    gyro = _interp(imu.t_ns, gyro_src, grid)
+    accel = _interp(imu.t_ns, acc_src, grid)
+
+    # ---- joints ----
+    pmodel = model.model
+    ignore = re.compile(ros.ignore_joints) if ros.ignore_joints else None
+    model_names = model.joint_names
+    index = {name: i for i, name in enumerate(model_names)}
+    for jname in pmodel.names[2:]:
+        if pmodel.joints[pmodel.getJointId(jname)].nq != 1:
+            raise ConfigError(f"joint '{jname}' of robot '{config.name}' has {pmodel.joints[pmodel.getJointId(jname)].nq} "
+                              "position coordinates; only 1-dof joints are supported")
+    nj = len(model_names)
+    q_src = np.full((len(joints.msgs), nj), np.nan)
+    v_src = np.full((len(joints.msgs), nj), np.nan)
+    has_vel = True
+    cols_cache: dict[tuple, tuple] = {}
+    for k, m in enumerate(joints.msgs):
+        names = tuple(m.name)
+        if names not in cols_cache:
+            src, dst = [], []
+            for s, name in enumerate(names):
+                if name in index:
+                    src.append(s)
+                    dst.append(index[name])
+                elif ignore is None or not ignore.search(name):
+                    raise BagError(
+                        f"topic {joints.name} message {k} names joint '{name}', which robot '{config.name}' "
+                        f"(URDF {config.urdf}) does not have; expected names among {list(model_names)} "
+                        "(or set ros.ignore_joints)")
+            cols_cache[names] = (np.array(src, dtype=int), np.array(dst, dtype=int))
+        src, dst = cols_cache[names]
+        pos = np.asarray(m.position, dtype=float)
+        if len(pos) != len(names):
+            raise BagError(f"topic {joints.name} message {k} has {len(pos)} positions for {len(names)} names; "
+                           "expected one position per name")
+        q_src[k, dst] = pos[src]
+        vel = np.asarray(m.velocity, dtype=float)
+        if len(vel) == len(names):
+            v_src[k, dst] = vel[src]
+        else:
+            has_vel = False
+    measured = ~np.all(np.isnan(q_src), axis=0)
+    for k, m in enumerate(joints.msgs):
+        pos = np.asarray(m.position, dtype=float)
+        if not np.all(np.isfinite(pos)):
+            s = int(np.flatnonzero(~np.isfinite(pos))[0])
+            raise DataError(f"topic {joints.name} message {k} (t = {(joints.t_ns[k] - t_first) * 1e-9:.3f} s) has "
+                            f"NaN or inf position for joint '{m.name[s]}'; expected finite values")
+    if has_vel and ros.joint_velocity == "message":
+        _require_finite(joints, v_src[:, measured], "velocity", t_first,
+                        [n for n, ok in zip(model_names, measured) if ok])
+    if not measured.any():
+        raise BagError(f"topic {joints.name} names none of the joints of robot '{config.name}'")
+    check_gaps(joints, fatal=True)
+    q_ref = model.q_reference[7:]
+    q_grid = np.tile(q_ref, (n, 1))
+    v_grid = np.zeros((n, nj))
+    for j in np.flatnonzero(measured):  # per joint: messages may name different subsets
+        ok = np.isfinite(q_src[:, j])
+        q_grid[:, j] = _interp(joints.t_ns[ok], q_src[ok, j], grid)
+        if has_vel and ros.joint_velocity == "message":
+            v_grid[:, j] = _interp(joints.t_ns[ok], v_src[ok, j], grid)
+    if np.isnan(q_grid).any():
+        j = int(np.flatnonzero(np.isnan(q_grid).any(axis=0))[0])
+        raise DataError(f"joint '{model_names[j]}' is not measured over the whole grid on topic {joints.name}; "
+                        "expected every joint in every message span")
+    velocity_source = "message" if has_vel and ros.joint_velocity == "message" else "savgol"
+    if velocity_source == "message":
+        a_grid = _savgol(v_grid, dt, 1, ros)
+    else:
+        v_grid = _savgol(q_grid, dt, 1, ros)
+        a_grid = _savgol(q_grid, dt, 2, ros)
+    v_grid[:, ~measured] = 0.0
+    a_grid[:, ~measured] = 0.0
+    report(0.3)
+
+    # ---- F/T ----
+    names_c = config.contact_names
+    c = len(names_c)
+    ft = None
+    if ros.ft_topics and any(t in topics for t in ros.ft_topics.values()):
+        ft = np.full((n, c, 6), np.nan)
+        for i, cname in enumerate(names_c):
+            topic = topics.get(ros.ft_topics.get(cname, ""))
+            if topic is None:
+                continue
+            w = np.array([(m.wrench.force.x, m.wrench.force.y, m.wrench.force.z,
+                           m.wrench.torque.x, m.wrench.torque.y, m.wrench.torque.z) for m in topic.msgs])
+            long = check_gaps(topic, fatal=False)
+            ft[:, i] = _interp(topic.t_ns, w, grid)
+            ft[long, i] = np.nan
+            frames = {m.header.frame_id for m in topic.msgs} - {""}
+            contact_frame = config.contacts[i].frame
+            for frame in frames - {contact_frame}:
+                if not pmodel.existFrame(frame):
+                    raise BagError(f"topic {topic.name} is in frame '{frame}', which is not in the URDF of robot "
+                                   f"'{config.name}'; expected the contact frame '{contact_frame}'")
+            if frames - {contact_frame}:
+                if len(frames) > 1:
+                    raise BagError(f"topic {topic.name} changes frame ({sorted(frames)}); expected one frame")
+                ft[:, i] = _wrench_to_contact_frame(model, q_grid, frames.pop(), contact_frame, ft[:, i])
+
+    # ---- contacts ----
+    if contacts == "ft":
+        mg = model.mass * config.gravity
+        on = ros.contact_on if ros.contact_on is not None else 0.25 * mg
+        off = ros.contact_off if ros.contact_off is not None else 0.15 * mg
+        active = np.stack([schmitt_trigger(ft[:, i, 2], on, off) for i in range(c)], axis=1)
+        method = {"method": "schmitt", "on_N": on, "off_N": off}
+    else:
+        active = fixed_contacts(n, names_c, ros.fixed_contacts)
+        method = {"method": "fixed", "contacts": [nm for i, nm in enumerate(names_c) if active[0, i]]}
+    load = ft[:, :, 2] if ft is not None else None
+    anchor = None
+    if ros.anchor is not None:
+        if ros.anchor not in names_c:
+            raise ConfigError(f"ros.anchor = '{ros.anchor}' is not a contact of robot '{config.name}' "
+                              f"({list(names_c)})")
+        anchor = names_c.index(ros.anchor)
+
+    # ---- local frame and kinematics ----
+    lf = anchored_local_frame(model, q_grid, v_grid, a_grid, active, load, anchor,
+                              progress=lambda f: report(0.3 + 0.3 * f))
+    fields = {k: [] for k in ("com", "com_vel", "com_acc", "inertia", "inertia_dot", "sigma", "sigma_dot",
+                              "imu_R", "imu_p", "imu_v", "imu_a", "imu_w")}
+    for k in range(n):
+        kin = model.kinematics(lf.q[k], lf.v[k], lf.a[k])
+        inp, im = kin.inputs, kin.imu
+        for key, value in (("com", inp.c), ("com_vel", inp.dc), ("com_acc", inp.ddc), ("inertia", inp.I),
+                           ("inertia_dot", inp.dI), ("sigma", inp.sigma), ("sigma_dot", inp.dsigma),
+                           ("imu_R", im.R), ("imu_p", im.p), ("imu_v", im.v), ("imu_a", im.a), ("imu_w", im.w)):
+            fields[key].append(value)
+        if k % 50 == 0:
+            report(0.6 + 0.35 * k / n)
+    arrays = {k: np.array(v) for k, v in fields.items()}
+
+    # ---- motion capture ----
+    mocap = {}
+    for frame, topic_name in ros.mocap_topics.items():
+        topic = topics.get(topic_name)
+        if topic is None or len(topic.t_ns) < 2:
+            continue
+        check_gaps(topic, fatal=False)
+        mocap[frame] = _resample_poses(topic, grid, ros.max_gap)
+
+    time = (grid - grid[0]) * 1e-9
+    meta = {
+        "source": {"path": str(path), "format": storage, "robot_config": config.source or config.name,
+                   "topics": {t: tp.msgtype for t, tp in topics.items()},
+                   "missing_topics": sorted(set(wanted) - set(topics)),
+                   "t0_ns": int(grid[0]),
+                   "messages": {t: len(tp.t_ns) for t, tp in topics.items()},
+                   "duplicate_stamps": {t: tp.duplicates for t, tp in topics.items() if tp.duplicates}},
+        "grid": {"rate_hz": 1.0 / dt, "period_ns": period, "n": n,
+                 "method": "linear interpolation (IMU, joints, F/T); nlerp (mocap orientation)"},
+        "joint_velocity": velocity_source,
+        "derivative_filter": {"method": "savgol", "window_s": ros.savgol_window, "order": ros.savgol_order},
+        "joints_not_measured": [nm for nm, ok in zip(model_names, measured) if not ok],
+        "gaps": _merge_gaps(gaps),
+        "contacts": {**method, "phases": {p.name: [list(iv) for iv in p.intervals]
+                                          for p in phases(time, active, names_c)}},
+        "anchor": {"first": names_c[int(lf.anchor[0])],
+                   "switches": [{"t": round(float(time[k]), 6), "from": names_c[a], "to": names_c[b], "jump_m": j}
+                                for k, a, b, j in lf.switches],
+                   "drift_m": lf.drift},
+        "base_frame": _root_link(pmodel),
+        "base_pose": lf.base_pose.tolist(),
+    }
+    rec = Recording(
+        t_ns=grid, robot=config.source or config.name, contact_names=names_c, mass=model.mass,
+        contact_active=active, contact_p=lf.contact_p, contact_R=lf.contact_R, gyro=gyro, accel=accel,
+        joint_names=tuple(model_names), joint_q=q_grid, joint_v=v_grid, ft=ft, mocap=mocap,
+        gravity=config.gravity, meta=meta, **arrays)
+    report(1.0)
+    return rec.validate()
+
+
+def _merge_gaps(gaps: list[dict]) -> list[dict]:
+    """One entry per interval, listing every topic that has it (topics often share stamps)."""
+    merged: dict[tuple, dict] = {}
+    for g in gaps:
+        entry = merged.setdefault((g["start"], g["end"]), {"start": g["start"], "end": g["end"],
+                                                           "duration": g["duration"], "topics": []})
+        entry["topics"].append(g["topic"])
+    return sorted(merged.values(), key=lambda g: g["start"])
+
+
+def _root_link(pmodel) -> str:
+    """Name of the URDF link carried by the free-flyer (the frame of ``meta['base_pose']``)."""
+    for f in pmodel.frames:
+        if f.parentJoint == 1 and f.type == pin.FrameType.BODY:
+            return f.name
+    return ""
+
+
+def _wrench_to_contact_frame(model, q_joints, sensor_frame, contact_frame, wrench):
+    """Express (N, 6) wrenches given in ``sensor_frame`` (about its origin) in ``contact_frame``."""
+    pmodel, data = model.model, model.model.createData()
+    fs, fc = pmodel.getFrameId(sensor_frame), pmodel.getFrameId(contact_frame)
+    q = pin.neutral(pmodel)
+    out = np.empty_like(wrench)
+    for k in range(len(wrench)):
+        q[7:] = q_joints[k]
+        pin.framesForwardKinematics(pmodel, data, q)
+        c_T_s = data.oMf[fc].inverse() * data.oMf[fs]
+        out[k] = c_T_s.act(pin.Force(wrench[k, :3], wrench[k, 3:])).vector
+    return out
+
+
+def _resample_poses(topic: _Topic, grid: np.ndarray, max_gap: float) -> np.ndarray:
+    """(N, 7) poses: positions linearly, quaternions by sign-aligned nlerp; NaN where lost.
+
+    A grid point is lost when it lies outside the valid messages' span, between two valid
+    messages more than ``max_gap`` s apart, or across a message that was NaN (tracking lost).
+    """
+    src = np.array([(m.pose.position.x, m.pose.position.y, m.pose.position.z, m.pose.orientation.x,
+                     m.pose.orientation.y, m.pose.orientation.z, m.pose.orientation.w) for m in topic.msgs])
+    ok = np.all(np.isfinite(src), axis=1) & (np.linalg.norm(src[:, 3:], axis=1) > 0.5)
+    out = np.full((len(grid), 7), np.nan)
+    if ok.sum() < 2:
+        return out
+    valid = np.flatnonzero(ok)
+    t, s = topic.t_ns[ok], src[ok].copy()
+    for k in range(1, len(s)):  # q and -q are the same rotation: keep the sign continuous
+        if np.dot(s[k, 3:], s[k - 1, 3:]) < 0:
+            s[k, 3:] *= -1.0
+    out = _interp(t, s, grid)
+    out[:, 3:] /= np.linalg.norm(out[:, 3:], axis=1, keepdims=True)
+    j = np.clip(np.searchsorted(t, grid, side="right") - 1, 0, len(t) - 2)
+    inside = (grid > t[j]) & (grid < t[j + 1])
+    lost = inside & (((t[j + 1] - t[j]) * 1e-9 > max_gap) | (valid[j + 1] - valid[j] > 1))
+    out[lost] = np.nan
+    return out
