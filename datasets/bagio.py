@@ -40,7 +40,8 @@ topic                        message type                          content      
 
 ``/flexforce/meta``, ``/flexforce/inputs`` and ``/imu`` are always present; ``/joint_states``
 when ``joint_q`` or ``joint_v`` is; ``/ft/*`` when ``ft`` is (one topic per contact);
-``/mocap/*`` per motion-capture link; ``/truth/*`` for simulated recordings (the bias topics
+``/mocap/*`` per motion-capture link; ``/flexforce/base_pose`` (PoseStamped, frame ``local``: the
+base link's pose in the local frame) when ``base_pose`` is; ``/truth/*`` for simulated recordings (the bias topics
 only when the truth has biases).  Contact and link names become topic name tokens, so they
 must match ``[A-Za-z][A-Za-z0-9_]*``.
 
@@ -78,7 +79,7 @@ so a sample holds 54 + 13 C values.  The reader rebuilds the expected labels fro
 ------------------------
 ``{"format": "flexforce-recording", "version": 1, "robot": str, "contact_names": [...],
 "joint_names": [...], "mass": float, "gravity": float, "truth_links": [...],
-"mocap_links": [...], "meta": {...}, "present": {"joint_q": bool, "joint_v": bool, "ft": bool,
+"mocap_links": [...], "meta": {...}, "present": {"joint_q": bool, "joint_v": bool, "ft": bool, "base_pose": bool,
 "truth": bool, "gyro_bias": bool, "accel_bias": bool}}``.
 Floats are written with Python's shortest round-trip representation, so they load exactly.
 
@@ -110,6 +111,7 @@ META_TOPIC = "/flexforce/meta"
 INPUTS_TOPIC = "/flexforce/inputs"
 IMU_TOPIC = "/imu"
 JOINTS_TOPIC = "/joint_states"
+BASE_TOPIC = "/flexforce/base_pose"
 
 T_IMU = "sensor_msgs/msg/Imu"
 T_JOINTS = "sensor_msgs/msg/JointState"
@@ -195,6 +197,7 @@ def _meta_json(rec: Recording) -> str:
             "joint_q": rec.joint_q is not None,
             "joint_v": rec.joint_v is not None,
             "ft": rec.ft is not None,
+            "base_pose": rec.base_pose is not None,
             "truth": truth is not None,
             "gyro_bias": truth is not None and truth.gyro_bias is not None,
             "accel_bias": truth is not None and truth.accel_bias is not None,
@@ -332,6 +335,10 @@ def _write(writer, ts, rec: Recording, meta: str) -> None:
             add(f"/ft/{name}", T_WRENCH, name,
                 lambda k, h, rows=rows: T[T_WRENCH](header=h, wrench=wrench(rows[k])))
 
+    if rec.base_pose is not None:
+        rows_base = np.asarray(rec.base_pose, dtype=np.float64).tolist()
+        add(BASE_TOPIC, T_POSE, "local", lambda k, h: T[T_POSE](header=h, pose=pose(rows_base[k])))
+
     for name, poses in rec.mocap.items():
         rows = np.asarray(poses, dtype=np.float64).tolist()
         add(f"/mocap/{name}", T_POSE, "world",
@@ -382,8 +389,8 @@ def _write(writer, ts, rec: Recording, meta: str) -> None:
 # reading
 # ------------------------------------------------------------------------------------------------
 _NOT_FLEXFORCE = ("the bag is not a flexforce recording (expected topics /flexforce/meta and "
-                  "/flexforce/inputs as written by save_recording); raw robot logs will be read "
-                  "with a robot config, a later feature")
+                  "/flexforce/inputs as written by save_recording); raw robot logs are imported "
+                  "with a robot config: flexforce ... --robot CONFIG)")
 
 
 def _read_bag(path: Path) -> tuple[dict[str, str], dict[str, list]]:
@@ -564,6 +571,8 @@ def load_recording(path) -> Recording:
 
     mocap = {name: _poses(topics.get(f"/mocap/{name}", T_POSE, " (listed in the meta's mocap_links)"))
              for name in doc["mocap_links"]}
+    base_pose = (_poses(topics.get(BASE_TOPIC, T_POSE, " (the meta says the base pose is present)"))
+                 if present.get("base_pose") else None)
 
     truth = None
     if present["truth"]:
@@ -605,6 +614,6 @@ def load_recording(path) -> Recording:
         imu_w=vec3["imu_w"],
         contact_active=contact_active, contact_p=contact_p, contact_R=contact_R,
         gyro=gyro, accel=accel, joint_names=joint_names, joint_q=joint_q, joint_v=joint_v,
-        ft=ft, mocap=mocap, truth=truth, gravity=float(doc["gravity"]), meta=doc["meta"],
+        ft=ft, mocap=mocap, base_pose=base_pose, truth=truth, gravity=float(doc["gravity"]), meta=doc["meta"],
     )
     return rec.validate()

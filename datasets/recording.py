@@ -113,6 +113,9 @@ class Recording:
     frame about its origin (F [N], T [N m]); NaN where a component is not measured."""
     mocap: dict[str, np.ndarray] = field(default_factory=dict)
     """Motion capture: link name -> (N, 7) world pose (x, y, z, qx, qy, qz, qw); NaN when lost."""
+    base_pose: np.ndarray | None = None
+    """(N, 7) pose of the robot's base (free-flyer link) in the local frame (x, y, z, qx, qy, qz, qw):
+    with the estimated flexibility it places the base in the world, to compare with motion capture."""
     truth: Truth | None = None
     """Ground truth (simulated recordings only)."""
     gravity: float = GRAVITY
@@ -214,6 +217,8 @@ class Recording:
             raise DataError(f"mass must be a positive number of kg, got {self.mass}")
         if self.ft is not None and self.ft.shape != (n, c, 6):
             raise DataError(f"field 'ft' has shape {self.ft.shape}; expected {(n, c, 6)}")
+        if self.base_pose is not None and self.base_pose.shape != (n, 7):
+            raise DataError(f"field 'base_pose' has shape {self.base_pose.shape}; expected {(n, 7)}")
         if self.joint_q is not None and self.joint_q.shape != (n, len(self.joint_names)):
             raise DataError(f"field 'joint_q' has shape {self.joint_q.shape}; expected {(n, len(self.joint_names))}")
         return self

@@ -40,8 +40,8 @@ Method (docs/real-logs.md has the long form):
   :meth:`RobotModel.kinematics` gives the inputs, the IMU placement and the contacts.
 
 ``meta`` holds the source, the grid, the method, the gaps, the contact phases, the anchor
-switches and ``base_pose`` ((N, 7) root-link pose in the local frame, x y z qx qy qz qw, as a
-list) so that motion capture can be compared.
+switches.  The root link's pose in the local frame is ``Recording.base_pose`` ((N, 7),
+x y z qx qy qz qw) so that motion capture can be compared.
 """
 
 from __future__ import annotations
@@ -484,12 +484,12 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
                                 for k, a, b, j in lf.switches],
                    "drift_m": lf.drift},
         "base_frame": _root_link(pmodel),
-        "base_pose": lf.base_pose.tolist(),
     }
     rec = Recording(
         t_ns=grid, robot=config.source or config.name, contact_names=names_c, mass=model.mass,
         contact_active=active, contact_p=lf.contact_p, contact_R=lf.contact_R, gyro=gyro, accel=accel,
         joint_names=tuple(model_names), joint_q=q_grid, joint_v=v_grid, ft=ft, mocap=mocap,
+        base_pose=lf.base_pose,
         gravity=config.gravity, meta=meta, **arrays)
     report(1.0)
     return rec.validate()
@@ -506,7 +506,7 @@ def _merge_gaps(gaps: list[dict]) -> list[dict]:
 
 
 def _root_link(pmodel) -> str:
-    """Name of the URDF link carried by the free-flyer (the frame of ``meta['base_pose']``)."""
+    """Name of the URDF link carried by the free-flyer (the frame of ``Recording.base_pose``)."""
     for f in pmodel.frames:
         if f.parentJoint == 1 and f.type == pin.FrameType.BODY:
             return f.name

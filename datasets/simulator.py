@@ -685,7 +685,7 @@ class Simulator:
             gyro=gyro, accel=accel,
             joint_names=robot.joint_names,
             joint_q=np.array([s.q[7:] for s in samples]), joint_v=np.array([s.v[6:] for s in samples]),
-            ft=ft, truth=truth_obj, gravity=self.g, meta=meta,
+            ft=ft, base_pose=np.array([s.q[:7] for s in samples]), truth=truth_obj, gravity=self.g, meta=meta,
         ).validate()
 
 

@@ -54,7 +54,7 @@ def make_recording(n: int = 40, *, full: bool = True, seed: int = 0) -> Recordin
         wrench[~active] = 0.0
         kw.update(
             joint_names=JOINTS, joint_q=rng.normal(size=(n, 3)), joint_v=rng.normal(size=(n, 3)),
-            ft=ft, mocap={"torso": torso},
+            ft=ft, mocap={"torso": torso}, base_pose=rng.normal(size=(n, 7)),
             truth=Truth(
                 R=rot(n), t=rng.normal(size=(n, 3)), w=rng.normal(size=(n, 3)), v=rng.normal(size=(n, 3)),
                 dw=rng.normal(size=(n, 3)), a=rng.normal(size=(n, 3)), wrench=wrench,
@@ -147,7 +147,7 @@ def test_topics_use_standard_messages(full_bag):
             "/flexforce/meta": "std_msgs/msg/String", "/flexforce/inputs": "std_msgs/msg/Float64MultiArray",
             "/imu": "sensor_msgs/msg/Imu", "/joint_states": "sensor_msgs/msg/JointState",
             "/ft/left_foot": "geometry_msgs/msg/WrenchStamped", "/ft/right_foot": "geometry_msgs/msg/WrenchStamped",
-            "/mocap/torso": "geometry_msgs/msg/PoseStamped",
+            "/mocap/torso": "geometry_msgs/msg/PoseStamped", "/flexforce/base_pose": "geometry_msgs/msg/PoseStamped",
             "/truth/flexibility": "geometry_msgs/msg/PoseStamped",
             "/truth/velocity": "geometry_msgs/msg/TwistStamped",
             "/truth/acceleration": "geometry_msgs/msg/AccelStamped",
@@ -182,7 +182,7 @@ def test_topics_use_standard_messages(full_bag):
     meta = json.loads(first["/flexforce/meta"][1].data)
     assert meta["version"] == 1 and meta["truth_links"] == ["l_hand", "r_hand"]
     assert meta["present"] == {"joint_q": True, "joint_v": True, "ft": True, "truth": True,
-                               "gyro_bias": True, "accel_bias": True}
+                               "gyro_bias": True, "accel_bias": True, "base_pose": True}
 
 
 # ------------------------------------------------------------------------------------------------

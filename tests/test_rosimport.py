@@ -177,7 +177,7 @@ def robot_topics(model, motion, t_imu, t_js=None, forces=None, shuffle=True, moc
 def expected_kinematics(model, rec, motion):
     """The local-frame quantities of the true motion: base fixed where the import put it."""
     q, v, a = motion.at(rec.time + (rec.t_ns[0] - T0) * 1e-9)
-    base = np.array(rec.meta["base_pose"][0])
+    base = np.array(rec.base_pose[0])
     out = []
     for k in range(rec.n):
         qf = np.concatenate([base, q[k]])
@@ -209,7 +209,7 @@ def test_import_recovers_the_synthetic_motion(romeo, tmp_path, kind):
     # the anchor (left sole) is the local origin, flat; the base does not move (legs are still)
     np.testing.assert_allclose(rec.contact_p[:, 0], 0.0, atol=1e-12)
     np.testing.assert_allclose(rec.contact_R[:, 0], np.broadcast_to(np.eye(3), (rec.n, 3, 3)), atol=1e-12)
-    base = np.array(rec.meta["base_pose"])
+    base = np.array(rec.base_pose)
     np.testing.assert_allclose(base - base[0], 0.0, atol=1e-9)
     exp = expected_kinematics(romeo, rec, motion)
     inner = slice(5, -5)  # Savitzky-Golay edges use a one-sided fit
@@ -241,10 +241,10 @@ def test_leg_odometry_keeps_the_stance_foot_still(romeo, tmp_path):
     data = model.createData()
     lf = romeo.contact_frame_ids[0]
     for k in range(0, rec.n, 37):  # the anchor's kinematic placement is its rest placement
-        q = np.concatenate([rec.meta["base_pose"][k], rec.joint_q[k]])
+        q = np.concatenate([rec.base_pose[k], rec.joint_q[k]])
         pin.framesForwardKinematics(model, data, q)
         np.testing.assert_allclose(data.oMf[lf].translation, 0.0, atol=1e-9)
-    base = np.array(rec.meta["base_pose"])
+    base = np.array(rec.base_pose)
     assert np.ptp(base[:, 2]) > 0.01  # the pelvis goes down and up
     assert rec.meta["anchor"]["drift_m"] < 1e-3  # the right sole's rest placement is consistent
     inner = slice(10, -10)
@@ -326,7 +326,7 @@ def test_imported_recording_round_trips_and_is_told_apart(romeo, tmp_path):
     out = save_recording(rec, tmp_path / "rec")
     back = load_recording(out)
     np.testing.assert_array_equal(back.com, rec.com)
-    assert back.meta["base_pose"] == rec.meta["base_pose"]
+    np.testing.assert_array_equal(back.base_pose, rec.base_pose)
     assert is_flexforce_bag(out) and not is_flexforce_bag(raw)
 
 
@@ -443,7 +443,7 @@ def test_icub_recordings():
         # at rest the accelerometer reads gravity through the kinematic IMU orientation
         np.testing.assert_allclose(rec.accel[0], rec.imu_R[0].T @ [0, 0, 9.81], atol=0.3)
         # local frame = Vicon world at the start (world = right sole at t0); 1.2 cm of sole height
-        np.testing.assert_allclose(rec.meta["base_pose"][0][:3], rec.mocap["root_link"][0, :3], atol=0.015)
+        np.testing.assert_allclose(rec.base_pose[0][:3], rec.mocap["root_link"][0, :3], atol=0.015)
     assert max(g["duration"] for g in walk.meta["gaps"]) < 0.03
     assert 0.16 < max(g["duration"] for g in sway.meta["gaps"]) < 0.18
     assert sway.contact_active.all() and not sway.meta["anchor"]["switches"]
