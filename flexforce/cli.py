@@ -59,26 +59,50 @@ def _cmd_simulate(args) -> int:
     return 0
 
 
-def _cmd_run(args) -> int:
+def open_recording(path: Path, robot: str | None = None, contacts: str = "ft", quiet: bool = False):
+    """A flexforce bag (simulated or saved), or a raw robot bag imported with a robot config."""
     from flexforce.datasets.bagio import load_recording
+    from flexforce.datasets.rosimport import import_bag, is_flexforce_bag
+    from flexforce.errors import ConfigError
+
+    path = Path(path)
+    if not path.exists() or is_flexforce_bag(path):
+        return load_recording(path)
+    if not robot:
+        raise ConfigError(f"{path} is a raw robot bag (no /flexforce/meta): give its robot configuration with "
+                          "--robot NAME|CONFIG.toml (e.g. --robot icub)")
+    return import_bag(path, robot, contacts=contacts, progress=Progress(f"import {path.name}", enabled=not quiet and None))
+
+
+def _cmd_run(args) -> int:
     from flexforce.estimators import run_estimator
     from flexforce.factors.model import ModelConfig
 
-    rec = load_recording(args.recording)
+    rec = open_recording(args.recording, args.robot, args.contacts, args.quiet)
     model = ModelConfig.from_recording(rec, robot=args.robot, use_ft=args.ft)
     options = {}
     if args.lag is not None:
         options["lag"] = args.lag
     est = run_estimator(args.estimator, rec, model, progress=Progress(f"{args.estimator}", enabled=not args.quiet and None),
                         **options)
-    out = est.save(args.output)
+    out = Path(args.output)
+    if out.suffix == ".csv":
+        from flexforce.datasets.export import export_csv
+
+        out = export_csv(est, out)
+    elif out.suffix == ".mcap":
+        from flexforce.datasets.export import export_mcap
+
+        out = export_mcap(est, args.recording, out, overwrite=args.force)
+    else:
+        out = est.save(out)
     tps = est.time_per_step
     timing = f", {1e6 * float(sorted(tps)[len(tps) // 2]):.0f} us per step (median)" if tps is not None else ""
     print(f"wrote {out}: {est.n} steps in {est.total_time:.2f} s{timing}")
     return 0
 
 
-def _load_or_simulate(source: str, seed: int | None, quiet: bool, robot: str | None = None):
+def _load_or_simulate(source: str, seed: int | None, quiet: bool, robot: str | None = None, contacts: str = "ft"):
     """A recording from a bag, or simulated from a built-in scenario name or scenario file."""
     from flexforce.datasets.bagio import load_recording
     from flexforce.datasets.scenario import Scenario, builtin_scenarios
@@ -86,7 +110,7 @@ def _load_or_simulate(source: str, seed: int | None, quiet: bool, robot: str | N
 
     path = Path(source)
     if path.exists() and not (path.suffix == ".toml"):
-        return load_recording(path)
+        return open_recording(path, robot, contacts, quiet)
     if path.suffix == ".toml" or source in builtin_scenarios():
         scenario = Scenario.load(source)
         if robot:
@@ -146,7 +170,7 @@ def _cmd_compare(args) -> int:
     out = Path(args.output)
     comps = []
     for label, src, seed in sources:
-        rec = _load_or_simulate(src, seed, args.quiet, args.robot)
+        rec = _load_or_simulate(src, seed, args.quiet, args.robot, args.contacts)
         target = out if len(sources) == 1 else out / label
         comp = _compare_one(rec, args, target)
         comps.append(comp)
@@ -170,6 +194,7 @@ def _cmd_demo(args) -> int:
     args.seeds = None
     args.robot = None
     args.ft = False
+    args.contacts = "ft"
     args.estimators = "ekf,fixed-lag,batch"
     print(f"flexforce demo: simulate '{args.recordings[0]}' (Romeo, pushed on the torso then the hand), "
           f"run the EKF, the fixed-lag and the batch smoothers, compare them against ground truth")
@@ -198,8 +223,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("run", help="run one estimator on a recording and save its estimate (.npz)")
     p.add_argument("recording", type=Path, help="bag written by 'flexforce simulate' (or a flexforce recording)")
     p.add_argument("--estimator", default="ekf", help="ekf (the seed paper's filter), fixed-lag or batch")
-    p.add_argument("-o", "--output", required=True, type=Path, help="estimate file to write (.npz)")
-    p.add_argument("--robot", help="robot name or .toml configuration (default: the recording's)")
+    p.add_argument("-o", "--output", required=True, type=Path,
+                   help="estimate file: .npz (flexforce), .csv (one row per step) or .mcap (ROS 2 bag with the "
+                        "estimate beside the inputs, for PlotJuggler or Foxglove)")
+    p.add_argument("--robot", help="robot name or .toml configuration (default: the recording's; required for a "
+                                   "raw robot bag)")
+    p.add_argument("--contacts", choices=("ft", "fixed"), default="ft",
+                   help="raw bags: contacts from the F/T normal force (Schmitt trigger) or the config's fixed set")
+    p.add_argument("--force", action="store_true", help="overwrite an existing .mcap output")
     p.add_argument("--ft", action="store_true", help="fuse the recording's F/T readings as measurements")
     p.add_argument("--lag", type=float, help="fixed-lag window, s (default 1)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
@@ -210,7 +241,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, type=Path, help="report folder")
     p.add_argument("--estimators", default="ekf,fixed-lag,batch", help="comma-separated list")
     p.add_argument("--seeds", type=int, help="simulate each scenario with this many noise seeds and aggregate")
-    p.add_argument("--robot", help="robot name or .toml configuration (default: the recording's)")
+    p.add_argument("--robot", help="robot name or .toml configuration (default: the recording's; required for a "
+                                   "raw robot bag)")
+    p.add_argument("--contacts", choices=("ft", "fixed"), default="ft",
+                   help="raw bags: contacts from the F/T normal force (Schmitt trigger) or the config's fixed set")
     p.add_argument("--ft", action="store_true", help="fuse the recording's F/T readings as measurements")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_cmd_compare)
