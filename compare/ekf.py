@@ -1,0 +1,704 @@
+r"""The seed paper's Extended Kalman Filter: the baseline every comparison is measured against.
+
+Mifsud, Benallegue & Lamiraux (IROS 2015), sec. III-B, with DESIGN.md's corrections (the
+physics is :mod:`flexforce.factors.physics`, shared with the smoothers).  See ``docs/ekf.md`` for
+the derivation of Q, R and P0 and the reset policy.
+
+State and model
+---------------
+The state is the paper's eq. (4), in its order and parametrisation (18 components)::
+
+    x = (t, Omega, v, w, a, dw)      t [m], Omega = log R [rad], v = dt/dt [m/s],
+                                     w [rad/s, world], a = d2t/dt2 [m/s^2], dw = dw/dt [rad/s^2]
+
+Prediction from step k to k+1 (``dt`` the sample period)::
+
+    R_{k+1} = exp(dt w_k + dt^2/2 dw_k) R_k,     Omega_{k+1} = log R_{k+1}
+    t_{k+1} = t_k + dt v_k + dt^2/2 a_k
+    v_{k+1} = v_k + dt a_k,                      w_{k+1} = w_k + dt dw_k
+    (dw, a)_{k+1} = forward_dynamics(x_{k+1}, W_c(x_{k+1}; contacts_{k+1}), inputs_{k+1})
+                                                                     eq. (24), (25) with (10), (12)
+
+where the contact wrench ``W_c`` sums the spring-dampers of the contacts active at step k+1 --
+the set may change from one step to the next.  The correction uses the gyrometer and the
+accelerometer readings in the IMU frame, eq. (26)-(28), ``y = h(x_k; imu_k)``.
+
+Jacobians
+---------
+The physics returns Jacobians with respect to world-frame increments ``(theta, t, w, v, dw, a)``;
+with ``d_theta = J_l(Omega) d_Omega`` (:func:`flexforce.factors.so3.left_jacobian`) they become
+Jacobians in the state's own parametrisation.  The authors differentiated numerically; that path is
+kept (``EKFConfig(jacobians="numeric")``) as the tests' reference.  A fused, compiled kernel
+(:mod:`flexforce.compare._ekf_kernel`, numba) runs the same arithmetic ~50x faster and is tested
+against this module to 1e-10.
+
+Output
+------
+:func:`run_ekf` returns the common :class:`~flexforce.datasets.estimate.Estimate`: its ``cov`` is
+over world-frame increments in the physics order ``(theta, t, w, v, dw, a)``, converted from the
+filter's ``(t, Omega, v, w, a, dw)``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from dataclasses import dataclass
+from typing import Callable, NamedTuple
+
+import numpy as np
+
+from flexforce.datasets.estimate import Estimate
+from flexforce.datasets.recording import Recording
+from flexforce.errors import ConfigError, DataError, EstimatorError, ModelError
+from flexforce.factors import physics as ph
+from flexforce.factors import so3
+from flexforce.factors.model import ModelConfig
+
+__all__ = [
+    "EKF", "EKFConfig", "Update", "kf_predict", "kf_update", "run_ekf", "noise_model",
+    "STATE_LABELS", "IMU_LABELS", "paper_to_world", "world_to_paper_cov",
+]
+
+STATE_LABELS = ("t_x", "t_y", "t_z", "Omega_x", "Omega_y", "Omega_z", "v_x", "v_y", "v_z",
+                "w_x", "w_y", "w_z", "a_x", "a_y", "a_z", "dw_x", "dw_y", "dw_z")
+"""The filter's state, eq. (4): m, rad, m/s, rad/s, m/s^2, rad/s^2."""
+
+IMU_LABELS = ("gyro_x [rad/s]", "gyro_y [rad/s]", "gyro_z [rad/s]",
+              "accel_x [m/s^2]", "accel_y [m/s^2]", "accel_z [m/s^2]")
+"""Components of the innovation (IMU frame)."""
+
+# Slices of the paper's state x = (t, Omega, v, w, a, dw).
+T, OM, V, W, A, DW = (slice(3 * i, 3 * i + 3) for i in range(6))
+_I3 = np.eye(3)
+
+
+# ----------------------------------------------------------------------------------------------
+# Configuration
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class EKFConfig:
+    r"""Options of the EKF.  Noise levels left at ``None`` are derived from the model (docs/ekf.md).
+
+    One rule for every recording: nothing here is tuned per scenario.
+    """
+
+    unmodelled_accel: float | None = None
+    r"""Standard deviation of the unmodelled linear acceleration per sample, m/s^2 (what the
+    contact law and Newton-Euler leave out).  ``None``: the accelerometer's per-sample noise
+    ``ModelConfig.accel_sigma`` -- the model is trusted to the resolution of the sensor that
+    checks it."""
+    unmodelled_ang_accel: float | None = None
+    r"""Standard deviation of the unmodelled angular acceleration per sample, rad/s^2.  ``None``:
+    ``accel_sigma / l`` with ``l`` the distance (m) from the IMU to the centroid of the contacts at
+    the first step: the angular acceleration whose tangential acceleration at the IMU equals the
+    accelerometer's noise."""
+    p0_scale: float = 1.0
+    r"""Multiplies the prior standard deviations derived in :func:`noise_model` (dimensionless)."""
+    z0: float = 0.0
+    """Height of the ground plane on which the CoP is computed, m (0 for simulated data)."""
+    min_force: float = 1e-6
+    """Vertical force below which the CoP is undefined (NaN), N."""
+    jacobians: str = "analytic"
+    """``analytic`` (the physics module's) or ``numeric`` (central differences, the authors' way)."""
+    fast: bool | None = None
+    """Use the compiled kernel (numba); ``None``: when numba is importable.  ``False``: the
+    reference numpy path (about 50x slower)."""
+    on_covariance_failure: str = "raise"
+    """``raise`` (EstimatorError) or ``reset`` (P <- P0 with a RuntimeWarning) when the state
+    covariance stops being positive definite."""
+    nis_limit: float = 1e6
+    """Normalised innovation squared (dimensionless, chi^2 with 6 dof, mean 6) above which a step
+    counts as diverged."""
+    nis_steps: int = 20
+    """Consecutive diverged steps after which the filter raises EstimatorError."""
+
+    def __post_init__(self):
+        if self.jacobians not in ("analytic", "numeric"):
+            raise ConfigError(f"EKFConfig.jacobians must be 'analytic' or 'numeric', got '{self.jacobians}'")
+        if self.on_covariance_failure not in ("raise", "reset"):
+            raise ConfigError("EKFConfig.on_covariance_failure must be 'raise' or 'reset', "
+                              f"got '{self.on_covariance_failure}'")
+        for name in ("unmodelled_accel", "unmodelled_ang_accel"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise ConfigError(f"EKFConfig.{name} must be a positive number, got {value}")
+        if not (self.p0_scale > 0 and self.nis_limit > 0 and self.nis_steps >= 1):
+            raise ConfigError("EKFConfig.p0_scale and nis_limit must be positive and nis_steps >= 1")
+
+
+# ----------------------------------------------------------------------------------------------
+# Generic Kalman kernels (pure functions, dynamax-style)
+# ----------------------------------------------------------------------------------------------
+
+
+def kf_predict(fx: np.ndarray, F: np.ndarray, P: np.ndarray, Q: np.ndarray):
+    r"""Covariance prediction ``P' = F P F^T + Q`` around the predicted mean ``fx``.
+
+    Returns ``(fx, P')`` with ``P'`` symmetrised.
+    """
+    Pp = F @ P @ F.T + Q
+    return fx, 0.5 * (Pp + Pp.T)
+
+
+class Update(NamedTuple):
+    """Result of :func:`kf_update`."""
+
+    x: np.ndarray
+    P: np.ndarray
+    innovation: np.ndarray
+    """``y - h(x)``."""
+    S: np.ndarray
+    """Innovation covariance ``H P H^T + R``."""
+    whitened: np.ndarray
+    """``L^-1 innovation`` with ``S = L L^T``: N(0, I) when the filter is consistent."""
+    nis: float
+    """Normalised innovation squared, ``innovation^T S^-1 innovation``."""
+
+
+def kf_update(x: np.ndarray, P: np.ndarray, y: np.ndarray, hx: np.ndarray, H: np.ndarray,
+              Rn: np.ndarray) -> Update:
+    r"""Kalman correction with the Joseph form (stays symmetric positive definite)::
+
+        S = H P H^T + R,  K = P H^T S^-1,  x' = x + K (y - h(x)),
+        P' = (I - K H) P (I - K H)^T + K R K^T
+
+    Raises:
+        np.linalg.LinAlgError: when ``S`` is not positive definite.
+    """
+    innov = y - hx
+    PHt = P @ H.T
+    S = H @ PHt + Rn
+    S = 0.5 * (S + S.T)
+    L = np.linalg.cholesky(S)
+    K = np.linalg.solve(S, PHt.T).T
+    IKH = np.eye(len(x)) - K @ H
+    Pn = IKH @ P @ IKH.T + K @ Rn @ K.T
+    white = np.linalg.solve(L, innov)
+    return Update(x + K @ innov, 0.5 * (Pn + Pn.T), innov, S, white, float(white @ white))
+
+
+# ----------------------------------------------------------------------------------------------
+# Parametrisation changes
+# ----------------------------------------------------------------------------------------------
+
+
+def paper_to_world(Omega: np.ndarray) -> np.ndarray:
+    r"""18x18 ``M`` with ``d_world = M d_x``: world increments ``(theta, t, w, v, dw, a)`` from
+    increments of the paper's ``(t, Omega, v, w, a, dw)``; ``d_theta = J_l(Omega) d_Omega``."""
+    M = np.zeros((18, 18))
+    M[0:3, OM] = so3.left_jacobian(Omega)
+    M[3:6, T] = _I3
+    M[6:9, W] = _I3
+    M[9:12, V] = _I3
+    M[12:15, DW] = _I3
+    M[15:18, A] = _I3
+    return M
+
+
+def world_to_paper_cov(Omega: np.ndarray, P_world: np.ndarray) -> np.ndarray:
+    """Covariance over world increments ``(theta, t, w, v, dw, a)`` to the filter's parametrisation."""
+    Minv = np.linalg.inv(paper_to_world(Omega))
+    return Minv @ P_world @ Minv.T
+
+
+def _split(x):
+    return x[T], x[OM], x[V], x[W], x[A], x[DW]
+
+
+# ----------------------------------------------------------------------------------------------
+# Noise model
+# ----------------------------------------------------------------------------------------------
+
+
+class NoiseModel(NamedTuple):
+    """Q (per step), R and the prior's standard deviations, see :func:`noise_model`."""
+
+    Q: np.ndarray
+    """18x18 process noise in the filter's order, for a small Omega (see EKF.process_noise)."""
+    R: np.ndarray
+    """6x6 IMU noise."""
+    sigma_a: float
+    """Unmodelled linear acceleration per sample, m/s^2."""
+    sigma_dw: float
+    """Unmodelled angular acceleration per sample, rad/s^2."""
+    p0_sigma: np.ndarray
+    """(12,) prior standard deviations of (t, Omega, v, w): m, rad, m/s, rad/s."""
+
+
+def _contact_totals(rec: Recording, model: ModelConfig, k: int):
+    """Summed stiffness over the contacts active at step k (N/m, N m/rad) and their centroid."""
+    act = rec.active_contacts(k)
+    if not act:
+        raise DataError(f"no contact is active at sample {k}; the EKF needs at least one contact "
+                        "to start (the flexibility is not defined in the air)")
+    kf = sum(float(np.trace(model.contact_params[i].K_fs)) / 3.0 for i in act)
+    kt = sum(float(np.trace(model.contact_params[i].K_ts)) / 3.0 for i in act)
+    centroid = np.mean([rec.contact_p[k, i] for i in act], axis=0)
+    return kf, kt, centroid
+
+
+def noise_model(rec: Recording, model: ModelConfig, config: EKFConfig = EKFConfig()) -> NoiseModel:
+    r"""Q, R and the prior derived from the sensor noise model and the nominal model (docs/ekf.md).
+
+    * R: ``diag(gyro_sigma^2 I3, accel_sigma^2 I3)`` (ModelConfig, per-sample sigmas).
+    * Unmodelled acceleration per sample: ``sigma_a = accel_sigma`` (m/s^2) and
+      ``sigma_dw = accel_sigma / l`` with ``l`` the IMU's distance to the contacts' centroid.
+    * Q: the unmodelled acceleration is white, piecewise constant over a step (the discrete
+      white-noise-acceleration model, Bar-Shalom et al. 2001, sec. 6.3.2): per axis, position,
+      velocity and acceleration receive ``sigma^2 [dt^4/4, dt^3/2, dt^2/2; ., dt^2, dt; ., ., 1]``.
+    * P0: deflections of the order of the static ones: ``sigma_t = m g / sum k_fs`` (the static
+      sinking under the weight), ``sigma_Omega = sigma_t / h`` (the tilt about the contacts that
+      moves the CoM, at height h above them, by as much), velocities ``omega_n sigma`` with the
+      natural pulsations ``omega_n^2 = sum k_fs / m`` and ``sum k_ts / (m h^2)``; the
+      accelerations' prior follows from the dynamics.
+    """
+    dt = rec.dt
+    g = model.gravity
+    m = rec.mass
+    kf, kt, centroid = _contact_totals(rec, model, 0)
+    lever = float(np.linalg.norm(rec.imu_p[0] - centroid))
+    height = float(max(rec.com[0, 2] - centroid[2], 1e-3))
+    sa = config.unmodelled_accel if config.unmodelled_accel is not None else model.accel_sigma
+    sdw = (config.unmodelled_ang_accel if config.unmodelled_ang_accel is not None
+           else model.accel_sigma / max(lever, 1e-3))
+    Rn = np.diag([model.gyro_sigma**2] * 3 + [model.accel_sigma**2] * 3)
+    Q = np.zeros((18, 18))
+    blk = np.array([[dt**4 / 4, dt**3 / 2, dt**2 / 2], [dt**3 / 2, dt**2, dt], [dt**2 / 2, dt, 1.0]])
+    for pos, vel, acc, s in ((T, V, A, sa), (OM, W, DW, sdw)):
+        idx = [pos, vel, acc]
+        for i in range(3):
+            for j in range(3):
+                Q[idx[i], idx[j]] = s * s * blk[i, j] * _I3
+    s_t = m * g / kf
+    s_om = s_t / height
+    s_v = math.sqrt(kf / m) * s_t
+    s_w = math.sqrt(kt / (m * height**2)) * s_om
+    p0 = config.p0_scale * np.array([s_t] * 3 + [s_om] * 3 + [s_v] * 3 + [s_w] * 3)
+    return NoiseModel(Q, Rn, sa, sdw, p0)
+
+
+# ----------------------------------------------------------------------------------------------
+# The filter
+# ----------------------------------------------------------------------------------------------
+
+
+def _numeric_jacobian(f, x: np.ndarray, h: float = 1e-6) -> np.ndarray:
+    """Central differences of ``f`` in the state's own (additive) parametrisation."""
+    cols = []
+    for i in range(len(x)):
+        e = np.zeros(len(x))
+        e[i] = h
+        cols.append((f(x + e) - f(x - e)) / (2 * h))
+    return np.array(cols).T
+
+
+class EKF:
+    r"""The paper's EKF over a recording, step by step; pure ``predict`` and ``update``.
+
+    ``predict(x, P, k)`` propagates the state of step ``k - 1`` to step ``k`` with step ``k``'s
+    inputs and active contacts; ``update(x, P, k)`` corrects it with step ``k``'s IMU readings.
+    Neither mutates its arguments.  This is the reference (numpy) implementation; the compiled
+    kernel used by :func:`run_ekf` is tested against it.
+    """
+
+    def __init__(self, rec: Recording, model: ModelConfig, config: EKFConfig = EKFConfig()):
+        if len(model.contact_params) != len(rec.contact_names):
+            raise ConfigError(f"the model has {len(model.contact_params)} contact(s), the recording "
+                              f"{len(rec.contact_names)} ({', '.join(rec.contact_names)})")
+        self.rec = rec
+        self.model = model
+        self.config = config
+        self.dt = rec.dt
+        self.g = model.gravity
+        self.noise = noise_model(rec, model, config)
+
+    # --- model functions ----------------------------------------------------------------------
+    def contacts(self, k: int):
+        """``(local_p, local_R, params)`` of the contacts active at step k."""
+        rec = self.rec
+        return [(rec.contact_p[k, i], rec.contact_R[k, i], self.model.contact_params[i])
+                for i in rec.active_contacts(k)]
+
+    def dynamics(self, R, t, w, v, k: int, jacobian: bool = False):
+        """Accelerations ``(a, dw)`` from the contact law and Newton-Euler at step k's inputs.
+
+        With ``jacobian``, also the 6x12 Jacobian of ``(a, dw)`` -- filter order -- with respect
+        to world increments ``(theta, t, w, v)``.
+        """
+        contacts = self.contacts(k)
+        inp = self.rec.inputs(k)
+        if not jacobian:
+            wrench, _ = ph.total_contact_wrench(R, t, w, v, contacts)
+            acc = ph.forward_dynamics(R, t, w, v, wrench, inp, self.g)
+            return np.concatenate([acc[3:], acc[:3]])
+        wrench, _, Jc = ph.total_contact_wrench(R, t, w, v, contacts, jacobian=True)
+        acc, Jfd = ph.forward_dynamics(R, t, w, v, wrench, inp, self.g, jacobian=True)
+        G = Jfd.x + Jfd.wrench @ Jc
+        return np.concatenate([acc[3:], acc[:3]]), np.vstack([G[3:6], G[0:3]])
+
+    def transition(self, x: np.ndarray, k: int, jacobian: bool = False):
+        """``f(x_{k-1})``: the predicted state at step k, and its 18x18 Jacobian ``F``."""
+        dt = self.dt
+        t, Om, v, w, a, dw = _split(x)
+        phi = dt * w + 0.5 * dt * dt * dw
+        E = so3.exp(phi)
+        R1 = E @ so3.exp(Om)
+        t1 = t + dt * v + 0.5 * dt * dt * a
+        v1 = v + dt * a
+        w1 = w + dt * dw
+        Om1 = so3.log(R1)
+        if not jacobian:
+            acc = self.dynamics(R1, t1, w1, v1, k)
+            return np.concatenate([t1, Om1, v1, w1, acc])
+        acc, G = self.dynamics(R1, t1, w1, v1, k, jacobian=True)
+        x1 = np.concatenate([t1, Om1, v1, w1, acc])
+        if self.config.jacobians == "numeric":
+            return x1, _numeric_jacobian(lambda z: self.transition(z, k), x)
+        # D: world increments (theta, t, w, v) at step k from the filter's increments at k-1.
+        Jphi = so3.left_jacobian(phi)
+        D = np.zeros((12, 18))
+        D[0:3, OM] = E @ so3.left_jacobian(Om)
+        D[0:3, W] = dt * Jphi
+        D[0:3, DW] = 0.5 * dt * dt * Jphi
+        D[3:6, T] = _I3
+        D[3:6, V] = dt * _I3
+        D[3:6, A] = 0.5 * dt * dt * _I3
+        D[6:9, W] = _I3
+        D[6:9, DW] = dt * _I3
+        D[9:12, V] = _I3
+        D[9:12, A] = dt * _I3
+        F = np.empty((18, 18))
+        F[T] = D[3:6]
+        F[OM] = so3.left_jacobian_inverse(Om1) @ D[0:3]
+        F[V] = D[9:12]
+        F[W] = D[6:9]
+        F[12:18] = G @ D
+        return x1, F
+
+    def measurement(self, x: np.ndarray, k: int, jacobian: bool = False):
+        """``h(x_k)``: gyro and accelerometer readings (IMU frame), eq. (26)-(28), and ``H`` (6x18)."""
+        t, Om, v, w, a, dw = _split(x)
+        R = so3.exp(Om)
+        imu = self.rec.imu(k)
+        if not jacobian:
+            return ph.imu_readings(R, t, w, v, dw, a, imu, self.g)
+        if self.config.jacobians == "numeric":
+            return self.measurement(x, k), _numeric_jacobian(lambda z: self.measurement(z, k), x)
+        y, J = ph.imu_readings(R, t, w, v, dw, a, imu, self.g, jacobian=True)
+        return y, np.hstack([J.x, J.acc]) @ paper_to_world(Om)
+
+    def process_noise(self, x: np.ndarray) -> np.ndarray:
+        """Q at the predicted state: the rotation block mapped from world increments to Omega."""
+        B = np.eye(18)
+        B[OM, OM] = so3.left_jacobian_inverse(x[OM])
+        return B @ self.noise.Q @ B.T
+
+    # --- filter steps --------------------------------------------------------------------------
+    def initial_state(self, x0: np.ndarray | None = None, P0: np.ndarray | None = None):
+        """The prior at step 0: ``x0`` (default: rest, zero velocity) with accelerations from
+        the dynamics, and ``P0`` (default: :func:`noise_model`'s, accelerations' block mapped
+        through the dynamics' Jacobian plus the unmodelled acceleration)."""
+        if x0 is None:
+            x0 = np.zeros(18)
+        x0 = np.asarray(x0, dtype=float)
+        if x0.shape == (12,):
+            x0 = np.concatenate([x0, np.zeros(6)])
+        if x0.shape != (18,) or not np.all(np.isfinite(x0)):
+            raise ConfigError(f"x0 must be 18 finite numbers (t, Omega, v, w, a, dw), got {x0!r}")
+        t, Om, v, w, _, _ = _split(x0)
+        R = so3.exp(Om)
+        acc, G = self.dynamics(R, t, w, v, 0, jacobian=True)
+        x = np.concatenate([x0[:12], acc])
+        if P0 is not None:
+            P0 = np.asarray(P0, dtype=float)
+            if P0.shape != (18, 18) or not np.all(np.isfinite(P0)):
+                raise ConfigError(f"P0 must be a finite 18x18 matrix, got shape {P0.shape}")
+            try:
+                np.linalg.cholesky(P0)
+            except np.linalg.LinAlgError as err:
+                raise ConfigError("P0 is not positive definite") from err
+            return x, 0.5 * (P0 + P0.T)
+        P = np.zeros((18, 18))
+        P[:12, :12] = np.diag(self.noise.p0_sigma**2)
+        # The accelerations are functions of (t, Omega, v, w): same map as in transition().
+        D = np.zeros((12, 12))
+        D[0:3, OM] = so3.left_jacobian(Om)
+        D[3:6, T] = _I3
+        D[6:9, W] = _I3
+        D[9:12, V] = _I3
+        GD = G @ D
+        P[12:, :12] = GD @ P[:12, :12]
+        P[:12, 12:] = P[12:, :12].T
+        P[12:, 12:] = GD @ P[:12, :12] @ GD.T + self.noise.Q[12:, 12:]
+        return x, 0.5 * (P + P.T)
+
+    def predict(self, x: np.ndarray, P: np.ndarray, k: int):
+        """Propagate ``(x, P)`` of step ``k - 1`` to step ``k``."""
+        x1, F = self.transition(x, k, jacobian=True)
+        return kf_predict(x1, F, P, self.process_noise(x1))
+
+    def update(self, x: np.ndarray, P: np.ndarray, k: int) -> Update:
+        """Correct ``(x, P)`` at step ``k`` with its gyrometer and accelerometer readings."""
+        hx, H = self.measurement(x, k, jacobian=True)
+        y = self.rec.imu_measurement(k)
+        up = kf_update(x, P, y, hx, H, self.noise.R)
+        return up._replace(x=_wrap(up.x))
+
+    # --- outputs ---------------------------------------------------------------------------
+    def outputs(self, x: np.ndarray, P: np.ndarray, k: int) -> dict:
+        """World-frame covariance, per-contact wrenches, CoP and their covariances at step k."""
+        t, Om, v, w, a, dw = _split(x)
+        R = so3.exp(Om)
+        M = paper_to_world(Om)
+        Pw = M @ P @ M.T
+        n_c = len(self.rec.contact_names)
+        per = np.zeros((n_c, 6))
+        Jc = np.zeros((6, 12))
+        for i in self.rec.active_contacts(k):
+            per[i], J = ph.contact_wrench(R, t, w, v, self.rec.contact_p[k, i], self.rec.contact_R[k, i],
+                                          self.model.contact_params[i], jacobian=True)
+            Jc += J
+        Wcov = Jc @ Pw[:12, :12] @ Jc.T
+        cop, Jcop = ph.center_of_pressure(per.sum(axis=0), self.config.z0, jacobian=True,
+                                          min_force=self.config.min_force)
+        cop_cov = Jcop[:2] @ Wcov @ Jcop[:2].T
+        return {"R": R, "cov": 0.5 * (Pw + Pw.T), "wrench": per, "wrench_cov": 0.5 * (Wcov + Wcov.T),
+                "cop": cop, "cop_cov": cop_cov}
+
+
+def _wrap(x: np.ndarray) -> np.ndarray:
+    """Keep ``|Omega| <= pi`` (the same rotation) after an additive correction."""
+    Om = x[OM]
+    if float(Om @ Om) > math.pi**2:
+        x = x.copy()
+        x[OM] = so3.log(so3.exp(Om))
+    return x
+
+
+# ----------------------------------------------------------------------------------------------
+# Input checks
+# ----------------------------------------------------------------------------------------------
+
+_FINITE_FIELDS = ("com", "com_vel", "com_acc", "inertia", "inertia_dot", "sigma", "sigma_dot", "imu_R",
+                  "imu_p", "imu_v", "imu_a", "imu_w", "contact_p", "contact_R", "gyro", "accel")
+
+
+def check_recording(rec: Recording, model: ModelConfig) -> None:
+    """Raise DataError naming the field, sample and time of the first NaN or inf the EKF would read."""
+    time_s = rec.time
+    for name in _FINITE_FIELDS:
+        arr = np.asarray(getattr(rec, name))
+        if name in ("contact_p", "contact_R"):
+            # Rest placements matter only while the contact is active.
+            flat = arr.reshape(rec.n, arr.shape[1], -1)
+            bad = ~np.isfinite(flat).all(axis=2) & rec.contact_active
+            bad_k = bad.any(axis=1)
+        else:
+            bad_k = ~np.isfinite(arr.reshape(rec.n, -1)).all(axis=1)
+        if bad_k.any():
+            k = int(np.flatnonzero(bad_k)[0])
+            raise DataError(f"field '{name}' is not finite (NaN or inf) at sample {k}, "
+                            f"t = {time_s[k]:.3f} s; the EKF needs finite inputs and readings")
+    if not (math.isfinite(rec.mass) and rec.mass > 0):
+        raise DataError(f"mass must be a positive number of kg, got {rec.mass}")
+    if rec.n < 2:
+        raise DataError(f"recording has {rec.n} sample(s); at least 2 are needed")
+    for name in ("gyro_sigma", "accel_sigma"):
+        s = getattr(model, name)
+        if not (math.isfinite(s) and s > 0):
+            raise ConfigError(f"ModelConfig.{name} must be a positive number, got {s}")
+
+
+# ----------------------------------------------------------------------------------------------
+# Running over a recording
+# ----------------------------------------------------------------------------------------------
+
+
+def _use_fast(config: EKFConfig) -> bool:
+    if config.jacobians == "numeric":
+        if config.fast:
+            raise ConfigError("the compiled kernel has analytic Jacobians only; use fast=False with "
+                              "jacobians='numeric'")
+        return False
+    if config.fast is False:
+        return False
+    from flexforce.compare import _ekf_kernel
+
+    if not _ekf_kernel.AVAILABLE:
+        if config.fast:
+            raise ConfigError("EKFConfig(fast=True) needs numba, which is not installed")
+        return False
+    return True
+
+
+def run_ekf(rec: Recording, model: ModelConfig, progress: Callable[[float], None] | None = None,
+            x0: np.ndarray | None = None, P0: np.ndarray | None = None,
+            config: EKFConfig | None = None, **options) -> Estimate:
+    """Run the paper's EKF over a recording and return the common Estimate.
+
+    Args:
+        rec: the recording (inputs, active contacts, IMU readings).
+        model: the model assumptions (stiffness, sensor noise, gravity).
+        progress: called with the fraction done.
+        x0: initial state (t, Omega, v, w[, a, dw]); default: rest.  Accelerations are recomputed
+            from the dynamics.
+        P0: 18x18 initial covariance in the filter's order; default: derived (docs/ekf.md).
+        config: an :class:`EKFConfig`; ``options`` are its fields, as an alternative.
+
+    Raises:
+        DataError: NaN or inf in an input or a reading (naming the field, the sample, the time).
+        EstimatorError: covariance no longer positive definite (unless ``on_covariance_failure =
+            "reset"``), or divergence (NIS above ``nis_limit`` for ``nis_steps`` steps).
+    """
+    if config is None:
+        try:
+            config = EKFConfig(**options)
+        except TypeError as err:
+            raise ConfigError(f"unknown EKF option: {err}; known: {', '.join(EKFConfig.__dataclass_fields__)}") from err
+    elif options:
+        raise ConfigError("give either config= or EKF options, not both")
+    check_recording(rec, model)
+    if model.use_ft:
+        warnings.warn("the seed paper's EKF does not fuse F/T readings; use_ft is ignored", RuntimeWarning,
+                      stacklevel=2)
+    ekf = EKF(rec, model, config)
+    fast = _use_fast(config)
+    n, n_c = rec.n, len(rec.contact_names)
+    out = _Outputs(n, n_c)
+    x, P = ekf.initial_state(x0, P0)
+    x = np.ascontiguousarray(x, dtype=float)
+    P = np.ascontiguousarray(P, dtype=float)
+    P_reset = P.copy()
+    kernel = None
+    if fast:
+        from flexforce.compare._ekf_kernel import Kernel
+
+        kernel = Kernel(ekf)
+    start = time.perf_counter()
+    diverged = 0
+    every = max(1, n // 100)
+    for k in range(n):
+        t0 = time.perf_counter()
+        if kernel is not None:
+            status = kernel.step(k, x, P, out)  # x and P updated in place
+        else:
+            x, P, status = _reference_step(ekf, k, x, P, out)
+        out.time_per_step[k] = time.perf_counter() - t0
+        if status:
+            x, P = _handle_failure(status, k, ekf, x, P, P_reset, out)
+        if out.nis[k] > config.nis_limit:
+            diverged += 1
+            if diverged >= config.nis_steps:
+                raise EstimatorError(
+                    f"EKF diverged: the normalised innovation squared has exceeded {config.nis_limit:g} "
+                    f"(chi^2, 6 dof, mean 6) for {diverged} consecutive steps, up to sample {k} "
+                    f"(t = {rec.time[k]:.3f} s, NIS = {out.nis[k]:.3g}); check the model (stiffness, "
+                    "mass, contacts) and the IMU placement")
+        else:
+            diverged = 0
+        if progress is not None and (k % every == 0 or k == n - 1):
+            progress((k + 1) / n)
+    total = time.perf_counter() - start
+    return out.estimate(rec, ekf, total, fast)
+
+
+_STATUS = {1: "the predicted state covariance", 2: "the innovation covariance", 3: "the corrected state covariance",
+           4: "the state"}
+
+
+def _handle_failure(status: int, k: int, ekf: EKF, x, P, P_reset, out: "_Outputs"):
+    """Raise, or (``on_covariance_failure='reset'``) restart P from P0 and redo step k's update."""
+    rec = ekf.rec
+    where = f"at sample {k} (t = {rec.time[k]:.3f} s)"
+    if status == 5:
+        raise ModelError(f"the Newton-Euler system is singular {where}: check the mass and inertia inputs")
+    what = _STATUS.get(status, "the filter")
+    msg = f"{what} is not positive definite and finite {where}"
+    if status == 4 or not np.all(np.isfinite(x)) or ekf.config.on_covariance_failure == "raise":
+        raise EstimatorError(msg + "; the filter cannot continue (EKFConfig(on_covariance_failure='reset') "
+                                   "restarts the covariance from P0)")
+    warnings.warn(msg + "; covariance reset to P0, state kept (EKFConfig.on_covariance_failure='reset')",
+                  RuntimeWarning, stacklevel=3)
+    x2, P2, st = _reference_step(ekf, k, np.array(x), P_reset.copy(), out, predict=False)
+    if st:
+        raise EstimatorError(msg + "; the reset to P0 did not recover the filter")
+    x[...] = x2
+    P[...] = P2
+    return x, P
+
+
+def _reference_step(ekf: EKF, k: int, x, P, out: "_Outputs", predict: bool = True):
+    """One predict (k > 0) + update with the numpy reference; fills ``out`` at k."""
+    if k > 0 and predict:
+        x, P = ekf.predict(x, P, k)
+        if not _is_pd(P):
+            return x, P, 1
+    try:
+        up = ekf.update(x, P, k)
+    except np.linalg.LinAlgError:
+        return x, P, 2
+    x, P = up.x, up.P
+    if not np.all(np.isfinite(x)):
+        return x, P, 4
+    if not _is_pd(P):
+        return x, P, 3
+    out.x[k] = x
+    out.innovation[k] = up.innovation
+    out.S[k] = up.S
+    out.white[k] = up.whitened
+    out.nis[k] = up.nis
+    o = ekf.outputs(x, P, k)
+    out.cov[k] = o["cov"]
+    out.wrench[k] = o["wrench"]
+    out.wrench_cov[k] = o["wrench_cov"]
+    out.cop[k] = o["cop"]
+    out.cop_cov[k] = o["cop_cov"]
+    return x, P, 0
+
+
+def _is_pd(P: np.ndarray) -> bool:
+    if not np.all(np.isfinite(P)):
+        return False
+    try:
+        np.linalg.cholesky(P)
+    except np.linalg.LinAlgError:
+        return False
+    return True
+
+
+class _Outputs:
+    """Preallocated per-step outputs (filled in place by either path)."""
+
+    def __init__(self, n: int, n_c: int):
+        self.x = np.zeros((n, 18))
+        self.cov = np.zeros((n, 18, 18))
+        self.wrench = np.zeros((n, n_c, 6))
+        self.wrench_cov = np.zeros((n, 6, 6))
+        self.cop = np.zeros((n, 3))
+        self.cop_cov = np.zeros((n, 2, 2))
+        self.innovation = np.zeros((n, 6))
+        self.S = np.zeros((n, 6, 6))
+        self.white = np.zeros((n, 6))
+        self.nis = np.zeros(n)
+        self.time_per_step = np.zeros(n)
+
+    def estimate(self, rec: Recording, ekf: EKF, total: float, fast: bool) -> Estimate:
+        x = self.x
+        R = np.array([so3.exp(Om) for Om in x[:, OM]])
+        nm = ekf.noise
+        return Estimate(
+            estimator="ekf", t_ns=rec.t_ns.copy(), contact_names=tuple(rec.contact_names),
+            R=R, t=x[:, T].copy(), w=x[:, W].copy(), v=x[:, V].copy(), dw=x[:, DW].copy(), a=x[:, A].copy(),
+            wrench=self.wrench, cop=self.cop, cov=self.cov, wrench_cov=self.wrench_cov, cop_cov=self.cop_cov,
+            residuals={"imu": self.white}, residual_labels={"imu": IMU_LABELS},
+            innovation=self.innovation, innovation_cov=self.S, time_per_step=self.time_per_step,
+            total_time=total,
+            meta={"kernel": "numba" if fast else "numpy", "jacobians": ekf.config.jacobians,
+                  "sigma_unmodelled_accel": nm.sigma_a, "sigma_unmodelled_ang_accel": nm.sigma_dw,
+                  "p0_sigma": nm.p0_sigma.tolist(), "gyro_sigma": ekf.model.gyro_sigma,
+                  "accel_sigma": ekf.model.accel_sigma, "mean_nis": float(np.mean(self.nis)), "z0": ekf.config.z0},
+        )
