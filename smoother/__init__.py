@@ -1,1 +1,17 @@
-"""flexforce.smoother: factor-graph smoothing of the flexible-contact model (batch and fixed-lag)."""
+"""flexforce.smoother: factor-graph smoothing of the flexible-contact model (batch and fixed-lag).
+
+Public API: :func:`run_batch`, :func:`run_fixed_lag` (both return an Estimate), the effect
+protocol :class:`Effect`, the noise rule :class:`NoiseRule` and :class:`Problem`.
+"""
+
+from flexforce.smoother.batch import run_batch
+from flexforce.smoother.problem import FAMILIES, Effect, NoiseRule, Problem, derive_sigmas
+
+__all__ = ["run_batch", "run_fixed_lag", "Effect", "NoiseRule", "Problem", "derive_sigmas", "FAMILIES"]
+
+
+def run_fixed_lag(rec, model, progress=None, lag: float = 1.0, **options):
+    """Fixed-lag smoothing (see :mod:`flexforce.smoother.fixed_lag`)."""
+    from flexforce.smoother.fixed_lag import run_fixed_lag as _run
+
+    return _run(rec, model, progress=progress, lag=lag, **options)

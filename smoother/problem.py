@@ -1,0 +1,305 @@
+r"""The smoothing problem: per-step data, noise of every factor family, and the effect protocol.
+
+Everything both smoothers (batch and fixed-lag) need from a Recording and a ModelConfig, computed
+once: the inputs as contiguous arrays, the contact parameters, the noise sigmas with their
+derivation (:class:`NoiseRule`, one rule for every scenario and robot), and the enabled effects.
+
+Noise derivation (docs/smoother.md gives the full argument)
+-----------------------------------------------------------
+- IMU: the sensor model's per-sample sigmas (``ModelConfig.gyro_sigma``, ``accel_sigma``).
+- F/T: the sensor model's per-sample sigmas (``ModelConfig.ft_force_sigma``, ``ft_torque_sigma``).
+- Newton-Euler: the wrench the model leaves unexplained (pushes, cables, mass-model error) is
+  white with a per-sample sigma of ``unmodelled_fraction`` of the robot's weight for the force,
+  times the CoM height for the moment (a horizontal force at the CoM, about the ground origin).
+- Contact law: the spring-damper is trusted to ``contact_fraction`` of the weight for the force,
+  times the contact lever (the largest horizontal distance of a contact from the local origin,
+  at least 5 cm) for the moment.  An inactive contact's wrench is held at zero ``1e3`` times
+  tighter.
+- Integration: the acceleration is linear in time over a step plus a Brownian bridge (white jerk
+  of density ``q``, pinned at both samples).  Over a step ``T`` the bridge leaves in velocity and
+  position the errors ``e_v = int B``, ``e_p = int (T - s) B``, with covariance
+  ``q^2 [[T^5/45, T^4/24], [T^4/24, T^3/12]]`` per axis (position, velocity).  The jerk density is
+  what the unmodelled wrench can do within the bandwidth of the contact springs:
+  ``q_lin = (sigma_NE,F / m) sqrt(omega_c)`` and ``q_ang = (sigma_NE,T / lambda_max(I_l))
+  sqrt(omega_c)`` with ``omega_c = sqrt(sum k_fs / m)`` the vertical spring mode (rad/s).
+
+Effects
+-------
+An effect (see :class:`Effect`) appends ``dim`` unknowns to every step, constrains them with a
+prior on the first step and a random walk between steps, and adds a term to the residual of one
+or more families (e.g. an external wrench subtracts from the Newton-Euler residual, a gyro bias
+adds to the gyro residual).  The smoothers handle effects generically: the core never names one.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from flexforce.errors import ConfigError, DataError, ModelError
+from flexforce.factors import kernels
+from flexforce.factors.physics import ContactParams
+
+FAMILIES = ("integration", "newton_euler", "contact", "imu", "ft")
+"""Names of the factor families, the keys of :attr:`Estimate.residuals`."""
+
+
+# ----------------------------------------------------------------------------------------------
+# Effect protocol
+# ----------------------------------------------------------------------------------------------
+
+
+@runtime_checkable
+class Effect(Protocol):
+    """A named extension of the nominal model: per-step unknowns plus terms in family residuals.
+
+    The state of one step is ``(s, W_1..W_C, e_1..e_E)``: the core 18 components
+    ``s = (theta, t, w, v, dw, a)`` (world-frame increments), the contact wrenches, then each
+    effect's ``dim`` components in the order of ``ModelConfig.effects``.  All array arguments
+    cover ``n`` steps at once (the batch smoother passes the whole recording, the fixed-lag
+    smoother one step), so an effect written with numpy broadcasting serves both.
+    """
+
+    name: str
+    """Short identifier, e.g. ``external-wrench``."""
+    dim: int
+    """Unknowns per step."""
+    labels: tuple[str, ...]
+    """One label per unknown, with its unit, e.g. ``("F_x [N]", ...)``."""
+
+    def prior(self, problem: "Problem") -> tuple[np.ndarray, np.ndarray]:
+        """Mean and sigma (both ``(dim,)``) of the effect's value at the first step."""
+
+    def random_walk_sigma(self, problem: "Problem") -> np.ndarray:
+        """Per-step sigma ``(dim,)`` of ``e_k+1 - e_k`` (tiny for a constant parameter)."""
+
+    def residual_terms(self, family: str, problem: "Problem", steps: np.ndarray, R: np.ndarray,
+                       q: np.ndarray, W: np.ndarray, e: np.ndarray):
+        """The effect's additive term in ``family``'s (unwhitened) residual, or None.
+
+        Args:
+            family: ``newton_euler`` (6 rows) or ``imu`` (6 rows).
+            steps: (n,) indices of the steps (to read per-step inputs from ``problem``).
+            R, q: (n, 3, 3) rotations and (n, 15) ``(t, w, v, dw, a)``.
+            W: (n, C, 6) contact wrenches.
+            e: (n, dim) the effect's values.
+
+        Returns:
+            None when the effect does not touch ``family``, else ``(dr, dr_ds, dr_de)`` with
+            shapes (n, 6), (n, 6, 18) and (n, 6, dim): the term and its Jacobians with respect
+            to the core state (world-frame increments) and to ``e``.
+        """
+
+    def report(self, values: np.ndarray, cov: np.ndarray | None) -> dict:
+        """JSON-serialisable summary of the estimated effect (values (N, dim), cov (N, dim, dim))."""
+
+
+# ----------------------------------------------------------------------------------------------
+# Noise
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class NoiseRule:
+    """The one rule that sets the sigmas of the model-error families (no per-scenario tuning)."""
+
+    unmodelled_fraction: float = 0.02
+    """Per-sample sigma of the unexplained force in Newton-Euler, as a fraction of m g."""
+    contact_fraction: float = 0.005
+    """Per-sample sigma of the contact-law force error, as a fraction of m g."""
+    jerk_scale: float = 1.0
+    """Multiplier of the jerk density of the integration noise (1: the derivation below)."""
+    inactive_factor: float = 1e-3
+    """Sigma of an inactive contact's wrench relative to the active contact-law sigma."""
+    prior_sigma: tuple[float, ...] = (0.05, 0.05, 0.05, 0.02, 0.02, 0.02, 0.2, 0.2, 0.2, 0.1, 0.1, 0.1,
+                                      2.0, 2.0, 2.0, 1.0, 1.0, 1.0)
+    """Sigma of the first-step prior on (theta rad, t m, w rad/s, v m/s, dw rad/s^2, a m/s^2):
+    loose, since the model makes the state observable (seed sec. III-A)."""
+
+
+@dataclass(frozen=True)
+class Sigmas:
+    """Sigmas of every family, in the units of its residual."""
+
+    imu: np.ndarray
+    """(6,) gyro rad/s, accelerometer m/s^2."""
+    newton_euler: np.ndarray
+    """(6,) N, N m."""
+    contact: np.ndarray
+    """(6,) N, N m (active contact)."""
+    integration_cov: np.ndarray
+    """(12, 12) covariance of (theta rad, t m, w rad/s, v m/s)."""
+    ft: np.ndarray
+    """(6,) N, N m."""
+    prior: np.ndarray
+    """(18,) first-step prior."""
+    inactive_factor: float
+    derivation: dict = field(default_factory=dict)
+    """The quantities the rule used (JSON-serialisable)."""
+
+
+def derive_sigmas(rec, model, rule: NoiseRule = NoiseRule()) -> Sigmas:
+    """Apply :class:`NoiseRule` to a recording's robot (module docstring)."""
+    m = float(rec.mass)
+    g = float(model.gravity)
+    weight = m * g
+    h = abs(float(rec.com[0, 2]))
+    h = h if h > 0.05 else 1.0
+    active0 = rec.contact_active[0]
+    p0 = rec.contact_p[0][active0] if active0.any() else rec.contact_p[0]
+    lever = max(0.05, float(np.max(np.linalg.norm(p0[:, :2], axis=1))) if len(p0) else 0.05)
+    sig_ne_f = rule.unmodelled_fraction * weight
+    sig_ne_t = sig_ne_f * h
+    sig_c_f = rule.contact_fraction * weight
+    sig_c_t = sig_c_f * lever
+    k_total = sum(float(np.trace(p.K_fs)) / 3.0 for p in model.contact_params)
+    omega_c = math.sqrt(max(k_total, 1e-9) / m)
+    lam = float(np.max(np.linalg.eigvalsh(0.5 * (rec.inertia[0] + rec.inertia[0].T))))
+    q_lin = rule.jerk_scale * sig_ne_f / m * math.sqrt(omega_c)
+    q_ang = rule.jerk_scale * sig_ne_t / lam * math.sqrt(omega_c)
+    T = rec.dt
+    bridge = np.array([[T**5 / 45.0, T**4 / 24.0], [T**4 / 24.0, T**3 / 12.0]])
+    cov = np.zeros((12, 12))
+    for (ip, iv), q in (((0, 6), q_ang), ((3, 9), q_lin)):
+        for j in range(3):
+            idx = [ip + j, iv + j]
+            cov[np.ix_(idx, idx)] = q * q * bridge
+    return Sigmas(
+        imu=np.array([model.gyro_sigma] * 3 + [model.accel_sigma] * 3),
+        newton_euler=np.array([sig_ne_f] * 3 + [sig_ne_t] * 3),
+        contact=np.array([sig_c_f] * 3 + [sig_c_t] * 3),
+        integration_cov=cov,
+        ft=np.array([model.ft_force_sigma] * 3 + [model.ft_torque_sigma] * 3),
+        prior=np.asarray(rule.prior_sigma, dtype=float),
+        inactive_factor=rule.inactive_factor,
+        derivation={"weight_N": weight, "com_height_m": h, "contact_lever_m": lever,
+                    "omega_c_rad_s": omega_c, "inertia_max_kg_m2": lam,
+                    "jerk_density_lin": q_lin, "jerk_density_ang": q_ang,
+                    "unmodelled_fraction": rule.unmodelled_fraction,
+                    "contact_fraction": rule.contact_fraction},
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# The problem
+# ----------------------------------------------------------------------------------------------
+
+
+def _contact_arrays(params: tuple[ContactParams, ...]):
+    K = [np.ascontiguousarray(np.array([getattr(p, name) for p in params], dtype=float))
+         for name in ("K_fs", "K_fd", "K_ts", "K_td")]
+    beta = np.array([[p.beta_f, p.beta_t] for p in params], dtype=float).reshape(-1, 2)
+    iso = np.array([p.isotropic for p in params], dtype=bool)
+    return K, beta, iso
+
+
+@dataclass
+class Problem:
+    """A Recording and a ModelConfig turned into what the factors read (contiguous arrays)."""
+
+    rec: object
+    model: object
+    sigmas: Sigmas
+    effects: tuple
+    n: int
+    nc: int
+    dt: float
+    g: float
+    use_ft: bool
+
+    @classmethod
+    def build(cls, rec, model, rule: NoiseRule = NoiseRule()) -> "Problem":
+        rec.validate()
+        nc = len(rec.contact_names)
+        if len(model.contact_params) != nc:
+            raise ConfigError(f"model has {len(model.contact_params)} contact parameter sets; the recording "
+                              f"has {nc} contacts ({', '.join(rec.contact_names)})")
+        if not rec.contact_active[0].any():
+            raise DataError("no contact is active at the first sample; the flexible-contact model needs one")
+        use_ft = bool(model.use_ft)
+        if use_ft and rec.ft is None:
+            raise DataError("use_ft is set but the recording carries no F/T readings (field 'ft')")
+        for eff in model.effects:
+            if not isinstance(eff, Effect):
+                raise ConfigError(f"effect {eff!r} does not implement the smoother's Effect protocol "
+                                  "(name, dim, labels, prior, random_walk_sigma, residual_terms, report)")
+        prob = cls(rec=rec, model=model, sigmas=derive_sigmas(rec, model, rule), effects=tuple(model.effects),
+                   n=rec.n, nc=nc, dt=rec.dt, g=float(model.gravity), use_ft=use_ft)
+        c = np.ascontiguousarray
+        prob.com, prob.com_vel, prob.com_acc = c(rec.com, float), c(rec.com_vel, float), c(rec.com_acc, float)
+        prob.inertia, prob.inertia_dot = c(rec.inertia, float), c(rec.inertia_dot, float)
+        prob.sigma_l, prob.sigma_dot = c(rec.sigma, float), c(rec.sigma_dot, float)
+        prob.imu_R, prob.imu_p, prob.imu_v = c(rec.imu_R, float), c(rec.imu_p, float), c(rec.imu_v, float)
+        prob.imu_a, prob.imu_w = c(rec.imu_a, float), c(rec.imu_w, float)
+        prob.y_imu = c(np.concatenate([rec.gyro, rec.accel], axis=1), float)
+        prob.active = c(rec.contact_active, bool)
+        prob.contact_p, prob.contact_R = c(rec.contact_p, float), c(rec.contact_R, float)
+        prob.y_ft = c(rec.ft, float) if use_ft else None
+        (prob.K_fs, prob.K_fd, prob.K_ts, prob.K_td), prob.beta, prob.iso = _contact_arrays(model.contact_params)
+        prob.effect_dims = tuple(int(e.dim) for e in prob.effects)
+        prob.prior_mean = prob.equilibrium(0)
+        L = np.linalg.cholesky(prob.sigmas.integration_cov)
+        prob.integration_whitener = np.linalg.inv(L)
+        return prob
+
+    # ------------------------------------------------------------------------------------------
+    @property
+    def effect_dim(self) -> int:
+        return int(sum(self.effect_dims))
+
+    @property
+    def state_dim(self) -> int:
+        """Unknowns per step: 18 + 6 C + effects."""
+        return kernels.STATE_DIM + 6 * self.nc + self.effect_dim
+
+    def contact_wrenches(self, k: int, R, q) -> np.ndarray:
+        """(C, 6) contact-law wrenches at step ``k`` (zero for inactive contacts)."""
+        out = np.zeros((self.nc, 6))
+        r = np.empty(6)
+        J = np.empty((6, 18))
+        zero = np.zeros(6)
+        for i in range(self.nc):
+            if self.active[k, i]:
+                kernels.contact_law(R, q, zero, self.contact_p[k, i], self.contact_R[k, i], self.K_fs[i],
+                                    self.K_fd[i], self.K_ts[i], self.K_td[i], self.beta[i, 0],
+                                    self.beta[i, 1], self.iso[i], r, J)
+                out[i] = r
+        return out
+
+    def equilibrium(self, k: int = 0, iterations: int = 30):
+        """Static flexibility ``(R, q)`` at step ``k``: zero velocity and acceleration, the contact
+        springs carrying the weight and the inputs' momentum rates (Newton on eq. 16, 23 = eq. 10, 12).
+        """
+        R = np.eye(3)
+        q = np.zeros(15)
+        rne = np.empty(6)
+        Jne = np.empty((6, 18))
+        rc = np.empty(6)
+        Jc = np.empty((6, 18))
+        zero = np.zeros(6)
+        for _ in range(iterations):
+            Wsum = np.zeros(6)
+            J = np.zeros((6, 6))
+            for i in range(self.nc):
+                if self.active[k, i]:
+                    kernels.contact_law(R, q, zero, self.contact_p[k, i], self.contact_R[k, i], self.K_fs[i],
+                                        self.K_fd[i], self.K_ts[i], self.K_td[i], self.beta[i, 0],
+                                        self.beta[i, 1], self.iso[i], rc, Jc)
+                    Wsum += rc
+                    J -= Jc[:, :6]
+            kernels.newton_euler(R, q, Wsum, self.rec.mass, self.com[k], self.com_vel[k], self.com_acc[k],
+                                 self.inertia[k], self.inertia_dot[k], self.sigma_l[k], self.sigma_dot[k],
+                                 self.g, rne, Jne)
+            J += Jne[:, :6]
+            if np.max(np.abs(rne)) < 1e-9:
+                break
+            step = np.linalg.solve(J, -rne)
+            R = kernels.so3_exp(step[:3]) @ R
+            q[:3] += step[3:]
+        else:
+            raise ModelError(f"no static equilibrium at step {k}: the contact stiffness cannot carry the robot "
+                             f"(residual {np.max(np.abs(rne)):.3g} N)")
+        return R, q

@@ -1,0 +1,114 @@
+"""From a smoothed trajectory to the common :class:`Estimate`: wrenches, CoP, covariances, residuals."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from flexforce.datasets.estimate import Estimate
+from flexforce.factors import kernels
+from flexforce.factors.physics import center_of_pressure
+from flexforce.smoother.linearize import Trajectory, linearize
+
+S = kernels.STATE_DIM
+_AX = ("x", "y", "z")
+WRENCH_LABELS = tuple(f"F_{a} [N]" for a in _AX) + tuple(f"T_{a} [N m]" for a in _AX)
+RESIDUAL_LABELS = {
+    "integration": (tuple(f"theta_{a} [rad]" for a in _AX) + tuple(f"t_{a} [m]" for a in _AX)
+                    + tuple(f"w_{a} [rad/s]" for a in _AX) + tuple(f"v_{a} [m/s]" for a in _AX)),
+    "newton_euler": WRENCH_LABELS,
+    "imu": tuple(f"gyro_{a} [rad/s]" for a in _AX) + tuple(f"acc_{a} [m/s^2]" for a in _AX),
+}
+"""Axis labels (with the unit of the unwhitened residual) of the per-step families; ``contact``
+and ``ft`` have ``"<contact> F_x [N]"``-style labels, six per contact."""
+
+
+def residual_labels(prob) -> dict[str, tuple[str, ...]]:
+    labels = dict(RESIDUAL_LABELS)
+    per_contact = tuple(f"{name} {lab}" for name in prob.rec.contact_names for lab in WRENCH_LABELS)
+    labels["contact"] = per_contact
+    if prob.use_ft:
+        labels["ft"] = per_contact
+    return labels
+
+
+def family_residuals(prob, traj: Trajectory) -> dict[str, np.ndarray]:
+    """Whitened residual of every family per step and axis, NaN where the family is absent.
+
+    ``integration`` at step k is the factor between k and k+1 (the last step has none);
+    ``contact`` and ``ft`` are NaN where the contact is inactive.
+    """
+    lin = linearize(prob, traj)
+    n, nc = prob.n, prob.nc
+    out = {}
+    r_int = np.full((n, 12), np.nan)
+    if n > 1:
+        r_int[:-1] = lin.binary["integration"][0]
+    out["integration"] = r_int
+    out["newton_euler"] = lin.unary["newton_euler"][0].copy()
+    out["imu"] = lin.unary["imu"][0].copy()
+    rc = np.full((n, 6 * nc), np.nan)
+    for i in range(nc):
+        r = lin.unary[f"contact/{i}"][0]
+        rc[:, 6 * i:6 * i + 6] = np.where(prob.active[:, i, None], r, np.nan)
+    out["contact"] = rc
+    if prob.use_ft:
+        rf = np.full((n, 6 * nc), np.nan)
+        for i in range(nc):
+            r = lin.unary[f"ft/{i}"][0]
+            measured = prob.active[:, i, None] & np.isfinite(prob.y_ft[:, i])
+            rf[:, 6 * i:6 * i + 6] = np.where(measured, r, np.nan)
+        out["ft"] = rf
+    return out
+
+
+def make_estimate(prob, name: str, traj: Trajectory, P: np.ndarray | None = None,
+                  time_per_step: np.ndarray | None = None, total_time: float = 0.0,
+                  meta: dict | None = None) -> Estimate:
+    """Assemble the Estimate of ``traj``; ``P`` (N, D, D) are the per-step marginal covariances."""
+    n, nc = prob.n, prob.nc
+    rec = prob.rec
+    W = np.where(prob.active[:, :, None], traj.W, 0.0)
+    total = W.sum(axis=1)
+    cop = np.empty((n, 3))
+    cop_J = np.empty((n, 3, 6))
+    for k in range(n):
+        cop[k], cop_J[k] = center_of_pressure(total[k], z0=0.0, jacobian=True)
+    cov = wrench_cov = cop_cov = None
+    if P is not None:
+        cov = P[:, :S, :S].copy()
+        A = np.zeros((6, prob.state_dim))
+        for i in range(nc):
+            A[:, S + 6 * i:S + 6 * i + 6] = np.eye(6)
+        # Inactive contacts are held at zero: drop them from the sum.
+        wrench_cov = np.empty((n, 6, 6))
+        for i_mask in {tuple(m) for m in prob.active}:
+            sel = np.all(prob.active == np.array(i_mask), axis=1)
+            Ak = A.copy()
+            for i in range(nc):
+                if not i_mask[i]:
+                    Ak[:, S + 6 * i:S + 6 * i + 6] = 0.0
+            wrench_cov[sel] = Ak @ P[sel] @ Ak.T
+        Jc = cop_J[:, :2, :]
+        cop_cov = Jc @ wrench_cov @ Jc.transpose(0, 2, 1)
+    effects = {}
+    off = S + 6 * nc
+    eoff = 0
+    for eff in prob.effects:
+        vals = traj.e[:, eoff:eoff + eff.dim]
+        ecov = P[:, off:off + eff.dim, off:off + eff.dim] if P is not None else None
+        effects[eff.name] = eff.report(vals, ecov)
+        off += eff.dim
+        eoff += eff.dim
+    meta = dict(meta or {})
+    meta.setdefault("noise", {k: (v.tolist() if isinstance(v, np.ndarray) else v)
+                              for k, v in prob.sigmas.derivation.items()})
+    meta["sigmas"] = {"imu": prob.sigmas.imu.tolist(), "newton_euler": prob.sigmas.newton_euler.tolist(),
+                      "contact": prob.sigmas.contact.tolist(), "ft": prob.sigmas.ft.tolist(),
+                      "integration_std": np.sqrt(np.diag(prob.sigmas.integration_cov)).tolist()}
+    return Estimate(
+        estimator=name, t_ns=rec.t_ns.copy(), contact_names=tuple(rec.contact_names),
+        R=traj.R.copy(), t=traj.q[:, 0:3].copy(), w=traj.q[:, 3:6].copy(), v=traj.q[:, 6:9].copy(),
+        dw=traj.q[:, 9:12].copy(), a=traj.q[:, 12:15].copy(), wrench=W, cop=cop,
+        cov=cov, wrench_cov=wrench_cov, cop_cov=cop_cov,
+        residuals=family_residuals(prob, traj), residual_labels=residual_labels(prob),
+        time_per_step=time_per_step, total_time=float(total_time), effects=effects, meta=meta)
