@@ -248,6 +248,17 @@ def write_report(comp, rec, out_dir: str | Path, title: str | None = None) -> Pa
         for k, v in rel.items())
     rel_html = (f"<h2>RMSE relative to the EKF</h2><table><tr><th></th>{''.join(f'<th>{c}</th>' for c in RMSE_KEYS)}"
                 f"</tr>{rel_rows}</table>") if rel_rows else ""
+    crb_html = ""
+    crb = summary.get("cramer_rao")
+    if crb:
+        bound = crb["rmse_bound"]
+        cells = "".join(f"<td>{_fmt(bound.get(c))}</td>" for c in RMSE_KEYS)
+        rows = "".join(f"<tr><th>{html.escape(k)} / bound</th>" + "".join(f"<td>{_fmt(v.get(c))}</td>" for c in RMSE_KEYS)
+                       + "</tr>" for k, v in crb["rmse_relative_to_bound"].items())
+        crb_html = (f"<h2>Cramér–Rao bound</h2><p>RMSE lower bounds of the batch problem's model (its information "
+                    f"matrix at the ground truth), SI units, and each estimator's RMSE relative to them.</p>"
+                    f"<table><tr><th></th>{''.join(f'<th>{c}</th>' for c in RMSE_KEYS)}</tr>"
+                    f"<tr><th>bound</th>{cells}</tr>{rows}</table>")
     extra = []
     for key, m in comp.metrics.items():
         d = m.extra.get("hand_displacement_by_flexibility_max_m")
@@ -267,6 +278,7 @@ td,th{{border:1px solid #ccc;padding:3px 6px;text-align:right}}img{{max-width:10
 first 0.5 s (convergence). NEES and NIS are run means with their 95% band for a consistent estimator.
 {' '.join(extra)}</p>
 {rel_html}
+{crb_html}
 {'<h2>Failures</h2><ul>' + fail_html + '</ul>' if fail_html else ''}
 {''.join(f'<h2>{html.escape(f[:-4])}</h2><img src="{f}" alt="{f}">' for f in figures)}
 <p><small>Numbers: <a href="summary.json">summary.json</a>.</small></p>

@@ -76,6 +76,8 @@ class Comparison:
     metrics: dict[str, Metrics] = field(default_factory=dict)
     failures: dict[str, str] = field(default_factory=dict)
     """summary key -> error message of an estimator that failed."""
+    crb: object | None = None
+    """:class:`flexforce.compare.crb.CramerRao` of the recording (simulated data only)."""
 
     def summary(self) -> dict:
         """The numbers of the report's table (summary.json)."""
@@ -92,6 +94,11 @@ class Comparison:
                 rel[key] = {k: (m.rmse[k] / ekf.rmse[k] if m.rmse.get(k) is not None and ekf.rmse.get(k) else None)
                             for k in RMSE_KEYS}
             out["rmse_relative_to_ekf"] = rel
+        if self.crb is not None:
+            out["cramer_rao"] = {
+                "rmse_bound": self.crb.rmse_bound,
+                "rmse_relative_to_bound": {k: self.crb.efficiency(m.rmse) for k, m in self.metrics.items()},
+            }
         return out
 
 
@@ -112,7 +119,8 @@ def describe(rec) -> dict:
 
 
 def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
-            progress: Callable[[str, float], None] | None = None, options: dict | None = None) -> Comparison:
+            progress: Callable[[str, float], None] | None = None, options: dict | None = None,
+            crb: bool = True) -> Comparison:
     """Run each estimator on ``rec`` and evaluate it.
 
     Args:
@@ -142,6 +150,13 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
             est.total_time = time.perf_counter() - t0
         result.estimates[key] = est
         result.metrics[key] = evaluate(est, rec, skip=skip, peak_memory_mb=mem.peak_mb)
+    if crb and rec.truth is not None:
+        from flexforce.compare.crb import cramer_rao
+
+        try:
+            result.crb = cramer_rao(rec, model, skip=skip)
+        except FlexforceError as err:
+            result.failures["cramer_rao"] = f"{type(err).__name__}: {err}"
     return result
 
 
