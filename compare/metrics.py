@@ -54,8 +54,9 @@ class Metrics:
     """Mean NIS of the innovation (expected 6), filters only."""
     nis_bounds: tuple[float, float] | None = None
     nis_series: np.ndarray | None = None
-    time_per_step: dict[str, float] = field(default_factory=dict)
-    """median and p99 of the per-step wall time, s."""
+    time_per_step: dict[str, float | None] = field(default_factory=dict)
+    """median and p99 of the per-step wall time (s; None for the batch smoother, which has no
+    steps), and ``amortized``: total time over the number of steps."""
     total_time: float | None = None
     peak_memory_mb: float | None = None
     reference: str = "truth"
@@ -135,9 +136,11 @@ def evaluate(est, rec, skip: float = 0.0, peak_memory_mb: float | None = None) -
     """
     m = Metrics(est.estimator, peak_memory_mb=peak_memory_mb)
     keep = rec.time >= skip
+    m.time_per_step = {"median": None, "p99": None,
+                       "amortized": float(est.total_time / est.n) if est.total_time and est.n else None}
     if est.time_per_step is not None and len(est.time_per_step):
-        m.time_per_step = {"median": float(np.median(est.time_per_step)),
-                           "p99": float(np.percentile(est.time_per_step, 99))}
+        m.time_per_step["median"] = float(np.median(est.time_per_step))
+        m.time_per_step["p99"] = float(np.percentile(est.time_per_step, 99))
     m.total_time = est.total_time
     if est.innovation is not None and est.innovation_cov is not None:
         nis = np.full(est.n, np.nan)

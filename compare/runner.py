@@ -176,10 +176,10 @@ def aggregate(comparisons: list[Comparison]) -> dict:
                 entry["rmse_max"][k] = float(vals.max())
             else:
                 entry["rmse"][k] = entry["rmse_std"][k] = entry["rmse_min"][k] = entry["rmse_max"][k] = None
-        med = [m.time_per_step.get("median") for m in ms if m.time_per_step]
-        p99 = [m.time_per_step.get("p99") for m in ms if m.time_per_step]
-        entry["time_per_step_s"] = {"median": float(np.median(med)) if med else None,
-                                    "p99": float(np.max(p99)) if p99 else None}
+        entry["time_per_step_s"] = {}
+        for stat, how in (("median", np.median), ("p99", np.max), ("amortized", np.median)):
+            vals = [m.time_per_step.get(stat) for m in ms if m.time_per_step.get(stat) is not None]
+            entry["time_per_step_s"][stat] = float(how(vals)) if vals else None
         nees = [m.nees for m in ms if m.nees is not None]
         entry["nees"] = float(np.mean(nees)) if nees else None
         entry["nees_std"] = float(np.std(nees)) if nees else None

@@ -148,7 +148,7 @@ def _print_table(comp) -> None:
         def f(x, s=1.0):
             return f"{x * s:.3g}" if x is not None else "-"
 
-        med = m.time_per_step.get("median") if m.time_per_step else None
+        med = (m.time_per_step.get("median") or m.time_per_step.get("amortized")) if m.time_per_step else None
         print(f"{key:10s} {f(r.get('force_N')):>9s} {f(r.get('cop_m'), 1e3):>8s} {f(r.get('rotation_rad'), 1e3):>9s} "
               f"{f(r.get('hand_m'), 1e3):>8s} {f(m.nees):>7s} {f(med, 1e6):>9s}")
     for key, msg in comp.failures.items():
