@@ -207,12 +207,46 @@ def _against_truth(m: Metrics, est, rec, keep):
             m.nees_bounds = chi2_mean_bounds(18, int(ok.sum()))
 
 
+def base_tilt_error(est, rec, link: str) -> np.ndarray:
+    """(N,) angle (rad) between the estimated and the motion-capture vertical, in the base frame.
+
+    The estimated base orientation is the flexibility composed with the base's local orientation
+    (``Recording.base_pose``); motion capture gives it directly.  Comparing the direction of the
+    vertical seen from the base leaves out yaw, which neither leg odometry nor the IMU observe
+    against the motion-capture frame.
+    """
+    from scipy.spatial.transform import Rotation
+
+    pose = rec.mocap[link]
+    ok = np.all(np.isfinite(pose), axis=1)
+    out = np.full(rec.n, np.nan)
+    if not ok.any() or rec.base_pose is None:
+        return out
+    R_local = Rotation.from_quat(rec.base_pose[:, 3:]).as_matrix()
+    R_est = np.einsum("nij,njk->nik", est.R, R_local)
+    R_mocap = np.tile(np.eye(3), (rec.n, 1, 1))
+    R_mocap[ok] = Rotation.from_quat(pose[ok, 3:]).as_matrix()
+    g_est = R_est[:, 2, :]  # rows: R^T e_z
+    g_moc = R_mocap[:, 2, :]
+    cos = np.clip(np.sum(g_est * g_moc, axis=1), -1.0, 1.0)
+    out[ok] = np.arccos(cos[ok])
+    return out
+
+
 def _against_sensors(m: Metrics, est, rec, keep):
     """Real logs: F/T wrenches (NaN components skipped), per-contact vertical force, mocap."""
     m.reference = "sensors"
     for key in RMSE_KEYS:
         m.rmse.setdefault(key, None)
         m.max.setdefault(key, None)
+    base = rec.meta.get("base_frame")
+    if base in rec.mocap and rec.base_pose is not None:
+        tilt = base_tilt_error(est, rec, base)
+        m.errors["rotation_rad"] = tilt
+        s = tilt.copy()
+        s[~keep] = np.nan
+        m.rmse["rotation_rad"], m.max["rotation_rad"] = _summ(s)
+        m.extra["rotation_reference"] = f"tilt of {base} against motion capture"
     if rec.ft is not None:
         # Estimated per-contact wrench in the contact frame about its origin, like the sensor.
         n, c = rec.n, len(rec.contact_names)

@@ -483,7 +483,7 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
                    "switches": [{"t": round(float(time[k]), 6), "from": names_c[a], "to": names_c[b], "jump_m": j}
                                 for k, a, b, j in lf.switches],
                    "drift_m": lf.drift},
-        "base_frame": _root_link(pmodel),
+        "base_frame": _root_link(pmodel, mocap),
     }
     rec = Recording(
         t_ns=grid, robot=config.source or config.name, contact_names=names_c, mass=model.mass,
@@ -505,12 +505,18 @@ def _merge_gaps(gaps: list[dict]) -> list[dict]:
     return sorted(merged.values(), key=lambda g: g["start"])
 
 
-def _root_link(pmodel) -> str:
-    """Name of the URDF link carried by the free-flyer (the frame of ``Recording.base_pose``)."""
-    for f in pmodel.frames:
-        if f.parentJoint == 1 and f.type == pin.FrameType.BODY:
-            return f.name
-    return ""
+def _root_link(pmodel, prefer=()) -> str:
+    """Name of the URDF link carried by the free-flyer (the frame of ``Recording.base_pose``).
+
+    Several links can sit exactly at the free-flyer's frame (iCub's ``base_link`` and
+    ``root_link``); the one tracked by motion capture (in ``prefer``) is named if there is one.
+    """
+    names = [f.name for f in pmodel.frames
+             if f.parentJoint == 1 and f.type == pin.FrameType.BODY and f.placement.isIdentity()]
+    for name in names:
+        if name in prefer:
+            return name
+    return names[0] if names else ""
 
 
 def _wrench_to_contact_frame(model, q_joints, sensor_frame, contact_frame, wrench):

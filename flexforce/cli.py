@@ -141,7 +141,8 @@ def _compare_one(rec, args, out: Path):
 
 
 def _print_table(comp) -> None:
-    print(f"{'estimator':10s} {'force[N]':>9s} {'CoP[mm]':>8s} {'rot[mrad]':>9s} {'hand[mm]':>8s} {'NEES':>7s} {'step[us]':>9s}")
+    print(f"{'estimator':10s} {'force[N]':>9s} {'Fz[N]':>7s} {'CoP[mm]':>8s} {'rot[mrad]':>9s} {'hand[mm]':>8s} "
+          f"{'NEES':>7s} {'step[us]':>9s}")
     for key, m in comp.metrics.items():
         r = m.rmse
 
@@ -149,7 +150,8 @@ def _print_table(comp) -> None:
             return f"{x * s:.3g}" if x is not None else "-"
 
         med = (m.time_per_step.get("median") or m.time_per_step.get("amortized")) if m.time_per_step else None
-        print(f"{key:10s} {f(r.get('force_N')):>9s} {f(r.get('cop_m'), 1e3):>8s} {f(r.get('rotation_rad'), 1e3):>9s} "
+        print(f"{key:10s} {f(r.get('force_N')):>9s} {f(r.get('vertical_force_N')):>7s} {f(r.get('cop_m'), 1e3):>8s} "
+              f"{f(r.get('rotation_rad'), 1e3):>9s} "
               f"{f(r.get('hand_m'), 1e3):>8s} {f(m.nees):>7s} {f(med, 1e6):>9s}")
     for key, msg in comp.failures.items():
         print(f"{key:10s} failed: {msg}")
