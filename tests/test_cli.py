@@ -49,3 +49,30 @@ def test_bad_scenario_file(tmp_path):
         Simulator(Scenario.load(f))
     f.write_text('name = "s"\nduration = 1.0\nrate = 300.0\n')
     assert main(["simulate", str(f), "-o", str(tmp_path / "o"), "-q"]) == 1
+
+
+def test_run_exports_npz_csv_and_mcap(tmp_path, capsys):
+    rec_path = tmp_path / "rec"
+    assert main(["simulate", "stand", "--duration", "0.5", "-o", str(rec_path), "-q"]) == 0
+    for suffix in (".npz", ".csv", ".mcap"):
+        out = tmp_path / f"est{suffix}"
+        assert main(["run", str(rec_path), "--estimator", "ekf", "-o", str(out), "-q"]) == 0, suffix
+        assert out.exists() and out.stat().st_size > 1000
+    lines = (tmp_path / "est.csv").read_text().splitlines()
+    assert len(lines) == 1 + 101  # header and one row per step
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([tmp_path / "est.mcap"]) as reader:
+        topics = {c.topic for c in reader.connections}
+    assert "/imu" in topics and any(t.startswith("/estimate/ekf/") for t in topics)
+
+
+def test_raw_robot_bag_needs_a_robot_config(tmp_path, capsys):
+    from conftest import ICUB_DIR
+
+    bag = ICUB_DIR / "icub-com-sinusoid-20s.bag"
+    if not bag.exists():
+        pytest.skip("the iCub recordings are not beside this checkout")
+    assert main(["run", str(bag), "-o", str(tmp_path / "e.npz"), "-q"]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--robot" in err and "raw robot bag" in err

@@ -20,7 +20,7 @@ from flexforce.datasets.robot import RobotConfig, RobotModel, RosConfig
 from flexforce.datasets.rosimport import import_bag, is_flexforce_bag
 from flexforce.errors import BagError, ConfigError, DataError
 
-ICUB = Path("/work/shared/data/icub")
+from conftest import ICUB_DIR as ICUB  # noqa: E402
 T0 = 1_700_000_000_000_000_000  # an epoch time: stamps use both sec and nanosec
 ROS = RosConfig(ft_topics={"left_foot": "/lf/wrench", "right_foot": "/rf/wrench"},
                 mocap_topics={"torso": "/mocap/torso"}, contact_on=150.0, contact_off=100.0,
