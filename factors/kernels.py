@@ -553,3 +553,84 @@ def block_tridiag_solve(D, B, g, want_cov):
             else:
                 P[k] = M.T @ (eye + C[k].T @ P[k + 1] @ C[k]) @ M
     return x, P
+
+
+# ----------------------------------------------------------------------------------------------
+# Fixed-lag window (smoother/fixed_lag.py): incremental block elimination, oldest first
+# ----------------------------------------------------------------------------------------------
+
+
+@njit
+def window_eliminate(Sp0, rp0, first_partial, U, gU, Fw, gF, B, Cprev, yprev, has_prev, Ld, C, y, Sp, rp):
+    """Forward (oldest-first) block Cholesky of the newest steps of a chain.
+
+    Steps ``0..m-1`` of the arrays are consecutive steps of the window.  ``U[i]``, ``gU[i]``: the
+    information of step i's own factors and of the link from step i-1; ``Fw[i]``, ``gF[i]`` that
+    of the link to step i+1 on step i; ``B[i]`` the cross block ``H[i, i+1]``.  With
+    ``first_partial`` the first step's eliminated-so-far information is ``(Sp0, rp0)`` (a frozen
+    step whose predecessors are already eliminated); otherwise it is ``U[0] - Cprev Cprev^T``
+    (``has_prev``) or ``U[0]``.  Writes ``Ld[i]`` (Cholesky factor), ``C[i] = (Ld[i]^-1 B[i])^T``,
+    ``y[i]`` and the partials ``Sp[i], rp[i]`` (before the forward link).  Raises LinAlgError if
+    not positive definite.
+    """
+    m = U.shape[0]
+    for i in range(m):
+        if i == 0:
+            if first_partial:
+                Sp[0] = Sp0
+                rp[0] = rp0
+            elif has_prev:
+                Sp[0] = U[0] - Cprev @ Cprev.T
+                rp[0] = gU[0] - Cprev @ yprev
+            else:
+                Sp[0] = U[0]
+                rp[0] = gU[0]
+        else:
+            Sp[i] = U[i] - C[i - 1] @ C[i - 1].T
+            rp[i] = gU[i] - C[i - 1] @ y[i - 1]
+        S = Sp[i] + Fw[i]
+        Ld[i] = np.linalg.cholesky(S)
+        if i < m - 1:
+            C[i] = _trsm_lower(Ld[i], B[i]).T.copy()
+        y[i] = _trsv_lower(Ld[i], rp[i] + gF[i])
+
+
+@njit
+def window_back_substitute(Ld, C, y, order, x):
+    """Back substitution over ring-buffer positions ``order`` (newest first): ``x[p]`` for each
+    (``x_k = Ld_k^-T (y_k - C_k^T x_k+1)``), without temporaries."""
+    d = y.shape[1]
+    b = np.empty(d)
+    for kk in range(order.shape[0]):
+        p = order[kk]
+        for i in range(d):
+            b[i] = y[p, i]
+        if kk > 0:
+            pn = order[kk - 1]
+            for j in range(d):
+                xj = x[pn, j]
+                if xj != 0.0:
+                    for i in range(d):
+                        b[i] -= C[p, j, i] * xj
+        for i in range(d - 1, -1, -1):
+            acc = b[i]
+            for m in range(i + 1, d):
+                acc -= Ld[p, m, i] * x[p, m]
+            x[p, i] = acc / Ld[p, i, i]
+
+
+@njit
+def window_marginals(Ld, C, order, P):
+    """Marginal covariances ``P[p]`` of the window at ring positions ``order`` (newest first):
+    ``P_k = M_k^T (I + C_k^T P_k+1 C_k) M_k``, ``M_k = Ld_k^-1`` (as :func:`block_tridiag_solve`)."""
+    d = Ld.shape[1]
+    eye = np.eye(d)
+    Pn = np.empty((d, d))
+    for k in range(order.shape[0]):
+        p = order[k]
+        M = _trsm_lower(Ld[p], eye)
+        if k == 0:
+            Pn = M.T @ M
+        else:
+            Pn = M.T @ (eye + C[p].T @ Pn @ C[p]) @ M
+        P[p] = Pn

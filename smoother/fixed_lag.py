@@ -1,6 +1,30 @@
-r"""Fixed-lag smoothing for online use: gtsam's IncrementalFixedLagSmoother, one update per sample.
+r"""Fixed-lag smoothing for online use, one update per sample, bounded memory.
 
-Each sample adds the step's variables (predicted from the previous step by the integration model)
+Two backends share the factors and the noise of :class:`Problem`:
+
+``window`` (default, :class:`FixedLagSmoother`)
+    The window's Gauss-Newton system is a block-tridiagonal chain.  It is eliminated oldest first
+    (a square-root information filter): when step ``k`` arrives, only the newest ``relinearize``
+    steps are relinearised (one Gauss-Newton iteration per update, at the previous update's
+    estimate, the new step at its prediction) and re-eliminated, starting from the stored partial
+    elimination of the newest frozen step; older steps keep their linearisation point and their
+    elimination, and marginalising the oldest step is dropping its conditional.  A back
+    substitution over the window gives every step's estimate.  The factors are linearised by the
+    compiled kernels (:func:`flexforce.smoother.linearize.linearize`, the batch smoother's), so
+    effects (the :class:`~flexforce.smoother.problem.Effect` protocol) work as in batch.
+    Every update back-substitutes the newest steps only (what the next relinearisation needs);
+    every ``report_every`` updates the whole window is back-substituted and the steps that have
+    left it since are read out, each smoothed with at least ``lag`` of future data (output
+    latency ``lag`` plus up to ``report_every - 1`` samples).  Covariances: the window's
+    marginals at the same moments, by the recursion of
+    :func:`flexforce.factors.kernels.window_marginals`, timed apart from the updates.
+
+``gtsam`` (:class:`GtsamFixedLagSmoother`)
+    gtsam's IncrementalFixedLagSmoother (iSAM2) on the CustomFactors of
+    :mod:`flexforce.factors.gtsam_factors`: the reference the window backend is tested against;
+    slower (it re-eliminates the window at every update) and without effects.
+
+gtsam backend: each sample adds the step's variables (predicted from the previous step by the integration model)
 and factors (:class:`flexforce.smoother.graph.GraphBuilder`) and marginalises the steps older than
 the lag, so memory is bounded however long the recording.  The estimate reported for step ``j``
 is the smoothed one when ``j`` leaves the window (``lag`` seconds of future data); the last
@@ -24,7 +48,7 @@ from flexforce.errors import EstimatorError
 from flexforce.factors import gtsam_factors as gf
 from flexforce.factors import kernels
 from flexforce.smoother.graph import GraphBuilder
-from flexforce.smoother.linearize import Trajectory
+from flexforce.smoother.linearize import Trajectory, assemble_split, linearize
 from flexforce.smoother.problem import NoiseRule, Problem
 from flexforce.smoother.result import make_estimate
 
@@ -55,8 +79,9 @@ def _isam_params(relinearize_threshold, relinearize_skip: int) -> gtsam.ISAM2Par
     return params
 
 
-class FixedLagSmoother:
-    """Online smoother: call :meth:`step` once per sample (in order), then :meth:`finish`."""
+class GtsamFixedLagSmoother:
+    """gtsam's IncrementalFixedLagSmoother on the CustomFactors (reference backend, no effects):
+    call :meth:`step` once per sample (in order), then :meth:`finish`."""
 
     def __init__(self, prob: Problem, lag: float = 1.0, relinearize_threshold: float | None = None,
                  relinearize_skip: int = 10, covariance: bool = True):
@@ -164,35 +189,211 @@ class FixedLagSmoother:
             self._read(j, values)
 
 
+class FixedLagSmoother:
+    """Own fixed-lag smoother over a window (module docstring): :meth:`step` once per sample, then
+    :meth:`finish`.  Memory: ring buffers of ``lag + relinearize + report_every + 2`` steps."""
+
+    def __init__(self, prob: Problem, lag: float = 1.0, relinearize: int = 3, covariance: bool = True,
+                 report_every: int = 10):
+        if not lag > 0:
+            raise EstimatorError(f"fixed-lag smoother: lag must be positive (s), got {lag}")
+        if relinearize < 1:
+            raise EstimatorError(f"fixed-lag smoother: relinearize must be >= 1, got {relinearize}")
+        self.prob = prob
+        self.lag_steps = max(1, int(round(lag / prob.dt)))
+        self.M = int(relinearize)
+        self.report_every = max(1, min(int(report_every), self.lag_steps))
+        self.covariance = covariance
+        n, nc, D, E = prob.n, prob.nc, prob.state_dim, prob.effect_dim
+        self.cap = cap = self.lag_steps + self.M + self.report_every + 2
+        # ring buffers (bounded memory): linearisation points, elimination, corrections
+        self.Rb = np.zeros((cap, 3, 3))
+        self.qb = np.zeros((cap, 15))
+        self.Wb = np.zeros((cap, nc, 6))
+        self.eb = np.zeros((cap, E))
+        self.Ld = np.zeros((cap, D, D))
+        self.C = np.zeros((cap, D, D))
+        self.y = np.zeros((cap, D))
+        self.Sp = np.zeros((cap, D, D))
+        self.rp = np.zeros((cap, D))
+        self.dx = np.zeros((cap, D))
+        self.Pw = np.zeros((cap, D, D))
+        # outputs (the Estimate, not the smoother's memory)
+        self.traj = Trajectory(np.zeros((n, 3, 3)), np.zeros((n, 15)), np.zeros((n, nc, 6)), np.zeros((n, E)))
+        self.P = np.zeros((n, D, D)) if covariance else None
+        self.update_time = np.zeros(n)
+        self.cov_time = np.zeros(n)
+        self.k = 0
+        self.next_report = 0
+        e0 = np.zeros(E)
+        off = 0
+        for eff in prob.effects:
+            e0[off:off + eff.dim] = eff.prior(prob)[0]
+            off += eff.dim
+        self._e0 = e0
+
+    def _state(self, k: int):
+        """Current estimate of step ``k`` (in the window): linearisation point retracted by dx."""
+        p = k % self.cap
+        S_, nc = S, self.prob.nc
+        d = self.dx[p]
+        R = kernels.so3_exp(d[:3]) @ self.Rb[p]
+        q = self.qb[p] + d[3:S_]
+        W = self.Wb[p] + d[S_:S_ + 6 * nc].reshape(nc, 6)
+        e = self.eb[p] + d[S_ + 6 * nc:]
+        return R, q, W, e
+
+    def _predict(self, k: int):
+        p = self.prob
+        if k == 0:
+            R, q = p.prior_mean
+            R, q = R.copy(), q.copy()
+            e = self._e0.copy()
+        else:
+            Rp, qp, _, e = self._state(k - 1)
+            dt = p.dt
+            w, v, dw, a = qp[3:6], qp[6:9], qp[9:12], qp[12:15]
+            R = kernels.so3_exp(w * dt + 0.5 * dw * dt * dt) @ Rp
+            q = qp.copy()
+            q[0:3] = qp[0:3] + v * dt + 0.5 * a * dt * dt
+            q[3:6] = w + dw * dt
+            q[6:9] = v + a * dt
+        W = p.contact_wrenches(k, R, q)
+        return R, q, W, e
+
+    def step(self) -> None:
+        """Add the next sample and update: relinearise the newest steps, eliminate, back-substitute."""
+        k = self.k
+        prob = self.prob
+        cap, M, D, nc = self.cap, self.M, prob.state_dim, prob.nc
+        t0 = time.perf_counter()
+        frozen_first = k - M >= 0
+        f = max(k - M, 0)
+        # relinearise the unfrozen steps at their current estimate
+        for i in range(f + 1 if frozen_first else f, k):
+            pi = i % cap
+            R, q, W, e = self._state(i)
+            self.Rb[pi], self.qb[pi], self.Wb[pi], self.eb[pi] = R, q, W, e
+            self.dx[pi] = 0.0
+        pk = k % cap
+        self.Rb[pk], self.qb[pk], self.Wb[pk], self.eb[pk] = self._predict(k)
+        self.dx[pk] = 0.0
+        pos = np.arange(f, k + 1) % cap
+        traj = Trajectory(self.Rb[pos], self.qb[pos], self.Wb[pos], self.eb[pos])
+        lin = linearize(prob, traj, k0=f)
+        U, gU, Fw, gF, B = assemble_split(lin, len(pos), D, skip_first_unary=frozen_first)
+        m = len(pos)
+        Ld = np.empty((m, D, D))
+        C = np.empty((max(m - 1, 1), D, D))
+        y = np.empty((m, D))
+        Sp = np.empty((m, D, D))
+        rp = np.empty((m, D))
+        pf = pos[0]
+        has_prev = (not frozen_first) and f > 0
+        try:
+            kernels.window_eliminate(self.Sp[pf], self.rp[pf], frozen_first, U, gU, Fw, gF,
+                                     B if m > 1 else np.zeros((1, D, D)), self.C[(f - 1) % cap],
+                                     self.y[(f - 1) % cap], has_prev, Ld, C, y, Sp, rp)
+        except np.linalg.LinAlgError as err:
+            raise EstimatorError(f"fixed-lag smoother: the window's system is not positive definite at step {k} "
+                                 f"(t = {k * prob.dt:.3f} s)") from err
+        self.Ld[pos] = Ld
+        self.y[pos] = y
+        if m > 1:
+            self.C[pos[:-1]] = C[:m - 1]
+        if frozen_first:
+            self.Sp[pos[1:]] = Sp[1:]
+            self.rp[pos[1:]] = rp[1:]
+        else:
+            self.Sp[pos] = Sp
+            self.rp[pos] = rp
+        # back substitution: the newest steps (the next relinearisation) at every update; the whole
+        # window every `report_every` updates, when the steps that left it are read out.
+        j = k - self.lag_steps
+        full = j >= 0 and (j + 1) % self.report_every == 0
+        oldest = max(0, j - self.report_every + 1) if full else f
+        order = np.arange(k, oldest - 1, -1) % cap
+        kernels.window_back_substitute(self.Ld, self.C, self.y, order, self.dx)
+        if not np.all(np.isfinite(self.dx[pk])):
+            raise EstimatorError(f"fixed-lag smoother: non-finite estimate at step {k} (t = {k * prob.dt:.3f} s)")
+        self.update_time[k] = time.perf_counter() - t0
+        if full:
+            j0 = j - self.report_every + 1
+            if self.covariance:
+                self._covariances(k, j0, j + 1)
+            for i in range(j0, j + 1):
+                self._report(i)
+            self.next_report = j + 1
+        self.k += 1
+
+    def _covariances(self, k: int, j0: int, j1: int) -> None:
+        """Window marginals (timed apart); kept for steps ``j0 .. j1-1``."""
+        t0 = time.perf_counter()
+        order = np.arange(k, j0 - 1, -1) % self.cap
+        kernels.window_marginals(self.Ld, self.C, order, self.Pw)
+        self.cov_time[k] = time.perf_counter() - t0
+
+    def _report(self, j: int) -> None:
+        R, q, W, e = self._state(j)
+        self.traj.R[j], self.traj.q[j], self.traj.W[j], self.traj.e[j] = R, q, W, e
+        if self.covariance:
+            self.P[j] = self.Pw[j % self.cap]
+
+    def finish(self) -> None:
+        """Report the steps still in the window (and any not yet read out) from the final estimate."""
+        if self.k == 0:
+            return
+        j0 = self.next_report
+        order = np.arange(self.k - 1, j0 - 1, -1) % self.cap
+        kernels.window_back_substitute(self.Ld, self.C, self.y, order, self.dx)
+        if self.covariance:
+            self._covariances(self.k - 1, j0, self.k)
+        for j in range(j0, self.k):
+            self._report(j)
+
+
 def run_fixed_lag(rec, model, progress: Callable[[float], None] | None = None, lag: float = 1.0,
-                  rule: NoiseRule | None = None, relinearize_threshold: float | None = None,
+                  rule: NoiseRule | None = None, backend: str = "window", relinearize: int = 3,
+                  report_every: int = 10, relinearize_threshold: float | None = None,
                   relinearize_skip: int = 10, covariance: bool = True, **options):
     """Fixed-lag smoothing of a Recording, one update per sample; returns an :class:`Estimate`.
 
     Args:
         lag: smoothing window, s (1 s by default).
         rule: the noise rule of the model-error families (default :class:`NoiseRule`).
-        relinearize_threshold, relinearize_skip: iSAM2's relinearisation settings.
+        backend: ``window`` (own incremental square-root smoother, default) or ``gtsam``
+            (IncrementalFixedLagSmoother; no effects).
+        relinearize, report_every: window backend: steps relinearised per update (the newest
+            one included), and how often (updates) the window is read out.
+        relinearize_threshold, relinearize_skip: gtsam backend: iSAM2's relinearisation settings.
         covariance: extract the marginal covariances (timed apart from the updates).
 
-    ``Estimate.time_per_step`` holds the wall-clock time of each update (prediction, factor
-    creation and the iSAM2 update); the covariance extraction is in ``meta["cov_time_median_s"]``.
+    ``Estimate.time_per_step`` holds the wall-clock time of each update (prediction,
+    linearisation, elimination, back substitution); the covariance extraction is in
+    ``meta["cov_time_median_s"]`` (window backend: the mean per update, amortised).
     """
     if options:
-        raise EstimatorError(f"fixed-lag smoother: unknown option(s) {sorted(options)}; known: lag, rule, "
-                             "relinearize_threshold, relinearize_skip, covariance")
+        raise EstimatorError(f"fixed-lag smoother: unknown option(s) {sorted(options)}; known: lag, rule, backend, "
+                             "relinearize, report_every, relinearize_threshold, relinearize_skip, covariance")
+    if backend not in ("window", "gtsam"):
+        raise EstimatorError(f"fixed-lag smoother: backend must be 'window' or 'gtsam', got {backend!r}")
     t0 = time.perf_counter()
     prob = Problem.build(rec, model, rule or NoiseRule())
-    fls = FixedLagSmoother(prob, lag, relinearize_threshold, relinearize_skip, covariance)
+    if backend == "window":
+        fls = FixedLagSmoother(prob, lag, relinearize=relinearize, covariance=covariance, report_every=report_every)
+    else:
+        fls = GtsamFixedLagSmoother(prob, lag, relinearize_threshold, relinearize_skip, covariance)
     for k in range(prob.n):
         fls.step()
         if progress is not None and k % 50 == 0:
             progress(0.95 * k / prob.n)
     fls.finish()
+    cov_stat = (float(np.median(fls.cov_time)) if backend == "gtsam" else float(np.mean(fls.cov_time)))
     est = make_estimate(prob, "fixed_lag", fls.traj, fls.P, time_per_step=fls.update_time,
-                        meta={"lag_s": fls.lag_steps * prob.dt, "use_ft": prob.use_ft,
-                              "cov_time_median_s": float(np.median(fls.cov_time)) if covariance else None,
-                              "covariance": "per-key marginals (no cross-covariance between keys)"})
+                        meta={"lag_s": fls.lag_steps * prob.dt, "use_ft": prob.use_ft, "backend": backend,
+                              "cov_time_median_s": cov_stat if covariance else None,
+                              "covariance": ("per-key marginals (no cross-covariance between keys)" if backend == "gtsam"
+                                             else "per-step marginals of the window (joint within a step)")})
     est.total_time = time.perf_counter() - t0
     if progress is not None:
         progress(1.0)

@@ -19,8 +19,11 @@ class GraphBuilder:
         self.prob = prob
         s = prob.sigmas
         self.noise_imu = gtsam.noiseModel.Diagonal.Sigmas(s.imu)
-        self.noise_ne = gtsam.noiseModel.Diagonal.Sigmas(s.newton_euler)
-        self.noise_contact = gtsam.noiseModel.Diagonal.Sigmas(s.contact)
+        self.noise_ne = gtsam.noiseModel.Gaussian.Covariance(s.newton_euler_cov)
+        if s.robust_k is not None:
+            self.noise_ne = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(s.robust_k),
+                                                           self.noise_ne)
+        self.noise_contact = gtsam.noiseModel.Gaussian.Covariance(s.contact_cov)
         self.noise_ft = gtsam.noiseModel.Diagonal.Sigmas(s.ft)
         self.noise_int = gtsam.noiseModel.Gaussian.Covariance(s.integration_cov)
 

@@ -64,17 +64,40 @@ def _whiten_rows(r, J, sigma):
     return r * inv, J * inv[:, :, None]
 
 
-def linearize(prob, traj: Trajectory) -> Linearization:
-    """Evaluate every factor of ``prob`` at ``traj`` (residuals whitened, Jacobians in world increments)."""
-    n, nc = prob.n, prob.nc
+def _whiten_matrix(r, J, Linv):
+    """Whiten by a full ``L^-1`` (m, m)."""
+    return r @ Linv.T, Linv @ J
+
+
+def huber_weights(r, k):
+    """IRLS weights of a Huber loss on each row's norm (whitened units) and the robust cost per row."""
+    norm = np.sqrt(np.sum(r * r, axis=1))
+    w = np.where(norm <= k, 1.0, k / np.maximum(norm, 1e-300))
+    cost = np.where(norm <= k, 0.5 * norm**2, k * norm - 0.5 * k * k)
+    return w, cost
+
+
+def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True) -> Linearization:
+    """Evaluate every factor of ``prob`` at ``traj`` (residuals whitened, Jacobians in world increments).
+
+    ``traj`` covers steps ``k0 .. k0 + len(traj) - 1`` of the recording (the whole recording by
+    default; the fixed-lag smoother passes its newest steps).  The first-step priors are included
+    only when ``k0 == 0``.  With a robust Newton-Euler loss (``Sigmas.robust_k``) its rows are
+    reweighted (IRLS: ``sqrt(w)`` times residual and Jacobian) and ``cost`` is the robust cost;
+    ``robust=False`` gives the plain whitened residuals (the diagnostics).
+    """
+    nc = prob.nc
+    n = traj.R.shape[0]
+    sl = slice(k0, k0 + n)
     D = prob.state_dim
     sig = prob.sigmas
     R = np.ascontiguousarray(traj.R)
     q = np.ascontiguousarray(traj.q)
     W = np.ascontiguousarray(traj.W)
-    act = prob.active
+    act = prob.active[sl]
     lin = Linearization()
-    steps = np.arange(n)
+    steps = np.arange(k0, k0 + n)
+    extra_cost = 0.0
     eye6 = np.eye(6)
     w_cols = [slice(S + 6 * i, S + 6 * i + 6) for i in range(nc)]
     e_cols, off = [], S + 6 * nc
@@ -101,31 +124,41 @@ def linearize(prob, traj: Trajectory) -> Linearization:
     Wsum = np.ascontiguousarray((W * act[:, :, None]).sum(axis=1))
     r = np.empty((n, 6))
     Js = np.empty((n, 6, S))
-    kernels.newton_euler_all(R, q, Wsum, float(prob.rec.mass), prob.com, prob.com_vel, prob.com_acc,
-                             prob.inertia, prob.inertia_dot, prob.sigma_l, prob.sigma_dot, prob.g, r, Js)
+    kernels.newton_euler_all(R, q, Wsum, float(prob.rec.mass), prob.com[sl], prob.com_vel[sl], prob.com_acc[sl],
+                             prob.inertia[sl], prob.inertia_dot[sl], prob.sigma_l[sl], prob.sigma_dot[sl], prob.g,
+                             r, Js)
     J = np.zeros((n, 6, D))
     J[:, :, :S] = Js
     for i in range(nc):
         J[:, :, w_cols[i]] = -eye6 * act[:, i, None, None]
     add_effects("newton_euler", r, J)
-    lin.unary["newton_euler"] = _whiten_rows(r, J, sig.newton_euler)
+    r, J = _whiten_matrix(r, J, prob.ne_whitener)
+    if robust and sig.robust_k is not None:
+        w, rho = huber_weights(r, sig.robust_k)
+        sw = np.sqrt(w)
+        extra_cost += float(np.sum(rho)) - 0.5 * float(np.sum(w * np.sum(r * r, axis=1)))
+        r, J = r * sw[:, None], J * sw[:, None, None]
+    lin.unary["newton_euler"] = (r, J)
 
     # Contact law (eq. 6-12), one factor per contact; an inactive contact's wrench is held at zero.
     rc = np.empty((n, nc, 6))
     Jc = np.empty((n, nc, 6, S))
-    kernels.contact_all(R, q, W, act, prob.contact_p, prob.contact_R, prob.K_fs, prob.K_fd, prob.K_ts,
+    kernels.contact_all(R, q, W, act, prob.contact_p[sl], prob.contact_R[sl], prob.K_fs, prob.K_fd, prob.K_ts,
                         prob.K_td, prob.beta, prob.iso, rc, Jc)
+    Lc = prob.contact_whitener
+    Li = np.diag(1.0 / (np.sqrt(np.diag(sig.contact_cov)) * sig.inactive_factor))
     for i in range(nc):
         J = np.zeros((n, 6, D))
         J[:, :, :S] = Jc[:, i]
         J[:, :, w_cols[i]] = -eye6
-        sigma = np.where(act[:, i, None], sig.contact, sig.contact * sig.inactive_factor)
-        lin.unary[f"contact/{i}"] = _whiten_rows(rc[:, i].copy(), J, sigma)
+        Lk = np.where(act[:, i, None, None], Lc, Li)
+        lin.unary[f"contact/{i}"] = ((Lk @ rc[:, i, :, None])[:, :, 0], Lk @ J)
 
     # IMU (eq. 26-28).
     r = np.empty((n, 6))
     Js = np.empty((n, 6, S))
-    kernels.imu_all(R, q, prob.y_imu, prob.imu_R, prob.imu_p, prob.imu_v, prob.imu_a, prob.imu_w, prob.g, r, Js)
+    kernels.imu_all(R, q, prob.y_imu[sl], prob.imu_R[sl], prob.imu_p[sl], prob.imu_v[sl], prob.imu_a[sl],
+                    prob.imu_w[sl], prob.g, r, Js)
     J = np.zeros((n, 6, D))
     J[:, :, :S] = Js
     add_effects("imu", r, J)
@@ -136,7 +169,7 @@ def linearize(prob, traj: Trajectory) -> Linearization:
         rf = np.empty((n, nc, 6))
         Jf = np.empty((n, nc, 6, S))
         JW = np.empty((n, nc, 6, 6))
-        kernels.ft_all(R, q, W, act, prob.contact_p, prob.contact_R, prob.y_ft, rf, Jf, JW)
+        kernels.ft_all(R, q, W, act, prob.contact_p[sl], prob.contact_R[sl], prob.y_ft[sl], rf, Jf, JW)
         for i in range(nc):
             J = np.zeros((n, 6, D))
             J[:, :, :S] = Jf[:, i]
@@ -144,20 +177,22 @@ def linearize(prob, traj: Trajectory) -> Linearization:
             lin.unary[f"ft/{i}"] = _whiten_rows(rf[:, i].copy(), J, sig.ft)
 
     # Prior on the first step (core state), around the static equilibrium.
-    R0, q0 = prob.prior_mean
-    phi = kernels.so3_log(R[0] @ R0.T)
-    r = np.concatenate([phi, q[0] - q0])[None, :]
-    J = np.zeros((n, S, D))[:1]
-    J[0, :3, :3] = kernels.so3_jl_inv(phi)
-    J[0, 3:S, 3:S] = np.eye(S - 3)
-    lin.unary["prior"] = _whiten_rows(r, J, sig.prior)
+    if k0 == 0:
+        R0, q0 = prob.prior_mean
+        phi = kernels.so3_log(R[0] @ R0.T)
+        r = np.concatenate([phi, q[0] - q0])[None, :]
+        J = np.zeros((1, S, D))
+        J[0, :3, :3] = kernels.so3_jl_inv(phi)
+        J[0, 3:S, 3:S] = np.eye(S - 3)
+        lin.unary["prior"] = _whiten_rows(r, J, sig.prior)
 
     # Effects' own factors: prior on the first step, random walk between steps.
     for eff, cols, ev in zip(prob.effects, e_cols, e_parts):
-        mean, sigma = eff.prior(prob)
-        J = np.zeros((1, eff.dim, D))
-        J[0, :, cols] = np.eye(eff.dim)
-        lin.unary[f"effect_prior/{eff.name}"] = _whiten_rows((ev[0] - mean)[None, :], J, np.asarray(sigma))
+        if k0 == 0:
+            mean, sigma = eff.prior(prob)
+            J = np.zeros((1, eff.dim, D))
+            J[0, :, cols] = np.eye(eff.dim)
+            lin.unary[f"effect_prior/{eff.name}"] = _whiten_rows((ev[0] - mean)[None, :], J, np.asarray(sigma))
         if n > 1:
             rw = np.asarray(eff.random_walk_sigma(prob), dtype=float)
             J0 = np.zeros((n - 1, eff.dim, D))
@@ -185,7 +220,7 @@ def linearize(prob, traj: Trajectory) -> Linearization:
         total += float(np.sum(r * r))
     for r, _, _ in lin.binary.values():
         total += float(np.sum(r * r))
-    lin.cost = 0.5 * total
+    lin.cost = 0.5 * total + extra_cost
     return lin
 
 
@@ -208,6 +243,37 @@ def assemble(lin: Linearization, n: int, D: int):
         g[:-1] -= (J0t @ r[:, :, None])[:, :, 0]
         g[1:] -= (J1t @ r[:, :, None])[:, :, 0]
     return Hd, B, g
+
+
+def assemble_split(lin: Linearization, n: int, D: int, skip_first_unary: bool = False):
+    """Gauss-Newton blocks split for incremental elimination (the fixed-lag window).
+
+    Returns ``U`` (n, D, D) and ``gU`` (n, D): step i's own factors plus the link from step i-1;
+    ``Fw``, ``gF``: the link to step i+1 on step i; ``B`` (n-1, D, D) the cross blocks.  With
+    ``skip_first_unary`` the first step's own factors are left out (already eliminated).
+    """
+    U = np.zeros((n, D, D))
+    Fw = np.zeros((n, D, D))
+    B = np.zeros((max(n - 1, 0), D, D))
+    gU = np.zeros((n, D))
+    gF = np.zeros((n, D))
+    first = 1 if skip_first_unary else 0
+    for r, J in lin.unary.values():
+        m = r.shape[0]
+        if m <= first:
+            continue
+        Jt = J[first:].transpose(0, 2, 1)
+        U[first:m] += Jt @ J[first:]
+        gU[first:m] -= (Jt @ r[first:, :, None])[:, :, 0]
+    for r, J0, J1 in lin.binary.values():
+        J0t = J0.transpose(0, 2, 1)
+        J1t = J1.transpose(0, 2, 1)
+        Fw[:-1] += J0t @ J0
+        U[1:] += J1t @ J1
+        B += J0t @ J1
+        gF[:-1] -= (J0t @ r[:, :, None])[:, :, 0]
+        gU[1:] -= (J1t @ r[:, :, None])[:, :, 0]
+    return U, gU, Fw, gF, B
 
 
 def _matvec(Hd, B, x):

@@ -104,12 +104,29 @@ class Effect(Protocol):
 
 @dataclass(frozen=True)
 class NoiseRule:
-    """The one rule that sets the sigmas of the model-error families (no per-scenario tuning)."""
+    """The one rule that sets the sigmas of the model-error families (no per-scenario tuning).
 
-    unmodelled_fraction: float = 0.02
-    """Per-sample sigma of the unexplained force in Newton-Euler, as a fraction of m g."""
-    contact_fraction: float = 0.005
-    """Per-sample sigma of the contact-law force error, as a fraction of m g."""
+    The model error is the EKF's (``flexforce.compare.ekf.noise_model``): an unmodelled
+    acceleration, white per sample, of ``unmodelled_accel`` (linear, m/s^2) and
+    ``unmodelled_ang_accel`` (angular, rad/s^2).  Defaults (``None``) are the EKF's:
+    ``accel_sigma`` and ``accel_sigma / l``, ``l`` the IMU's distance to the contacts' centroid at
+    the first step.  The smoother turns that acceleration into the wrench it leaves unexplained
+    (Newton-Euler), so both estimators assume the same unmodelled-wrench level.
+    """
+
+    unmodelled_accel: float | None = None
+    """Per-sample sigma of the unmodelled linear acceleration, m/s^2 (None: the EKF's, accel_sigma)."""
+    unmodelled_ang_accel: float | None = None
+    """Per-sample sigma of the unmodelled angular acceleration, rad/s^2 (None: the EKF's, accel_sigma / l)."""
+    contact_ratio: float = 0.1
+    """Contact-law error sigma relative to the unmodelled wrench (the EKF takes the contact law as
+    exact; 0.1 is 1 % of the variance: the law all but exact, yet soft enough that W_i stays a
+    variable with readable residuals)."""
+    robust_k: float | None = 1.345
+    """Huber threshold on the norm of the whitened 6-D Newton-Euler residual (None: plain
+    Gaussian).  1.345 is Huber's textbook constant (95 % efficiency under Gaussian noise).  The
+    nominal model has no external wrench; a push is an outlier of this family, which the Huber
+    loss lets through linearly instead of quadratically, so that it does not drag the state."""
     jerk_scale: float = 1.0
     """Multiplier of the jerk density of the integration noise (1: the derivation below)."""
     inactive_factor: float = 1e-3
@@ -127,9 +144,9 @@ class Sigmas:
     imu: np.ndarray
     """(6,) gyro rad/s, accelerometer m/s^2."""
     newton_euler: np.ndarray
-    """(6,) N, N m."""
+    """(6,) N, N m: standard deviations (square roots of the diagonal of ``newton_euler_cov``)."""
     contact: np.ndarray
-    """(6,) N, N m (active contact)."""
+    """(6,) N, N m (active contact): standard deviations of ``contact_cov``."""
     integration_cov: np.ndarray
     """(12, 12) covariance of (theta rad, t m, w rad/s, v m/s)."""
     ft: np.ndarray
@@ -137,29 +154,64 @@ class Sigmas:
     prior: np.ndarray
     """(18,) first-step prior."""
     inactive_factor: float
+    newton_euler_cov: np.ndarray | None = None
+    """(6, 6) covariance of the unexplained wrench (F, T about the world origin): force and moment
+    are correlated (a force at the CoM has a moment)."""
+    contact_cov: np.ndarray | None = None
+    """(6, 6) covariance of one active contact's law error."""
+    robust_k: float | None = None
+    """Huber threshold of the Newton-Euler family (whitened norm), or None."""
     derivation: dict = field(default_factory=dict)
     """The quantities the rule used (JSON-serialisable)."""
 
+    def __post_init__(self):
+        if self.newton_euler_cov is None:
+            object.__setattr__(self, "newton_euler_cov", np.diag(np.asarray(self.newton_euler, float) ** 2))
+        if self.contact_cov is None:
+            object.__setattr__(self, "contact_cov", np.diag(np.asarray(self.contact, float) ** 2))
+
+
+def whitener(cov: np.ndarray) -> np.ndarray:
+    """``L^-1`` with ``cov = L L^T`` (lower Cholesky): whitened ``L^-1 r`` has unit covariance.
+
+    For a wrench ordered ``(F, T)`` the first three whitened components are ``F_i / sigma_F`` when
+    the force block is diagonal; the last three are the moment left once the force is explained.
+    """
+    return np.linalg.inv(np.linalg.cholesky(cov))
+
 
 def derive_sigmas(rec, model, rule: NoiseRule = NoiseRule()) -> Sigmas:
-    """Apply :class:`NoiseRule` to a recording's robot (module docstring)."""
+    """Apply :class:`NoiseRule` to a recording's robot (module docstring, docs/smoother.md)."""
     m = float(rec.mass)
     g = float(model.gravity)
     weight = m * g
-    h = abs(float(rec.com[0, 2]))
-    h = h if h > 0.05 else 1.0
     active0 = rec.contact_active[0]
     p0 = rec.contact_p[0][active0] if active0.any() else rec.contact_p[0]
-    lever = max(0.05, float(np.max(np.linalg.norm(p0[:, :2], axis=1))) if len(p0) else 0.05)
-    sig_ne_f = rule.unmodelled_fraction * weight
-    sig_ne_t = sig_ne_f * h
-    sig_c_f = rule.contact_fraction * weight
-    sig_c_t = sig_c_f * lever
+    centroid = p0.mean(axis=0)
+    lever = float(np.linalg.norm(rec.imu_p[0] - centroid))  # the EKF's l (docs/ekf.md)
+    sa = float(rule.unmodelled_accel) if rule.unmodelled_accel is not None else float(model.accel_sigma)
+    sdw = (float(rule.unmodelled_ang_accel) if rule.unmodelled_ang_accel is not None
+           else float(model.accel_sigma) / max(lever, 1e-3))
+    # Unexplained wrench = d(required wrench)/d(dw, a) times the unmodelled acceleration, at the
+    # static equilibrium of the first sample (eq. 16, 23 are affine in (dw, a)).
+    R0, q0 = _static_state(rec, model)
+    r = np.empty(6)
+    J = np.empty((6, kernels.STATE_DIM))
+    kernels.newton_euler(R0, q0, np.zeros(6), m, np.ascontiguousarray(rec.com[0], float),
+                         np.ascontiguousarray(rec.com_vel[0], float), np.ascontiguousarray(rec.com_acc[0], float),
+                         np.ascontiguousarray(rec.inertia[0], float), np.ascontiguousarray(rec.inertia_dot[0], float),
+                         np.ascontiguousarray(rec.sigma[0], float), np.ascontiguousarray(rec.sigma_dot[0], float),
+                         g, r, J)
+    JA = J[:, 12:18]
+    Qacc = np.diag([sdw**2] * 3 + [sa**2] * 3)
+    cov_ne = JA @ Qacc @ JA.T
+    cov_ne = 0.5 * (cov_ne + cov_ne.T)
+    cov_c = rule.contact_ratio**2 * cov_ne
     k_total = sum(float(np.trace(p.K_fs)) / 3.0 for p in model.contact_params)
     omega_c = math.sqrt(max(k_total, 1e-9) / m)
-    lam = float(np.max(np.linalg.eigvalsh(0.5 * (rec.inertia[0] + rec.inertia[0].T))))
-    q_lin = rule.jerk_scale * sig_ne_f / m * math.sqrt(omega_c)
-    q_ang = rule.jerk_scale * sig_ne_t / lam * math.sqrt(omega_c)
+    # White jerk within the contact springs' bandwidth, from the same unmodelled acceleration.
+    q_lin = rule.jerk_scale * sa * math.sqrt(omega_c)
+    q_ang = rule.jerk_scale * sdw * math.sqrt(omega_c)
     T = rec.dt
     bridge = np.array([[T**5 / 45.0, T**4 / 24.0], [T**4 / 24.0, T**3 / 12.0]])
     cov = np.zeros((12, 12))
@@ -169,18 +221,52 @@ def derive_sigmas(rec, model, rule: NoiseRule = NoiseRule()) -> Sigmas:
             cov[np.ix_(idx, idx)] = q * q * bridge
     return Sigmas(
         imu=np.array([model.gyro_sigma] * 3 + [model.accel_sigma] * 3),
-        newton_euler=np.array([sig_ne_f] * 3 + [sig_ne_t] * 3),
-        contact=np.array([sig_c_f] * 3 + [sig_c_t] * 3),
+        newton_euler=np.sqrt(np.diag(cov_ne)),
+        contact=np.sqrt(np.diag(cov_c)),
         integration_cov=cov,
         ft=np.array([model.ft_force_sigma] * 3 + [model.ft_torque_sigma] * 3),
         prior=np.asarray(rule.prior_sigma, dtype=float),
         inactive_factor=rule.inactive_factor,
-        derivation={"weight_N": weight, "com_height_m": h, "contact_lever_m": lever,
-                    "omega_c_rad_s": omega_c, "inertia_max_kg_m2": lam,
-                    "jerk_density_lin": q_lin, "jerk_density_ang": q_ang,
-                    "unmodelled_fraction": rule.unmodelled_fraction,
-                    "contact_fraction": rule.contact_fraction},
+        newton_euler_cov=cov_ne,
+        contact_cov=cov_c,
+        robust_k=rule.robust_k,
+        derivation={"weight_N": weight, "imu_contact_lever_m": lever,
+                    "unmodelled_accel_m_s2": sa, "unmodelled_ang_accel_rad_s2": sdw,
+                    "newton_euler_cov": cov_ne.tolist(), "contact_ratio": rule.contact_ratio,
+                    "robust_k": rule.robust_k, "omega_c_rad_s": omega_c,
+                    "jerk_density_lin": q_lin, "jerk_density_ang": q_ang},
     )
+
+
+def _static_state(rec, model):
+    """Static equilibrium of the first sample (a Problem-free version of :meth:`Problem.equilibrium`)."""
+    nc = len(rec.contact_names)
+    K, beta, iso = _contact_arrays(tuple(model.contact_params))
+    R = np.eye(3)
+    q = np.zeros(15)
+    rne, Jne = np.empty(6), np.empty((6, 18))
+    rc, Jc = np.empty(6), np.empty((6, 18))
+    zero = np.zeros(6)
+    c = lambda a: np.ascontiguousarray(a, float)  # noqa: E731
+    for _ in range(30):
+        Wsum = np.zeros(6)
+        Jw = np.zeros((6, 6))
+        for i in range(nc):
+            if rec.contact_active[0, i]:
+                kernels.contact_law(R, q, zero, c(rec.contact_p[0, i]), c(rec.contact_R[0, i]), K[0][i], K[1][i],
+                                    K[2][i], K[3][i], beta[i, 0], beta[i, 1], iso[i], rc, Jc)
+                Wsum += rc
+                Jw -= Jc[:, :6]
+        kernels.newton_euler(R, q, Wsum, float(rec.mass), c(rec.com[0]), c(rec.com_vel[0]), c(rec.com_acc[0]),
+                             c(rec.inertia[0]), c(rec.inertia_dot[0]), c(rec.sigma[0]), c(rec.sigma_dot[0]),
+                             float(model.gravity), rne, Jne)
+        Jw += Jne[:, :6]
+        if np.max(np.abs(rne)) < 1e-9:
+            break
+        step = np.linalg.solve(Jw, -rne)
+        R = kernels.so3_exp(step[:3]) @ R
+        q[:3] += step[3:]
+    return R, q
 
 
 # ----------------------------------------------------------------------------------------------
@@ -241,8 +327,9 @@ class Problem:
         (prob.K_fs, prob.K_fd, prob.K_ts, prob.K_td), prob.beta, prob.iso = _contact_arrays(model.contact_params)
         prob.effect_dims = tuple(int(e.dim) for e in prob.effects)
         prob.prior_mean = prob.equilibrium(0)
-        L = np.linalg.cholesky(prob.sigmas.integration_cov)
-        prob.integration_whitener = np.linalg.inv(L)
+        prob.integration_whitener = whitener(prob.sigmas.integration_cov)
+        prob.ne_whitener = whitener(prob.sigmas.newton_euler_cov)
+        prob.contact_whitener = whitener(prob.sigmas.contact_cov)
         return prob
 
     # ------------------------------------------------------------------------------------------
