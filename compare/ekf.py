@@ -54,7 +54,7 @@ from flexforce.datasets.recording import Recording
 from flexforce.errors import ConfigError, DataError, EstimatorError, ModelError
 from flexforce.factors import physics as ph
 from flexforce.factors import so3
-from flexforce.factors.model import ModelConfig
+from flexforce.factors.model import ModelConfig, unmodelled_acceleration
 
 __all__ = [
     "EKF", "EKFConfig", "Update", "kf_predict", "kf_update", "run_ekf", "noise_model",
@@ -247,9 +247,10 @@ def noise_model(rec: Recording, model: ModelConfig, config: EKFConfig = EKFConfi
     * R: ``diag(gyro_sigma^2 I3, accel_sigma^2 I3)`` (ModelConfig, per-sample sigmas).
     * Unmodelled acceleration per sample: ``sigma_a = accel_sigma`` (m/s^2) and
       ``sigma_dw = accel_sigma / l`` with ``l`` the IMU's distance to the contacts' centroid.
-    * Q: the unmodelled acceleration is white, piecewise constant over a step (the discrete
-      white-noise-acceleration model, Bar-Shalom et al. 2001, sec. 6.3.2): per axis, position,
-      velocity and acceleration receive ``sigma^2 [dt^4/4, dt^3/2, dt^2/2; ., dt^2, dt; ., ., 1]``.
+    * Q: the unmodelled acceleration is white at the samples and enters the acceleration block
+      only (``sigma^2`` per axis); position and velocity receive it at the next step through the
+      integration of the acceleration state (docs/ekf.md explains why not the textbook
+      discrete white-noise-acceleration Q, which counts it twice here).
     * P0: deflections of the order of the static ones: ``sigma_t = m g / sum k_fs`` (the static
       sinking under the weight), ``sigma_Omega = sigma_t / h`` (the tilt about the contacts that
       moves the CoM, at height h above them, by as much), velocities ``omega_n sigma`` with the
@@ -260,14 +261,13 @@ def noise_model(rec: Recording, model: ModelConfig, config: EKFConfig = EKFConfi
     g = model.gravity
     m = rec.mass
     kf, kt, centroid = _contact_totals(rec, model, 0)
-    lever = float(np.linalg.norm(rec.imu_p[0] - centroid))
     height = float(max(rec.com[0, 2] - centroid[2], 1e-3))
-    sa = config.unmodelled_accel if config.unmodelled_accel is not None else model.accel_sigma
-    sdw = (config.unmodelled_ang_accel if config.unmodelled_ang_accel is not None
-           else model.accel_sigma / max(lever, 1e-3))
+    sa0, sdw0 = unmodelled_acceleration(model.accel_sigma, rec.imu_p[0], centroid)
+    sa = config.unmodelled_accel if config.unmodelled_accel is not None else sa0
+    sdw = config.unmodelled_ang_accel if config.unmodelled_ang_accel is not None else sdw0
     Rn = np.diag([model.gyro_sigma**2] * 3 + [model.accel_sigma**2] * 3)
     Q = np.zeros((18, 18))
-    blk = np.array([[dt**4 / 4, dt**3 / 2, dt**2 / 2], [dt**3 / 2, dt**2, dt], [dt**2 / 2, dt, 1.0]])
+    blk = np.diag([0.0, 0.0, 1.0])  # (position, velocity, acceleration): acceleration only
     for pos, vel, acc, s in ((T, V, A, sa), (OM, W, DW, sdw)):
         idx = [pos, vel, acc]
         for i in range(3):

@@ -32,6 +32,7 @@ topic                        message type                          content      
 ``/truth/acceleration``      ``geometry_msgs/msg/AccelStamped``    angular = dw, linear = a                                       rad/s^2, m/s^2          ``world``
 ``/truth/wrench/<contact>``  ``geometry_msgs/msg/WrenchStamped``   contact wrench F, T about the world origin (0 if inactive)     N, N m                  ``world``
 ``/truth/external_wrench``   ``geometry_msgs/msg/WrenchStamped``   hidden external wrench F, T about the world origin             N, N m                  ``world``
+``/truth/ambient_wrench``    ``geometry_msgs/msg/WrenchStamped``   ambient disturbance F, T about the world origin (if any)       N, N m                  ``world``
 ``/truth/cop``               ``geometry_msgs/msg/PointStamped``    centre of pressure of the total contact wrench                 m                       ``world``
 ``/truth/link/<name>``       ``geometry_msgs/msg/PointStamped``    world position of a chosen link (the hands)                    m                       ``world``
 ``/truth/gyro_bias``         ``geometry_msgs/msg/Vector3Stamped``  gyrometer bias                                                 rad/s                   ``imu``
@@ -201,6 +202,7 @@ def _meta_json(rec: Recording) -> str:
             "truth": truth is not None,
             "gyro_bias": truth is not None and truth.gyro_bias is not None,
             "accel_bias": truth is not None and truth.accel_bias is not None,
+            "ambient_wrench": truth is not None and truth.ambient_wrench is not None,
         },
     }
     try:
@@ -363,6 +365,10 @@ def _write(writer, ts, rec: Recording, meta: str) -> None:
         ext = np.asarray(truth.external_wrench).tolist()
         add("/truth/external_wrench", T_WRENCH, "world",
             lambda k, h: T[T_WRENCH](header=h, wrench=wrench(ext[k])))
+        if truth.ambient_wrench is not None:
+            amb = np.asarray(truth.ambient_wrench).tolist()
+            add("/truth/ambient_wrench", T_WRENCH, "world",
+                lambda k, h: T[T_WRENCH](header=h, wrench=wrench(amb[k])))
         points = [("/truth/cop", truth.cop)] + [(f"/truth/link/{name}", p) for name, p in truth.links.items()]
         for topic, values in points:
             rows = np.asarray(values, dtype=np.float64).tolist()
@@ -603,6 +609,8 @@ def load_recording(path) -> Recording:
                        if present["gyro_bias"] else None),
             accel_bias=(_xyz([m.vector for m in topics.get("/truth/accel_bias", T_VECTOR, why)])
                         if present["accel_bias"] else None),
+            ambient_wrench=(_wrenches(topics.get("/truth/ambient_wrench", T_WRENCH, why))
+                            if present.get("ambient_wrench") else None),
         )
 
     rec = Recording(

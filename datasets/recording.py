@@ -40,7 +40,7 @@ class Truth:
     wrench: np.ndarray
     """(N, C, 6) per-contact wrench (F [N], T [N m] about the world origin); zero when inactive."""
     external_wrench: np.ndarray
-    """(N, 6) hidden external wrench (F, T about the world origin) acting on the robot."""
+    """(N, 6) hidden external wrench of the scenario's effects (F, T about the world origin)."""
     cop: np.ndarray
     """(N, 3) centre of pressure of the total contact wrench on the ground plane, m."""
     links: dict[str, np.ndarray] = field(default_factory=dict)
@@ -49,6 +49,16 @@ class Truth:
     """(N, 3) gyrometer bias, rad/s (IMU frame)."""
     accel_bias: np.ndarray | None = None
     """(N, 3) accelerometer bias, m/s^2 (IMU frame)."""
+    ambient_wrench: np.ndarray | None = None
+    """(N, 6) ambient disturbance wrench (F, T about the world origin): the unmodelled wrench the
+    nominal model assumes (``Scenario.ambient``), not a hidden effect."""
+
+    @property
+    def disturbance_wrench(self) -> np.ndarray:
+        """(N, 6) every external wrench besides the contacts: hidden effects plus ambient."""
+        if self.ambient_wrench is None:
+            return self.external_wrench
+        return self.external_wrench + self.ambient_wrench
 
     @property
     def total_wrench(self) -> np.ndarray:

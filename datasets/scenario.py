@@ -28,6 +28,7 @@ A scenario is a TOML file (the built-in ones live in ``flexforce/datasets/scenar
     type = "external-wrench"; link = "@base"; force = [40.0, 0.0, 0.0]; start = 1.0; duration = 0.2
 
     [imu_noise]              # overrides of the robot's noise model (same keys as ImuNoise)
+    ambient = true           # ambient disturbance at the nominal model's level (see Scenario.ambient)
 
 Step and sine segments have continuous position, velocity and acceleration, so the joints the
 robot tracks (stiff position control) are smooth; contacts switch only at swing events.
@@ -162,7 +163,11 @@ class Scenario:
     imu_noise: dict = field(default_factory=dict)
     ft_noise: dict = field(default_factory=dict)
     noise: bool = True
-    """Add sensor noise; False gives exact readings (tests)."""
+    """Add sensor noise and the ambient disturbance; False gives an exact world and readings (tests)."""
+    ambient: bool = True
+    """Ambient unmodelled disturbance: a white acceleration of the flexibility at the samples, linear
+    in between (continuous), at the level the nominal model assumes (:func:`flexforce.factors.model.unmodelled_acceleration`),
+    applied as an external wrench on the base; so that the nominal world is the nominal model."""
     source: str = ""
 
     @classmethod

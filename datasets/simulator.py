@@ -31,6 +31,7 @@ import pinocchio as pin
 
 from flexforce.errors import ConfigError, ModelError
 from flexforce.factors import so3
+from flexforce.factors.model import unmodelled_acceleration
 from flexforce.factors.physics import ContactParams, center_of_pressure
 from flexforce.datasets.effects import HiddenEffect, parse_effects
 from flexforce.datasets.recording import Recording, Truth
@@ -289,7 +290,9 @@ class WorldEval:
     local_wrenches: np.ndarray
     """(C, 6) contact wrenches in the contact frame about its origin (what an F/T sensor reads)."""
     external: np.ndarray
-    """(6,) external wrench about the world origin."""
+    """(6,) external wrench of the hidden effects, about the world origin."""
+    ambient: np.ndarray
+    """(6,) ambient disturbance wrench, about the world origin."""
     q_w: np.ndarray
     v_w: np.ndarray
     a_w: np.ndarray
@@ -322,6 +325,13 @@ class Simulator:
         self._apply_com_offset()
         self.sim_data = self.sim_model.createData()
         self.contact_params = self._true_contact_params()
+        # Ambient disturbance: the nominal model's unmodelled acceleration made real (Scenario.ambient).
+        self.ambient = None
+        if self.noise and scenario.ambient:
+            kin = self.robot.kinematics(self.robot.q_reference, np.zeros(self.robot.model.nv),
+                                        np.zeros(self.robot.model.nv))
+            self.ambient = unmodelled_acceleration(self.imu_noise.accel_sigma(scenario.rate), kin.imu.p,
+                                                   kin.contact_p.mean(axis=0))
         self.ext_effects = []
         for eff in self.effects:
             if eff.type == "external-wrench":
@@ -377,13 +387,15 @@ class Simulator:
         return out
 
     # ------------------------------------------------------------------------------------------
-    def world_dynamics(self, t: float, R, tr, w, v, local: LocalSample, rest) -> WorldEval:
+    def world_dynamics(self, t: float, R, tr, w, v, local: LocalSample, rest, disturbance=None) -> WorldEval:
         """Flexibility acceleration from pinocchio's multibody dynamics.
 
         Args:
             R, tr, w, v: flexibility rotation, translation, angular and linear velocity (world).
             local: the robot's local-frame q, v, a at ``t``.
             rest: per contact, its rest placement (SE3) when in contact, else None.
+            disturbance: (6,) ambient flexibility acceleration (dw rad/s^2, a m/s^2) to produce with an
+                external wrench on the base, or None.
         """
         model, data = self.sim_model, self.sim_data
         ql, vl, al = local.q, local.v, local.a
@@ -447,6 +459,17 @@ class Simulator:
         Mfull = pin.crba(model, data, q_w)
         Mbb = np.triu(Mfull[:6, :6]) + np.triu(Mfull[:6, :6], 1).T
         f_b = np.concatenate([R_b.T @ F_sum, R_b.T @ M_sum])
+        if disturbance is not None:
+            # The base acceleration that moves the flexibility by the disturbance, and the wrench
+            # on the base (pinocchio's inertia) that produces it.
+            ddw = disturbance[:3]
+            ddp_b_dist = disturbance[3:] + _cross(ddw, Rp)
+            f_dist = Mbb @ np.concatenate([R_b.T @ ddp_b_dist, R_b.T @ ddw])
+            F_d = R_b @ f_dist[:3]
+            ambient = np.concatenate([F_d, R_b @ f_dist[3:] + _cross(p_b, F_d)])
+            f_b = f_b + f_dist
+        else:
+            ambient = np.zeros(6)
         a_b = np.linalg.solve(Mbb, f_b - b)
         dw_b = R_b @ a_b[3:]
         ddp_b = R_b @ (a_b[:3] + _cross(v_w[3:6], v_w[:3]))
@@ -454,7 +477,7 @@ class Simulator:
         a = ddp_b - _cross(dw, Rp) - _cross(w, _cross(w, Rp)) - 2.0 * _cross(w, R @ dp_l) - R @ ddp_l
         a_w = al.copy()
         a_w[:6] = a_b
-        return WorldEval(dw, a, wrenches, local_wrenches, external, q_w, v_w, a_w)
+        return WorldEval(dw, a, wrenches, local_wrenches, external, ambient, q_w, v_w, a_w)
 
     def _equilibrium(self, local: LocalSample, rest) -> tuple[np.ndarray, np.ndarray]:
         """Static flexibility (R, t) at the start: zero velocity and zero acceleration."""
@@ -512,6 +535,7 @@ class Simulator:
         truth_R = np.zeros((n, 3, 3))
         truth_wrench = np.zeros((n, nc, 6))
         truth_ext = np.zeros((n, 6))
+        truth_amb = np.zeros((n, 6))
         links = np.zeros((n, len(robot.link_frame_ids), 3))
         ft_true = np.zeros((n, nc, 6))
         gyro_true = np.zeros((n, 3))
@@ -520,10 +544,17 @@ class Simulator:
         rec_rest_R = np.tile(np.eye(3), (n, nc, 1, 1))
         active = np.zeros((n, nc), dtype=bool)
 
+        amb_rng = np.random.default_rng((sc.seed, 7))
+        amb = None
+        if self.ambient is not None:  # white at the samples, linear in between (continuous acceleration)
+            sa, sdw = self.ambient
+            amb = np.concatenate([sdw * amb_rng.standard_normal((n, 3)), sa * amb_rng.standard_normal((n, 3))], axis=1)
+        disturbance = None
+
         def deriv(t, y, local, rest):
             qw = y[:4] / np.linalg.norm(y[:4])
             Rm = _quat_to_R(qw)
-            ev = self.world_dynamics(t, Rm, y[4:7], y[7:10], y[10:13], local, rest)
+            ev = self.world_dynamics(t, Rm, y[4:7], y[7:10], y[10:13], local, rest, disturbance)
             return np.concatenate([_quat_rate(qw, y[7:10]), y[10:13], ev.dw, ev.a]), ev
 
         def local_at(k, s):
@@ -557,6 +588,8 @@ class Simulator:
         for k in range(n):
             tk = float(times[k])
             local = samples[k]
+            if amb is not None:
+                disturbance = amb[k]
             # contact set for the interval starting at t_k: rest placement taken when a contact lands
             for ci in range(nc):
                 if local.active[ci] and rest[ci] is None:
@@ -574,6 +607,7 @@ class Simulator:
             truth["a"][k] = ev.a
             truth_wrench[k] = ev.wrenches
             truth_ext[k] = ev.external
+            truth_amb[k] = ev.ambient
             ft_true[k] = ev.local_wrenches
             active[k] = local.active
             for ci in range(nc):
@@ -606,9 +640,15 @@ class Simulator:
                 l1 = local_at(k, s0 + 1.0 / sub) if j < sub - 1 else LocalSample(
                     samples[k + 1].q, samples[k + 1].v, samples[k + 1].a, local.active)
                 t0 = tk + j * h
+                if amb is not None:
+                    disturbance = amb[k] + s0 * (amb[k + 1] - amb[k])
                 k1, _ = deriv(t0, y, l0, rest)
+                if amb is not None:
+                    disturbance = amb[k] + (s0 + 0.5 / sub) * (amb[k + 1] - amb[k])
                 k2, _ = deriv(t0 + 0.5 * h, y + 0.5 * h * k1, lm, rest)
                 k3, _ = deriv(t0 + 0.5 * h, y + 0.5 * h * k2, lm, rest)
+                if amb is not None:
+                    disturbance = amb[k] + (s0 + 1.0 / sub) * (amb[k + 1] - amb[k])
                 k4, _ = deriv(t0 + h, y + h * k3, l1, rest)
                 y = y + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
                 y[:4] /= np.linalg.norm(y[:4])
@@ -619,11 +659,11 @@ class Simulator:
                 progress(k / (n - 1))
         if progress is not None:
             progress(1.0)
-        return self._recording(times, samples, truth_R, truth, truth_wrench, truth_ext, links, ft_true,
+        return self._recording(times, samples, truth_R, truth, truth_wrench, truth_ext, truth_amb, links, ft_true,
                                gyro_true, accel_true, rec_rest_p, rec_rest_R, active)
 
     # ------------------------------------------------------------------------------------------
-    def _recording(self, times, samples, truth_R, truth, truth_wrench, truth_ext, links, ft_true,
+    def _recording(self, times, samples, truth_R, truth, truth_wrench, truth_ext, truth_amb, links, ft_true,
                    gyro_true, accel_true, rest_p, rest_R, active) -> Recording:
         sc = self.scenario
         robot = self.robot
@@ -657,7 +697,8 @@ class Simulator:
             R=truth_R, t=truth["t"], w=truth["w"], v=truth["v"], dw=truth["dw"], a=truth["a"],
             wrench=truth_wrench, external_wrench=truth_ext, cop=truth["cop"],
             links={name: links[:, i].copy() for i, name in enumerate(robot.link_names)},
-            gyro_bias=gyro_bias, accel_bias=accel_bias)
+            gyro_bias=gyro_bias, accel_bias=accel_bias,
+            ambient_wrench=truth_amb if self.ambient is not None else None)
         step_ns = int(round(1e9 / sc.rate))
         meta = {
             "source": "simulation",
@@ -668,6 +709,8 @@ class Simulator:
             "stiffness": {k: (list(v) if isinstance(v, tuple) else v)
                           for k, v in robot.config.stiffness.__dict__.items()},
             "hidden_effects": [{"type": e.type, **e.params} for e in self.effects],
+            "ambient": (None if self.ambient is None else
+                        {"sigma_linear_m_s2": self.ambient[0], "sigma_angular_rad_s2": self.ambient[1]}),
         }
         return Recording(
             t_ns=np.arange(n, dtype=np.int64) * step_ns,

@@ -7,6 +7,8 @@ nominal contact spring-dampers, the sensor noise, gravity, and the enabled model
 from __future__ import annotations
 
 import math
+
+import numpy as np
 from dataclasses import dataclass, field, replace
 
 from flexforce.factors.physics import GRAVITY, ContactParams
@@ -62,3 +64,20 @@ class ModelConfig:
             ft_torque_sigma=float(ft["torque"]),
         )
         return replace(cfg, **overrides) if overrides else cfg
+
+
+def unmodelled_acceleration(accel_sigma: float, imu_p: np.ndarray, contact_centroid: np.ndarray) -> tuple[float, float]:
+    """The nominal model's unmodelled acceleration of the flexibility, per sample.
+
+    One assumption shared by the EKF (its process noise), the smoothers (their Newton-Euler noise)
+    and the simulator (its ambient disturbance, so that the nominal world is the nominal model):
+    what the model leaves out moves the flexibility by a white acceleration, constant over a
+    sample, at the level the accelerometer can resolve in one sample.
+
+    Returns:
+        ``(sigma_a, sigma_dw)``: linear acceleration ``accel_sigma`` (m/s^2) and angular
+        acceleration ``accel_sigma / l`` (rad/s^2), ``l`` the distance from the IMU to the contacts'
+        centroid (at least 1 mm): the rotation that moves the IMU by as much.
+    """
+    lever = float(np.linalg.norm(np.asarray(imu_p) - np.asarray(contact_centroid)))
+    return float(accel_sigma), float(accel_sigma) / max(lever, 1e-3)

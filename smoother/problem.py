@@ -41,6 +41,7 @@ import numpy as np
 
 from flexforce.errors import ConfigError, DataError, ModelError
 from flexforce.factors import kernels
+from flexforce.factors.model import unmodelled_acceleration
 from flexforce.factors.physics import ContactParams
 
 FAMILIES = ("integration", "newton_euler", "contact", "imu", "ft")
@@ -122,11 +123,12 @@ class NoiseRule:
     """Contact-law error sigma relative to the unmodelled wrench (the EKF takes the contact law as
     exact; 0.1 is 1 % of the variance: the law all but exact, yet soft enough that W_i stays a
     variable with readable residuals)."""
-    robust_k: float | None = 1.345
+    robust_k: float | None = 3.548
     """Huber threshold on the norm of the whitened 6-D Newton-Euler residual (None: plain
-    Gaussian).  1.345 is Huber's textbook constant (95 % efficiency under Gaussian noise).  The
-    nominal model has no external wrench; a push is an outlier of this family, which the Huber
-    loss lets through linearly instead of quadratically, so that it does not drag the state."""
+    Gaussian).  3.548 = sqrt(chi^2_6(0.95)): under the nominal model 95 % of the residual vectors
+    keep their full Gaussian weight (Huber's scalar 1.345 would apply to a 1-D residual; the norm
+    of a 6-D one exceeds it 9 times out of 10).  A push is an outlier of this family, which the
+    Huber loss lets through linearly instead of quadratically, so that it does not drag the state."""
     jerk_scale: float = 1.0
     """Multiplier of the jerk density of the integration noise (1: the derivation below)."""
     inactive_factor: float = 1e-3
@@ -189,9 +191,9 @@ def derive_sigmas(rec, model, rule: NoiseRule = NoiseRule()) -> Sigmas:
     p0 = rec.contact_p[0][active0] if active0.any() else rec.contact_p[0]
     centroid = p0.mean(axis=0)
     lever = float(np.linalg.norm(rec.imu_p[0] - centroid))  # the EKF's l (docs/ekf.md)
-    sa = float(rule.unmodelled_accel) if rule.unmodelled_accel is not None else float(model.accel_sigma)
-    sdw = (float(rule.unmodelled_ang_accel) if rule.unmodelled_ang_accel is not None
-           else float(model.accel_sigma) / max(lever, 1e-3))
+    sa0, sdw0 = unmodelled_acceleration(model.accel_sigma, rec.imu_p[0], centroid)
+    sa = float(rule.unmodelled_accel) if rule.unmodelled_accel is not None else sa0
+    sdw = float(rule.unmodelled_ang_accel) if rule.unmodelled_ang_accel is not None else sdw0
     # Unexplained wrench = d(required wrench)/d(dw, a) times the unmodelled acceleration, at the
     # static equilibrium of the first sample (eq. 16, 23 are affine in (dw, a)).
     R0, q0 = _static_state(rec, model)

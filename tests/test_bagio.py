@@ -182,7 +182,8 @@ def test_topics_use_standard_messages(full_bag):
     meta = json.loads(first["/flexforce/meta"][1].data)
     assert meta["version"] == 1 and meta["truth_links"] == ["l_hand", "r_hand"]
     assert meta["present"] == {"joint_q": True, "joint_v": True, "ft": True, "truth": True,
-                               "gyro_bias": True, "accel_bias": True, "base_pose": True}
+                               "gyro_bias": True, "accel_bias": True, "base_pose": True,
+                               "ambient_wrench": False}
 
 
 # ------------------------------------------------------------------------------------------------

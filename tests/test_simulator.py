@@ -175,7 +175,7 @@ def test_anisotropic_and_cubic_springs_match_the_contact_law():
 
 
 def test_noise_statistics_and_seed():
-    sc = {"name": "still", "robot": "romeo", "duration": 1.0}
+    sc = {"name": "still", "robot": "romeo", "duration": 1.0, "ambient": False}
     clean = Simulator(Scenario.from_dict(sc), noise=False).run()
     noisy = Simulator(Scenario.from_dict({**sc, "seed": 3}), noise=True).run()
     again = Simulator(Scenario.from_dict({**sc, "seed": 3}), noise=True).run()
