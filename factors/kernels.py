@@ -555,6 +555,39 @@ def block_tridiag_solve(D, B, g, want_cov):
     return x, P
 
 
+@njit
+def block_tridiag_covariances(D, B):
+    """Marginal covariances of ``H^-1`` for ``H`` as in :func:`block_tridiag_solve`: the diagonal
+    blocks ``P`` (N, d, d) and the lag-one cross blocks ``Pc`` (N-1, d, d), ``Pc[k] = (H^-1)[k, k+1]``.
+
+    With ``H = L L^T`` (block Cholesky, ``M_k = L_kk^-1``, ``C_k = L_k+1,k``), block row ``k`` of
+    ``L^T H^-1 = L^-1`` above the diagonal gives ``(H^-1)[k, k+1] = -M_k^T C_k^T P_k+1`` (the
+    smoother's lag-one covariance); ``P_k = M_k^T (I + C_k^T P_k+1 C_k) M_k``.
+    """
+    n, d = D.shape[0], D.shape[1]
+    Ld = np.empty((n, d, d))
+    C = np.empty((max(n - 1, 0), d, d))
+    S = D[0].copy()
+    for k in range(n):
+        if k > 0:
+            S = D[k] - C[k - 1] @ C[k - 1].T
+        Ld[k] = np.linalg.cholesky(S)
+        if k < n - 1:
+            C[k] = _trsm_lower(Ld[k], B[k]).T.copy()
+    P = np.empty((n, d, d))
+    Pc = np.empty((max(n - 1, 0), d, d))
+    eye = np.eye(d)
+    for k in range(n - 1, -1, -1):
+        M = _trsm_lower(Ld[k], eye)
+        if k == n - 1:
+            P[k] = M.T @ M
+        else:
+            CP = C[k].T @ P[k + 1]
+            P[k] = M.T @ (eye + CP @ C[k]) @ M
+            Pc[k] = -(M.T @ CP)
+    return P, Pc
+
+
 # ----------------------------------------------------------------------------------------------
 # Fixed-lag window (smoother/fixed_lag.py): incremental block elimination, oldest first
 # ----------------------------------------------------------------------------------------------

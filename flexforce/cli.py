@@ -203,6 +203,42 @@ def _cmd_demo(args) -> int:
     return _cmd_compare(args)
 
 
+def _cmd_diagnose(args) -> int:
+    from flexforce.compare.diagnose import diagnose, load_plugin, registered_effects
+    from flexforce.compare.diagnose_report import write_diagnosis
+    from flexforce.factors.model import ModelConfig
+
+    rec = _load_or_simulate(str(args.recording), args.seed, args.quiet, args.robot, args.contacts)
+    model = ModelConfig.from_recording(rec, robot=args.robot, use_ft=args.ft)
+    plugins = [eff for path in args.plugin for eff in load_plugin(path)]
+    if args.candidates:
+        names = [c.strip() for c in args.candidates.split(",") if c.strip()]
+    else:
+        names = list(registered_effects())
+    candidates = names + plugins
+    bars = {}
+
+    def progress(label, fraction):
+        if label not in bars:
+            bars[label] = Progress(f"  {label}"[:24], enabled=not args.quiet and None)
+        bars[label](fraction)
+
+    diag = diagnose(rec, model, candidates=candidates, add=args.add, rank=not args.no_rank,
+                    max_effects=args.max_effects, ekf=not args.no_ekf, progress=progress)
+    out = write_diagnosis(diag, args.output)
+    if diag.ranking:
+        print(diag.ranking_table())
+    print(f"significant: {', '.join(diag.selected) or 'none'}")
+    if diag.after is not None:
+        print(f"added {', '.join(diag.added)}: flagged windows {len(diag.before.flags)} -> {len(diag.after.flags)}")
+        for key, b in diag.before.rmse.items():
+            a = diag.after.rmse.get(key)
+            if b is not None and a is not None:
+                print(f"  RMSE {key:14s} {b:10.4g} -> {a:10.4g}")
+    print(f"report: {out / 'index.html'}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="flexforce",
@@ -256,6 +292,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scenario", help="another built-in scenario or file")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_cmd_demo)
+    p = sub.add_parser("diagnose", help="where the nominal model fails, which effect is missing, before/after adding it")
+    p.add_argument("recording", help="bag, or a built-in scenario name / scenario file to simulate")
+    p.add_argument("-o", "--output", required=True, type=Path, help="report folder (index.html, diagnosis.json)")
+    p.add_argument("--add", action="append", default=[], metavar="NAME",
+                   help="refit with this effect and compare before/after (repeatable; 'auto': the significant ones)")
+    p.add_argument("--candidates", help="comma-separated effect names to rank (default: every built-in effect)")
+    p.add_argument("--plugin", action="append", default=[], type=Path, metavar="FILE.py",
+                   help="Python file with user-written effects, ranked like the built-in ones (repeatable)")
+    p.add_argument("--max-effects", type=int, default=3, help="at most this many effects selected (default 3)")
+    p.add_argument("--no-rank", action="store_true", help="only refit with --add, no ranking")
+    p.add_argument("--no-ekf", action="store_true", help="do not run the EKF (innovations, NIS)")
+    p.add_argument("--seed", type=int, help="noise seed when simulating a scenario")
+    p.add_argument("--robot", help="robot name or .toml configuration (default: the recording's; required for a "
+                                   "raw robot bag)")
+    p.add_argument("--contacts", choices=("ft", "fixed"), default="ft",
+                   help="raw bags: contacts from the F/T normal force (Schmitt trigger) or the config's fixed set")
+    p.add_argument("--ft", action="store_true", help="fuse the recording's F/T readings as measurements")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=_cmd_diagnose)
     return parser
 
 

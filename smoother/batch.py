@@ -18,9 +18,11 @@ from typing import Callable
 import numpy as np
 
 from flexforce.errors import EstimatorError
-from flexforce.smoother.linearize import Trajectory, assemble, linearize, solve
+from flexforce.smoother.linearize import Trajectory, assemble, covariances, linearize, solve
 from flexforce.smoother.problem import NoiseRule, Problem
 from flexforce.smoother.result import make_estimate
+
+S_CORE = 18
 
 
 def initial_trajectory(prob: Problem) -> Trajectory:
@@ -65,9 +67,11 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
             decrease = cost - lin_c.cost
             traj, lin, cost = cand, lin_c, lin_c.cost
             log.append(cost)
-            lam = max(lam / 10.0, 1e-12)
-            if decrease <= rel_tol * max(cost, 1.0):
+            # converged only once the damping is negligible: LM multiplies the diagonal, and a
+            # constant effect's random walk puts ~1e12 there, so a damped step barely moves it
+            if decrease <= rel_tol * max(cost, 1.0) and lam <= 1e-12:
                 break
+            lam = max(lam / 10.0, 1e-12)
         else:
             lam *= 10.0
             if lam > 1e8:
@@ -105,6 +109,96 @@ def run_batch(rec, model, progress: Callable[[float], None] | None = None, rule:
     est = make_estimate(prob, "batch", traj, P, total_time=elapsed,
                         meta={"iterations": info["iterations"], "final_cost": info["cost"][-1],
                               "use_ft": prob.use_ft})
+    est.total_time = time.perf_counter() - t0
+    if progress is not None:
+        progress(1.0)
+    return est
+
+
+DATA_FAMILIES = ("imu", "newton_euler", "contact", "integration", "ft")
+"""The measurement and model families whose whitened residuals make the data cost of a fit."""
+
+
+def effective_dof(prob: Problem, P: np.ndarray, Pc: np.ndarray) -> dict[str, float]:
+    """Each effect's effective number of parameters: ``tr(I - P_post Lambda_prior)`` over its variables.
+
+    ``Lambda_prior`` is the information of the effect's own factors (first-step prior and random
+    walk), ``P_post`` the posterior covariance (``P`` its diagonal blocks, ``Pc`` the lag-one
+    cross blocks).  Since ``Lambda_prior = sum_f a_f a_f^T / s_f^2`` over those factors,
+    ``tr(P Lambda) = sum_f a_f^T P a_f / s_f^2``: the prior term ``P_00 / s_0^2`` and, per link,
+    ``var(e_k+1 - e_k) / s_w^2`` with ``var(e_k+1 - e_k) = P_kk + P_k+1,k+1 - 2 P_k,k+1``, and
+    ``P_kk / s_p^2`` per step for an effect with a per-step prior (``step_prior_sigma``).
+    For a constant effect (``constant = True``, or a random walk too tight to matter) the steps
+    are one parameter: ``dim - tr(P_00 diag(1/s_0^2))``, i.e. its dim when the data determine it,
+    less when its prior does.
+    """
+    out = {}
+    off = S_CORE + 6 * prob.nc
+    n = prob.n
+    for eff in prob.effects:
+        d = int(eff.dim)
+        sl = slice(off, off + d)
+        _, s0 = eff.prior(prob)
+        s0 = np.broadcast_to(np.asarray(s0, dtype=float), (d,))
+        rw = np.broadcast_to(np.asarray(eff.random_walk_sigma(prob), dtype=float), (d,))
+        p00 = np.diagonal(P[0, sl, sl])
+        prior_term = float(np.sum(p00 / s0**2))
+        constant = getattr(eff, "constant", None)
+        if constant is None:
+            constant = bool(np.all(rw * np.sqrt(max(n - 1, 1)) < 1e-3 * s0))
+        if constant or n < 2:
+            out[eff.name] = float(d - prior_term)
+        else:
+            var_d = (np.diagonal(P[:-1, sl, sl], axis1=1, axis2=2) + np.diagonal(P[1:, sl, sl], axis1=1, axis2=2)
+                     - 2.0 * np.diagonal(Pc[:, sl, sl], axis1=1, axis2=2))
+            level = getattr(eff, "step_prior_sigma", None)
+            level_term = 0.0
+            if level is not None:
+                sl_ = np.broadcast_to(np.asarray(level(prob), dtype=float), (d,))
+                level_term = float(np.sum(np.diagonal(P[:, sl, sl], axis1=1, axis2=2) / sl_**2))
+            out[eff.name] = float(n * d - prior_term - level_term - np.sum(var_d / rw**2))
+        off += d
+    return out
+
+
+def fit(rec, model, progress: Callable[[float], None] | None = None, rule: NoiseRule | None = None,
+        max_iterations: int = 30):
+    """Batch smoothing with ``model.effects`` for the diagnostics; returns an :class:`Estimate`.
+
+    As :func:`run_batch`, plus ``Estimate.meta["fit"]``:
+
+    - ``cost_data``: 0.5 x the sum of squared whitened residuals of the measurement and model
+      families (``imu``, ``newton_euler`` unweighted i.e. before the Huber loss, ``contact`` of the
+      active contacts, ``integration``, ``ft`` when fused): the effects' own prior and random-walk
+      terms and the first-step prior are left out.
+    - ``cost_total``: the optimised objective (robust Newton-Euler, every prior and random walk).
+    - ``n_residuals``: the number of scalar residuals in ``cost_data``.
+    - ``effective_dof``: effect name -> its effective number of parameters (:func:`effective_dof`).
+
+    ``Estimate.effects[name]`` is each effect's report (value, std, unit, summary, ...).
+    """
+    t0 = time.perf_counter()
+    prob = Problem.build(rec, model, rule or NoiseRule())
+    if progress is not None:
+        progress(0.05)
+    traj, _, info = optimize(prob, max_iterations=max_iterations, progress=progress, want_cov=False)
+    lin = linearize(prob, traj)
+    Hd, B, _ = assemble(lin, prob.n, prob.state_dim)
+    P, Pc = covariances(Hd, B)
+    est = make_estimate(prob, "batch", traj, P, total_time=time.perf_counter() - t0,
+                        meta={"iterations": info["iterations"], "final_cost": info["cost"][-1],
+                              "use_ft": prob.use_ft})
+    cost_data = 0.0
+    n_res = 0
+    for fam in DATA_FAMILIES:
+        r = est.residuals.get(fam)
+        if r is None:
+            continue
+        ok = np.isfinite(r)
+        cost_data += 0.5 * float(np.sum(r[ok] ** 2))
+        n_res += int(ok.sum())
+    est.meta["fit"] = {"cost_data": cost_data, "cost_total": float(lin.cost), "n_residuals": n_res,
+                       "effective_dof": effective_dof(prob, P, Pc)}
     est.total_time = time.perf_counter() - t0
     if progress is not None:
         progress(1.0)

@@ -145,12 +145,25 @@ def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True) -> Linea
     Jc = np.empty((n, nc, 6, S))
     kernels.contact_all(R, q, W, act, prob.contact_p[sl], prob.contact_R[sl], prob.K_fs, prob.K_fd, prob.K_ts,
                         prob.K_td, prob.beta, prob.iso, rc, Jc)
+    # Effects acting on the contact law (stiffness scales, anisotropy, cubic terms): their term,
+    # per contact, is added where the contact is active (an inactive one's wrench stays at zero).
+    c_terms = []
+    for eff, cols, ev in zip(prob.effects, e_cols, e_parts):
+        terms = eff.residual_terms("contact", prob, steps, R, q, W, ev)
+        if terms is not None:
+            c_terms.append((cols, terms))
     Lc = prob.contact_whitener
     Li = np.diag(1.0 / (np.sqrt(np.diag(sig.contact_cov)) * sig.inactive_factor))
     for i in range(nc):
         J = np.zeros((n, 6, D))
         J[:, :, :S] = Jc[:, i]
         J[:, :, w_cols[i]] = -eye6
+        if c_terms:
+            on = act[:, i, None]
+            for cols, (dr, dr_ds, dr_de) in c_terms:
+                rc[:, i] += np.where(on, dr[:, i], 0.0)
+                J[:, :, :S] += np.where(on[:, :, None], dr_ds[:, i], 0.0)
+                J[:, :, cols] += np.where(on[:, :, None], dr_de[:, i], 0.0)
         Lk = np.where(act[:, i, None, None], Lc, Li)
         lin.unary[f"contact/{i}"] = ((Lk @ rc[:, i, :, None])[:, :, 0], Lk @ J)
 
@@ -193,6 +206,13 @@ def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True) -> Linea
             J = np.zeros((1, eff.dim, D))
             J[0, :, cols] = np.eye(eff.dim)
             lin.unary[f"effect_prior/{eff.name}"] = _whiten_rows((ev[0] - mean)[None, :], J, np.asarray(sigma))
+        level = getattr(eff, "step_prior_sigma", None)
+        if level is not None:
+            mean, _ = eff.prior(prob)
+            sl_ = np.asarray(level(prob), dtype=float)
+            J = np.zeros((n, eff.dim, D))
+            J[:, :, cols] = np.eye(eff.dim)
+            lin.unary[f"effect_level/{eff.name}"] = _whiten_rows(ev - mean, J, sl_)
         if n > 1:
             rw = np.asarray(eff.random_walk_sigma(prob), dtype=float)
             J0 = np.zeros((n - 1, eff.dim, D))
@@ -274,6 +294,23 @@ def assemble_split(lin: Linearization, n: int, D: int, skip_first_unary: bool = 
         gF[:-1] -= (J0t @ r[:, :, None])[:, :, 0]
         gU[1:] -= (J1t @ r[:, :, None])[:, :, 0]
     return U, gU, Fw, gF, B
+
+
+def covariances(Hd, B):
+    """Marginal covariances ``P`` (N, D, D) and lag-one cross-covariances ``Pc`` (N-1, D, D),
+    ``Pc[k] = cov(x_k, x_k+1)``, of the Gauss-Newton system (Jacobi-scaled as :func:`solve`)."""
+    diag = np.diagonal(Hd, axis1=1, axis2=2)
+    scale = 1.0 / np.sqrt(np.maximum(diag, 1e-300))
+    Hs = np.ascontiguousarray(Hd * scale[:, :, None] * scale[:, None, :])
+    Bs = np.ascontiguousarray(B * scale[:-1, :, None] * scale[1:, None, :])
+    try:
+        P, Pc = kernels.block_tridiag_covariances(Hs, Bs)
+    except np.linalg.LinAlgError as err:
+        raise EstimatorError("smoother: the Gauss-Newton system is not positive definite "
+                             "(an unobservable direction: check contacts and stiffness)") from err
+    P = P * scale[:, :, None] * scale[:, None, :]
+    Pc = Pc * scale[:-1, :, None] * scale[1:, None, :]
+    return P, Pc
 
 
 def _matvec(Hd, B, x):

@@ -28,7 +28,8 @@ Effects
 An effect (see :class:`Effect`) appends ``dim`` unknowns to every step, constrains them with a
 prior on the first step and a random walk between steps, and adds a term to the residual of one
 or more families (e.g. an external wrench subtracts from the Newton-Euler residual, a gyro bias
-adds to the gyro residual).  The smoothers handle effects generically: the core never names one.
+adds to the gyro residual, a stiffness scale adds to each active contact's law).  The catalogue
+is :mod:`flexforce.factors.effects`.  The smoothers handle effects generically: the core never names one.
 """
 
 from __future__ import annotations
@@ -82,7 +83,10 @@ class Effect(Protocol):
         """The effect's additive term in ``family``'s (unwhitened) residual, or None.
 
         Args:
-            family: ``newton_euler`` (6 rows) or ``imu`` (6 rows).
+            family: ``newton_euler`` (6 rows), ``imu`` (6 rows) or ``contact`` (6 rows per
+                contact: the contact law ``f_i(s) - W_i``; the term is added where contact ``i``
+                is active and ignored where it is not; :meth:`Problem.contact_law_terms` evaluates
+                the law with other stiffness/damping matrices, which is what such terms need).
             steps: (n,) indices of the steps (to read per-step inputs from ``problem``).
             R, q: (n, 3, 3) rotations and (n, 15) ``(t, w, v, dw, a)``.
             W: (n, C, 6) contact wrenches.
@@ -90,12 +94,23 @@ class Effect(Protocol):
 
         Returns:
             None when the effect does not touch ``family``, else ``(dr, dr_ds, dr_de)`` with
-            shapes (n, 6), (n, 6, 18) and (n, 6, dim): the term and its Jacobians with respect
-            to the core state (world-frame increments) and to ``e``.
+            shapes (n, 6), (n, 6, 18) and (n, 6, dim) (``contact``: (n, C, 6), (n, C, 6, 18) and
+            (n, C, 6, dim)): the term and its Jacobians with respect to the core state
+            (world-frame increments) and to ``e``.
         """
 
     def report(self, values: np.ndarray, cov: np.ndarray | None) -> dict:
-        """JSON-serialisable summary of the estimated effect (values (N, dim), cov (N, dim, dim))."""
+        """JSON-serialisable summary of the estimated effect (values (N, dim), cov (N, dim, dim)).
+
+        Optional: when the method takes a ``t`` keyword the smoothers pass the steps' times (N,)
+        in seconds from the start (for time-varying effects: *when* the effect acts).  An effect
+        may also set ``constant = True`` (its value does not vary: the random walk only ties the
+        steps together); :func:`flexforce.smoother.fit` then counts its effective dof from its
+        prior alone (otherwise it is guessed from the random walk being negligible).  And an
+        effect may define ``step_prior_sigma(problem) -> (dim,)``: a prior at *every* step around
+        the prior mean (with the random walk, a mean-reverting process: for transient effects
+        whose constant part the data cannot tell from the core state).
+        """
 
 
 # ----------------------------------------------------------------------------------------------
@@ -357,6 +372,33 @@ class Problem:
                                     self.beta[i, 1], self.iso[i], r, J)
                 out[i] = r
         return out
+
+    def contact_law_terms(self, steps: np.ndarray, R: np.ndarray, q: np.ndarray, K_fs, K_fd, K_ts, K_td,
+                          beta=None):
+        """The contact law of every contact with other parameters, for effects on the contact family.
+
+        Args:
+            steps: (n,) step indices; R (n, 3, 3), q (n, 15) the core state at those steps.
+            K_fs, K_fd, K_ts, K_td: (C, 3, 3) matrices in the contact frame (rotated into the world
+                by the current contact orientation, correction 5), zeros allowed.
+            beta: (C, 2) cubic coefficients ``(beta_f, beta_t)`` (default: the model's).
+
+        Returns:
+            ``f`` (n, C, 6), the wrench ``(F, T about the world origin)`` of eq. 6-12, and
+            ``df/ds`` (n, C, 6, 18); zero for inactive contacts.  ``f`` is linear in the matrices
+            jointly (and in ``beta`` for fixed matrices), so an effect that scales a parameter by
+            ``(1 + kappa)`` adds ``kappa f`` to the contact residual.
+        """
+        steps = np.asarray(steps)
+        n, nc = len(steps), self.nc
+        c = lambda a: np.ascontiguousarray(a, dtype=float)  # noqa: E731
+        beta = self.beta if beta is None else beta
+        r = np.empty((n, nc, 6))
+        J = np.empty((n, nc, 6, kernels.STATE_DIM))
+        kernels.contact_all(c(R), c(q), np.zeros((n, nc, 6)), np.ascontiguousarray(self.active[steps]),
+                            c(self.contact_p[steps]), c(self.contact_R[steps]), c(K_fs), c(K_fd), c(K_ts), c(K_td),
+                            c(np.reshape(beta, (nc, 2))), np.zeros(nc, dtype=bool), r, J)
+        return r, J
 
     def equilibrium(self, k: int = 0, iterations: int = 30):
         """Static flexibility ``(R, q)`` at step ``k``: zero velocity and acceleration, the contact

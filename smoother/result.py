@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import inspect
+
 import numpy as np
 
 from flexforce.datasets.estimate import Estimate
@@ -61,6 +63,17 @@ def family_residuals(prob, traj: Trajectory) -> dict[str, np.ndarray]:
     return out
 
 
+def call_report(eff, values, cov, t):
+    """``eff.report(values, cov)``, with ``t=`` (s) when the effect's report accepts it."""
+    try:
+        params = inspect.signature(eff.report).parameters
+    except (TypeError, ValueError):
+        params = {}
+    if "t" in params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        return eff.report(values, cov, t=t)
+    return eff.report(values, cov)
+
+
 def make_estimate(prob, name: str, traj: Trajectory, P: np.ndarray | None = None,
                   time_per_step: np.ndarray | None = None, total_time: float = 0.0,
                   meta: dict | None = None) -> Estimate:
@@ -96,7 +109,7 @@ def make_estimate(prob, name: str, traj: Trajectory, P: np.ndarray | None = None
     for eff in prob.effects:
         vals = traj.e[:, eoff:eoff + eff.dim]
         ecov = P[:, off:off + eff.dim, off:off + eff.dim] if P is not None else None
-        effects[eff.name] = eff.report(vals, ecov)
+        effects[eff.name] = call_report(eff, vals, ecov, (rec.t_ns - rec.t_ns[0]) * 1e-9)
         off += eff.dim
         eoff += eff.dim
     meta = dict(meta or {})

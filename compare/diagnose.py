@@ -1,0 +1,485 @@
+r"""Model diagnostics: where the model fails, which effect is missing, and the error once it is added.
+
+Three steps (DESIGN.md, "Diagnostics"; docs/diagnostics.md explains how to read the result):
+
+1. **Where it fails.**  Fit the nominal model; the whitened residual of every factor family and
+   axis over time, the windows where it is inconsistent with its noise
+   (:func:`flexforce.compare.residuals.flag_windows`: chi-square per window against its
+   Bonferroni bound; :func:`~flexforce.compare.residuals.consistency`: whole-run chi-square and
+   Ljung-Box whiteness), and the EKF's innovations (NIS, flagged windows) alongside.
+2. **Which effect is missing.**  Refit with each candidate effect and score the gain in
+   likelihood against the unknowns it adds, with the Bayesian information criterion
+
+   .. math::  \mathrm{score} = 2\,(C_0 - C_1) - \nu \ln n
+
+   where ``C = 1/2 sum r^2`` is the data cost of a fit (the negative log-likelihood of the
+   measurement and model-error factors, up to a constant; effect priors and random walks are
+   left out), ``nu`` the effective degrees of freedom the effect adds (``p`` for a constant
+   ``p``-vector, more for a random walk: the trace of its share of the hat matrix) and ``n`` the
+   number of scalar residuals.  ``2 (C_0 - C_1)`` is the likelihood-ratio statistic, chi-square
+   with ``nu`` dof when the effect is absent (Wilks); an effect is *significant* when its score is
+   positive and that p-value is below ``alpha`` (0.01).  Several effects: greedy forward
+   selection -- add the best significant one, rescore the rest on top of it, stop when none is
+   significant.
+3. **Add it.**  Refit with the chosen effects; residuals (and, with ground truth, estimation errors)
+   before and after.
+
+Why BIC and not AIC: AIC's penalty (2 per dof) is not consistent -- with the thousands of scalar
+residuals of a few seconds of data, the smoothed residuals' small departures from the model
+(discretisation, the Huber loss, correlated smoothing errors) make AIC select spurious effects,
+and its penalty is negligible against a random-walk effect that can absorb anything.  BIC's
+``ln n`` per dof (about 10 for 3 s at 200 Hz) only lets an effect in when the data demand it,
+and it is consistent: with more data it picks the true model with probability one.  The
+likelihood-ratio p-value is the second guard: it bounds the false-alarm rate of each test at
+``alpha`` whatever ``n``.
+
+Fitting goes through :func:`flexforce.smoother.fit`: its ``Estimate.meta["fit"]`` gives the data
+cost, the number of residuals and each effect's effective dof (``p`` for a constant, the trace of
+the effect's share of the hat matrix for a random walk).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Callable, Iterable
+
+import numpy as np
+from scipy import stats
+
+from flexforce.compare.metrics import RMSE_KEYS, evaluate
+from flexforce.compare.residuals import FlaggedWindow, consistency, flag_windows, residual_rms
+from flexforce.errors import ConfigError, FlexforceError
+
+ALPHA = 0.01
+"""Level of the likelihood-ratio test of an effect (and of the windowed residual tests)."""
+
+AUTO = "auto"
+"""``add=["auto"]``: add the effects the greedy selection found significant."""
+
+
+# ----------------------------------------------------------------------------------------------
+# Candidates and fitting
+# ----------------------------------------------------------------------------------------------
+
+
+def registered_effects() -> dict:
+    """The built-in effect catalogue (``flexforce.factors.effects.EFFECTS``), empty until it exists."""
+    try:
+        from flexforce.factors.effects import EFFECTS
+    except ImportError:
+        return {}
+    return dict(EFFECTS)
+
+
+def _is_effect(obj) -> bool:
+    from flexforce.smoother import Effect
+
+    return isinstance(obj, Effect)
+
+
+def effect_factory(spec) -> tuple[str, Callable[[], object]]:
+    """``(name, make)`` for a candidate: a registered name, an Effect instance or an Effect class.
+
+    A fresh instance is made for every fit when the candidate is a class or a name; an instance
+    is shared (effects are descriptions, their values live in the smoother's state).
+    """
+    if isinstance(spec, str):
+        reg = registered_effects()
+        if spec not in reg:
+            known = ", ".join(sorted(reg)) or "none registered (flexforce.factors.effects is not available)"
+            raise ConfigError(f"unknown effect '{spec}'; known: {known}")
+        try:
+            from flexforce.factors.effects import make_effect
+        except ImportError:  # a registry without the factory
+            make_effect = None
+        make = (lambda: make_effect(spec)) if make_effect else reg[spec]
+        eff = make()
+        return eff.name, make
+    if isinstance(spec, type):
+        eff = spec()
+        if not _is_effect(eff):
+            raise ConfigError(f"{spec.__name__} does not implement the Effect protocol (name, dim, labels, prior, "
+                              "random_walk_sigma, residual_terms, report)")
+        return eff.name, spec
+    if _is_effect(spec):
+        return spec.name, lambda: spec
+    raise ConfigError(f"candidate {spec!r} is neither an effect name, an Effect class nor an Effect instance")
+
+
+def resolve_candidates(candidates: Iterable | None) -> dict[str, Callable[[], object]]:
+    """Name -> factory of every candidate (default: every registered effect)."""
+    if candidates is None:
+        candidates = list(registered_effects())
+        if not candidates:
+            raise ConfigError("no candidate effects: flexforce.factors.effects is not available; pass candidates")
+    out: dict[str, Callable[[], object]] = {}
+    for spec in candidates:
+        name, make = effect_factory(spec)
+        if name in out:
+            raise ConfigError(f"two candidate effects are named '{name}'; effect names must be unique")
+        out[name] = make
+    return out
+
+
+@dataclass
+class Fit:
+    """One fitted model: its estimate and the numbers the information criterion needs."""
+
+    effects: tuple[str, ...]
+    estimate: object
+    cost_data: float
+    """Half the sum of squared whitened data residuals (negative log-likelihood + const)."""
+    n_residuals: int
+    effective_dof: dict[str, float]
+    """Effect name -> effective degrees of freedom it adds."""
+
+
+def fit_model(rec, model, progress: Callable[[float], None] | None = None) -> Fit:
+    """Fit ``model`` (with its effects) to ``rec`` with :func:`flexforce.smoother.fit`."""
+    from flexforce.smoother import fit
+
+    est = fit(rec, model, progress=progress)
+    info = est.meta["fit"]
+    return Fit(tuple(e.name for e in model.effects), est, float(info["cost_data"]), int(info["n_residuals"]),
+               {k: float(v) for k, v in info.get("effective_dof", {}).items()})
+
+
+# ----------------------------------------------------------------------------------------------
+# Results
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Candidate:
+    """The score of one candidate effect, refitted on top of a base model."""
+
+    effect: str
+    base: tuple[str, ...]
+    """Effects already in the model it was scored against (greedy selection)."""
+    round: int
+    """Selection round (1: against the nominal model)."""
+    score: float | None
+    """BIC gain: ``2 (C_base - C) - nu ln n`` (positive: the data support the effect)."""
+    lr: float | None
+    """Likelihood-ratio statistic ``2 (C_base - C)``."""
+    effective_dof: float | None
+    p_value: float | None
+    """P-value of ``lr`` against chi-square(``effective_dof``)."""
+    significant: bool
+    parameters: dict = field(default_factory=dict)
+    """The effect's report: estimated values with their uncertainty and a one-line ``summary``."""
+    summary: str = ""
+    error: str | None = None
+    """Why the fit failed, if it did."""
+
+    def to_dict(self) -> dict:
+        return {"effect": self.effect, "score": _clean(self.score), "significant": bool(self.significant),
+                "parameters": _jsonable(self.parameters), "summary": self.summary, "round": self.round,
+                "base": list(self.base), "likelihood_ratio": _clean(self.lr),
+                "effective_dof": _clean(self.effective_dof), "p_value": _clean(self.p_value),
+                **({"error": self.error} if self.error else {})}
+
+
+@dataclass
+class Snapshot:
+    """One fitted model seen through the diagnostics: residuals, flags and, with truth, errors."""
+
+    effects: tuple[str, ...]
+    estimate: object
+    metrics: object
+    flags: list[FlaggedWindow]
+    consistency: list
+    residual_rms: dict[str, dict[str, float]]
+    cost_data: float
+    n_residuals: int
+
+    @property
+    def rmse(self) -> dict[str, float | None]:
+        return {k: _clean(self.metrics.rmse.get(k)) for k in RMSE_KEYS}
+
+    def to_dict(self) -> dict:
+        return {"effects": list(self.effects), "residual_rms": _jsonable(self.residual_rms), "rmse": self.rmse,
+                "cost_data": _clean(self.cost_data), "n_residuals": self.n_residuals,
+                "flagged_windows": [_jsonable(f.to_dict()) for f in self.flags],
+                "inconsistent_axes": [_jsonable(c.to_dict()) for c in self.consistency
+                                      if c.chi2_p < ALPHA or c.ljung_box_p < ALPHA],
+                "effect_estimates": _jsonable(self.estimate.effects)}
+
+
+@dataclass
+class Diagnosis:
+    """Everything :func:`diagnose` found; :meth:`to_json` is DIR/diagnosis.json."""
+
+    recording: dict
+    ranking: list[Candidate]
+    """Selected effects in selection order, then the others by their last score."""
+    rounds: list[list[Candidate]]
+    """Every score of every round of the greedy selection."""
+    selected: list[str]
+    """Significant effects found by greedy forward selection."""
+    added: list[str]
+    before: Snapshot
+    after: Snapshot | None
+    ekf: Snapshot | None = None
+    """The EKF on the nominal model: its whitened innovations are its residuals (NIS alongside)."""
+    criterion: dict = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        out = {"recording": _jsonable(self.recording), "criterion": self.criterion,
+               "ranking": [c.to_dict() for c in self.ranking],
+               "rounds": [[c.to_dict() for c in r] for r in self.rounds],
+               "selected": list(self.selected), "added": list(self.added),
+               "before": self.before.to_dict(), "after": self.after.to_dict() if self.after else None}
+        if self.ekf is not None:
+            m = self.ekf.metrics
+            out["ekf"] = {"nis": _clean(m.nis), "nis_bounds": list(m.nis_bounds) if m.nis_bounds else None,
+                          "flagged_windows": [_jsonable(f.to_dict()) for f in self.ekf.flags],
+                          "rmse": self.ekf.rmse}
+        return out
+
+    def ranking_table(self) -> str:
+        """Plain-text ranking (what the CLI prints)."""
+        lines = [f"{'#':>2s} {'effect':24s} {'score':>10s} {'LR':>10s} {'dof':>6s} {'p':>9s}  sig  estimate"]
+        for i, c in enumerate(self.ranking, 1):
+            if c.error:
+                lines.append(f"{i:2d} {c.effect:24s} {'failed':>10s}  {c.error}")
+                continue
+            lines.append(f"{i:2d} {c.effect:24s} {c.score:10.1f} {c.lr:10.1f} {c.effective_dof:6.1f} "
+                         f"{c.p_value:9.2g}  {'yes' if c.significant else 'no ':3s}  {c.summary}")
+        return "\n".join(lines)
+
+
+def _clean(x):
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _jsonable(obj):
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        return _clean(obj)
+    return obj if obj is None or isinstance(obj, str) else str(obj)
+
+
+def summarize_effect(report: dict, effect) -> str:
+    """The report's own ``summary``, else ``label = value ± std`` per component."""
+    if not isinstance(report, dict):
+        return str(report)
+    if report.get("summary"):
+        return str(report["summary"])
+    value = report.get("value")
+    if value is None:
+        return ""
+    value = np.atleast_1d(np.asarray(value, dtype=float))
+    std = report.get("std")
+    std = np.atleast_1d(np.asarray(std, dtype=float)) if std is not None else None
+    labels = tuple(getattr(effect, "labels", ()))
+    parts = []
+    for j, v in enumerate(value.ravel()[:12]):
+        label = labels[j] if j < len(labels) else f"{effect.name}[{j}]"
+        unit = ""
+        if "[" in label and label.endswith("]"):
+            label, unit = label[:label.rindex("[")].strip(), " " + label[label.rindex("[") + 1:-1]
+        s = f" ± {std.ravel()[j]:.2g}" if std is not None and j < std.size else ""
+        parts.append(f"{label} = {v:.3g}{s}{unit}")
+    return ", ".join(parts)
+
+
+def score(base: Fit, fit: Fit, effect: str, alpha: float = ALPHA) -> tuple[float, float, float, float, bool]:
+    """``(score, lr, nu, p, significant)`` of ``fit`` (base + ``effect``) against ``base``."""
+    lr = 2.0 * (base.cost_data - fit.cost_data)
+    nu = float(fit.effective_dof.get(effect, 0.0))
+    n = max(fit.n_residuals, 2)
+    bic = lr - nu * math.log(n)
+    p = float(stats.chi2.sf(lr, nu)) if nu > 0 else (0.0 if lr > 0 else 1.0)
+    return bic, lr, nu, p, bool(bic > 0 and p < alpha)
+
+
+# ----------------------------------------------------------------------------------------------
+# The diagnosis
+# ----------------------------------------------------------------------------------------------
+
+
+def fill_residual_sigma(est) -> None:
+    """Give a smoother's estimate the per-axis sigmas of its families (``meta["sigmas"]``) when it
+    lacks ``residual_sigma``, so that flagged windows have a size in physical units.
+
+    Newton-Euler and contact residuals are whitened with a full covariance (force and moment are
+    correlated); their standard deviations make the force rows exact and the moment rows an
+    approximation (the moment left once the force is explained is smaller).
+    """
+    sig = est.meta.get("sigmas") or {}
+    nc = len(est.contact_names)
+    known = {"imu": sig.get("imu"), "newton_euler": sig.get("newton_euler"),
+             "integration": sig.get("integration_std"),
+             "contact": None if sig.get("contact") is None else list(sig["contact"]) * nc,
+             "ft": None if sig.get("ft") is None else list(sig["ft"]) * nc}
+    for fam, r in est.residuals.items():
+        s = known.get(fam)
+        if fam not in est.residual_sigma and s is not None and len(s) == r.shape[1]:
+            est.residual_sigma[fam] = np.asarray(s, dtype=float)
+
+
+def _snapshot(rec, fit: Fit, window: float, alpha: float, skip: float) -> Snapshot:
+    est = fit.estimate
+    fill_residual_sigma(est)
+    return Snapshot(fit.effects, est, evaluate(est, rec, skip=skip), flag_windows(est, window=window, alpha=alpha),
+                    consistency(est), residual_rms(est), fit.cost_data, fit.n_residuals)
+
+
+def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable = (), *, rank: bool = True,
+             max_effects: int = 3, alpha: float = ALPHA, window: float = 0.5, skip: float = 0.5,
+             ekf: bool = True, progress: Callable[[str, float], None] | None = None) -> Diagnosis:
+    """Fit the nominal model, rank the candidate effects, and refit with the ``add``-ed ones.
+
+    Args:
+        rec: the Recording.
+        model: the nominal ModelConfig (the recording's if None); effects it already has stay in.
+        candidates: effect names (of ``flexforce.factors.effects.EFFECTS``), Effect classes or
+            instances -- a user's effects are treated like the built-in ones.  Default: every
+            registered effect.
+        add: effects to add for the before/after comparison (names of candidates, or further
+            effect specs); ``"auto"`` stands for the significant effects found by the ranking.
+        rank: score the candidates (greedy forward selection); False only refits with ``add``.
+        max_effects: at most this many greedy selection rounds add an effect.
+        alpha: level of the likelihood-ratio test and of the windowed residual tests.
+        window: length of the residual windows, s.
+        skip: seconds left out at the start of the error statistics (filter convergence).
+        ekf: also run the EKF on the nominal model (innovations, NIS).
+        progress: called with (stage label, fraction done of that stage).
+    """
+    from flexforce.compare.runner import describe
+    from flexforce.factors.model import ModelConfig
+
+    rec.validate()
+    if model is None:
+        model = ModelConfig.from_recording(rec)
+    add = list(add or ())
+    want_auto = AUTO in add
+    add = [a for a in add if a != AUTO]
+    cands = resolve_candidates(candidates) if candidates is not None or registered_effects() else {}
+    if rank and not cands:
+        raise ConfigError("no candidate effects to rank: flexforce.factors.effects is not available; pass candidates")
+    for name in list(cands):
+        if name in {e.name for e in model.effects}:
+            del cands[name]  # already in the model
+    add_makers: dict[str, Callable[[], object]] = {}
+    for spec in add:
+        if isinstance(spec, str) and spec in cands:
+            add_makers[spec] = cands[spec]
+        else:
+            name, make = effect_factory(spec)
+            add_makers[name] = make
+    makers = {**cands, **add_makers}
+
+    def cb(label):
+        return (lambda f: progress(label, f)) if progress else None
+
+    cache: dict[tuple[str, ...], Fit] = {}
+
+    def fitted(names: tuple[str, ...]) -> Fit:
+        key = tuple(sorted(names))
+        if key not in cache:
+            effects = tuple(model.effects) + tuple(makers[n]() for n in names)
+            label = "nominal" if not names else "+ " + " + ".join(names)
+            cache[key] = fit_model(rec, dataclasses.replace(model, effects=effects), progress=cb(label))
+        return cache[key]
+
+    nominal = fitted(())
+    rounds: list[list[Candidate]] = []
+    selected: list[str] = []
+    if rank:
+        remaining = list(cands)
+        while remaining:
+            base = fitted(tuple(selected))
+            row = []
+            for name in remaining:
+                try:
+                    f = fitted(tuple(selected) + (name,))
+                except FlexforceError as err:
+                    row.append(Candidate(name, tuple(selected), len(rounds) + 1, None, None, None, None, False,
+                                         error=f"{type(err).__name__}: {err}"))
+                    continue
+                s, lr, nu, p, sig = score(base, f, name, alpha)
+                rep = f.estimate.effects.get(name, {})
+                row.append(Candidate(name, tuple(selected), len(rounds) + 1, s, lr, nu, p, sig, rep,
+                                     summarize_effect(rep, makers[name]())))
+            row.sort(key=lambda c: -math.inf if c.score is None else c.score, reverse=True)
+            rounds.append(row)
+            best = row[0] if row else None
+            if best is None or not best.significant or len(selected) >= max_effects:
+                break
+            selected.append(best.effect)
+            remaining.remove(best.effect)
+    ranking: list[Candidate] = []
+    for i, name in enumerate(selected):
+        ranking.append(next(c for c in rounds[i] if c.effect == name))
+    if rounds:
+        ranking += [c for c in rounds[-1] if c.effect not in selected]
+    added = list(dict.fromkeys((selected if want_auto else []) + list(add_makers)))
+    before = _snapshot(rec, nominal, window, alpha, skip)
+    after = None
+    if added:
+        after = _snapshot(rec, fitted(tuple(added)), window, alpha, skip)
+    ekf_snap = None
+    if ekf:
+        from flexforce.compare.ekf import run_ekf
+
+        try:
+            est = run_ekf(rec, model, progress=cb("ekf"))
+        except FlexforceError:
+            est = None
+        if est is not None:
+            ekf_snap = Snapshot((), est, evaluate(est, rec, skip=skip), flag_windows(est, window=window, alpha=alpha),
+                                consistency(est), residual_rms(est), float("nan"), 0)
+    criterion = {"name": "BIC", "score": "2 (C_base - C) - nu ln(n)", "alpha": alpha,
+                 "n_residuals": nominal.n_residuals, "penalty_per_dof": math.log(max(nominal.n_residuals, 2)),
+                 "fit": "flexforce.smoother.fit"}
+    return Diagnosis(describe(rec), ranking, rounds, selected, added, before, after, ekf_snap, criterion)
+
+
+def load_plugin(path) -> list:
+    """The user-written effects of a Python file: its ``EFFECTS`` (a dict or list of Effect classes
+    or instances) if it defines one, else every class defined in it whose instances (made without
+    arguments) implement the Effect protocol."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"effect plugin {path} does not exist; expected a Python file defining Effect classes")
+    spec = importlib.util.spec_from_file_location(f"flexforce_plugin_{path.stem.replace('-', '_')}", path)
+    module = importlib.util.module_from_spec(spec)
+    try:
+        spec.loader.exec_module(module)
+    except Exception as err:  # a user's file: any error is a configuration error
+        raise ConfigError(f"cannot load effect plugin {path}: {type(err).__name__}: {err}") from err
+    declared = getattr(module, "EFFECTS", None)
+    if declared is not None:
+        return list(declared.values()) if isinstance(declared, dict) else list(declared)
+    found = []
+    for obj in vars(module).values():
+        if isinstance(obj, type) and obj.__module__ == module.__name__:
+            try:
+                inst = obj()
+            except TypeError:
+                continue
+            if _is_effect(inst):
+                found.append(obj)
+    if not found:
+        raise ConfigError(f"effect plugin {path} defines no Effect (name, dim, labels, prior, random_walk_sigma, "
+                          "residual_terms, report)")
+    return found

@@ -1,0 +1,600 @@
+r"""The effect catalogue: the hidden physics of the simulator as estimator-side model extensions.
+
+Each class implements the smoother's :class:`flexforce.smoother.problem.Effect` protocol (per-step
+unknowns, a first-step prior, a random walk between steps, additive terms in family residuals, a
+readable report) for one of the simulator's hidden effects (:mod:`flexforce.datasets.effects`
+defines them; the parameterisation below is chosen so that the truth maps onto it exactly).
+
+=========================  ====  ==========================  ======================================
+name                       dim   unknowns (unit)              family and term
+=========================  ====  ==========================  ======================================
+``external-wrench``        6     ``(F, T)`` N, N m, world     ``newton_euler``: ``- e`` (a wrench
+                                 axes, moment about the       besides the contacts'); random walk
+                                 world origin
+``gyro-bias``              3     rad/s, IMU frame             ``imu`` gyro rows: ``+ e``
+``accel-bias``             3     m/s^2, IMU frame             ``imu`` accelerometer rows: ``+ e``
+``stiffness``              2     ``(kappa_s, kappa_d)``: the  ``contact``: ``kappa_s f(K_fs, 0, K_ts,
+                                 scales are ``1 + kappa``     0) + kappa_d f(0, K_fd, 0, K_td)``
+``anisotropic-stiffness``  6     ``kappa_f``, ``kappa_t``     ``contact``: ``sum_j kappa_fj
+                                 per contact-frame axis:      f(E_j K_fs) + kappa_tj f(E_j K_ts)``,
+                                 ``K <- diag(1 + kappa) K``   ``E_j = e_j e_j^T``
+``nonlinear-stiffness``    2     ``(d beta_f 1/m^2,           ``contact``: the cubic part of eq. 6,
+                                 d beta_t 1/rad^2)``          11 times the added coefficient
+``com-offset``             3     ``delta`` m, local frame     ``newton_euler``: the required wrench
+                                                              with ``c_l + delta`` (and ``I_l``,
+                                                              ``sigma_l`` accordingly), minus the
+                                                              nominal one
+=========================  ====  ==========================  ======================================
+
+``f(K_fs, K_fd, K_ts, K_td)`` is the contact law (eq. 6-12) evaluated with those matrices
+(:meth:`Problem.contact_law_terms`); it is linear in them, so a parameter that scales a matrix by
+``1 + kappa`` adds exactly ``kappa f(K)`` to the contact residual.  The contact effects are
+relative changes of the *nominal* law: two of them enabled together add their changes (first
+order), they do not compose multiplicatively.
+
+Priors and random walks: one rule, no per-scenario tuning
+----------------------------------------------------------
+- Constant parameters (biases, stiffness scales, cubic coefficients, CoM offset): a loose prior
+  (the data decide) and a random walk of ``1e-6`` of the prior sigma per step (numerically
+  constant; the effect declares ``constant = True``).  Prior sigmas:
+
+  * IMU biases: 10 per-sample sensor sigmas (``ModelConfig.gyro_sigma``, ``accel_sigma``):
+    a bias the size of one sample's noise is what the data must find; ten times that covers an
+    uncalibrated MEMS (0.12 rad/s = 7 deg/s, 0.55 m/s^2 for Romeo's IMU).  A slowly drifting bias
+    is available with ``rw_density`` (rad/s/sqrt(s) or m/s^2/sqrt(s), per-step sigma
+    ``rw_density sqrt(dt)``); the default is a constant bias.
+  * stiffness and damping scales, per-axis stiffness scales: ``kappa`` sigma 0.5 (the nominal
+    known to a factor ~1.5, a wrong or worn bush).
+  * cubic coefficients: 100 % stiffening at one sigma at the reference deflection:
+    ``sigma_beta_f = 1 / s_0^2`` with ``s_0 = m g / sum_i k_fs,i`` the static compression of the
+    springs under the robot's weight; ``sigma_beta_t = 1 / Omega_0^2`` with
+    ``Omega_0 = s_0 / l``, the rotation that compresses the spring by as much at the contact
+    lever ``l`` (the largest horizontal distance of a contact from the local origin, >= 5 cm).
+  * CoM offset: 10 % of the CoM's distance from the local origin (first sample) per axis.
+- ``external-wrench`` (time-varying): prior sigma of the robot's weight (force) and weight
+  times the CoM distance from the origin (moment); random walk per step
+  ``sigma_NE dt / tau`` with ``sigma_NE`` the Newton-Euler family's per-sample sigma (the
+  unmodelled wrench the nominal model already tolerates) and ``tau = 0.05 s``.  A random walk of
+  increments ``s_w`` seen through white noise ``s_v`` is smoothed over ``s_v / s_w`` steps, so the
+  estimate follows the wrench with a time constant ``tau``: a push rising in 50 ms or more
+  (a 0.1 s half-sine) is followed, the sample-to-sample unmodelled wrench is not absorbed,
+  and the effective dof stay near ``6 N dt / (2 tau)``, about 5 % of the steps' count per axis.
+
+Reports
+-------
+``report(values, cov, t)`` returns ``value``, ``std`` (last step; constant effects have one
+value), ``unit``, ``labels``, ``summary`` (a readable sentence: ``"gyro bias y = 0.011 ± 0.001
+rad/s"``) and, for ``external-wrench``, ``windows``: the spans where the estimated force is
+significant (chi-square of the 3-D force against its covariance above the 99.9 % quantile, gaps
+under 50 ms merged, spans under 20 ms dropped) with their peak force; and the force series.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from flexforce.errors import ConfigError
+
+_AX = ("x", "y", "z")
+_CHI2_6_999 = 22.458  # chi^2_6 99.9 % quantile
+CONSTANT_RW = 1e-6
+"""Random-walk sigma of a constant parameter, relative to its prior sigma."""
+
+
+def _skew(v):
+    """(..., 3) -> (..., 3, 3) cross-product matrices."""
+    v = np.asarray(v, dtype=float)
+    S = np.zeros(v.shape + (3,))
+    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
+    return S
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.3g}" if abs(x) >= 1e-3 or x == 0 else f"{x:.2e}"
+
+
+def _pm(value: float, std: float, unit: str) -> str:
+    """``0.011 ± 0.001 rad/s`` with the value rounded to the std's first significant digit(s)."""
+    if std > 0 and np.isfinite(std):
+        digits = max(0, 1 - int(np.floor(np.log10(std))))
+        if digits <= 8:
+            return f"{value:.{digits}f} ± {std:.{digits}f} {unit if unit != '-' else ''}".rstrip()
+    return f"{_fmt(value)} ± {_fmt(std)} {unit}".rstrip()
+
+
+def _static_compression(problem) -> tuple[float, float]:
+    """``(s_0, l)``: static spring compression under the weight (m) and the contact lever (m)."""
+    m, g = float(problem.rec.mass), problem.g
+    k = sum(float(np.trace(K)) / 3.0 for K in problem.K_fs)
+    s0 = m * g / max(k, 1e-9)
+    p = problem.contact_p[0]
+    lever = max(0.05, float(np.max(np.linalg.norm(p[:, :2], axis=1))))
+    return s0, lever
+
+
+class _Constant:
+    """Shared parts of a constant-parameter effect: prior sigma, numerically constant walk, report."""
+
+    name = ""
+    dim = 0
+    labels: tuple[str, ...] = ()
+    constant = True
+    unit = ""
+    what = ""
+    offset = 0.0
+    """Added to the unknowns in the report (1 for scales ``1 + kappa``)."""
+    null = 0.0
+    """Report value when the effect is absent."""
+
+    def prior_sigma(self, problem) -> np.ndarray:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def prior(self, problem):
+        return np.zeros(self.dim), np.asarray(self.prior_sigma(problem), dtype=float)
+
+    def random_walk_sigma(self, problem):
+        return CONSTANT_RW * np.asarray(self.prior_sigma(problem), dtype=float)
+
+    def residual_terms(self, family, problem, steps, R, q, W, e):  # pragma: no cover - overridden
+        return None
+
+    def component_names(self) -> tuple[str, ...]:
+        return tuple(lab.split(" [")[0] for lab in self.labels)
+
+    def units(self) -> tuple[str, ...]:
+        return tuple(lab.split("[")[1].rstrip("]") if "[" in lab else "" for lab in self.labels)
+
+    def report(self, values, cov, t=None) -> dict:
+        v = np.asarray(values, dtype=float)[-1] + self.offset
+        std = (np.sqrt(np.maximum(np.diagonal(np.asarray(cov)[-1]), 0.0)) if cov is not None
+               else np.full(self.dim, np.nan))
+        names, units = self.component_names(), self.units()
+        z = np.abs(v - self.null) / np.where(std > 0, std, np.inf)
+        sig = [i for i in range(self.dim) if z[i] > 3.0]
+        parts = [f"{self.what} {names[i]} = {_pm(v[i], std[i], units[i])}" for i in (sig or range(self.dim))]
+        summary = "; ".join(parts)
+        if not sig:
+            summary = f"{self.what}: consistent with {_fmt(self.null)} ({summary})"
+        return {"value": v.tolist(), "std": std.tolist(), "unit": self.unit, "labels": list(self.labels),
+                "significant": [names[i] for i in sig], "z": z.tolist(), "summary": summary}
+
+
+# ----------------------------------------------------------------------------------------------
+# IMU family
+# ----------------------------------------------------------------------------------------------
+
+
+class _ImuBias(_Constant):
+    rows = slice(0, 3)
+    sensor = 0
+
+    def __init__(self, rw_density: float = 0.0):
+        self.rw_density = float(rw_density)
+        if self.rw_density < 0:
+            raise ConfigError(f"{self.name}: rw_density must be >= 0, got {rw_density}")
+        self.constant = self.rw_density == 0.0
+
+    def prior_sigma(self, problem):
+        return 10.0 * problem.sigmas.imu[self.rows]
+
+    def random_walk_sigma(self, problem):
+        if self.rw_density > 0.0:
+            return np.full(3, self.rw_density * np.sqrt(problem.dt))
+        return super().random_walk_sigma(problem)
+
+    def residual_terms(self, family, problem, steps, R, q, W, e):
+        if family != "imu":
+            return None
+        n = len(steps)
+        dr = np.zeros((n, 6))
+        dr[:, self.rows] = e
+        dr_de = np.zeros((n, 6, 3))
+        dr_de[:, self.rows, :] = np.eye(3)
+        return dr, np.zeros((n, 6, 18)), dr_de
+
+    def report(self, values, cov, t=None):
+        out = super().report(values, cov, t)
+        if not self.constant:
+            v = np.asarray(values)
+            out["mean"] = v.mean(axis=0).tolist()
+            out["drift"] = (v[-1] - v[0]).tolist()
+        return out
+
+
+class GyroBias(_ImuBias):
+    """Gyrometer bias (IMU frame, rad/s), added to the gyro reading's prediction (the simulator's
+    ``gyro = true + bias``).  Constant unless ``rw_density`` (rad/s/sqrt(s)) is given."""
+
+    name = "gyro-bias"
+    dim = 3
+    labels = tuple(f"{a} [rad/s]" for a in _AX)
+    unit = "rad/s"
+    what = "gyro bias"
+    rows = slice(0, 3)
+
+
+class AccelBias(_ImuBias):
+    """Accelerometer bias (IMU frame, m/s^2), added to the accelerometer's prediction.  Constant
+    unless ``rw_density`` (m/s^2/sqrt(s)) is given."""
+
+    name = "accel-bias"
+    dim = 3
+    labels = tuple(f"{a} [m/s^2]" for a in _AX)
+    unit = "m/s^2"
+    what = "accel bias"
+    rows = slice(3, 6)
+
+
+# ----------------------------------------------------------------------------------------------
+# Contact family
+# ----------------------------------------------------------------------------------------------
+
+
+class _ContactEffect(_Constant):
+    """A constant change of the contact law: ``term = sum_j e_j f_j(s)`` (linear in the unknowns)."""
+
+    def basis(self, problem, steps, R, q):
+        """List of ``(f_j (n, C, 6), df_j/ds (n, C, 6, 18))``, one per unknown."""
+        raise NotImplementedError  # pragma: no cover
+
+    def residual_terms(self, family, problem, steps, R, q, W, e):
+        if family != "contact":
+            return None
+        fs = self.basis(problem, steps, R, q)
+        n, nc = len(steps), problem.nc
+        dr = np.zeros((n, nc, 6))
+        dr_ds = np.zeros((n, nc, 6, 18))
+        dr_de = np.zeros((n, nc, 6, self.dim))
+        for j, (f, J) in enumerate(fs):
+            ej = e[:, j]
+            dr += ej[:, None, None] * f
+            dr_ds += ej[:, None, None, None] * J
+            dr_de[..., j] = f
+        return dr, dr_ds, dr_de
+
+
+def _zeros_like_K(problem):
+    return np.zeros((problem.nc, 3, 3))
+
+
+class Stiffness(_ContactEffect):
+    """Scale of the contacts' stiffness (K_fs and K_ts, by ``1 + kappa_s``) and damping (K_fd and
+    K_td, by ``1 + kappa_d``), the same for every contact: the simulator's ``stiffness`` effect
+    (``stiffness = 1 + kappa_s``, ``damping = 1 + kappa_d``).  Reported as the scales."""
+
+    name = "stiffness"
+    dim = 2
+    labels = ("stiffness scale [-]", "damping scale [-]")
+    unit = "-"
+    what = "contact"
+    offset = 1.0
+    null = 1.0
+
+    def prior_sigma(self, problem):
+        return np.array([0.5, 0.5])
+
+    def basis(self, problem, steps, R, q):
+        Z = _zeros_like_K(problem)
+        spring = problem.contact_law_terms(steps, R, q, problem.K_fs, Z, problem.K_ts, Z)
+        damper = problem.contact_law_terms(steps, R, q, Z, problem.K_fd, Z, problem.K_td)
+        return [spring, damper]
+
+
+class AnisotropicStiffness(_ContactEffect):
+    """Per-axis scale factors of K_fs and K_ts in the contact frame: ``K <- diag(1 + kappa) K``
+    (the simulator's ``anisotropic-stiffness``, ``k_fs = 1 + kappa_f``, ``k_ts = 1 + kappa_t``).
+    Reported as the factors."""
+
+    name = "anisotropic-stiffness"
+    dim = 6
+    labels = tuple(f"k_fs {a} [-]" for a in _AX) + tuple(f"k_ts {a} [-]" for a in _AX)
+    unit = "-"
+    what = "stiffness factor"
+    offset = 1.0
+    null = 1.0
+
+    def prior_sigma(self, problem):
+        return np.full(6, 0.5)
+
+    def basis(self, problem, steps, R, q):
+        Z = _zeros_like_K(problem)
+        out = []
+        for which in ("f", "t"):
+            for j in range(3):
+                E = np.zeros((3, 3))
+                E[j, j] = 1.0
+                if which == "f":
+                    out.append(problem.contact_law_terms(steps, R, q, E @ problem.K_fs, Z, Z, Z))
+                else:
+                    out.append(problem.contact_law_terms(steps, R, q, Z, Z, E @ problem.K_ts, Z))
+        return out
+
+
+class NonlinearStiffness(_ContactEffect):
+    """Added cubic stiffening ``(d beta_f [1/m^2], d beta_t [1/rad^2])`` of every contact:
+    ``F = -K_fs s (1 + (beta_f + d beta_f) |s|^2)``, ``T_0 = -K_ts Omega (1 + (beta_t + d beta_t)
+    |Omega|^2)`` (the simulator's ``nonlinear-stiffness`` adds its ``beta_f``, ``beta_t`` so)."""
+
+    name = "nonlinear-stiffness"
+    dim = 2
+    labels = ("beta_f [1/m^2]", "beta_t [1/rad^2]")
+    unit = "1/m^2, 1/rad^2"
+    what = "cubic stiffening"
+
+    def prior_sigma(self, problem):
+        s0, lever = _static_compression(problem)
+        return np.array([1.0 / s0**2, (lever / s0) ** 2])
+
+    def basis(self, problem, steps, R, q):
+        Z = _zeros_like_K(problem)
+        nc = problem.nc
+        b0 = np.zeros((nc, 2))
+        bf = np.zeros((nc, 2))
+        bf[:, 0] = 1.0
+        bt = np.zeros((nc, 2))
+        bt[:, 1] = 1.0
+        f1, J1 = problem.contact_law_terms(steps, R, q, problem.K_fs, Z, Z, Z, bf)
+        f0, J0 = problem.contact_law_terms(steps, R, q, problem.K_fs, Z, Z, Z, b0)
+        t1, Jt1 = problem.contact_law_terms(steps, R, q, Z, Z, problem.K_ts, Z, bt)
+        t0, Jt0 = problem.contact_law_terms(steps, R, q, Z, Z, problem.K_ts, Z, b0)
+        return [(f1 - f0, J1 - J0), (t1 - t0, Jt1 - Jt0)]
+
+
+# ----------------------------------------------------------------------------------------------
+# Newton-Euler family
+# ----------------------------------------------------------------------------------------------
+
+
+class ExternalWrench:
+    """A wrench on the robot besides the contacts' (a push, a cable), world axes, moment about the
+    world origin (the simulator's ``Truth.external_wrench``).
+
+    The unknowns are the wrench in the Newton-Euler family's whitened coordinates,
+    ``u = L^-1 (F, T)`` with ``L L^T`` the covariance of the unmodelled wrench (a force at the
+    CoM has its moment: the two are correlated), so that the random walk and the priors treat a
+    push at the CoM as one unit whatever its direction: random walk ``dt / tau`` per step and
+    component (time constant ``tau``, module documentation), and a zero-mean prior at every step
+    (:meth:`step_prior_sigma`).  The report converts back to ``(F [N], T [N m])``.
+    """
+
+    name = "external-wrench"
+    dim = 6
+    labels = tuple(f"u_F{a} [-]" for a in _AX) + tuple(f"u_T{a} [-]" for a in _AX)
+    unit = "N, N m"
+    constant = False
+
+    def __init__(self, tau: float = 0.05):
+        if not tau > 0:
+            raise ConfigError(f"external-wrench: tau must be positive (s), got {tau}")
+        self.tau = float(tau)
+        self._L = None
+        self._height = None
+
+    def _setup(self, problem):
+        self._L = np.linalg.cholesky(np.asarray(problem.sigmas.newton_euler_cov, dtype=float))
+        self._height = max(float(problem.com[0][2]), 0.1)
+        return self._L
+
+    def prior(self, problem):
+        return np.zeros(6), self.step_prior_sigma(problem)
+
+    def step_prior_sigma(self, problem):
+        """Zero-mean prior at every step: a force of a quarter of the robot's weight at the CoM,
+        in whitened units.  The constant part of an external force is hard to tell from a static
+        deformation of the contacts (only its moment tilts the robot); this keeps it near zero
+        unless the data (the push's dynamics) demand otherwise."""
+        self._setup(problem)
+        sF = float(np.sqrt(np.mean(np.diag(problem.sigmas.newton_euler_cov)[:3])))
+        return np.full(6, 0.25 * float(problem.rec.mass) * problem.g / sF)
+
+    def random_walk_sigma(self, problem):
+        return np.full(6, problem.dt / self.tau)
+
+    def residual_terms(self, family, problem, steps, R, q, W, e):
+        if family != "newton_euler":
+            return None
+        L = self._L if self._L is not None else self._setup(problem)
+        n = len(steps)
+        return -(np.asarray(e, dtype=float) @ L.T), np.zeros((n, 6, 18)), np.broadcast_to(-L, (n, 6, 6)).copy()
+
+    def wrench(self, values, cov=None):
+        """``(F, T)`` (N, 6) and its covariance (N, 6, 6) from the unknowns."""
+        L = self._L
+        Wv = np.asarray(values, dtype=float) @ L.T
+        Wc = None if cov is None else L @ np.asarray(cov) @ L.T
+        return Wv, Wc
+
+    def report(self, values, cov, t=None) -> dict:
+        v, C = self.wrench(values, cov)
+        n = v.shape[0]
+        t = np.arange(n, dtype=float) if t is None else np.asarray(t, dtype=float)
+        dt = float(t[1] - t[0]) if n > 1 else 1.0
+        h = self._height
+        F = v[:, :3]
+        # the horizontal force at the CoM height with the same moment about the origin
+        Feq = np.stack([v[:, 4] / h, -v[:, 3] / h], axis=1)
+        u = np.asarray(values, dtype=float)
+        if cov is not None:
+            Cu = np.asarray(cov)
+            z2 = np.einsum("ni,ni->n", u, np.linalg.solve(Cu + 1e-12 * np.eye(6), u[:, :, None])[:, :, 0])
+            std = np.sqrt(np.maximum(np.diagonal(C, axis1=1, axis2=2), 0.0))
+        else:
+            z2 = np.full(n, np.inf)
+            std = np.full((n, 6), np.nan)
+        on = z2 > _CHI2_6_999
+        spans = []
+        k = 0
+        while k < n:
+            if on[k]:
+                j = k
+                while j + 1 < n and on[j + 1]:
+                    j += 1
+                spans.append([k, j])
+                k = j + 1
+            else:
+                k += 1
+        merged = []
+        for s_ in spans:
+            if merged and (t[s_[0]] - t[merged[-1][1]]) < 0.05:
+                merged[-1][1] = s_[1]
+            else:
+                merged.append(s_)
+        windows = []
+        for k0, k1 in merged:
+            if t[k1] - t[k0] + dt < 0.02:
+                continue
+            seg = slice(k0, k1 + 1)
+            feq = np.linalg.norm(Feq[seg], axis=1)
+            kp = k0 + int(np.argmax(feq))
+            fx, fy = Feq[kp]
+            axis = "x" if abs(fx) >= abs(fy) else "y"
+            sign = "-" if (fx if axis == "x" else fy) < 0 else ""
+            T = v[kp, 3:]
+            Ts = std[kp, 3:]
+            fn = np.linalg.norm(F[seg], axis=1)
+            kf = k0 + int(np.argmax(fn))
+            ax = int(np.argmax(np.abs(F[kf])))
+            fsign = "-" if F[kf, ax] < 0 else ""
+            windows.append({"start_s": float(t[k0]), "end_s": float(t[k1]), "peak_s": float(t[kf]),
+                            "peak_wrench": v[kf].tolist(), "peak_std": std[kf].tolist(),
+                            "peak_force": F[kf].tolist(), "peak_norm": float(fn[kf - k0]),
+                            "peak_equivalent_force": [float(fx), float(fy)],
+                            "impulse": (v[seg].sum(axis=0) * dt).tolist(),
+                            "summary": (f"external force ≈ {fn[kf - k0]:.0f} N along {fsign}{_AX[ax]} between "
+                                        f"{t[k0]:.2f} s and {t[k1]:.2f} s (peak at {t[kf]:.2f} s: F = "
+                                        f"({F[kf, 0]:.0f}, {F[kf, 1]:.0f}, {F[kf, 2]:.0f}) ± ({std[kf, 0]:.0f}, "
+                                        f"{std[kf, 1]:.0f}, {std[kf, 2]:.0f}) N, moment about the origin "
+                                        f"({T[0]:.1f}, {T[1]:.1f}, {T[2]:.1f}) N m, as a horizontal force at the "
+                                        f"CoM height {feq[kp - k0]:.0f} N along {sign}{axis})")})
+        if windows:
+            summary = "; ".join(w["summary"] for w in windows)
+        else:
+            summary = (f"no significant external wrench (max equivalent force "
+                       f"{float(np.max(np.linalg.norm(Feq, axis=1))):.1f} N)")
+        kp = int(np.argmax(z2)) if cov is not None else int(np.argmax(np.linalg.norm(Feq, axis=1)))
+        return {"value": v[kp].tolist(), "std": std[kp].tolist(), "unit": self.unit,
+                "labels": [f"F_{a} [N]" for a in _AX] + [f"T_{a} [N m]" for a in _AX],
+                "peak_s": float(t[kp]), "windows": windows, "summary": summary, "com_height_m": h,
+                "t_s": t.tolist(), "wrench": np.round(v, 3).tolist(), "wrench_std": np.round(std, 3).tolist()}
+
+
+class ComOffset(_Constant):
+    r"""Constant offset ``delta`` (m, local frame) of the CoM ``c_l``.
+
+    The simulator moves the CoM of the heaviest body ``j`` (mass ``m_j = mu M``) by
+    ``delta / mu``, keeping its rotational inertia about its own CoM.  Then, with ``c_j`` that
+    body's CoM (taken as ``c_l``, and its velocity and acceleration as ``dc_l``, ``ddc_l``: the
+    heaviest body carries the CoM's motion), the inputs about the local origin become::
+
+        c_l'     = c_l + delta                              dc_l, ddc_l unchanged
+        I_l'     = I_l - M ([c]x [delta]x + [delta]x [c]x) - (M / mu) [delta]x^2   (parallel axis)
+        dI_l'    = dI_l - M ([dc]x [delta]x + [delta]x [dc]x)
+        sigma_l' = sigma_l + M delta x dc                   (m_j (delta / mu) x dc_j)
+        dsigma'  = dsigma_l + M delta x ddc
+
+    and the term is ``required_wrench(inputs') - required_wrench(inputs)`` (eq. 16, 23).  ``mu = 1``
+    (default) is a rigid shift of the whole robot; the ``1/mu`` term is second order (``M
+    |delta|^2 / mu``, ~0.1 % of ``I_l`` for 3 cm on Romeo).
+    """
+
+    name = "com-offset"
+    dim = 3
+    labels = tuple(f"{a} [m]" for a in _AX)
+    unit = "m"
+    what = "CoM offset"
+
+    def __init__(self, mass_fraction: float = 1.0):
+        if not 0 < mass_fraction <= 1:
+            raise ConfigError(f"com-offset: mass_fraction must be in (0, 1], got {mass_fraction}")
+        self.mu = float(mass_fraction)
+
+    def prior_sigma(self, problem):
+        return np.full(3, 0.1 * max(float(np.linalg.norm(problem.com[0])), 0.1))
+
+    def inputs(self, problem, steps, d):
+        """Modified inputs ``(c, dc, ddc, I, dI, sigma, dsigma)`` for offsets ``d`` (n, 3)."""
+        M = float(problem.rec.mass)
+        c, dc, ddc = problem.com[steps], problem.com_vel[steps], problem.com_acc[steps]
+        Sc, Sdc, Sd = _skew(c), _skew(dc), _skew(d)
+        I = problem.inertia[steps] - M * (Sc @ Sd + Sd @ Sc) - (M / self.mu) * (Sd @ Sd)
+        dI = problem.inertia_dot[steps] - M * (Sdc @ Sd + Sd @ Sdc)
+        sig = problem.sigma_l[steps] + M * np.cross(d, dc)
+        dsig = problem.sigma_dot[steps] + M * np.cross(d, ddc)
+        return c + d, dc, ddc, I, dI, sig, dsig
+
+    def residual_terms(self, family, problem, steps, R, q, W, e):
+        if family != "newton_euler":
+            return None
+        from flexforce.factors import kernels
+
+        steps = np.asarray(steps)
+        n = len(steps)
+        M, g = float(problem.rec.mass), problem.g
+        d = np.asarray(e, dtype=float)
+        cc = np.ascontiguousarray
+        R = cc(R, dtype=float)
+        q = cc(q, dtype=float)
+        zero = np.zeros((n, 6))
+        r1, J1 = np.empty((n, 6)), np.empty((n, 6, 18))
+        r0, J0 = np.empty((n, 6)), np.empty((n, 6, 18))
+        c, dc, ddc, I, dI, sig, dsig = self.inputs(problem, steps, d)
+        kernels.newton_euler_all(R, q, zero, M, cc(c), cc(dc), cc(ddc), cc(I), cc(dI), cc(sig), cc(dsig), g, r1, J1)
+        kernels.newton_euler_all(R, q, zero, M, cc(problem.com[steps]), cc(dc), cc(ddc), cc(problem.inertia[steps]),
+                                 cc(problem.inertia_dot[steps]), cc(problem.sigma_l[steps]),
+                                 cc(problem.sigma_dot[steps]), g, r0, J0)
+        # d/d delta (analytic; module docstring of the class)
+        t, w, dw, a = q[:, 0:3], q[:, 3:6], q[:, 9:12], q[:, 12:15]
+        ag = a.copy()
+        ag[:, 2] += g
+        Sw = _skew(w)
+        cl = problem.com[steps]
+
+        def G(u, base, quad):
+            """d((Delta X) u)/d delta for Delta X = -M([b]x[d]x + [d]x[b]x) - quad [d]x^2, u local."""
+            out = M * (_skew(base) @ _skew(u) + _skew(np.cross(base, u)))
+            if quad:
+                out = out + (M / self.mu) * (_skew(np.cross(d, u)) + _skew(d) @ _skew(u))
+            return out
+
+        Rt = R.transpose(0, 2, 1)
+        uw = np.einsum("nij,nj->ni", Rt, w)
+        udw = np.einsum("nij,nj->ni", Rt, dw)
+        dF = M * (_skew(dw) + Sw @ Sw) @ R
+        dT = (Sw @ R @ G(uw, cl, True) + R @ G(uw, dc, False) + R @ G(udw, cl, True)
+              - M * Sw @ R @ _skew(dc) - M * R @ _skew(ddc) + _skew(t) @ dF - M * _skew(ag) @ R)
+        dr_de = np.concatenate([dF, dT], axis=1)
+        return r1 - r0, J1 - J0, dr_de
+
+
+# ----------------------------------------------------------------------------------------------
+# Registry
+# ----------------------------------------------------------------------------------------------
+
+EFFECTS: dict[str, type] = {
+    "external-wrench": ExternalWrench,
+    "gyro-bias": GyroBias,
+    "accel-bias": AccelBias,
+    "stiffness": Stiffness,
+    "anisotropic-stiffness": AnisotropicStiffness,
+    "nonlinear-stiffness": NonlinearStiffness,
+    "com-offset": ComOffset,
+}
+"""Effect name -> class (the names are the simulator's hidden-effect types)."""
+
+
+def make_effect(name: str, **params):
+    """An effect of the catalogue by name, e.g. ``make_effect("external-wrench", tau=0.05)``.
+
+    Parameters: ``external-wrench``: ``tau`` (s); ``gyro-bias``/``accel-bias``: ``rw_density``;
+    ``com-offset``: ``mass_fraction``; the others take none.
+    """
+    try:
+        cls = EFFECTS[name]
+    except KeyError:
+        raise ConfigError(f"unknown effect '{name}'; known: {', '.join(EFFECTS)}") from None
+    try:
+        return cls(**params)
+    except TypeError as err:
+        raise ConfigError(f"effect '{name}': bad parameters {sorted(params)}: {err}") from None

@@ -1,0 +1,318 @@
+"""Tests of the effect catalogue (flexforce.factors.effects) and of the fit API (flexforce.smoother.fit).
+
+For each effect: a 3 s simulated sway whose truth holds it (datasets/effects.py parameters),
+fitted with and without the effect; and the same effect fitted on the recording without it.  Plus
+finite-difference checks of every effect's residual terms (world-frame increments, the smoothers'
+retraction) and the protocol's contact family in the fixed-lag smoother.
+
+Measured (3 s sway, seed 0; truth -> estimate ± std, cost gain vs effective dof, errors
+force N / CoP mm / tilt mrad nominal -> with the effect):
+
+- gyro-bias y 0.010 -> 0.0102 ± 0.0006 rad/s, gain 175 vs 3 dof; tilt 0.86 -> 0.35 mrad
+- accel-bias (0.08, -0.05) -> (0.0796 ± 0.003, -0.0525 ± 0.0026), gain 569 vs 3; CoP 6.7 -> 1.1 mm
+- external-wrench 40 N along x, 1.5-1.9 s -> window 1.46-1.94 s, peak F_x 37 ± 1 N, T_y 28.5 ± 0.6
+  N m, gain 3243 vs 60 dof; CoP 4.6 -> 4.2 mm, tilt 2.0 -> 1.3 mrad (force 1.8 -> 2.2 N)
+- com-offset x 0.020 -> 0.0219 ± 0.0005 m, gain 916 vs 3; CoP 20 -> 1.2 mm.  Its z component is
+  confounded with the rotational stiffness (m g dz per rad): -0.07 ± 0.01 m on both recordings.
+- stiffness 0.7 -> 0.867 ± 0.006 (biased towards 1: see the xfail test), gain 933 vs 2
+- anisotropic k_fs z 0.7 -> 0.96 ± 0.14, k_ts x 0.7 -> 0.93 ± 0.08, gain 311 vs 4
+- nonlinear beta_f 4000 -> 1394 ± 428 1/m^2, gain 50 vs 2
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from flexforce.datasets.scenario import Scenario
+from flexforce.datasets.simulator import Simulator
+from flexforce.factors import kernels, so3
+from flexforce.factors.effects import EFFECTS, make_effect
+from flexforce.factors.model import ModelConfig
+from flexforce.smoother import Effect, Problem, fit, run_fixed_lag
+
+DURATION = 3.0
+TRUTH = {
+    "external-wrench": {"type": "external-wrench", "link": "@base", "force": [40.0, 0.0, 0.0], "start": 1.5,
+                        "duration": 0.4},
+    "gyro-bias": {"type": "gyro-bias", "value": [0.0, 0.01, 0.0]},
+    "accel-bias": {"type": "accel-bias", "value": [0.08, -0.05, 0.0]},
+    "stiffness": {"type": "stiffness", "stiffness": 0.7, "damping": 1.0},
+    "anisotropic-stiffness": {"type": "anisotropic-stiffness", "k_fs": [1.0, 1.0, 0.7], "k_ts": [0.7, 1.0, 1.0]},
+    "nonlinear-stiffness": {"type": "nonlinear-stiffness", "beta_f": 4000.0, "beta_t": 0.0},
+    "com-offset": {"type": "com-offset", "offset": [0.02, 0.0, 0.0]},
+}
+_CACHE: dict = {}
+
+
+def simulate(effect: str | None, duration: float = DURATION):
+    key = (effect, duration)
+    if key not in _CACHE:
+        sc = Scenario.load("sway")
+        sc.duration = duration
+        sc.imu_noise = {"gyro_bias_rw": 0.0, "accel_bias_rw": 0.0}
+        sc.effects = [TRUTH[effect]] if effect else []
+        _CACHE[key] = Simulator(sc).run()
+    return _CACHE[key]
+
+
+@pytest.fixture(scope="module")
+def null():
+    rec = simulate(None)
+    model = ModelConfig.from_recording(rec)
+    return rec, model, fit(rec, model)
+
+
+_FITS: dict = {}
+
+
+def fits(name, null):
+    """(rec, nominal fit, fit with the effect, fit of the effect on the recording without it)."""
+    if name not in _FITS:
+        rec0, model, base0 = null
+        rec = simulate(name)
+        cfg = dataclasses.replace(model, effects=(make_effect(name),))
+        _FITS[name] = (rec, fit(rec, model), fit(rec, cfg), fit(rec0, cfg))
+    return _FITS[name]
+
+
+def errors(est, rec):
+    tr = rec.truth
+    force = np.sqrt(np.mean(np.sum((est.total_wrench[:, :3] - tr.total_wrench[:, :3]) ** 2, axis=1)))
+    cop = np.sqrt(np.mean(np.sum((est.cop[:, :2] - tr.cop[:, :2]) ** 2, axis=1)))
+    theta = np.array([so3.log(est.R[k] @ tr.R[k].T) for k in range(rec.n)])
+    return force, cop, np.sqrt(np.mean(np.sum(theta**2, axis=1)))
+
+
+def gain(a, b):
+    return a.meta["fit"]["cost_data"] - b.meta["fit"]["cost_data"]
+
+
+# ----------------------------------------------------------------------------------------------
+# Registry, protocol, Jacobians
+# ----------------------------------------------------------------------------------------------
+
+
+def test_registry_covers_the_simulator_effects():
+    from flexforce.datasets.effects import EFFECT_TYPES
+
+    assert set(EFFECTS) == set(EFFECT_TYPES)
+    for name in EFFECTS:
+        eff = make_effect(name)
+        assert isinstance(eff, Effect) and eff.name == name and len(eff.labels) == eff.dim
+    from flexforce.errors import ConfigError
+
+    with pytest.raises(ConfigError):
+        make_effect("no-such-effect")
+    with pytest.raises(ConfigError):
+        make_effect("gyro-bias", bogus=1)
+
+
+@pytest.fixture(scope="module")
+def small_problem():
+    rec = simulate(None, 0.2)
+    return Problem.build(rec, ModelConfig.from_recording(rec)), rec
+
+
+@pytest.mark.parametrize("name", sorted(EFFECTS))
+def test_residual_terms_match_finite_differences(name, small_problem):
+    """Jacobians of each effect's terms against central differences through the retraction."""
+    prob, rec = small_problem
+    rng = np.random.default_rng(3)
+    steps = np.arange(10, 14)
+    n = len(steps)
+    tr = rec.truth
+    R = tr.R[steps].copy()
+    q = np.concatenate([tr.t, tr.w, tr.v, tr.dw, tr.a], axis=1)[steps].copy()
+    q[:, 3:] += rng.normal(0.0, 0.1, (n, 12))
+    W = np.zeros((n, prob.nc, 6))
+    eff = make_effect(name)
+    s0 = eff.prior(prob)[1]
+    e = rng.normal(0.0, 0.3, (n, eff.dim)) * s0
+    touched = 0
+    for fam in ("newton_euler", "imu", "contact"):
+        out = eff.residual_terms(fam, prob, steps, R, q, W, e)
+        if out is None:
+            continue
+        touched += 1
+        dr, Js, Je = out
+        h = 1e-6
+        for j in range(18):
+            d = np.zeros((n, 18))
+            d[:, j] = h
+            Rp, qp, Rm, qm = R.copy(), q.copy(), R.copy(), q.copy()
+            kernels.retract_all(Rp, qp, d)
+            kernels.retract_all(Rm, qm, -d)
+            num = (eff.residual_terms(fam, prob, steps, Rp, qp, W, e)[0]
+                   - eff.residual_terms(fam, prob, steps, Rm, qm, W, e)[0]) / (2 * h)
+            np.testing.assert_allclose(Js[..., j], num, atol=1e-6 * (np.abs(Js).max() + 1.0))
+        for j in range(eff.dim):
+            he = 1e-6 * s0[j]
+            ep, em = e.copy(), e.copy()
+            ep[:, j] += he
+            em[:, j] -= he
+            num = (eff.residual_terms(fam, prob, steps, R, q, W, ep)[0]
+                   - eff.residual_terms(fam, prob, steps, R, q, W, em)[0]) / (2 * he)
+            np.testing.assert_allclose(Je[..., j], num, atol=1e-6 * (np.abs(Je[..., j]).max() + 1e-9))
+    assert touched >= 1
+
+
+def test_contact_effect_in_the_window_fixed_lag_smoother():
+    """The contact family's effect terms in the (window) fixed-lag smoother: a stiffness scale is
+    learnt online, close to the batch fit."""
+    rec = simulate("stiffness")
+    cfg = dataclasses.replace(ModelConfig.from_recording(rec), effects=(make_effect("stiffness"),))
+    est = run_fixed_lag(rec, cfg, lag=0.5)
+    rep = est.effects["stiffness"]
+    # measured 0.724 (truth 0.7); the batch fit stops short at 0.867 after its 30 iterations
+    assert abs(rep["value"][0] - 0.7) < 0.06, rep["summary"]
+
+
+# ----------------------------------------------------------------------------------------------
+# Fit API
+# ----------------------------------------------------------------------------------------------
+
+
+def test_fit_meta(null):
+    rec, model, est = null
+    info = est.meta["fit"]
+    assert set(info) >= {"cost_data", "cost_total", "n_residuals", "effective_dof"}
+    assert info["effective_dof"] == {}
+    # nominal world = nominal model: the data cost is about half the number of residuals
+    assert 0.02 * info["n_residuals"] < info["cost_data"] < 0.6 * info["n_residuals"]
+    r = np.concatenate([np.ravel(est.residuals[f]) for f in ("imu", "newton_euler", "contact", "integration")])
+    r = r[np.isfinite(r)]
+    assert info["n_residuals"] == r.size
+    np.testing.assert_allclose(info["cost_data"], 0.5 * np.sum(r**2))
+
+
+# ----------------------------------------------------------------------------------------------
+# Recovery, per effect
+# ----------------------------------------------------------------------------------------------
+
+
+def check_common(name, null, min_gain_ratio=10.0):
+    rec, base, with_e, null_fit = fits(name, null)
+    dof = with_e.meta["fit"]["effective_dof"][name]
+    g = gain(base, with_e)
+    assert g > min_gain_ratio * dof, (g, dof)
+    g0 = gain(null[2], null_fit)
+    dof0 = null_fit.meta["fit"]["effective_dof"][name]
+    return rec, base, with_e, null_fit, g0, dof0
+
+
+def test_gyro_bias(null):
+    rec, base, est, nfit, g0, dof0 = check_common("gyro-bias", null)
+    rep = est.effects["gyro-bias"]
+    v, s = np.array(rep["value"]), np.array(rep["std"])
+    truth = np.array(TRUTH["gyro-bias"]["value"])
+    assert np.all(np.abs(v - truth) < 4 * s) and np.all(np.abs(v - truth) < 1.5e-3), (v, s)
+    assert "gyro bias y" in rep["summary"] and rep["unit"] == "rad/s"
+    fb, cb, tb = errors(base, rec)
+    fe, ce, te = errors(est, rec)
+    assert te < 0.6 * tb and ce < 0.8 * cb and fe <= fb
+    nv, ns = np.array(nfit.effects["gyro-bias"]["value"]), np.array(nfit.effects["gyro-bias"]["std"])
+    assert np.all(np.abs(nv) < 4 * ns)
+    assert abs(dof0 - 3) < 0.01 and g0 < 10 + 2 * dof0
+
+
+def test_accel_bias(null):
+    rec, base, est, nfit, g0, dof0 = check_common("accel-bias", null)
+    rep = est.effects["accel-bias"]
+    v, s = np.array(rep["value"]), np.array(rep["std"])
+    truth = np.array(TRUTH["accel-bias"]["value"])
+    assert np.all(np.abs(v - truth) < 4 * s) and np.all(np.abs(v - truth) < 0.01), (v, s)
+    fb, cb, tb = errors(base, rec)
+    fe, ce, te = errors(est, rec)
+    assert te < 0.5 * tb and ce < 0.5 * cb and fe < fb
+    nv, ns = np.array(nfit.effects["accel-bias"]["value"]), np.array(nfit.effects["accel-bias"]["std"])
+    assert np.all(np.abs(nv) < 4 * ns)
+    assert g0 < 10 + 2 * dof0
+
+
+def test_external_wrench(null):
+    rec, base, est, nfit, g0, dof0 = check_common("external-wrench", null)
+    rep = est.effects["external-wrench"]
+    assert len(rep["windows"]) == 1, rep["summary"]
+    w = rep["windows"][0]
+    assert 1.35 < w["start_s"] < 1.6 and 1.8 < w["end_s"] < 2.05, w
+    # truth at the estimated peak (about the world origin)
+    k = int(round(w["peak_s"] / rec.dt))
+    truth = rec.truth.external_wrench[k]
+    est_w, std = np.array(w["peak_wrench"]), np.array(w["peak_std"])
+    assert abs(est_w[0] - truth[0]) < max(4 * std[0], 0.15 * abs(truth[0])), (est_w, truth, std)
+    assert abs(est_w[4] - truth[4]) < max(4 * std[4], 0.15 * abs(truth[4])), (est_w, truth, std)
+    assert "external force" in rep["summary"] and "along x" in rep["summary"]
+    fb, cb, tb = errors(base, rec)
+    fe, ce, te = errors(est, rec)
+    # the tilt and CoP errors fall; the horizontal force (only seen through the contacts'
+    # dynamics) does not: measured 1.8 -> 2.2 N
+    assert te < 0.8 * tb and ce < cb and fe < 1.5 * fb
+    assert nfit.effects["external-wrench"]["windows"] == []
+    assert 20 < dof0 < 200 and g0 < 10 + 2 * dof0
+
+
+def test_com_offset(null):
+    rec, base, est, nfit, g0, dof0 = check_common("com-offset", null)
+    rep = est.effects["com-offset"]
+    v, s = np.array(rep["value"]), np.array(rep["std"])
+    truth = np.array(TRUTH["com-offset"]["offset"])
+    # x, y (the z component is confounded with the rotational stiffness, module docstring)
+    assert np.all(np.abs(v[:2] - truth[:2]) < np.maximum(5 * s[:2], 3e-3)), (v, s)
+    fb, cb, tb = errors(base, rec)
+    fe, ce, te = errors(est, rec)
+    assert ce < 0.2 * cb and te < 0.2 * tb and fe < fb
+    nv, ns = np.array(nfit.effects["com-offset"]["value"]), np.array(nfit.effects["com-offset"]["std"])
+    assert np.all(np.abs(nv[:2]) < 4 * ns[:2])
+
+
+def test_stiffness(null):
+    rec, base, est, nfit, g0, dof0 = check_common("stiffness", null)
+    rep = est.effects["stiffness"]
+    v, s = np.array(rep["value"]), np.array(rep["std"])
+    assert v[0] < 0.9 and abs(v[1] - 1.0) < 4 * s[1], (v, s)  # towards the truth 0.7, damping 1
+    fb, cb, tb = errors(base, rec)
+    fe, ce, te = errors(est, rec)
+    assert fe < 0.8 * fb and ce < 0.8 * cb and te < 0.8 * tb
+    nv, ns = np.array(nfit.effects["stiffness"]["value"]), np.array(nfit.effects["stiffness"]["std"])
+    assert abs(nv[0] - 1) < 4 * ns[0] and abs(nv[1] - 1) < 4 * ns[1]
+    assert g0 < 10 + 2 * dof0
+
+
+@pytest.mark.xfail(reason="measured 0.867 ± 0.006 for a truth of 0.7: batch LM converges slowly along a "
+                          "constant contact parameter (0.711 after 151 iterations); open", strict=False)
+def test_stiffness_recovered_within_its_std(null):
+    rec, base, est, nfit, g0, dof0 = fits("stiffness", null)
+    rep = est.effects["stiffness"]
+    assert abs(rep["value"][0] - 0.7) < 4 * rep["std"][0]
+
+
+@pytest.mark.slow
+def test_anisotropic_stiffness(null):
+    rec, base, est, nfit, g0, dof0 = check_common("anisotropic-stiffness", null, min_gain_ratio=20.0)
+    rep = est.effects["anisotropic-stiffness"]
+    v, s = np.array(rep["value"]), np.array(rep["std"])
+    truth = np.r_[TRUTH["anisotropic-stiffness"]["k_fs"], TRUTH["anisotropic-stiffness"]["k_ts"]]
+    assert np.all(np.abs(v - truth) < 4 * s), (v, s)
+    fb, cb, tb = errors(base, rec)
+    fe, ce, te = errors(est, rec)
+    assert fe < fb and ce < cb and te < tb
+    nv, ns = np.array(nfit.effects["anisotropic-stiffness"]["value"]), np.array(nfit.effects["anisotropic-stiffness"]["std"])
+    assert np.all(np.abs(nv - 1) < 4 * ns)
+    assert g0 < 10 + 2 * dof0
+
+
+@pytest.mark.slow
+def test_nonlinear_stiffness(null):
+    rec, base, est, nfit, g0, dof0 = check_common("nonlinear-stiffness", null)
+    rep = est.effects["nonlinear-stiffness"]
+    v, s = np.array(rep["value"]), np.array(rep["std"])
+    assert v[0] > 2 * s[0] and abs(v[1]) < 4 * s[1], (v, s)  # stiffening found (truth 4000, measured ~1400)
+    fb, cb, tb = errors(base, rec)
+    fe, ce, te = errors(est, rec)
+    assert fe < fb and ce < cb and te < tb
+    nv, ns = np.array(nfit.effects["nonlinear-stiffness"]["value"]), np.array(nfit.effects["nonlinear-stiffness"]["std"])
+    assert np.all(np.abs(nv) < 4 * ns)
+    assert g0 < 10 + 2 * dof0
