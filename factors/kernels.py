@@ -588,6 +588,63 @@ def block_tridiag_covariances(D, B):
     return P, Pc
 
 
+@njit
+def _trsm_upper_t(L, B):
+    """L^-T B for lower-triangular L (d, d) and B (d, m)."""
+    d, m = B.shape
+    X = B.copy()
+    for j in range(m):
+        for i in range(d - 1, -1, -1):
+            acc = X[i, j]
+            for k in range(i + 1, d):
+                acc -= L[k, i] * X[k, j]
+            X[i, j] = acc / L[i, i]
+    return X
+
+
+@njit
+def block_tridiag_solve_multi(D, B, G, want_cov):
+    """:func:`block_tridiag_solve` with ``m`` right-hand sides ``G`` (N, d, m) -> ``X`` (N, d, m).
+
+    One block Cholesky serves every column (the batch smoother's arrow system: the state's
+    right-hand side and the border columns of the global effect parameters).  With ``want_cov``
+    also returns the marginal covariances ``P`` (N, d, d) and the lag-one cross blocks ``Pc``
+    (N-1, d, d) of ``H^-1`` (as :func:`block_tridiag_covariances`).
+    """
+    n, d, m = G.shape[0], G.shape[1], G.shape[2]
+    Ld = np.empty((n, d, d))
+    C = np.empty((max(n - 1, 0), d, d))
+    Y = np.empty((n, d, m))
+    S = D[0].copy()
+    for k in range(n):
+        if k > 0:
+            S = D[k] - C[k - 1] @ C[k - 1].T
+        Ld[k] = np.linalg.cholesky(S)
+        if k < n - 1:
+            C[k] = _trsm_lower(Ld[k], B[k]).T.copy()
+        rhs = G[k].copy()
+        if k > 0:
+            rhs -= C[k - 1] @ Y[k - 1]
+        Y[k] = _trsm_lower(Ld[k], rhs)
+    X = np.empty((n, d, m))
+    X[n - 1] = _trsm_upper_t(Ld[n - 1], Y[n - 1])
+    for k in range(n - 2, -1, -1):
+        X[k] = _trsm_upper_t(Ld[k], Y[k] - C[k].T @ X[k + 1])
+    P = np.empty((n, d, d)) if want_cov else np.empty((0, d, d))
+    Pc = np.empty((max(n - 1, 0), d, d)) if want_cov else np.empty((0, d, d))
+    if want_cov:
+        eye = np.eye(d)
+        for k in range(n - 1, -1, -1):
+            M = _trsm_lower(Ld[k], eye)
+            if k == n - 1:
+                P[k] = M.T @ M
+            else:
+                CP = C[k].T @ P[k + 1]
+                P[k] = M.T @ (eye + CP @ C[k]) @ M
+                Pc[k] = -(M.T @ CP)
+    return X, P, Pc
+
+
 # ----------------------------------------------------------------------------------------------
 # Fixed-lag window (smoother/fixed_lag.py): incremental block elimination, oldest first
 # ----------------------------------------------------------------------------------------------

@@ -348,3 +348,163 @@ def solve(Hd, B, g, damping: float = 0.0, want_cov: bool = False):
         P = P * scale[:, :, None] * scale[:, None, :]
         return dx, P
     return dx, None
+
+
+# ----------------------------------------------------------------------------------------------
+# Constant effects as one global block: the arrow system (batch)
+# ----------------------------------------------------------------------------------------------
+
+
+def is_global(eff) -> bool:
+    """An effect whose unknowns are one global block in batch: ``constant = True`` and no per-step
+    prior (a constant parameter; its per-step copies are equal by construction)."""
+    return getattr(eff, "constant", False) is True and getattr(eff, "step_prior_sigma", None) is None
+
+
+def global_columns(prob) -> np.ndarray:
+    """Indices, in the per-step state of width ``D``, of the global (constant) effects' unknowns."""
+    idx = []
+    off = S + 6 * prob.nc
+    for eff in prob.effects:
+        if is_global(eff):
+            idx.extend(range(off, off + int(eff.dim)))
+        off += int(eff.dim)
+    return np.asarray(idx, dtype=int)
+
+
+def drop_global_walks(prob, lin: Linearization) -> Linearization:
+    """``lin`` without the random-walk factors of the global effects (exactly zero residual, and a
+    Jacobian that vanishes on the constrained subspace ``e_k = e``; left in, its ``1e12``-scale
+    information would cancel in the reduction at the cost of digits)."""
+    drop = {f"effect_walk/{eff.name}" for eff in prob.effects if is_global(eff)}
+    if not drop:
+        return lin
+    return Linearization(unary=lin.unary, binary={k: v for k, v in lin.binary.items() if k not in drop},
+                         cost=lin.cost)
+
+
+def arrow_reduce(Hd, B, g, cidx):
+    """The Gauss-Newton system of the per-step layout restricted to ``x_k = (a_k, c)``: the columns
+    ``cidx`` of every step are one global block ``c``.
+
+    Returns ``Ad`` (N, Da, Da), ``AB`` (N-1, Da, Da) (block tridiagonal per-step part), the border
+    ``F`` (N, Da, Dc), the global block ``G`` (Dc, Dc) and the right-hand sides ``ga`` (N, Da),
+    ``gc`` (Dc,).  With ``x_k = T (a_k, c)``: ``F_k = H_kk[a, c] + H_k,k+1[a, c] + H_k-1,k[c, a]^T``,
+    ``G = sum_k H_kk[c, c] + H_k,k+1[c, c] + H_k,k+1[c, c]^T``, ``gc = sum_k g_k[c]``.
+    """
+    D = Hd.shape[1]
+    aidx = np.setdiff1d(np.arange(D), cidx)
+    Ad = Hd[:, aidx][:, :, aidx]
+    AB = B[:, aidx][:, :, aidx]
+    F = Hd[:, aidx][:, :, cidx].copy()
+    if B.shape[0]:
+        F[:-1] += B[:, aidx][:, :, cidx]
+        F[1:] += B[:, cidx][:, :, aidx].transpose(0, 2, 1)
+        Bcc = B[:, cidx][:, :, cidx].sum(axis=0)
+    else:
+        Bcc = np.zeros((len(cidx), len(cidx)))
+    G = Hd[:, cidx][:, :, cidx].sum(axis=0) + Bcc + Bcc.T
+    return aidx, Ad, AB, F, G, g[:, aidx], g[:, cidx].sum(axis=0)
+
+
+def solve_arrow(Hd, B, g, cidx, damping: float = 0.0, want_cov: bool = False, freeze: bool = False):
+    """Solve the Gauss-Newton system with the columns ``cidx`` one global block (:func:`arrow_reduce`).
+
+    Block tridiagonal plus a dense border (an "arrow"): the per-step part is eliminated by the
+    block-tridiagonal solver with ``1 + Dc`` right-hand sides (the state's and the border's
+    columns), leaving the Schur complement ``S = G - F^T A^-1 F`` on the global block.  Jacobi
+    scaling, Levenberg-Marquardt damping of the scaled diagonal and one step of iterative
+    refinement as :func:`solve`.
+
+    Returns ``dx`` (N, D) (the global step repeated in every step's ``cidx`` columns) and, with
+    ``want_cov``, the marginal covariances ``P`` (N, D, D) and lag-one cross-covariances ``Pc``
+    (N-1, D, D) in the per-step layout: ``P_k[a, a] = (A^-1)_kk + V_k S^-1 V_k^T`` (``V = A^-1 F``,
+    the border's correction), ``P_k[a, c] = -V_k S^-1``, ``P_k[c, c] = S^-1``.
+    """
+    cidx = np.asarray(cidx, dtype=int)
+    if cidx.size == 0:
+        if not want_cov:
+            return solve(Hd, B, g, damping)[0], None, None
+        dx, _ = solve(Hd, B, g, damping)
+        P, Pc = covariances(Hd, B)
+        return dx, P, Pc
+    n, D = Hd.shape[0], Hd.shape[1]
+    if freeze:  # the global block held at its value: the per-step part alone
+        aidx = np.setdiff1d(np.arange(D), cidx)
+        dx = np.zeros((n, D))
+        dx[:, aidx] = solve(Hd[:, aidx][:, :, aidx], B[:, aidx][:, :, aidx], g[:, aidx], damping)[0]
+        return dx, None, None
+    aidx, Ad, AB, F, G, ga, gc = arrow_reduce(Hd, B, g, cidx)
+    da_ = np.diagonal(Ad, axis1=1, axis2=2)
+    sa = 1.0 / np.sqrt(np.maximum(da_, 1e-300))
+    sc = 1.0 / np.sqrt(np.maximum(np.diag(G), 1e-300))
+    As = Ad * sa[:, :, None] * sa[:, None, :]
+    ABs = AB * sa[:-1, :, None] * sa[1:, None, :]
+    Fs = F * sa[:, :, None] * sc[None, None, :]
+    Gs = G * sc[:, None] * sc[None, :]
+    if damping > 0.0:
+        ia = np.arange(As.shape[1])
+        As[:, ia, ia] *= 1.0 + damping
+        ic = np.arange(Gs.shape[0])
+        Gs[ic, ic] *= 1.0 + damping
+    As, ABs, Fs = np.ascontiguousarray(As), np.ascontiguousarray(ABs), np.ascontiguousarray(Fs)
+    gas, gcs = ga * sa, gc * sc
+    err = ("smoother: the Gauss-Newton system is not positive definite "
+           "(an unobservable direction: check contacts and stiffness)")
+    try:
+        X, _, _ = kernels.block_tridiag_solve_multi(
+            As, ABs, np.ascontiguousarray(np.concatenate([gas[:, :, None], Fs], axis=2)), False)
+    except np.linalg.LinAlgError as exc:
+        raise EstimatorError(err) from exc
+    V = X[:, :, 1:]
+    Ssc = Gs - np.einsum("nai,naj->ij", Fs, V)
+    Ssc = 0.5 * (Ssc + Ssc.T)
+    try:
+        Lsc = np.linalg.cholesky(Ssc)
+    except np.linalg.LinAlgError as exc:
+        raise EstimatorError(err) from exc
+
+    def schur(u, rc):
+        """(da, dc) from ``u = A^-1 r_a`` and the global right-hand side ``r_c``."""
+        rhs = rc - np.einsum("nai,na->i", Fs, u)
+        dc = np.linalg.solve(Lsc.T, np.linalg.solve(Lsc, rhs))
+        return u - V @ dc, dc
+
+    xa, xc = schur(X[:, :, 0], gcs)
+    # One step of iterative refinement on the whole arrow system (as :func:`solve`).
+    ra = gas - _matvec(As, ABs, xa) - Fs @ xc
+    rc = gcs - np.einsum("nai,na->i", Fs, xa) - Gs @ xc
+    try:
+        u2, _ = kernels.block_tridiag_solve(As, ABs, np.ascontiguousarray(ra), False)
+    except np.linalg.LinAlgError as exc:
+        raise EstimatorError(err) from exc
+    xa2, xc2 = schur(u2, rc)
+    xa, xc = (xa + xa2) * sa, (xc + xc2) * sc
+    dx = np.empty((n, D))
+    dx[:, aidx] = xa
+    dx[:, cidx] = xc
+    if not want_cov:
+        return dx, None, None
+    if damping > 0.0:
+        raise ValueError("solve_arrow: covariances of a damped system are not defined")
+    _, Pa, Pca = kernels.block_tridiag_solve_multi(As, ABs, np.zeros((n, As.shape[1], 1)), True)
+    Minv = np.linalg.solve(Lsc, np.eye(len(cidx)))
+    Sinv = Minv.T @ Minv
+    VS = V @ Sinv
+    P = np.empty((n, D, D))
+    P[:, aidx[:, None], aidx[None, :]] = Pa + VS @ V.transpose(0, 2, 1)
+    P[:, aidx[:, None], cidx[None, :]] = -VS
+    P[:, cidx[:, None], aidx[None, :]] = -VS.transpose(0, 2, 1)
+    P[:, cidx[:, None], cidx[None, :]] = Sinv
+    Pc = np.empty((max(n - 1, 0), D, D))
+    if n > 1:
+        Pc[:, aidx[:, None], aidx[None, :]] = Pca + VS[:-1] @ V[1:].transpose(0, 2, 1)
+        Pc[:, aidx[:, None], cidx[None, :]] = -VS[:-1]
+        Pc[:, cidx[:, None], aidx[None, :]] = -VS[1:].transpose(0, 2, 1)
+        Pc[:, cidx[:, None], cidx[None, :]] = Sinv
+    scale = np.empty((n, D))
+    scale[:, aidx] = sa
+    scale[:, cidx] = sc
+    P = P * scale[:, :, None] * scale[:, None, :]
+    Pc = Pc * scale[:-1, :, None] * scale[1:, None, :]
+    return dx, P, Pc
