@@ -239,6 +239,14 @@ def _cmd_diagnose(args) -> int:
     return 0
 
 
+def _add_input_options(p: argparse.ArgumentParser) -> None:
+    """Options of every command that reads a recording (raw robot bags need a robot config)."""
+    p.add_argument("--robot", help="robot name or .toml configuration (default: the recording's; required for a "
+                                   "raw robot bag)")
+    p.add_argument("--contacts", choices=("ft", "fixed"), default="ft",
+                   help="raw bags: contacts from the F/T normal force (Schmitt trigger) or the config's fixed set")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="flexforce",
@@ -264,10 +272,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, type=Path,
                    help="estimate file: .npz (flexforce), .csv (one row per step) or .mcap (ROS 2 bag with the "
                         "estimate beside the inputs, for PlotJuggler or Foxglove)")
-    p.add_argument("--robot", help="robot name or .toml configuration (default: the recording's; required for a "
-                                   "raw robot bag)")
-    p.add_argument("--contacts", choices=("ft", "fixed"), default="ft",
-                   help="raw bags: contacts from the F/T normal force (Schmitt trigger) or the config's fixed set")
+    _add_input_options(p)
     p.add_argument("--force", action="store_true", help="overwrite an existing .mcap output")
     p.add_argument("--ft", action="store_true", help="fuse the recording's F/T readings as measurements")
     p.add_argument("--lag", type=float, help="fixed-lag window, s (default 1)")
@@ -279,10 +284,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, type=Path, help="report folder")
     p.add_argument("--estimators", default="ekf,fixed-lag,batch", help="comma-separated list")
     p.add_argument("--seeds", type=int, help="simulate each scenario with this many noise seeds and aggregate")
-    p.add_argument("--robot", help="robot name or .toml configuration (default: the recording's; required for a "
-                                   "raw robot bag)")
-    p.add_argument("--contacts", choices=("ft", "fixed"), default="ft",
-                   help="raw bags: contacts from the F/T normal force (Schmitt trigger) or the config's fixed set")
+    _add_input_options(p)
     p.add_argument("--ft", action="store_true", help="fuse the recording's F/T readings as measurements")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_cmd_compare)
@@ -292,6 +294,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scenario", help="another built-in scenario or file")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_cmd_demo)
+
     p = sub.add_parser("diagnose", help="where the nominal model fails, which effect is missing, before/after adding it")
     p.add_argument("recording", help="bag, or a built-in scenario name / scenario file to simulate")
     p.add_argument("-o", "--output", required=True, type=Path, help="report folder (index.html, diagnosis.json)")
@@ -304,10 +307,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-rank", action="store_true", help="only refit with --add, no ranking")
     p.add_argument("--no-ekf", action="store_true", help="do not run the EKF (innovations, NIS)")
     p.add_argument("--seed", type=int, help="noise seed when simulating a scenario")
-    p.add_argument("--robot", help="robot name or .toml configuration (default: the recording's; required for a "
-                                   "raw robot bag)")
-    p.add_argument("--contacts", choices=("ft", "fixed"), default="ft",
-                   help="raw bags: contacts from the F/T normal force (Schmitt trigger) or the config's fixed set")
+    _add_input_options(p)
     p.add_argument("--ft", action="store_true", help="fuse the recording's F/T readings as measurements")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_cmd_diagnose)
