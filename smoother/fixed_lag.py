@@ -79,6 +79,20 @@ def _isam_params(relinearize_threshold, relinearize_skip: int) -> gtsam.ISAM2Par
     return params
 
 
+
+def predict_step(R_prev, q_prev, dt: float):
+    """Initial guess of the next step: the previous one moved at constant acceleration over ``dt``.
+
+    ``q = (t, w, v, dw, a)``; the rotation is composed on SO(3) with the world-frame increment.
+    """
+    w, v, dw, a = q_prev[3:6], q_prev[6:9], q_prev[9:12], q_prev[12:15]
+    R = kernels.so3_exp(w * dt + 0.5 * dw * dt * dt) @ R_prev
+    q = q_prev.copy()
+    q[0:3] = q_prev[0:3] + v * dt + 0.5 * a * dt * dt
+    q[3:6] = w + dw * dt
+    q[6:9] = v + a * dt
+    return R, q
+
 class GtsamFixedLagSmoother:
     """gtsam's IncrementalFixedLagSmoother on the CustomFactors (reference backend, no effects):
     call :meth:`step` once per sample (in order), then :meth:`finish`."""
@@ -109,14 +123,7 @@ class GtsamFixedLagSmoother:
             R, q = p.prior_mean
             R, q = R.copy(), q.copy()
         else:
-            Rp, qp = self._last
-            dt = p.dt
-            w, v, dw, a = qp[3:6], qp[6:9], qp[9:12], qp[12:15]
-            R = kernels.so3_exp(w * dt + 0.5 * dw * dt * dt) @ Rp
-            q = qp.copy()
-            q[0:3] = qp[0:3] + v * dt + 0.5 * a * dt * dt
-            q[3:6] = w + dw * dt
-            q[6:9] = v + a * dt
+            R, q = predict_step(*self._last, p.dt)
         W = p.contact_wrenches(k, R, q)
         return R, q, W
 
@@ -251,13 +258,7 @@ class FixedLagSmoother:
             e = self._e0.copy()
         else:
             Rp, qp, _, e = self._state(k - 1)
-            dt = p.dt
-            w, v, dw, a = qp[3:6], qp[6:9], qp[9:12], qp[12:15]
-            R = kernels.so3_exp(w * dt + 0.5 * dw * dt * dt) @ Rp
-            q = qp.copy()
-            q[0:3] = qp[0:3] + v * dt + 0.5 * a * dt * dt
-            q[3:6] = w + dw * dt
-            q[6:9] = v + a * dt
+            R, q = predict_step(Rp, qp, p.dt)
         W = p.contact_wrenches(k, R, q)
         return R, q, W, e
 
