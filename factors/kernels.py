@@ -645,6 +645,24 @@ def block_tridiag_solve_multi(D, B, G, want_cov):
     return X, P, Pc
 
 
+
+@njit
+def block_tridiag_logdet(D, B):
+    """``log det H`` for ``H`` symmetric positive definite, block tridiagonal (as
+    :func:`block_tridiag_solve`): twice the sum of the logs of the block Cholesky pivots.
+    Raises ``np.linalg.LinAlgError`` when ``H`` is not positive definite."""
+    n, d = D.shape[0], D.shape[1]
+    out = 0.0
+    S = D[0].copy()
+    for k in range(n):
+        L = np.linalg.cholesky(S)
+        for i in range(d):
+            out += 2.0 * np.log(L[i, i])
+        if k < n - 1:
+            C = _trsm_lower(L, B[k])
+            S = D[k + 1] - C.T @ C
+    return out
+
 # ----------------------------------------------------------------------------------------------
 # Fixed-lag window (smoother/fixed_lag.py): incremental block elimination, oldest first
 # ----------------------------------------------------------------------------------------------

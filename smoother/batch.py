@@ -18,18 +18,20 @@ from typing import Callable
 import numpy as np
 
 from flexforce.errors import EstimatorError
-from flexforce.smoother.linearize import (Trajectory, assemble, drop_global_walks, global_columns, linearize,
+from flexforce.smoother.linearize import (Trajectory, assemble, drop_global_walks, global_columns, is_global,
+                                          linearize,
                                           solve_arrow)
+from flexforce.smoother import evidence
 from flexforce.smoother.problem import NoiseRule, Problem
 from flexforce.smoother.result import make_estimate
 
 S_CORE = 18
 
-GLOBAL_CONSTANTS = False
+GLOBAL_CONSTANTS = True
 """Default of ``global_constants`` (:func:`optimize`, :func:`run_batch`, :func:`fit`): constant effects
-as one global block solved by variable projection.  Off by default: it converges (stiffness 0.711
-in 25 iterations against 151), but the converged optimum fails two assertions of
-``tests/test_effects.py`` that held only because LM had not converged (docs/smoother.md)."""
+as one global block, estimated by the marginal likelihood of the data (:mod:`.evidence`) with the
+states re-optimised for each value (variable projection).  False carries them as per-step copies
+tied by a tight random walk, as the fixed-lag smoother does (slow to converge in batch)."""
 
 
 def initial_trajectory(prob: Problem) -> Trajectory:
@@ -84,6 +86,17 @@ def _system(prob, lin, cidx):
     return assemble(drop_global_walks(prob, lin) if cidx.size else lin, prob.n, prob.state_dim)
 
 
+def _feasible(prob, traj) -> bool:
+    """Every global effect's optional ``feasible(values)`` (e.g. a positive stiffness) holds."""
+    off = 0
+    for eff in prob.effects:
+        check = getattr(eff, "feasible", None)
+        if check is not None and is_global(eff, prob) and not check(traj.e[0, off:off + eff.dim]):
+            return False
+        off += int(eff.dim)
+    return True
+
+
 def _global_columns(prob, global_constants):
     on = GLOBAL_CONSTANTS if global_constants is None else bool(global_constants)
     return global_columns(prob) if on else np.zeros(0, dtype=int)
@@ -120,31 +133,47 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
                                             progress=progress if cidx.size == 0 else None)
     log += costs
     if cidx.size:
+        # theta by the marginal likelihood (smoother/evidence.py): J + occam
+        pen = evidence.occam(prob, lin, cidx)
+        gpen = evidence.occam_gradient(prob, traj, cidx)
         for it in range(max_iterations):
-            cost = lin.cost
+            phi = lin.cost + pen
             Hd, B, g = _system(prob, lin, cidx)
+            g = g.copy()
+            g[0, cidx] -= gpen  # g is minus the gradient; the global block sums its steps
             dx, _, _ = solve_arrow(Hd, B, g, cidx, damping=0.0)
             if not np.all(np.isfinite(dx)):
                 raise EstimatorError("batch smoother: the Gauss-Newton step is not finite (singular system)")
             step = dx[0, cidx]
+            predicted = 0.5 * float(step @ g[:, cidx].sum(axis=0))
+            if predicted <= rel_tol * max(lin.cost, 1.0):
+                break  # the Schur step promises nothing more
             for _ in range(8):
                 d = np.zeros((n, D))
                 d[:, cidx] = step
                 cand = traj.retract(d)
+                if not _feasible(prob, cand):
+                    step = 0.25 * step
+                    continue
                 cand, lin_c, costs = _levenberg_marquardt(prob, cand, linearize(prob, cand), cidx, True,
                                                           max_iterations, rel_tol, lam=1e-12)
-                if lin_c.cost <= cost:
+                try:
+                    pen_c = evidence.occam(prob, lin_c, cidx)
+                except EstimatorError:  # e.g. a stiffness scale driven negative: unstable dynamics
+                    pen_c = np.inf
+                if lin_c.cost + pen_c <= phi:
                     break
                 step = 0.25 * step
             else:
                 break
-            traj, lin = cand, lin_c
+            traj, lin, pen = cand, lin_c, pen_c
             log += costs
             outer += 1
             if progress is not None:
                 progress(min(0.9, 0.3 + 0.6 * (it + 1) / max_iterations))
-            if cost - lin.cost <= rel_tol * max(lin.cost, 1.0):
+            if phi - (lin.cost + pen) <= rel_tol * max(lin.cost, 1.0):
                 break
+            gpen = evidence.occam_gradient(prob, traj, cidx)
     P = None
     if want_cov:
         Hd, B, g = _system(prob, lin, cidx)
@@ -244,6 +273,11 @@ def fit(rec, model, progress: Callable[[float], None] | None = None, rule: Noise
     - ``cost_total``: the optimised objective (robust Newton-Euler, every prior and random walk).
     - ``n_residuals``: the number of scalar residuals in ``cost_data``.
     - ``effective_dof``: effect name -> its effective number of parameters (:func:`effective_dof`).
+    - ``cost_evidence``: the negative log marginal likelihood of the data given the constant
+      parameters, up to a constant (:mod:`.evidence`): ``cost_data`` + ``cost_state_prior`` (the
+      first-step prior, the per-step effects' priors and walks) + ``(log_det_posterior -
+      log_det_prior) / 2`` (the states integrated out, Laplace); ``global`` names the effects
+      whose unknowns were one global block (the constants the evidence is conditioned on).
 
     ``Estimate.effects[name]`` is each effect's report (value, std, unit, summary, ...).
     """
@@ -269,8 +303,13 @@ def fit(rec, model, progress: Callable[[float], None] | None = None, rule: Noise
         ok = np.isfinite(r)
         cost_data += 0.5 * float(np.sum(r[ok] ** 2))
         n_res += int(ok.sum())
+    post, prior = evidence.log_dets(prob, lin, cidx)
+    state_prior = evidence.state_prior_cost(prob, lin)
     est.meta["fit"] = {"cost_data": cost_data, "cost_total": float(lin.cost), "n_residuals": n_res,
-                       "effective_dof": effective_dof(prob, P, Pc)}
+                       "effective_dof": effective_dof(prob, P, Pc),
+                       "cost_state_prior": state_prior, "log_det_posterior": post, "log_det_prior": prior,
+                       "cost_evidence": cost_data + state_prior + 0.5 * (post - prior),
+                       "global": [e.name for e in prob.effects if is_global(e, prob)] if cidx.size else []}
     est.total_time = time.perf_counter() - t0
     if progress is not None:
         progress(1.0)

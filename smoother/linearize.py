@@ -355,10 +355,24 @@ def solve(Hd, B, g, damping: float = 0.0, want_cov: bool = False):
 # ----------------------------------------------------------------------------------------------
 
 
-def is_global(eff) -> bool:
-    """An effect whose unknowns are one global block in batch: ``constant = True`` and no per-step
-    prior (a constant parameter; its per-step copies are equal by construction)."""
-    return getattr(eff, "constant", False) is True and getattr(eff, "step_prior_sigma", None) is None
+def is_global(eff, prob=None) -> bool:
+    """An effect whose unknowns are one global block in batch: no per-step prior, and either
+    ``constant = True`` or (no ``constant`` attribute, ``prob`` given) a random walk too tight to
+    matter over the recording (``rw sqrt(N - 1) < 1e-3`` of the prior sigma, as
+    :func:`flexforce.smoother.batch.effective_dof` decides), so that a user's effect written
+    without the attribute is treated like the built-in constants."""
+    if getattr(eff, "step_prior_sigma", None) is not None:
+        return False
+    constant = getattr(eff, "constant", None)
+    if constant is not None:
+        return constant is True
+    if prob is None:
+        return False
+    _, s0 = eff.prior(prob)
+    d = int(eff.dim)
+    s0 = np.broadcast_to(np.asarray(s0, dtype=float), (d,))
+    rw = np.broadcast_to(np.asarray(eff.random_walk_sigma(prob), dtype=float), (d,))
+    return bool(np.all(rw * np.sqrt(max(prob.n - 1, 1)) < 1e-3 * s0))
 
 
 def global_columns(prob) -> np.ndarray:
@@ -366,7 +380,7 @@ def global_columns(prob) -> np.ndarray:
     idx = []
     off = S + 6 * prob.nc
     for eff in prob.effects:
-        if is_global(eff):
+        if is_global(eff, prob):
             idx.extend(range(off, off + int(eff.dim)))
         off += int(eff.dim)
     return np.asarray(idx, dtype=int)
@@ -376,7 +390,7 @@ def drop_global_walks(prob, lin: Linearization) -> Linearization:
     """``lin`` without the random-walk factors of the global effects (exactly zero residual, and a
     Jacobian that vanishes on the constrained subspace ``e_k = e``; left in, its ``1e12``-scale
     information would cancel in the reduction at the cost of digits)."""
-    drop = {f"effect_walk/{eff.name}" for eff in prob.effects if is_global(eff)}
+    drop = {f"effect_walk/{eff.name}" for eff in prob.effects if is_global(eff, prob)}
     if not drop:
         return lin
     return Linearization(unary=lin.unary, binary={k: v for k, v in lin.binary.items() if k not in drop},

@@ -105,10 +105,12 @@ class Effect(Protocol):
         Optional: when the method takes a ``t`` keyword the smoothers pass the steps' times (N,)
         in seconds from the start (for time-varying effects: *when* the effect acts).  An effect
         may also set ``constant = True`` (its value does not vary: the random walk only ties the
-        steps together); :func:`flexforce.smoother.fit` then counts its effective dof from its
-        prior alone (otherwise it is guessed from the random walk being negligible); with
-        ``global_constants`` the batch smoother makes it one global block (docs/smoother.md), still
-        passing ``e`` of shape (n, dim) to ``residual_terms``.  And an
+        steps together; without the attribute, a random walk negligible over the recording means
+        the same); :func:`flexforce.smoother.fit` then counts its effective dof from its prior
+        alone, and the batch smoother makes it one global block estimated by the marginal
+        likelihood (docs/smoother.md, :mod:`flexforce.smoother.evidence`), still passing ``e`` of
+        shape (n, dim) to ``residual_terms``; its optional ``feasible(values (dim,)) -> bool``
+        rejects steps out of the physical range (a negative stiffness).  And an
         effect may define ``step_prior_sigma(problem) -> (dim,)``: a prior at *every* step around
         the prior mean (with the random walk, a mean-reverting process: for transient effects
         whose constant part the data cannot tell from the core state).

@@ -259,8 +259,8 @@ def test_com_offset(null):
     rep = est.effects["com-offset"]
     v, s = np.array(rep["value"]), np.array(rep["std"])
     truth = np.array(TRUTH["com-offset"]["offset"])
-    # x, y (the z component is confounded with the rotational stiffness, module docstring)
-    assert np.all(np.abs(v[:2] - truth[:2]) < np.maximum(5 * s[:2], 3e-3)), (v, s)
+    # x, y (the z component is confounded with the rotational stiffness: not estimated by default)
+    assert v.shape == (2,) and np.all(np.abs(v - truth[:2]) < 4 * s), (v, s)
     fb, cb, tb = errors(base, rec)
     fe, ce, te = errors(est, rec)
     assert ce < 0.2 * cb and te < 0.2 * tb and fe < fb
@@ -281,8 +281,6 @@ def test_stiffness(null):
     assert g0 < 10 + 2 * dof0
 
 
-@pytest.mark.xfail(reason="measured 0.867 ± 0.006 for a truth of 0.7: batch LM converges slowly along a "
-                          "constant contact parameter (0.711 after 151 iterations); open", strict=False)
 def test_stiffness_recovered_within_its_std(null):
     rec, base, est, nfit = fits("stiffness", null)
     rep = est.effects["stiffness"]
