@@ -51,6 +51,14 @@ KEYS = ("force_N", "cop_m", "rotation_rad")
 
 def one(job):
     truth, level, effect, seed, duration = job
+    try:
+        return _one(truth, level, effect, seed, duration)
+    except Exception as exc:  # one failed recording must not lose the others
+        return {"truth": truth, "level": level, "effect": effect, "seed": seed, "selected": [],
+                "first": "error", "error": f"{type(exc).__name__}: {exc}"}
+
+
+def _one(truth, level, effect, seed, duration):
     from flexforce.compare.diagnose import diagnose
     from flexforce.datasets.scenario import Scenario
     from flexforce.datasets.simulator import Simulator
@@ -94,16 +102,28 @@ def main():
             for level, eff in enumerate(levels[:1] if args.quick else levels):
                 jobs.append((name, level, eff, seed, args.duration))
     t0 = time.perf_counter()
-    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-        runs = list(pool.map(one, jobs))
+    # Each finished recording is appended to a side file, so that an interrupted run resumes.
+    partial = Path(args.out).with_suffix(".partial.jsonl")
+    done = {}
+    if partial.exists():
+        for line in partial.read_text().splitlines():
+            r = json.loads(line)
+            done[(r["truth"], r["level"], r["seed"])] = r
+    todo = [j for j in jobs if (j[0], j[1], j[3]) not in done]
+    with ProcessPoolExecutor(max_workers=args.jobs) as pool, partial.open("a") as fh:
+        for r in pool.map(one, todo):
+            done[(r["truth"], r["level"], r["seed"])] = r
+            fh.write(json.dumps(r) + "\n")
+            fh.flush()
+    runs = [done[(j[0], j[1], j[3])] for j in jobs]
     truths = ["none", *CASES]
-    cols = truths
+    cols = [*truths, "error"]
     matrix = {t: {c: 0 for c in cols} for t in truths}
     for r in runs:
         matrix[r["truth"]][r["first"] if r["first"] in cols else "none"] += 1
     falls = {}
     for r in runs:
-        if r["truth"] == "none" or r["after"] is None:
+        if r["truth"] == "none" or r.get("after") is None:
             continue
         for k in KEYS:
             falls.setdefault(r["truth"], {}).setdefault(k, []).append(r["after"][k] / r["before"][k])
@@ -122,6 +142,7 @@ def main():
     for t in truths:
         lines.append(f"| {t} | " + " | ".join(str(matrix[t][c]) if matrix[t][c] else "." for c in cols) + " |")
     Path(args.out).with_suffix(".md").write_text("\n".join(lines) + "\n")
+    partial.unlink()
     print(json.dumps({k: v for k, v in result.items() if k != "details"}, indent=1))
 
 

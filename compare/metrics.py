@@ -22,6 +22,7 @@ for the mean of N independent draws) and, for filters, NIS of the 6-D innovation
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -265,7 +266,9 @@ def _against_sensors(m: Metrics, est, rec, keep):
         diff = local - rec.ft
         fz = np.abs(diff[:, :, 2])
         fz[~keep] = np.nan
-        m.errors["vertical_force_N"] = np.sqrt(np.nanmean(fz * fz, axis=1))
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # rows left out (NaN) stay NaN
+            m.errors["vertical_force_N"] = np.sqrt(np.nanmean(fz * fz, axis=1))
         m.rmse["vertical_force_N"], m.max["vertical_force_N"] = _summ(fz.ravel())
         ff = diff[:, :, :3]
         if np.isfinite(ff).any():

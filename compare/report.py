@@ -171,7 +171,11 @@ def figure_consistency(comp, rec):
     axes[1].axhline(6, color="k", ls="--", lw=0.8)
     axes[0].set_ylabel("NEES (18-D)")
     axes[1].set_ylabel("NIS (6-D)")
-    axes[0].legend(fontsize=8)
+    for ax in axes:
+        if ax.get_legend_handles_labels()[1]:
+            ax.legend(fontsize=8)
+    if not any(m.nees_series is not None for _, m in series):
+        axes[0].text(0.5, 0.5, "no ground truth: no NEES", ha="center", va="center", transform=axes[0].transAxes)
     axes[-1].set_xlabel("time [s]")
     for ax in axes:
         ax.grid(alpha=0.3, which="both")
