@@ -30,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
+from flexforce.compare.diagnose import TIE
+
 PUSH = {"type": "external-wrench", "link": "@base", "start": 1.5, "duration": 0.4}
 CASES = {
     "external-wrench": [{**PUSH, "force": [40.0, 0.0, 0.0]}, {**PUSH, "force": [0.0, 15.0, 0.0]}],
@@ -89,6 +91,7 @@ def main():
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--quick", action="store_true", help="large magnitude, first seed only")
     ap.add_argument("--only", nargs="*", default=None, help="truths to run (effect names or 'none')")
+    ap.add_argument("--fresh", action="store_true", help="ignore the results already in --out")
     ap.add_argument("--out", default=str(Path(__file__).with_name("results") / "diagnose_confusion.json"))
     args = ap.parse_args()
     seeds = args.seeds[:1] if args.quick else args.seeds
@@ -105,6 +108,10 @@ def main():
     # Each finished recording is appended to a side file, so that an interrupted run resumes.
     partial = Path(args.out).with_suffix(".partial.jsonl")
     done = {}
+    if Path(args.out).exists() and not args.fresh:  # a finished run: recompute the tables only
+        for r in json.loads(Path(args.out).read_text()).get("details", []):
+            if r.get("first") != "error":
+                done[(r["truth"], r["level"], r["seed"])] = r
     if partial.exists():
         for line in partial.read_text().splitlines():
             r = json.loads(line)
@@ -116,6 +123,10 @@ def main():
             fh.write(json.dumps(r) + "\n")
             fh.flush()
     runs = [done[(j[0], j[1], j[3])] for j in jobs]
+    for r in runs:  # the first round's rivals of the best: significant and within TIE of its score
+        rk = r.get("ranking") or []
+        r["rivals"] = [c["effect"] for c in rk[1:] if rk[0]["significant"] and c["significant"]
+                       and rk[0]["score"] - c["score"] < TIE]
     truths = ["none", *CASES]
     cols = [*truths, "error"]
     matrix = {t: {c: 0 for c in cols} for t in truths}
@@ -131,6 +142,8 @@ def main():
         "benchmark": "diagnose_confusion", "scenario": "sway", "duration_s": args.duration, "seeds": seeds,
         "cases": CASES, "matrix": matrix,
         "correct_first": sum(r["first"] == r["truth"] for r in runs), "runs": len(runs),
+        "tie": TIE, "ambiguous_first": [[r["truth"], r["level"], r["seed"], r["first"], r["rivals"]] for r in runs if r["rivals"]],
+        "selected": {f'{r["truth"]}/{r["level"]}/{r["seed"]}': r["selected"] for r in runs},
         "error_ratio_after_before": {t: {k: [float(np.min(v)), float(np.max(v))] for k, v in d.items()}
                                      for t, d in falls.items()},
         "details": runs, "wall_s": time.perf_counter() - t0,

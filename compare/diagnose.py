@@ -67,6 +67,11 @@ ALPHA = 0.01
 AUTO = "auto"
 """``add=["auto"]``: add the effects the greedy selection found significant."""
 
+TIE = 6.0
+"""Two significant candidates of one round whose scores differ by less than this (twice the log
+of a Bayes factor of 20, "strong evidence" on Kass and Raftery's scale) explain the data about
+equally well: the data do not tell them apart, and the diagnosis says so (:attr:`Candidate.rivals`)."""
+
 
 # ----------------------------------------------------------------------------------------------
 # Candidates and fitting
@@ -189,12 +194,16 @@ class Candidate:
     summary: str = ""
     error: str | None = None
     """Why the fit failed, if it did."""
+    rivals: tuple[str, ...] = ()
+    """For the best of a round: the other significant candidates within :data:`TIE` of its score,
+    which the data do not tell apart from it."""
 
     def to_dict(self) -> dict:
         return {"effect": self.effect, "score": _clean(self.score), "significant": bool(self.significant),
                 "parameters": _jsonable(self.parameters), "summary": self.summary, "round": self.round,
                 "base": list(self.base), "likelihood_ratio": _clean(self.lr),
                 "effective_dof": _clean(self.effective_dof), "p_value": _clean(self.p_value),
+                "indistinguishable_from": list(self.rivals),
                 **({"error": self.error} if self.error else {})}
 
 
@@ -247,6 +256,7 @@ class Diagnosis:
                "ranking": [c.to_dict() for c in self.ranking],
                "rounds": [[c.to_dict() for c in r] for r in self.rounds],
                "selected": list(self.selected), "added": list(self.added),
+               "ambiguities": self.ambiguities(),
                "before": self.before.to_dict(), "after": self.after.to_dict() if self.after else None}
         if self.ekf is not None:
             m = self.ekf.metrics
@@ -264,7 +274,20 @@ class Diagnosis:
                 continue
             lines.append(f"{i:2d} {c.effect:24s} {c.score:10.1f} {c.lr:10.1f} {c.effective_dof:6.1f} "
                          f"{c.p_value:9.2g}  {'yes' if c.significant else 'no ':3s}  {c.summary}")
+        lines += [f"   {w}" for w in self.ambiguities()]
         return "\n".join(lines)
+
+    def ambiguities(self) -> list[str]:
+        """One sentence per round whose best effect the data cannot tell from another."""
+        out = []
+        for row in self.rounds:
+            best = row[0] if row else None
+            if best is not None and best.rivals:
+                others = ", ".join(f"{r} ({next(c.score for c in row if c.effect == r):.1f})" for r in best.rivals)
+                out.append(f"round {best.round}: {best.effect} ({best.score:.1f}) is not told apart from {others}: "
+                           f"the scores differ by less than {TIE:g} (a Bayes factor of 20); "
+                           f"more varied motion, or knowledge of the robot, must decide")
+        return out
 
 
 def _clean(x):
@@ -339,6 +362,13 @@ def score(base: Fit, fit: Fit, effect: str, alpha: float = ALPHA) -> tuple[float
 # ----------------------------------------------------------------------------------------------
 # The diagnosis
 # ----------------------------------------------------------------------------------------------
+
+
+def mark_rivals(row: list[Candidate], tie: float = TIE) -> None:
+    """Give the best of a sorted round its rivals: significant candidates within ``tie`` of its score."""
+    if row and row[0].significant and row[0].score is not None:
+        row[0].rivals = tuple(c.effect for c in row[1:]
+                              if c.significant and c.score is not None and row[0].score - c.score < tie)
 
 
 def fill_residual_sigma(est) -> None:
@@ -446,6 +476,7 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                 row.append(Candidate(name, tuple(selected), len(rounds) + 1, s, lr, nu, p, sig, rep,
                                      summarize_effect(rep, makers[name]())))
             row.sort(key=lambda c: -math.inf if c.score is None else c.score, reverse=True)
+            mark_rivals(row)
             rounds.append(row)
             best = row[0] if row else None
             if best is None or not best.significant or len(selected) >= max_effects:
@@ -473,7 +504,9 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
         if est is not None:
             ekf_snap = Snapshot((), est, evaluate(est, rec, skip=skip), flag_windows(est, window=window, alpha=alpha),
                                 consistency(est), residual_rms(est), float("nan"), 0)
-    criterion = {"name": "BIC", "score": "2 (C_base - C) - nu ln(n)", "alpha": alpha,
+    criterion = {"name": "Laplace evidence + BIC for constants",
+                 "score": "2 (E_base - E) - nu_constant ln(n), E the negative log marginal likelihood",
+                 "alpha": alpha, "tie": TIE,
                  "n_residuals": nominal.n_residuals, "penalty_per_dof": math.log(max(nominal.n_residuals, 2)),
                  "fit": "flexforce.smoother.fit"}
     return Diagnosis(describe(rec), ranking, rounds, selected, added, before, after, ekf_snap, criterion)

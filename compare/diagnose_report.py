@@ -217,12 +217,14 @@ td,th{{border:1px solid #ccc;padding:3px 6px;text-align:right}}img{{max-width:10
 ({_fmt(info.get('duration_s'))} s). {html.escape(info.get('description') or '')}</p>
 <p>Hidden effects in the data (simulated recordings):</p><ul>{hidden_html}</ul>
 <h2>Which effect is missing</h2>
-<p>Each candidate is refitted on top of the effects already selected and scored with the Bayesian information
-criterion, score = 2(C<sub>base</sub> − C) − ν ln n, with C the data cost (½ Σ r² of the whitened residuals),
-ν the effective degrees of freedom the effect adds and n = {crit.get('n_residuals')} scalar residuals
-(ln n = {_fmt(crit.get('penalty_per_dof'))} per dof). Significant: score &gt; 0 and likelihood-ratio p &lt;
+<p>Each candidate is refitted on top of the effects already selected and scored by the gain in log
+marginal likelihood (Laplace: the data cost, the priors of the per-step states and their Occam factor),
+2ΔE, less ν ln n for each of its constant unknowns (BIC), with n = {crit.get('n_residuals')} scalar residuals
+(ln n = {_fmt(crit.get('penalty_per_dof'))}); 2ΔE is in the column 2ΔC and ν is the effective degrees of freedom
+the effect adds (docs/diagnostics.md, "The scoring"). Significant: score &gt; 0 and likelihood-ratio p &lt;
 {crit.get('alpha')}. Selected (greedy forward selection): <b>{html.escape(', '.join(diag.selected) or 'none')}</b>.</p>
 {ranking_html(diag)}
+{''.join(f"<p><b>Not told apart:</b> {html.escape(a)}.</p>" for a in diag.ambiguities())}
 <h2>Where the nominal model fails</h2>
 <p>Windows where a whitened residual exceeds its χ² bound (Bonferroni-corrected over all windows and axes);
 sizes are the RMS and mean of the residual in its physical unit.</p>

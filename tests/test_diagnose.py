@@ -152,6 +152,26 @@ def test_score_is_bic_with_a_likelihood_ratio_test():
     assert s < 0 and not sig
 
 
+def test_effects_the_data_do_not_tell_apart_are_reported():
+    """Scores within TIE of the best (and significant) make it ambiguous; in the table and JSON."""
+    from flexforce.compare.diagnose import TIE, Candidate, Diagnosis, mark_rivals
+
+    def cand(name, s, sig=True):
+        return Candidate(name, (), 1, s, s + 10, 1.0, 1e-4 if sig else 0.5, sig, {}, "")
+
+    row = [cand("com-offset", 1115.7), cand("accel-bias", 1115.7 - TIE / 2), cand("external-wrench", 1026.2),
+           cand("gyro-bias", 1113.0, sig=False)]
+    mark_rivals(row)
+    assert row[0].rivals == ("accel-bias",) and row[1].rivals == ()
+    d = Diagnosis({}, row, [row], ["com-offset"], [], None, None)
+    (sentence,) = d.ambiguities()
+    assert "com-offset" in sentence and "accel-bias" in sentence and "external-wrench" not in sentence
+    assert "not told apart" in d.ranking_table() and d.ranking[0].to_dict()["indistinguishable_from"] == ["accel-bias"]
+    clear = [cand("gyro-bias", 320.7), cand("external-wrench", 23.4)]
+    mark_rivals(clear)
+    assert clear[0].rivals == () and not Diagnosis({}, clear, [clear], [], [], None, None).ambiguities()
+
+
 def test_candidates_errors():
     with pytest.raises(ConfigError, match="unknown effect 'nope'"):
         resolve_candidates(["nope"])
