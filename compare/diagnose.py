@@ -250,6 +250,8 @@ class Diagnosis:
     ekf: Snapshot | None = None
     """The EKF on the nominal model: its whitened innovations are its residuals (NIS alongside)."""
     criterion: dict = field(default_factory=dict)
+    truth_external_wrench: np.ndarray | None = None
+    """(N, 6) the simulated recording's true external wrench (for the figures), None on real logs."""
 
     def to_json(self) -> dict:
         out = {"recording": _jsonable(self.recording), "criterion": self.criterion,
@@ -509,7 +511,9 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                  "alpha": alpha, "tie": TIE,
                  "n_residuals": nominal.n_residuals, "penalty_per_dof": math.log(max(nominal.n_residuals, 2)),
                  "fit": "flexforce.smoother.fit"}
-    return Diagnosis(describe(rec), ranking, rounds, selected, added, before, after, ekf_snap, criterion)
+    truth = getattr(rec, "truth", None)
+    return Diagnosis(describe(rec), ranking, rounds, selected, added, before, after, ekf_snap, criterion,
+                     None if truth is None else np.asarray(truth.external_wrench, dtype=float))
 
 
 def load_plugin(path) -> list:

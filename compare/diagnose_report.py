@@ -181,6 +181,33 @@ def comparison_html(diag) -> str:
     return "<table>" + head + "".join(rows) + "</table>"
 
 
+def figure_wrench(diag):
+    """The external wrench estimated with the added effects, ±2σ, over the true one when known."""
+    if diag.after is None:
+        return None
+    rep = (diag.after.estimate.effects or {}).get("external-wrench")
+    if not rep or "wrench" not in rep:
+        return None
+    t = np.asarray(rep["t_s"])
+    W, S = np.asarray(rep["wrench"]), np.asarray(rep["wrench_std"])
+    truth = diag.truth_external_wrench
+    fig, axes = plt.subplots(2, 1, figsize=(10, 5.5), sharex=True)
+    for row, (ax, unit) in enumerate(zip(axes, ("force [N]", "moment about the origin [N m]"))):
+        for j, (axis, color) in enumerate(zip("xyz", ("C0", "C1", "C2"))):
+            c = 3 * row + j
+            ax.plot(t, W[:, c], color=color, lw=1.0, label=f"{axis} estimated")
+            ax.fill_between(t, W[:, c] - 2 * S[:, c], W[:, c] + 2 * S[:, c], color=color, alpha=0.15, lw=0)
+            if truth is not None and len(truth) == len(t):
+                ax.plot(t, truth[:, c], color=color, lw=0.8, ls="--", label=f"{axis} true")
+        ax.set_ylabel(unit, fontsize=8)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, ncol=6, loc="upper left")
+    axes[-1].set_xlabel("time [s]")
+    fig.suptitle("External wrench with " + ", ".join(diag.added) + " (band: ±2σ; dashed: truth)")
+    fig.tight_layout()
+    return fig
+
+
 def write_diagnosis(diag, out: str | Path, title: str = "flexforce diagnosis") -> Path:
     """Write DIR/diagnosis.json, DIR/index.html and the figures; returns the folder."""
     out = Path(out)
@@ -191,6 +218,7 @@ def write_diagnosis(diag, out: str | Path, title: str = "flexforce diagnosis") -
                "before_after.png": lambda: figure_before_after(diag)}
     if diag.after is not None:
         figures["residuals_after.png"] = lambda: figure_residuals(diag.after, None, "With " + ", ".join(diag.added))
+        figures["external_wrench.png"] = lambda: figure_wrench(diag)
     written = []
     for name, make in figures.items():
         fig = make()
