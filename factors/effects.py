@@ -380,10 +380,12 @@ class ExternalWrench:
         self.tau = float(tau)
         self._L = None
         self._height = None
+        self._weight = None
 
     def _setup(self, problem):
         self._L = np.linalg.cholesky(np.asarray(problem.sigmas.newton_euler_cov, dtype=float))
         self._height = max(float(problem.com[0][2]), 0.1)
+        self._weight = float(problem.rec.mass) * float(problem.g)
         return self._L
 
     def prior(self, problem):
@@ -477,15 +479,30 @@ class ExternalWrench:
                                         f"{std[kf, 1]:.0f}, {std[kf, 2]:.0f}) N, moment about the origin "
                                         f"({T[0]:.1f}, {T[1]:.1f}, {T[2]:.1f}) N m, as a horizontal force at the "
                                         f"CoM height {feq[kp - k0]:.0f} N along {sign}{axis})")})
+        steady = None
+        if windows and n > 1 and sum(w["end_s"] - w["start_s"] + dt for w in windows) > 0.8 * (t[-1] - t[0] + dt):
+            # on for most of the recording: a steady part, which a CoM offset would also explain
+            med = np.median(Feq, axis=0)
+            a = int(np.argmax(np.abs(med)))
+            steady = {"equivalent_force": med.tolist()}
+            text = (f"present throughout: a steady part of {abs(med[a]):.1f} N along {'-' if med[a] < 0 else ''}"
+                    f"{'xy'[a]} at the CoM height (median)")
+            if self._weight:
+                delta = np.array([med[0], med[1]]) * h / self._weight
+                steady["com_offset_equivalent_m"] = delta.tolist()
+                text += (f", which a CoM offset of ({delta[0]:.3f}, {delta[1]:.3f}) m would also explain; "
+                         f"try com-offset")
         if windows:
             summary = "; ".join(w["summary"] for w in windows)
+            if steady is not None:
+                summary += "; " + text
         else:
             summary = (f"no significant external wrench (max equivalent force "
                        f"{float(np.max(np.linalg.norm(Feq, axis=1))):.1f} N)")
         kp = int(np.argmax(z2)) if cov is not None else int(np.argmax(np.linalg.norm(Feq, axis=1)))
         return {"value": v[kp].tolist(), "std": std[kp].tolist(), "unit": self.unit,
                 "labels": [f"F_{a} [N]" for a in _AX] + [f"T_{a} [N m]" for a in _AX],
-                "peak_s": float(t[kp]), "windows": windows, "summary": summary, "com_height_m": h,
+                "peak_s": float(t[kp]), "windows": windows, "summary": summary, "com_height_m": h, "steady": steady,
                 "t_s": t.tolist(), "wrench": np.round(v, 3).tolist(), "wrench_std": np.round(std, 3).tolist()}
 
 
