@@ -374,10 +374,13 @@ class ExternalWrench:
     unit = "N, N m"
     constant = False
 
-    def __init__(self, tau: float = 0.02):
+    def __init__(self, tau: float = 0.02, prior_weight_fraction: float = 0.08):
         if not tau > 0:
             raise ConfigError(f"external-wrench: tau must be positive (s), got {tau}")
+        if not prior_weight_fraction > 0:
+            raise ConfigError(f"external-wrench: prior_weight_fraction must be positive, got {prior_weight_fraction}")
         self.tau = float(tau)
+        self.prior_weight_fraction = float(prior_weight_fraction)
         self._L = None
         self._height = None
         self._weight = None
@@ -392,13 +395,19 @@ class ExternalWrench:
         return np.zeros(6), self.step_prior_sigma(problem)
 
     def step_prior_sigma(self, problem):
-        """Zero-mean prior at every step: a force of a quarter of the robot's weight at the CoM,
-        in whitened units.  The constant part of an external force is hard to tell from a static
-        deformation of the contacts (only its moment tilts the robot); this keeps it near zero
-        unless the data (the push's dynamics) demand otherwise."""
+        """Zero-mean prior at every step: a force of ``prior_weight_fraction`` (8 %) of the robot's
+        weight at the CoM, in whitened units.
+
+        A push is transient; a steady wrench is what a CoM offset (or a lean on the robot) also
+        produces, and at rest the two are alike (only the moment tilts the robot).  The prior
+        decides who carries the steady part.  With a quarter of the weight a steady wrench cost
+        so little that the wrench took a hidden CoM offset too, and pushed the horizontal contact
+        forces off by 10 N; at 8 % a steady part costs (0.25/0.08)^2 ~ 10 times more and the
+        constant ``com-offset`` takes it (push-com with both effects: force error 3.2 -> 2.8 N
+        instead of 3.2 -> 9.7 N), while a real push keeps its size (docs/diagnostics.md)."""
         self._setup(problem)
         sF = float(np.sqrt(np.mean(np.diag(problem.sigmas.newton_euler_cov)[:3])))
-        return np.full(6, 0.25 * float(problem.rec.mass) * problem.g / sF)
+        return np.full(6, self.prior_weight_fraction * float(problem.rec.mass) * problem.g / sF)
 
     def random_walk_sigma(self, problem):
         return np.full(6, problem.dt / self.tau)

@@ -5,18 +5,9 @@ fitted with and without the effect; and the same effect fitted on the recording 
 finite-difference checks of every effect's residual terms (world-frame increments, the smoothers'
 retraction) and the protocol's contact family in the fixed-lag smoother.
 
-Measured (3 s sway, seed 0; truth -> estimate ± std, cost gain vs effective dof, errors
-force N / CoP mm / tilt mrad nominal -> with the effect):
-
-- gyro-bias y 0.010 -> 0.0102 ± 0.0006 rad/s, gain 175 vs 3 dof; tilt 0.86 -> 0.35 mrad
-- accel-bias (0.08, -0.05) -> (0.0796 ± 0.003, -0.0525 ± 0.0026), gain 569 vs 3; CoP 6.7 -> 1.1 mm
-- external-wrench 40 N along x, 1.5-1.9 s -> window 1.46-1.94 s, peak F_x 37 ± 1 N, T_y 28.5 ± 0.6
-  N m, gain 3243 vs 60 dof; CoP 4.6 -> 4.2 mm, tilt 2.0 -> 1.3 mrad (force 1.8 -> 2.2 N)
-- com-offset x 0.020 -> 0.0219 ± 0.0005 m, gain 916 vs 3; CoP 20 -> 1.2 mm.  Its z component is
-  confounded with the rotational stiffness (m g dz per rad): -0.07 ± 0.01 m on both recordings.
-- stiffness 0.7 -> 0.867 ± 0.006 (biased towards 1: see the xfail test), gain 933 vs 2
-- anisotropic k_fs z 0.7 -> 0.96 ± 0.14, k_ts x 0.7 -> 0.93 ± 0.08, gain 311 vs 4
-- nonlinear beta_f 4000 -> 1394 ± 428 1/m^2, gain 50 vs 2
+The figures each effect reaches on these recordings (estimate ± std, score, errors before and
+after) are measured by ``benchmarks/diagnose_confusion.py`` (same sway, every effect at two
+magnitudes and two seeds, ranked among all the others): ``benchmarks/results/diagnose_confusion.json``.
 """
 
 from __future__ import annotations
