@@ -129,6 +129,7 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
     lin = linearize(prob, traj)
     log = [lin.cost]
     outer = 0
+    fallbacks = 0
     traj, lin, costs = _levenberg_marquardt(prob, traj, lin, cidx, cidx.size > 0, max_iterations, rel_tol,
                                             progress=progress if cidx.size == 0 else None)
     log += costs
@@ -145,7 +146,16 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
             if not np.all(np.isfinite(dx)):
                 raise EstimatorError("batch smoother: the Gauss-Newton step is not finite (singular system)")
             step = dx[0, cidx]
-            predicted = 0.5 * float(step @ g[:, cidx].sum(axis=0))
+            gsum = g[:, cidx].sum(axis=0)
+            predicted = 0.5 * float(step @ gsum)
+            if predicted <= 0.0 and np.any(gsum):
+                # The Schur complement is numerically indefinite (a fit far from the data: the walk
+                # with F/T): its step climbs.  Fall back to the Jacobi-scaled gradient, shortened
+                # by the line search below, rather than stop at the start as if converged.
+                scale = np.einsum("kjj->j", Hd[:, cidx][:, :, cidx])
+                step = gsum / np.maximum(scale, 1e-12)
+                predicted = 0.5 * float(step @ gsum)
+                fallbacks += 1
             if predicted <= rel_tol * max(lin.cost, 1.0):
                 break  # the Schur step promises nothing more
             for _ in range(8):
@@ -178,7 +188,7 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
     if want_cov:
         Hd, B, g = _system(prob, lin, cidx)
         _, P, _ = solve_arrow(Hd, B, g, cidx, damping=0.0, want_cov=True)
-    return traj, P, {"iterations": len(log) - 1, "outer": outer, "cost": log}
+    return traj, P, {"iterations": len(log) - 1, "outer": outer, "gradient_fallbacks": fallbacks, "cost": log}
 
 
 def run_batch(rec, model, progress: Callable[[float], None] | None = None, rule: NoiseRule | None = None,
