@@ -261,7 +261,7 @@ def write_identified(ident: dict, source: Path, command: str, offset: dict) -> P
         f"({offset['offset_percent']:+.1f} %), fused as is.\n"
         "# Results: benchmarks/results/icub_identification.json. How far to trust it: docs/real-logs.md\n"
         "# (the minimum of the F/T-fused cost is set by the IMU and Newton-Euler residuals, the F/T\n"
-        "# term alone is lowest near the nominal 1x; the damping scale is not identified).\n#\n")
+        "# term alone is lowest near the nominal 1x; the damping scale is weakly excited).\n#\n")
     text = re.sub(r'^name = "icub"', 'name = "icub-identified"', text, flags=re.M)
     block = (
         "[stiffness]\n"
