@@ -222,7 +222,11 @@ class Snapshot:
 
     @property
     def rmse(self) -> dict[str, float | None]:
-        return {k: _clean(self.metrics.rmse.get(k)) for k in RMSE_KEYS}
+        """The comparison's headline errors; on real logs also the errors against the F/T sensors."""
+        keys = RMSE_KEYS
+        if getattr(self.metrics, "reference", None) == "sensors":
+            keys = keys + ("vertical_force_N", "contact_force_N")
+        return {k: _clean(self.metrics.rmse.get(k)) for k in keys}
 
     def to_dict(self) -> dict:
         return {"effects": list(self.effects), "residual_rms": _jsonable(self.residual_rms), "rmse": self.rmse,

@@ -17,7 +17,6 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy import stats  # noqa: E402
 
-from flexforce.compare.metrics import RMSE_KEYS  # noqa: E402
 from flexforce.compare.report import LABELS  # noqa: E402
 
 BEFORE, AFTER = "tab:red", "tab:green"
@@ -98,7 +97,7 @@ def figure_before_after(diag):
               "residual RMS [σ]")
     axes[0, 0].axhline(1, color="k", ls="--", lw=0.8)
     if has_truth:
-        ks = [k for k in RMSE_KEYS if b.rmse.get(k) is not None]
+        ks = [k for k in b.rmse if b.rmse.get(k) is not None]
         ref = np.array([b.rmse[k] for k in ks])
         plot_bars(axes[1, 0], [LABELS.get(k, k) for k in ks], np.ones(len(ks)),
                   None if a is None else np.array([a.rmse[k] if a.rmse[k] is not None else np.nan for k in ks]) / ref,
@@ -169,7 +168,7 @@ def comparison_html(diag) -> str:
     b, a = diag.before, diag.after
     head = "<tr><th></th><th>before</th>" + ("<th>after</th>" if a else "") + "</tr>"
     rows = []
-    for k in RMSE_KEYS:
+    for k in b.rmse:
         if b.rmse.get(k) is None and (a is None or a.rmse.get(k) is None):
             continue
         rows.append(f"<tr><th>RMSE {LABELS.get(k, k)}</th><td>{_fmt(b.rmse.get(k))}</td>"
