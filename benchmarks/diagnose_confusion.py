@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from flexforce.compare.diagnose import TIE
+from flexforce.compare.diagnose import TIE, Candidate, mark_rivals
 
 PUSH = {"type": "external-wrench", "link": "@base", "start": 1.5, "duration": 0.4}
 CASES = {
@@ -123,10 +123,11 @@ def main():
             fh.write(json.dumps(r) + "\n")
             fh.flush()
     runs = [done[(j[0], j[1], j[3])] for j in jobs]
-    for r in runs:  # the first round's rivals of the best: significant and within TIE of its score
-        rk = r.get("ranking") or []
-        r["rivals"] = [c["effect"] for c in rk[1:] if rk[0]["significant"] and c["significant"]
-                       and rk[0]["score"] - c["score"] < TIE]
+    for r in runs:  # the first round's rivals of its best, by the diagnosis's own rule
+        row = [Candidate(c["effect"], (), 1, c["score"], None, None, None, c["significant"])
+               for c in r.get("ranking") or []]
+        mark_rivals(row)
+        r["rivals"] = list(row[0].rivals) if row else []
     truths = ["none", *CASES]
     cols = [*truths, "error"]
     matrix = {t: {c: 0 for c in cols} for t in truths}

@@ -407,7 +407,7 @@ class ExternalWrench:
         instead of 3.2 -> 9.7 N), while a real push keeps its size (docs/diagnostics.md)."""
         self._setup(problem)
         sF = float(np.sqrt(np.mean(np.diag(problem.sigmas.newton_euler_cov)[:3])))
-        return np.full(6, self.prior_weight_fraction * float(problem.rec.mass) * problem.g / sF)
+        return np.full(6, self.prior_weight_fraction * self._weight / sF)
 
     def random_walk_sigma(self, problem):
         return np.full(6, problem.dt / self.tau)
