@@ -11,11 +11,18 @@ Given the joint trajectory and which contacts are in force, this module places t
    own axes; not the root link's, whose x points backwards on iCub).
 2. **Base placement.** ``local_T_base = local_T_anchor_rest * (base_T_anchor)^-1``, where
    ``base_T_anchor`` is forward kinematics of the joints alone.
-3. **Rest placements.** A contact that comes into force at step k gets the rest placement
-   ``local_T_base(k) * base_T_contact(k)`` and keeps it, fixed, while it stays in force.  While a
-   contact is not in force its reported placement is its kinematic one (meaningless to the model).
-4. **Switch.** When the anchor leaves contact, the anchor passes to another contact in force
-   (the most loaded one) and its *held* rest placement becomes the new anchor placement, so every
+3. **Rest placements (footholds).** A contact that comes into force at step k gets a rest
+   placement for its whole contact episode, fixed while it stays in force: the kinematic
+   placement ``local_T_base(k) * base_T_contact(k)`` fused with the ground prior
+   (:class:`flexforce.datasets.robot.FootholdConfig`): its tilt off the floor plane and its
+   height above it are reduced by the weights of the two priors, its yaw and horizontal position
+   kept.  Without the ground prior every leg-kinematics error at a touch-down (encoder offsets,
+   the stance foot's own deflection) stays in the local frame as a tilt, and the tilts of
+   successive steps add up; with it, the local frame may drift in yaw and position, as leg
+   odometry does, but its tilt stays that of the floor.  While a contact is not in force its
+   reported placement is its kinematic one (meaningless to the model).
+4. **Switch.** When another contact in force carries ``switch_ratio`` times the anchor's load,
+   or when the anchor leaves contact, the anchor passes to the most loaded contact in force and its *held* rest placement becomes the new anchor placement, so every
    contact's rest placement stays fixed while it is in contact.  If the kinematics disagrees
    slightly with the held placement (the flexibility, encoder errors), the base placement jumps
    by that amount at the switch; ``LocalFrame.drift`` reports the largest disagreement.
@@ -38,9 +45,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import pinocchio as pin
 
+from flexforce.datasets.robot import FootholdConfig
 from flexforce.errors import DataError
 
-__all__ = ["LocalFrame", "anchored_local_frame"]
+__all__ = ["LocalFrame", "anchored_local_frame", "on_ground"]
 
 
 @dataclass
@@ -64,6 +72,9 @@ class LocalFrame:
     drift: float = 0.0
     """Largest distance between an active contact's held rest position and its kinematic
     position, m (zero for a rigid, consistent robot; the flexibility makes it grow)."""
+    footholds: list = field(default_factory=list)
+    """One row per touch-down: ``(step, contact index, tilt off the floor [rad], height above
+    the floor [m])`` of the kinematic placement, before the ground prior."""
 
     @property
     def base_pose(self) -> np.ndarray:
@@ -71,9 +82,32 @@ class LocalFrame:
         return self.q[:, :7].copy()
 
 
+def on_ground(placement: pin.SE3, footholds: FootholdConfig | None) -> tuple[pin.SE3, float, float]:
+    """A landing sole's kinematic placement fused with the ground prior (module docstring, 3).
+
+    Returns ``(foothold, tilt, height)``: the fused placement, and the kinematic sole's tilt off
+    the floor (rad, angle between its z axis and the floor normal) and height above it (m).
+    The sole is rotated about its own origin, so its horizontal position and yaw are kept.
+    """
+    if footholds is None:
+        return placement, 0.0, 0.0
+    n = footholds.normal
+    z = placement.rotation[:, 2]
+    axis = np.cross(z, n)
+    s, c = float(np.linalg.norm(axis)), float(np.dot(z, n))
+    tilt = float(np.arctan2(s, c))
+    height = float(np.dot(n, placement.translation)) - footholds.height
+    R = placement.rotation
+    if s > 1e-12:
+        R = pin.exp3(axis / s * (tilt * footholds.tilt_weight)) @ R
+    p = placement.translation - footholds.height_weight * height * n
+    return pin.SE3(R, p), tilt, height
+
+
 def anchored_local_frame(model, q_joints: np.ndarray, v_joints: np.ndarray, a_joints: np.ndarray,
                          active: np.ndarray, load: np.ndarray | None = None, anchor: int | None = None,
-                         progress=None) -> LocalFrame:
+                         progress=None, footholds: FootholdConfig | None = None,
+                         switch_ratio: float | None = 3.0) -> LocalFrame:
     """Place the free-flyer of ``model`` (a :class:`RobotModel`) by stance-foot leg odometry.
 
     Args:
@@ -83,6 +117,11 @@ def anchored_local_frame(model, q_joints: np.ndarray, v_joints: np.ndarray, a_jo
         load: (N, C) normal forces, N, used to pick the most loaded contact (NaN = unknown).
         anchor: index of the contact preferred as the first anchor.
         progress: optional callable receiving the fraction done.
+        footholds: the ground prior of the touch-downs (None: the kinematic placement, no prior).
+        switch_ratio: the anchor passes to another contact in force once that one carries this
+            many times the anchor's load (needs ``load``), so that the stance foot is changed
+            while both feet are flat rather than when the old one is rolling off its toes; None:
+            only when the anchor leaves contact.
     """
     pmodel = model.model
     data = pmodel.createData()
@@ -105,7 +144,20 @@ def anchored_local_frame(model, q_joints: np.ndarray, v_joints: np.ndarray, a_jo
     cR = np.zeros((n, c, 3, 3))
     rest: list[pin.SE3 | None] = [None] * c
     switches = []
+    landed = []
     drift = 0.0
+
+    def _more_loaded(k: int, i: int) -> bool:
+        """Another contact in force carries ``switch_ratio`` times the anchor's load (and held its
+        foothold since the last step): the anchor passes to it while both feet are down."""
+        others = [j for j in np.flatnonzero(active[k]) if j != i and was[j] and rest[j] is not None]
+        return bool(others) and max(load[k, j] for j in others) > switch_ratio * max(load[k, i], 0.0)
+
+    def touch_down(k: int, i: int) -> pin.SE3:
+        foothold, tilt, height = on_ground(base * b_T_c[i], footholds)
+        landed.append((k, i, tilt, height))
+        return foothold
+
     q = pin.neutral(pmodel)
     base = pin.SE3.Identity()
     current = None
@@ -125,10 +177,11 @@ def anchored_local_frame(model, q_joints: np.ndarray, v_joints: np.ndarray, a_jo
             else:
                 current = pick(k, on if on.size else range(c))
             rest[current] = pin.SE3.Identity()
-        elif not active[k, current] and active[k].any():
+        elif (not active[k, current] and active[k].any()) or (
+                switch_ratio is not None and active[k, current] and _more_loaded(k, current)):
             new = pick(k, np.flatnonzero(active[k]))
-            if rest[new] is None:  # touched down at this very step: where the kinematics puts it
-                rest[new] = base * b_T_c[new]
+            if rest[new] is None:  # touched down at this very step
+                rest[new] = touch_down(k, new)
             jump = float(np.linalg.norm((base * b_T_c[new]).translation - rest[new].translation))
             switches.append((k, int(current), int(new), jump))
             current = new
@@ -137,7 +190,7 @@ def anchored_local_frame(model, q_joints: np.ndarray, v_joints: np.ndarray, a_jo
         base = rest[current] * b_T_c[current].inverse()
         for i in range(c):
             if active[k, i] and (rest[i] is None or not was[i]) and i != current:
-                rest[i] = base * b_T_c[i]
+                rest[i] = touch_down(k, i)
             placement = rest[i] if active[k, i] else base * b_T_c[i]
             cp[k, i] = placement.translation
             cR[k, i] = placement.rotation
@@ -158,4 +211,4 @@ def anchored_local_frame(model, q_joints: np.ndarray, v_joints: np.ndarray, a_jo
         q_out[k], v_out[k], a_out[k] = q, v, a
         if progress is not None and (k % 50 == 0 or k == n - 1):
             progress((k + 1) / n)
-    return LocalFrame(q_out, v_out, a_out, anchors, cp, cR, switches, drift)
+    return LocalFrame(q_out, v_out, a_out, anchors, cp, cR, switches, drift, landed)

@@ -126,10 +126,18 @@ class RosConfig:
     """URDF frame name -> geometry_msgs/PoseStamped topic (world pose of that frame)."""
     contact_on: float | None = None
     """Schmitt trigger: a contact becomes active when its normal force rises above this, N;
-    default 0.25 m g."""
+    default ``contact_on_weight`` m g."""
     contact_off: float | None = None
     """Schmitt trigger: an active contact is released when its normal force falls below this, N;
-    default 0.15 m g.  Must be below ``contact_on``."""
+    default ``contact_off_weight`` m g.  Must be below ``contact_on``."""
+    contact_on_weight: float = 0.25
+    """Default ``contact_on`` as a fraction of the robot's weight (m g)."""
+    contact_off_weight: float = 0.20
+    """Default ``contact_off`` as a fraction of the weight.  A foot stays in force while it carries
+    a fifth of the weight: measured on the iCub walk, a sole carrying more than that stays where
+    it landed (its kinematic placement within 6 mm of its foothold) while below it the foot rolls
+    off its toes (10-25 mm median, 45 mm at most), which a flat spring at the sole cannot model.
+    The authors' trigger released feet at 120 N (37 % of iCub's weight) that carried up to 147 N."""
     fixed_contacts: tuple = ()
     """Contacts active throughout with ``contacts="fixed"``; empty means all contacts."""
     anchor: str | None = None
@@ -155,6 +163,10 @@ class RosConfig:
         if self.contact_on is not None and self.contact_off is not None and not self.contact_off < self.contact_on:
             raise ConfigError(f"ros.contact_off = {self.contact_off} N must be below ros.contact_on = "
                               f"{self.contact_on} N (Schmitt trigger hysteresis)")
+        if not 0 <= self.contact_off_weight < self.contact_on_weight <= 1:
+            raise ConfigError(f"ros.contact_off_weight = {self.contact_off_weight} and ros.contact_on_weight = "
+                              f"{self.contact_on_weight} (fractions of the weight); expected "
+                              "0 <= contact_off_weight < contact_on_weight <= 1")
         if self.joint_velocity not in ("message", "differentiate"):
             raise ConfigError(f"ros.joint_velocity = {self.joint_velocity!r}; expected 'message' or 'differentiate'")
         if self.rate is not None and not self.rate > 0:
@@ -164,6 +176,91 @@ class RosConfig:
         if self.savgol_window <= 0 or self.savgol_order < 2:
             raise ConfigError(f"ros.savgol_window = {self.savgol_window} s must be positive and "
                               f"ros.savgol_order = {self.savgol_order} at least 2")
+
+
+@dataclass(frozen=True)
+class FootholdConfig:
+    """Footholds: where each contact episode's sole rests in the world (the ``[footholds]`` table).
+
+    A contact's rest placement is fixed for one contact episode (touch-down to lift-off).  Its
+    estimate at touch-down fuses two priors, each Gaussian and independent per component:
+
+    - **leg kinematics**: where the stance-foot odometry puts the sole when it lands, with the
+      errors ``kinematics_sigma_tilt`` (rad) and ``kinematics_sigma_height`` (m) -- encoder
+      offsets, the stance foot's own deflection, link lengths;
+    - **ground**: the sole lies on the floor plane (its normal along the plane's, its origin at the
+      plane's height) within ``ground_sigma_tilt`` (rad) and ``ground_sigma_height`` (m) -- the
+      floor's flatness.
+
+    The fused estimate moves the kinematic placement toward the plane by the weight
+    ``w = s_kin^2 / (s_kin^2 + s_ground^2)`` (tilt and height separately); yaw and the horizontal
+    position are the kinematics' alone.  Without the ground prior (``terrain = "none"``) the
+    kinematic placement is kept, and every error of the leg kinematics at a touch-down becomes a
+    permanent tilt of the local frame (on a 90 s iCub walk, 9 deg of leg-odometry tilt).
+
+    The plane is given in the local frame at the first sample, whose origin and axes are the
+    first stance sole's (flat on the floor by assumption): ``terrain = "flat"`` is the plane
+    ``z = 0``; ``terrain = "plane"`` takes ``plane_normal`` (any length) and ``plane_height`` (m,
+    the plane's height along its unit normal: ``n . p = plane_height``).
+    """
+
+    terrain: str = "flat"
+    """``flat`` (default), ``plane`` (``plane_normal``, ``plane_height``) or ``none`` (no ground prior)."""
+    plane_normal: tuple = (0.0, 0.0, 1.0)
+    """Floor normal in the local frame of the first sample (``terrain = "plane"``)."""
+    plane_height: float = 0.0
+    """Floor offset along the unit normal, m (``terrain = "plane"``)."""
+    ground_sigma_tilt: float = 0.0035
+    """Floor flatness: sole tilt about the plane, rad (0.2 deg)."""
+    ground_sigma_height: float = 0.002
+    """Floor flatness: sole height about the plane, m."""
+    kinematics_sigma_tilt: float = 0.017
+    """Leg-kinematics error of a landing sole's tilt, rad (1 deg)."""
+    kinematics_sigma_height: float = 0.005
+    """Leg-kinematics error of a landing sole's height, m."""
+
+    def __post_init__(self):
+        if self.terrain not in ("flat", "plane", "none"):
+            raise ConfigError(f"footholds.terrain = {self.terrain!r}; expected 'flat', 'plane' or 'none'")
+        for key in ("ground_sigma_tilt", "ground_sigma_height", "kinematics_sigma_tilt", "kinematics_sigma_height"):
+            value = getattr(self, key)
+            if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
+                unit = "rad" if key.endswith("tilt") else "m"
+                raise ConfigError(f"footholds.{key} = {value!r}; expected a positive number of {unit}")
+        n = np.asarray(self.plane_normal, dtype=float)
+        if n.shape != (3,) or not np.all(np.isfinite(n)) or np.linalg.norm(n) < 1e-9:
+            raise ConfigError(f"footholds.plane_normal = {self.plane_normal!r}; expected a non-zero 3-vector")
+        if not np.isfinite(self.plane_height):
+            raise ConfigError(f"footholds.plane_height = {self.plane_height!r} m; expected a finite number")
+
+    @property
+    def normal(self) -> np.ndarray:
+        """Unit floor normal in the local frame of the first sample."""
+        n = np.asarray(self.plane_normal if self.terrain == "plane" else (0.0, 0.0, 1.0), dtype=float)
+        return n / np.linalg.norm(n)
+
+    @property
+    def height(self) -> float:
+        """Floor offset along the unit normal, m."""
+        if self.terrain != "plane":
+            return 0.0
+        return float(self.plane_height) / float(np.linalg.norm(np.asarray(self.plane_normal, dtype=float)))
+
+    @property
+    def tilt_weight(self) -> float:
+        """Fraction of a landing sole's tilt off the plane that the ground prior removes."""
+        if self.terrain == "none":
+            return 0.0
+        k, g = self.kinematics_sigma_tilt ** 2, self.ground_sigma_tilt ** 2
+        return k / (k + g)
+
+    @property
+    def height_weight(self) -> float:
+        """Fraction of a landing sole's height off the plane that the ground prior removes."""
+        if self.terrain == "none":
+            return 0.0
+        k, g = self.kinematics_sigma_height ** 2, self.ground_sigma_height ** 2
+        return k / (k + g)
 
 
 @dataclass(frozen=True)
@@ -191,6 +288,8 @@ class RobotConfig:
     imu_noise: ImuNoise = ImuNoise()
     ft_noise: FtNoise = FtNoise()
     gravity: float = GRAVITY
+    footholds: FootholdConfig = FootholdConfig()
+    """Rest placements of the contact episodes on real logs (``[footholds]`` table)."""
     ros: RosConfig | None = None
     """Mapping of raw ROS bags onto the robot (``[ros]`` table), for :mod:`flexforce.datasets.rosimport`."""
     source: str = ""
@@ -231,6 +330,14 @@ class RobotConfig:
                                      for k, v in raw.pop("stiffness", {}).items()})
             imu_noise = ImuNoise(**raw.pop("imu_noise", {}))
             ft_noise = FtNoise(**raw.pop("ft_noise", {}))
+            fh = dict(raw.pop("footholds", {}))
+            if "plane_normal" in fh:
+                fh["plane_normal"] = tuple(fh["plane_normal"])
+            unknown = set(fh) - set(FootholdConfig.__dataclass_fields__)
+            if unknown:
+                raise ConfigError(f"unknown key(s) {sorted(unknown)} in [footholds] of robot configuration {source}; "
+                                  f"known keys: {sorted(FootholdConfig.__dataclass_fields__)}")
+            footholds = FootholdConfig(**fh)
             ros = raw.pop("ros", None)
             if ros is not None:
                 ros = dict(ros)
@@ -249,7 +356,7 @@ class RobotConfig:
         raw["links"] = tuple(raw.get("links", ()))
         raw.pop("source", None)
         return cls(contacts=contacts, stiffness=stiffness, imu_noise=imu_noise, ft_noise=ft_noise,
-                   ros=ros, source=source, **raw)
+                   footholds=footholds, ros=ros, source=source, **raw)
 
     @property
     def contact_names(self) -> tuple[str, ...]:

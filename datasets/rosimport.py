@@ -423,8 +423,12 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
     # ---- contacts ----
     if contacts == "ft":
         mg = model.mass * config.gravity
-        on = ros.contact_on if ros.contact_on is not None else 0.25 * mg
-        off = ros.contact_off if ros.contact_off is not None else 0.15 * mg
+        on = ros.contact_on if ros.contact_on is not None else ros.contact_on_weight * mg
+        off = ros.contact_off if ros.contact_off is not None else ros.contact_off_weight * mg
+        if not off < on:
+            raise ConfigError(f"contact thresholds: off = {off:.1f} N is not below on = {on:.1f} N "
+                              f"(m g = {mg:.1f} N); set ros.contact_on / ros.contact_off (N) or the "
+                              "fractions ros.contact_on_weight / ros.contact_off_weight consistently")
         active = np.stack([schmitt_trigger(ft[:, i, 2], on, off) for i in range(c)], axis=1)
         method = {"method": "schmitt", "on_N": on, "off_N": off}
     else:
@@ -439,8 +443,9 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
         anchor = names_c.index(ros.anchor)
 
     # ---- local frame and kinematics ----
+    footholds = None if config.footholds.terrain == "none" else config.footholds
     lf = anchored_local_frame(model, q_grid, v_grid, a_grid, active, load, anchor,
-                              progress=lambda f: report(0.3 + 0.3 * f))
+                              progress=lambda f: report(0.3 + 0.3 * f), footholds=footholds)
     fields = {k: [] for k in ("com", "com_vel", "com_acc", "inertia", "inertia_dot", "sigma", "sigma_dot",
                               "imu_R", "imu_p", "imu_v", "imu_a", "imu_w")}
     for k in range(n):
