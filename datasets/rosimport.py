@@ -66,6 +66,9 @@ T_IMU = "sensor_msgs/msg/Imu"
 T_JOINTS = "sensor_msgs/msg/JointState"
 T_WRENCH = "geometry_msgs/msg/WrenchStamped"
 T_POSE = "geometry_msgs/msg/PoseStamped"
+FOOTHOLD_BOUND = 6.0
+"""A landing sole further from the floor plane than this many leg-kinematics sigmas contradicts
+the ground prior: an error, not a silent correction."""
 META_TOPIC = "/flexforce/meta"
 _NS = 1_000_000_000
 _EXPECTED = "expected a ROS 2 bag directory, .mcap/.db3 file or ROS 1 .bag file"
@@ -443,9 +446,33 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
         anchor = names_c.index(ros.anchor)
 
     # ---- local frame and kinematics ----
+    never = [names_c[i] for i in range(c) if not active[:, i].any()]
+    if len(never) == c:
+        raise DataError(f"no contact is ever in force in {path} ({method}); a foot must carry the robot "
+                        "somewhere in the log: check the F/T topics and thresholds, or use contacts='fixed'")
+    if contacts == "ft" and never:
+        peak = {names_c[i]: float(np.nanmax(ft[:, i, 2])) if np.isfinite(ft[:, i, 2]).any() else float("nan")
+                for i in range(c) if names_c[i] in never}
+        raise DataError(f"contact(s) {never} never come into force (largest F/T normal force "
+                        + ", ".join(f"{k}: {v:.1f} N" for k, v in peak.items())
+                        + f", on threshold {on:.1f} N): check their F/T topics "
+                        f"{[ros.ft_topics[k] for k in never]} and ros.contact_on, or use contacts='fixed' with "
+                        "ros.fixed_contacts naming the feet that are down")
     footholds = None if config.footholds.terrain == "none" else config.footholds
     lf = anchored_local_frame(model, q_grid, v_grid, a_grid, active, load, anchor,
                               progress=lambda f: report(0.3 + 0.3 * f), footholds=footholds)
+    if footholds is not None:
+        bound_tilt = FOOTHOLD_BOUND * footholds.kinematics_sigma_tilt
+        bound_height = FOOTHOLD_BOUND * footholds.kinematics_sigma_height
+        for k, i, tilt, height in lf.footholds:
+            if tilt > bound_tilt or abs(height) > bound_height:
+                raise DataError(
+                    f"at t = {(grid[k] - grid[0]) * 1e-9:.3f} s contact '{names_c[i]}' lands {np.degrees(tilt):.2f} deg off the floor "
+                    f"plane and {1000 * height:.1f} mm above it by the leg kinematics; the ground prior "
+                    f"(footholds.terrain = '{footholds.terrain}') allows {FOOTHOLD_BOUND:g} sigma of the kinematics, "
+                    f"{np.degrees(bound_tilt):.2f} deg and {1000 * bound_height:.1f} mm: the floor is not that plane "
+                    "(set footholds.terrain = 'plane' or 'none') or the kinematics is wrong (joint offsets, "
+                    "footholds.kinematics_sigma_tilt/height)")
     fields = {k: [] for k in ("com", "com_vel", "com_acc", "inertia", "inertia_dot", "sigma", "sigma_dot",
                               "imu_R", "imu_p", "imu_v", "imu_a", "imu_w")}
     for k in range(n):
@@ -488,6 +515,10 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
                    "switches": [{"t": round(float(time[k]), 6), "from": names_c[a], "to": names_c[b], "jump_m": j}
                                 for k, a, b, j in lf.switches],
                    "drift_m": lf.drift},
+        "footholds": {"terrain": config.footholds.terrain,
+                      "tilt_weight": config.footholds.tilt_weight, "height_weight": config.footholds.height_weight,
+                      "touch_downs": [{"t": round(float(time[k]), 6), "contact": names_c[i], "tilt_rad": tilt,
+                                       "height_m": height} for k, i, tilt, height in lf.footholds]},
         "base_frame": _root_link(pmodel, mocap),
     }
     rec = Recording(

@@ -471,3 +471,46 @@ def test_icub_recordings():
     assert len(switches) >= 6 and max(s["jump_m"] for s in switches) < 0.008
     assert walk.meta["anchor"]["drift_m"] < 0.01
     assert set(walk.mocap) == {"root_link", "l_sole", "r_sole"} and set(sway.mocap) == {"root_link"}
+
+
+def test_a_foot_that_never_touches_is_named(romeo, tmp_path):
+    """One foot's F/T never reaches the on threshold (a dead sensor, a wrong topic): one line
+    naming the foot, its largest force, the threshold and the topic; none at all: another."""
+    motion = Motion(romeo, UPPER)
+    t = T0 + np.arange(120, dtype=np.int64) * 10_000_000
+    forces = np.full((len(t), 2), 300.0)
+    forces[:, 1] = 3.0
+    bag = write_bag(tmp_path / "dead", "mcap", robot_topics(romeo, motion, t, forces=forces))
+    with pytest.raises(DataError, match=r"contact\(s\) \['right_foot'\] never come into force \(largest F/T "
+                                        r"normal force right_foot: 3.0 N, on threshold 150.0 N\).*/rf/wrench"):
+        import_bag(bag, romeo)
+    forces[:, 0] = 3.0
+    bag = write_bag(tmp_path / "none", "mcap", robot_topics(romeo, motion, t, forces=forces))
+    with pytest.raises(DataError, match="no contact is ever in force"):
+        import_bag(bag, romeo)
+
+
+def test_a_landing_far_off_the_floor_contradicts_the_ground_prior(romeo, tmp_path):
+    """A foot landing further off the floor plane than the ground prior allows (6 kinematic
+    sigmas) is refused with the time, the contact, the offsets and the way out; terrain 'none'
+    takes the same log."""
+    import dataclasses
+
+    from flexforce.datasets.robot import FootholdConfig
+
+    motion = Motion(romeo, LEGS, amp=0.01)
+    t = T0 + np.arange(300, dtype=np.int64) * 10_000_000
+    s = (t - T0) * 1e-9
+    forces = np.full((len(t), 2), 200.0)
+    forces[(s > 0.8) & (s < 1.5), 0] = 5.0
+    topics = robot_topics(romeo, motion, t, forces=forces)
+    bag = write_bag(tmp_path / "stair", "mcap", topics)
+    flat = import_bag(bag, romeo)  # the legs move a little: the feet land near the floor
+    worst = max(abs(d["height_m"]) for d in flat.meta["footholds"]["touch_downs"])
+    assert worst > 1e-4
+    tight = dataclasses.replace(romeo.config, footholds=FootholdConfig(kinematics_sigma_height=worst / 7.0))
+    with pytest.raises(DataError, match=r"contact '\w+_foot' lands .* mm above it by the leg kinematics; "
+                                        r"the ground prior .* allows 6 sigma"):
+        import_bag(bag, tight)
+    loose = dataclasses.replace(romeo.config, footholds=FootholdConfig(terrain="none"))
+    assert import_bag(bag, loose).meta["footholds"]["touch_downs"]
