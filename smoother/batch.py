@@ -3,7 +3,7 @@ r"""Batch smoothing: Levenberg-Marquardt over the whole recording.
 The factor graph (DESIGN.md, "The factor graph") is a chain, so its Gauss-Newton system is block
 tridiagonal.  Instead of handing ~5 N Python factors to gtsam (6 us of binding per factor and
 linearisation, ~1 s per iteration for a minute of data before any arithmetic), the batch smoother
-linearises all steps at once with the compiled kernels of :mod:`flexforce.factors.kernels` and
+linearises all steps at once with the compiled kernels of :mod:`flexforce.factors.core` and
 solves the system by block elimination (an information filter and its RTS back substitution),
 which also yields the marginal covariances exactly.  The same factors, as gtsam CustomFactors,
 drive the fixed-lag smoother; ``tests/test_smoother.py`` checks that both agree with gtsam's own

@@ -5,7 +5,8 @@
 - Jacobians: the analytic F and H (physics module + J_l(Omega) change of parametrisation) against
   central differences -- the authors' way -- at a perturbed state, near the identity, with one and
   two contacts and with anisotropic, stiffening contacts.
-- The compiled kernel against the numpy reference to 1e-10.
+- The compiled step against the same model with numpy's textbook Kalman algebra (EKF.predict,
+  EKF.update) to 1e-10.
 - Simulated stand / com-step / push-pitch (no IMU bias random walk: the nominal model has no bias,
   see docs/ekf.md): convergence from a wrong initial state, Monte Carlo NEES within its two-sided
   chi^2 band, NIS, m g.
@@ -181,46 +182,78 @@ def test_analytic_jacobians_match_finite_differences(recs, aniso):
 # ----------------------------------------------------------------------------------------------
 
 
-@pytest.mark.skipif(not kern.AVAILABLE, reason="numba not installed")
-def test_kernel_matches_reference_step_by_step(recs):
+def test_compiled_step_matches_plain_kalman_algebra(recs):
+    """The compiled step (block-sparse F P F^T, expanded Joseph form, permuted world covariance)
+    against EKF.predict / EKF.update: the same model with numpy's dense textbook algebra."""
     rec = recs["com-step"].slice(0, 30)
     rec.contact_active[10:15, 0] = False
     p = ContactParams.make([3e4, 2e4, 2.8e4], [400, 300, 420], [450, 300, 500], [8, 6, 9], beta_f=50.0, beta_t=2.0)
     rec.contact_R[:, 1] = so3.exp(np.array([0.0, 0.1, 0.4]))
     model = dataclasses.replace(ModelConfig.from_recording(rec), contact_params=(p, p))
     ekf = E.EKF(rec, model)
-    K = kern.Kernel(ekf)
     rng = np.random.default_rng(2)
     for x in _states(rng):
         L = rng.normal(size=(18, 18)) * 1e-2
         P = L @ L.T + 1e-4 * np.eye(18)
         for k in (3, 12):
             x_r, P_r = ekf.predict(x, P, k)
-            x_k, P_k, st = kern.predict(x, P, K.U[k], K.CP, K.Q0, ekf.dt, rec.mass, ekf.g)
-            assert st == 0
+            x_k, P_k = x.copy(), P.copy()
+            assert kern.predict(x_k, P_k, ekf.U[k], ekf.CP, ekf.noise.Q, ekf.dt, rec.mass, ekf.g, ekf.WS) == 0
             np.testing.assert_allclose(x_k, x_r, rtol=1e-10, atol=1e-12)
             np.testing.assert_allclose(P_k, P_r, rtol=1e-10, atol=1e-12 * np.abs(P_r).max())
             up = ekf.update(x_r, P_r, k)
-            x_u, P_u, innov, S, white, nis, st = kern.update(x_r, P_r, K.U[k], K.Rn, ekf.g)
+            x_u, P_u = x_r.copy(), P_r.copy()
+            innov, S, white = np.empty(6), np.empty((6, 6)), np.empty(6)
+            st, nis = kern.update(x_u, P_u, ekf.U[k], ekf.noise.R, ekf.g, ekf.WS, innov, S, white)
             assert st == 0
             np.testing.assert_allclose(x_u, up.x, rtol=1e-10, atol=1e-12)
             np.testing.assert_allclose(P_u, up.P, rtol=1e-9, atol=1e-12 * np.abs(up.P).max())
             np.testing.assert_allclose(innov, up.innovation, rtol=1e-10, atol=1e-12)
+            np.testing.assert_allclose(white, up.whitened, rtol=1e-10, atol=1e-12)
             assert nis == pytest.approx(up.nis, rel=1e-9)
 
 
-@pytest.mark.skipif(not kern.AVAILABLE, reason="numba not installed")
-def test_kernel_run_matches_reference_run(recs):
+def _plain_run(rec, model, x0):
+    """run_ekf written with EKF.predict / update / outputs (numpy Kalman algebra)."""
+    ekf = E.EKF(rec, model)
+    x, P = ekf.initial_state(x0)
+    rows = []
+    for k in range(rec.n):
+        if k > 0:
+            x, P = ekf.predict(x, P, k)
+        up = ekf.update(x, P, k)
+        x, P = up.x, up.P
+        o = ekf.outputs(x, P, k)
+        rows.append((x, o, up))
+    return rows
+
+
+def test_run_matches_plain_kalman_algebra(recs):
     rec = recs["push-pitch"].slice(0, 300)
     model = ModelConfig.from_recording(rec)
     x0 = _wrong_x0(rec)
-    fast = E.run_ekf(rec, model, x0=x0, fast=True)
-    ref = E.run_ekf(rec, model, x0=x0, fast=False)
-    assert fast.meta["kernel"] == "numba" and ref.meta["kernel"] == "numpy"
-    for name in ("t", "R", "w", "v", "dw", "a", "wrench", "cop", "cov", "wrench_cov", "cop_cov", "innovation",
-                 "innovation_cov"):
-        a, b = getattr(fast, name), getattr(ref, name)
+    est = E.run_ekf(rec, model, x0=x0)
+    assert est.meta["kernel"] == "numba"
+    rows = _plain_run(rec, model, x0)
+    ref = {"t": np.array([r[0][0:3] for r in rows]), "R": np.array([r[1]["R"] for r in rows]),
+           "w": np.array([r[0][9:12] for r in rows]), "v": np.array([r[0][6:9] for r in rows]),
+           "dw": np.array([r[0][15:18] for r in rows]), "a": np.array([r[0][12:15] for r in rows]),
+           "innovation": np.array([r[2].innovation for r in rows]), "innovation_cov": np.array([r[2].S for r in rows])}
+    for name in ("cov", "wrench", "wrench_cov", "cop", "cop_cov"):
+        ref[name] = np.array([r[1][name] for r in rows])
+    for name, b in ref.items():
+        a = getattr(est, name)
         assert np.max(np.abs(a - b)) <= 1e-10 * max(1.0, np.max(np.abs(b))), name
+
+
+def test_outputs_switched_off_keep_the_state(recs):
+    rec = recs["push-pitch"].slice(0, 100)
+    model = ModelConfig.from_recording(rec)
+    full = E.run_ekf(rec, model)
+    lean = E.run_ekf(rec, model, outputs=False)
+    for name in ("t", "R", "w", "v", "dw", "a", "innovation", "innovation_cov"):
+        np.testing.assert_array_equal(getattr(lean, name), getattr(full, name), err_msg=name)
+    assert np.all(np.isnan(lean.wrench)) and np.all(np.isnan(lean.cov))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -245,7 +278,7 @@ def test_converges_from_wrong_state_and_is_consistent(recs, name):
     model = ModelConfig.from_recording(rec)
     x0 = _wrong_x0(rec)
     assert np.abs(x0[0:3] - rec.truth.t[0]).min() > 0.02  # starts > 2 cm off on every axis
-    est = E.run_ekf(rec, model, x0=x0, fast=False)
+    est = E.run_ekf(rec, model, x0=x0)
     err = _errors(est, rec.truth)
     quiet = _quiet_steps(rec)
     # converged: after 1 s, errors within 1 mm and 1 mrad away from the pushes
@@ -287,7 +320,7 @@ def test_nees_is_consistent(name):
 def test_push_is_flagged_by_nees_and_nis(recs):
     """The hidden push is unmodelled: the filter's errors leave their bounds while it acts."""
     rec = recs["push-pitch"]
-    est = E.run_ekf(rec, ModelConfig.from_recording(rec), fast=False)
+    est = E.run_ekf(rec, ModelConfig.from_recording(rec))
     push = np.abs(rec.truth.external_wrench).max(axis=1) > 0
     nees = _nees(est, rec.truth)
     assert nees[push].mean() > CHI2_18_995
@@ -297,7 +330,7 @@ def test_push_is_flagged_by_nees_and_nis(recs):
 
 def test_standing_vertical_force_is_mg(recs):
     rec = recs["stand"]
-    est = E.run_ekf(rec, ModelConfig.from_recording(rec), fast=False)
+    est = E.run_ekf(rec, ModelConfig.from_recording(rec))
     steps = slice(int(1.0 / rec.dt), None)
     fz = est.total_wrench[steps, 2]
     mg = rec.mass * rec.gravity
@@ -316,7 +349,7 @@ def test_standing_vertical_force_is_mg(recs):
 def test_estimate_fields_and_roundtrip(recs, tmp_path):
     rec = recs["stand"].slice(0, 60)
     rec.contact_active[30:, 1] = False  # right foot lifts: its wrench must be zero
-    est = E.run_ekf(rec, ModelConfig.from_recording(rec), fast=False)
+    est = E.run_ekf(rec, ModelConfig.from_recording(rec))
     n = rec.n
     assert est.estimator == "ekf" and est.cov.shape == (n, 18, 18) and est.wrench.shape == (n, 2, 6)
     assert np.all(est.wrench[30:, 1] == 0.0) and np.any(est.wrench[:30, 1] != 0.0)
@@ -377,19 +410,21 @@ def test_bad_options_and_prior(recs):
 def test_non_positive_definite_covariance_raises_or_resets(recs, monkeypatch):
     rec = recs["stand"].slice(0, 40)
     model = ModelConfig.from_recording(rec)
-    real = E._is_pd
+    real = kern.step
     calls = {"n": 0}
 
-    def flaky(P):
+    def flaky(k, x, P, *args):
+        """The predicted covariance fails its check once, at the 21st step."""
         calls["n"] += 1
-        return False if calls["n"] == 21 else real(P)
+        status = real(k, x, P, *args)
+        return 1 if calls["n"] == 21 else status
 
-    monkeypatch.setattr(E, "_is_pd", flaky)
+    monkeypatch.setattr(kern, "step", flaky)
     with pytest.raises(EstimatorError, match=r"not positive definite .* sample \d+"):
-        E.run_ekf(rec, model, fast=False)
+        E.run_ekf(rec, model)
     calls["n"] = 0
     with pytest.warns(RuntimeWarning, match="covariance reset to P0"):
-        est = E.run_ekf(rec, model, fast=False, on_covariance_failure="reset")
+        est = E.run_ekf(rec, model, on_covariance_failure="reset")
     assert np.all(np.isfinite(est.cov)) and np.all(est.cop[:, :2] != 0.0)
 
 
@@ -397,4 +432,4 @@ def test_divergence_is_an_estimator_error(recs):
     rec = recs["stand"].slice(0, 80)
     rec.gyro[30:] += 1.0  # a gyro offset of ~80 sigma: no flexibility state explains it
     with pytest.raises(EstimatorError, match=r"diverged: .* exceeded 1000 .* for 10 consecutive steps"):
-        E.run_ekf(rec, ModelConfig.from_recording(rec), fast=False, nis_limit=1e3, nis_steps=10)
+        E.run_ekf(rec, ModelConfig.from_recording(rec), nis_limit=1e3, nis_steps=10)
