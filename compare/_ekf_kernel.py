@@ -24,7 +24,7 @@ Packed inputs, one row per step (:func:`pack_inputs`)::
 
 Contact parameters, one row per contact: K_fs, K_fd, K_ts, K_td (9 each, row-major), beta_f,
 beta_t, isotropic flag.  Constants (:func:`pack_constants`): Q (324), R (36), then dt, m, g, z0,
-min_force.
+min_force, the touch-down rule (1: zero deflection, :func:`touch_down`) and its tilt weight.
 
 Output row of a step (:data:`OUT_FIELDS`): the state, the world covariance, the per-contact
 wrenches, their total's covariance, the CoP and its covariance, the innovation, its covariance,
@@ -149,15 +149,51 @@ def dynamics_into(R, t, w, v, u, CP, m, g, acc, G):
 
 
 @njit
+def predicted_pose(x, dt):
+    """The pose the transition predicts from ``x`` (filter order) over ``dt``:
+    ``phi = dt w + dt^2/2 dw``, ``E = exp(phi)``, ``R1 = E exp(Omega)``, ``t1 = t + dt v + dt^2/2 a``."""
+    h = 0.5 * dt * dt
+    phi = vaxpy(vscl(dt, ld3(x, 9)), h, ld3(x, 15))
+    E = exp_t(phi)
+    return phi, E, mm(E, exp_t(ld3(x, 3))), vaxpy(vaxpy(ld3(x, 0), dt, ld3(x, 6)), h, ld3(x, 12))
+
+
+@njit
+def touch_down(k, x, U, dt, tilt_weight):
+    """Footholds of the contacts that land at step ``k`` (active at k, not at k-1): the rest
+    placement in the world is the contact's placement at the predicted pose, ``p_r = R p_l + t``,
+    ``R_r = R R_l`` (the landing spring starts at zero deflection), with the fraction
+    ``tilt_weight`` of the tilt of the sole (its z axis against gravity's) removed, yaw kept.
+    Written into the packed rows of the whole episode (k until the contact lifts)."""
+    _, _, R1, t1 = predicted_pose(x, dt)
+    for c in range((U.shape[1] - NU0) // NUC):
+        o = NU0 + NUC * c
+        if U[k, o] == 0.0 or U[k - 1, o] != 0.0:
+            continue
+        p_r = vadd(mv(R1, ld3(U[k], o + 1)), t1)
+        R_r = mm(R1, ldm9(U[k], o + 4))
+        if tilt_weight > 0.0:
+            # n x e_z for the sole normal n = R_r e_z: the rotation that levels the sole.
+            axis = (R_r[1][2], -R_r[0][2], 0.0)
+            sin_t = math.sqrt(axis[0] * axis[0] + axis[1] * axis[1])
+            if sin_t > 1e-12:
+                angle = math.atan2(sin_t, R_r[2][2])
+                R_r = mm(exp_t(vscl(tilt_weight * angle / sin_t, axis)), R_r)
+        for kk in range(k, U.shape[0]):
+            if U[kk, o] == 0.0:
+                break
+            st3(U[kk], o + 13, p_r)
+            for i in range(3):
+                st3(U[kk], o + 16 + 3 * i, R_r[i])
+
+
+@njit
 def transition(x, u, CP, dt, m, g, x1, F):
     """``x1 = f(x)`` (the state predicted at the step of ``u``) and its Jacobian ``F`` (18x18),
     filter order ``(t, Omega, v, w, a, dw)`` (see :mod:`flexforce.compare.ekf`).  Returns ok."""
     t, Om, v, w, a, dw = ld3(x, 0), ld3(x, 3), ld3(x, 6), ld3(x, 9), ld3(x, 12), ld3(x, 15)
     h = 0.5 * dt * dt
-    phi = vaxpy(vscl(dt, w), h, dw)
-    E = exp_t(phi)
-    R1 = mm(E, exp_t(Om))
-    t1 = vaxpy(vaxpy(t, dt, v), h, a)
+    phi, E, R1, t1 = predicted_pose(x, dt)
     v1 = vaxpy(v, dt, a)
     w1 = vaxpy(w, dt, dw)
     Om1 = log_t(R1)
@@ -471,6 +507,7 @@ def step(k, x, P, U, CP, C, WS, OUT, do_predict, want_outputs):
     Rn = C[_NQ:_NQ + _NR].reshape((6, 6))
     o = _NQ + _NR
     dt, m, g, z0, min_force = C[o], C[o + 1], C[o + 2], C[o + 3], C[o + 4]
+    touchdown, tilt_weight = C[o + 5], C[o + 6]
     u = U[k]
     row = OUT[k]
     o_wc = _O_WR + 6 * n_c
@@ -481,6 +518,8 @@ def step(k, x, P, U, CP, C, WS, OUT, do_predict, want_outputs):
     o_wh = o_S + 36
     o_nis = o_wh + 6
     if do_predict and k > 0:
+        if touchdown != 0.0:
+            touch_down(k, x, U, dt, tilt_weight)
         st = predict(x, P, u, CP, Q, dt, m, g, WS)
         if st != 0:
             return st
@@ -536,8 +575,9 @@ def pack_params(params) -> np.ndarray:
     return np.ascontiguousarray(np.array(rows, dtype=float).reshape(len(rows), 39))
 
 
-def pack_constants(Q, Rn, dt, m, g, z0, min_force) -> np.ndarray:
-    return np.concatenate([np.asarray(Q, float).ravel(), np.asarray(Rn, float).ravel(), [dt, m, g, z0, min_force]])
+def pack_constants(Q, Rn, dt, m, g, z0, min_force, touchdown: bool = False, tilt_weight: float = 0.0) -> np.ndarray:
+    return np.concatenate([np.asarray(Q, float).ravel(), np.asarray(Rn, float).ravel(),
+                           [dt, m, g, z0, min_force, float(touchdown), tilt_weight]])
 
 
 def workspace() -> np.ndarray:

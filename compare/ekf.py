@@ -120,6 +120,16 @@ class EKFConfig:
     counts as diverged."""
     nis_steps: int = 20
     """Consecutive diverged steps after which the filter raises EstimatorError."""
+    touchdown: str = "local"
+    """Rest placement of a contact episode that starts during the run (active at step k, not at
+    k-1): ``local`` -- the given rest placements (default: the contact's local placement, the
+    paper's convention); ``zero-deflection`` -- the contact's world placement at the predicted
+    state, ``p_r = R p_l + t``, ``R_r = R R_l``, so that the landing spring starts unloaded where
+    the foot touches.  Episodes active at the first step keep the given rest placements."""
+    ground_tilt_weight: float = 0.0
+    """With ``touchdown='zero-deflection'``: fraction (0 to 1, dimensionless) of the landing sole's
+    roll and pitch with respect to gravity removed from its rest orientation (1: the foothold is
+    level, the yaw kept; 0: the sole's orientation as it lands)."""
 
     def __post_init__(self):
         if self.jacobians not in ("analytic", "numeric"):
@@ -131,6 +141,11 @@ class EKFConfig:
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise ConfigError(f"EKFConfig.{name} must be a positive number, got {value}")
+        if self.touchdown not in ("local", "zero-deflection"):
+            raise ConfigError(f"EKFConfig.touchdown must be 'local' or 'zero-deflection', got '{self.touchdown}'")
+        if not (math.isfinite(self.ground_tilt_weight) and 0.0 <= self.ground_tilt_weight <= 1.0):
+            raise ConfigError("EKFConfig.ground_tilt_weight is the fraction of the sole's tilt removed at a touch-down, "
+                              f"expected a number in [0, 1], got {self.ground_tilt_weight}")
         if not (self.p0_scale > 0 and self.nis_limit > 0 and self.nis_steps >= 1):
             raise ConfigError("EKFConfig.p0_scale and nis_limit must be positive and nis_steps >= 1")
 
@@ -329,7 +344,7 @@ class EKF:
         self.U = K.pack_inputs(rec, rest_p, rest_R)
         self.CP = K.pack_params(model.contact_params)
         self.C = K.pack_constants(self.noise.Q, self.noise.R, self.dt, rec.mass, self.g, config.z0,
-                                  config.min_force)
+                                  config.min_force, config.touchdown == "zero-deflection", config.ground_tilt_weight)
         self.WS = K.workspace()
 
     # --- model functions ----------------------------------------------------------------------
@@ -619,6 +634,7 @@ class _Outputs:
             innovation=c(self.innovation), innovation_cov=c(self.S), time_per_step=self.time_per_step,
             total_time=total,
             meta={"kernel": "numba", "outputs": self.want, "jacobians": ekf.config.jacobians,
+                  "touchdown": ekf.config.touchdown, "ground_tilt_weight": ekf.config.ground_tilt_weight,
                   "sigma_unmodelled_accel": nm.sigma_a, "sigma_unmodelled_ang_accel": nm.sigma_dw,
                   "p0_sigma": nm.p0_sigma.tolist(), "gyro_sigma": ekf.model.gyro_sigma,
                   "accel_sigma": ekf.model.accel_sigma, "mean_nis": float(np.mean(self.nis)), "z0": ekf.config.z0},

@@ -32,6 +32,7 @@ from flexforce.errors import ConfigError, DataError, EstimatorError
 from flexforce.factors import so3
 from flexforce.factors.model import ModelConfig
 from flexforce.factors.physics import ContactParams
+from flexforce.factors import physics as ph
 
 CHI2_18_975 = 31.526  # chi^2 quantile, 18 dof, 0.975
 CHI2_18_995 = 37.156
@@ -433,3 +434,78 @@ def test_divergence_is_an_estimator_error(recs):
     rec.gyro[30:] += 1.0  # a gyro offset of ~80 sigma: no flexibility state explains it
     with pytest.raises(EstimatorError, match=r"diverged: .* exceeded 1000 .* for 10 consecutive steps"):
         E.run_ekf(rec, ModelConfig.from_recording(rec), nis_limit=1e3, nis_steps=10)
+
+
+# ----------------------------------------------------------------------------------------------
+# Footholds: the touch-down rule
+# ----------------------------------------------------------------------------------------------
+
+
+def _landing(recs):
+    """com-step with the right foot lifted over steps 10-19 and landing at step 20, and a tilted,
+    moving state just before it."""
+    rec = recs["com-step"].slice(0, 40)
+    rec.contact_active[10:20, 1] = False
+    x = np.concatenate([[0.002, -0.001, -0.004], [0.01, -0.02, 0.005], [0.01, 0.0, -0.02], [0.05, -0.1, 0.02],
+                        [0.1, 0.2, -0.3], [0.5, -0.4, 0.2]])
+    return rec, x, 20
+
+
+@pytest.mark.parametrize("tilt_weight", [0.0, 0.4, 1.0])
+def test_touchdown_sets_the_foothold_where_the_foot_lands(recs, tilt_weight):
+    rec, x, k = _landing(recs)
+    model = ModelConfig.from_recording(rec)
+    ekf = E.EKF(rec, model, E.EKFConfig(touchdown="zero-deflection", ground_tilt_weight=tilt_weight))
+    rest_before = ekf.U[:, kern.NU0 + kern.NUC:].copy()
+    kern.touch_down(k, x, ekf.U, ekf.dt, tilt_weight)
+    o = kern.NU0 + kern.NUC  # contact 1
+    p_r, R_r = ekf.U[k, o + 13:o + 16], ekf.U[k, o + 16:o + 25].reshape(3, 3)
+    x1 = ekf.transition(x, k)
+    R1, t1 = so3.exp(x1[3:6]), x1[0:3]
+    np.testing.assert_allclose(p_r, R1 @ rec.contact_p[k, 1] + t1, atol=1e-15)
+    landed = R1 @ rec.contact_R[k, 1]
+    # The sole's tilt against gravity is removed in the given fraction, its yaw kept.
+    tilt = lambda Rm: math.acos(np.clip(Rm[2, 2], -1.0, 1.0))  # noqa: E731
+    assert tilt(R_r) == pytest.approx((1.0 - tilt_weight) * tilt(landed), abs=1e-12)
+    heading = lambda Rm: math.atan2(Rm[1, 0] - Rm[0, 1], Rm[0, 0] + Rm[1, 1])  # noqa: E731
+    assert heading(R_r) == pytest.approx(heading(landed), abs=1e-3 * tilt(landed))
+    if tilt_weight == 0.0:
+        np.testing.assert_allclose(R_r, landed, atol=1e-15)
+    # Every step of the episode (20 until the end) holds the foothold; the others are untouched.
+    for kk in range(k, rec.n):
+        np.testing.assert_array_equal(ekf.U[kk, o + 13:o + 25], ekf.U[k, o + 13:o + 25])
+    np.testing.assert_array_equal(ekf.U[:k, o:], rest_before[:k])
+    # Zero deflection: at the predicted pose the landing contact's spring carries nothing and
+    # its wrench is the damper's alone.
+    if tilt_weight == 0.0:
+        p = model.contact_params[1]
+        damper = ContactParams.make(np.zeros((3, 3)), p.K_fd, np.zeros((3, 3)), p.K_td)
+        args = (R1, t1, x1[9:12], x1[6:9], rec.contact_p[k, 1], rec.contact_R[k, 1])
+        np.testing.assert_allclose(ph.contact_wrench(*args, p, world_p_rest=p_r, world_R_rest=R_r),
+                                   ph.contact_wrench(*args, damper), rtol=1e-9, atol=1e-9)
+
+
+def test_touchdown_rule_in_a_run(recs):
+    """Only episodes that start during the run get a foothold; the default keeps today's law."""
+    rec, x, k = _landing(recs)
+    model = ModelConfig.from_recording(rec)
+    local = E.run_ekf(rec, model)
+    same = E.run_ekf(rec, model, touchdown="local", rest_p=rec.contact_p, rest_R=rec.contact_R)
+    np.testing.assert_array_equal(same.wrench, local.wrench)
+    zero = E.run_ekf(rec, model, touchdown="zero-deflection")
+    np.testing.assert_array_equal(zero.wrench[:k], local.wrench[:k])
+    assert zero.meta["touchdown"] == "zero-deflection"
+    # The landing spring starts near zero: its force at touch-down is far below the local rule's
+    # (which loads it with the flexibility's whole deflection at once).  Measured: 17.5 N against
+    # 156 N (ratio 0.11; what remains is the damper and the update's correction of the pose);
+    # margin x2 on the ratio.
+    F_zero = np.linalg.norm(zero.wrench[k, 1, :3])
+    F_local = np.linalg.norm(local.wrench[k, 1, :3])
+    assert F_zero < 0.22 * F_local
+
+
+def test_touchdown_options_are_checked():
+    with pytest.raises(ConfigError, match="touchdown must be 'local' or 'zero-deflection', got 'flat'"):
+        E.EKFConfig(touchdown="flat")
+    with pytest.raises(ConfigError, match=r"ground_tilt_weight .* \[0, 1\], got 1.5"):
+        E.EKFConfig(ground_tilt_weight=1.5)
