@@ -357,7 +357,7 @@ class FixedLagSmoother:
 def run_fixed_lag(rec, model, progress: Callable[[float], None] | None = None, lag: float = 1.0,
                   rule: NoiseRule | None = None, backend: str = "window", relinearize: int = 3,
                   report_every: int = 10, relinearize_threshold: float | None = None,
-                  relinearize_skip: int = 10, covariance: bool = True, **options):
+                  relinearize_skip: int = 10, covariance: bool = True, rest_p=None, rest_R=None, **options):
     """Fixed-lag smoothing of a Recording, one update per sample; returns an :class:`Estimate`.
 
     Args:
@@ -369,6 +369,8 @@ def run_fixed_lag(rec, model, progress: Callable[[float], None] | None = None, l
             one included), and how often (updates) the window is read out.
         relinearize_threshold, relinearize_skip: gtsam backend: iSAM2's relinearisation settings.
         covariance: extract the marginal covariances (timed apart from the updates).
+        rest_p, rest_R: (N, C, 3), (N, C, 3, 3) the contacts' rest placements in the world per step
+            (footholds); default the recording's local placements (:meth:`Problem.build`).
 
     ``Estimate.time_per_step`` holds the wall-clock time of each update (prediction,
     linearisation, elimination, back substitution); the covariance extraction is in
@@ -376,11 +378,11 @@ def run_fixed_lag(rec, model, progress: Callable[[float], None] | None = None, l
     """
     if options:
         raise EstimatorError(f"fixed-lag smoother: unknown option(s) {sorted(options)}; known: lag, rule, backend, "
-                             "relinearize, report_every, relinearize_threshold, relinearize_skip, covariance")
+                             "relinearize, report_every, relinearize_threshold, relinearize_skip, covariance, rest_p, rest_R")
     if backend not in ("window", "gtsam"):
         raise EstimatorError(f"fixed-lag smoother: backend must be 'window' or 'gtsam', got {backend!r}")
     t0 = time.perf_counter()
-    prob = Problem.build(rec, model, rule or NoiseRule())
+    prob = Problem.build(rec, model, rule or NoiseRule(), rest_p, rest_R)
     if backend == "window":
         fls = FixedLagSmoother(prob, lag, relinearize=relinearize, covariance=covariance, report_every=report_every)
     else:
