@@ -144,8 +144,8 @@ class EKFConfig:
         if self.touchdown not in ("local", "zero-deflection"):
             raise ConfigError(f"EKFConfig.touchdown must be 'local' or 'zero-deflection', got '{self.touchdown}'")
         if not (math.isfinite(self.ground_tilt_weight) and 0.0 <= self.ground_tilt_weight <= 1.0):
-            raise ConfigError("EKFConfig.ground_tilt_weight is the fraction of the sole's tilt removed at a touch-down, "
-                              f"expected a number in [0, 1], got {self.ground_tilt_weight}")
+            raise ConfigError("EKFConfig.ground_tilt_weight is the fraction of the sole's tilt removed at a "
+                              f"touch-down, expected a number in [0, 1], got {self.ground_tilt_weight}")
         if not (self.p0_scale > 0 and self.nis_limit > 0 and self.nis_steps >= 1):
             raise ConfigError("EKFConfig.p0_scale and nis_limit must be positive and nis_steps >= 1")
 
