@@ -1,25 +1,34 @@
-r"""Fused, compiled (numba) step of the EKF of :mod:`flexforce.compare.ekf`.
+r"""The step of the EKF of :mod:`flexforce.compare.ekf`, compiled (numba): the only one there is.
 
-The same arithmetic as the numpy reference -- :mod:`flexforce.factors.physics` (contact law,
-forward dynamics, IMU model, with their analytic Jacobians) and :class:`~flexforce.compare.ekf.EKF`
--- written over plain float arrays so that numba compiles one step into a single function.
-Why: the reference costs ~1 ms per step (hundreds of small numpy calls at ~1 us each), the
-target is <= 100 us (the authors' C++ runs ~20 us).  ``tests/test_ekf.py`` holds the two against
-each other to 1e-10, including anisotropic and cubic-stiffening contacts and contact changes.
+The physics is the core's (:mod:`flexforce.factors.core`: contact law, Newton-Euler, forward
+dynamics, IMU model, SO(3)); this module adds the filter: the transition and its Jacobian in the
+paper's parametrisation, the covariance prediction, the correction and the per-step outputs.
 
-Compile time (docs/ekf.md, "Speed"): a cold compilation took a minute; now about 12 s.  Keep it so:
-no array expressions, slice assignments or numpy calls other than ``np.zeros`` / ``np.empty`` in
-compiled code (use the leaf helpers); leaf helpers get one explicit signature (``_leaf``); thin
-layers are inlined into ``step`` (``_inline``), big physics functions stay plain ``@njit``.
+Why it is written this way (measured with ``benchmarks/ekf_speed.py``): the physics runs on tuples
+(no heap allocation) and the covariance algebra in preallocated buffers, using the structure of
+the matrices -- ``F`` is block sparse (22 of its 36 3x3 blocks are non-zero, the position and
+velocity rows are multiples of the identity), ``H`` has no position or velocity columns, the
+change of parametrisation ``M`` is a permutation with one 3x3 block, and ``Q`` is zero outside the
+acceleration blocks -- so that a step costs about as much as the authors' C++ filter.
 
-Packed inputs, one row per step (``pack_inputs``)::
+The correction uses the Joseph form expanded, ``(I - K H) P (I - K H)^T + K R K^T
+= P - K U^T - U K^T + K S K^T`` with ``U = P H^T``: the same matrix for any gain ``K`` (so it keeps
+the Joseph form's robustness to an inexact gain), a third of the arithmetic.
+
+Packed inputs, one row per step (:func:`pack_inputs`)::
 
     0:3 com | 3:6 com_vel | 6:9 com_acc | 9:18 inertia | 18:27 inertia_dot | 27:30 sigma
     30:33 sigma_dot | 33:42 imu_R | 42:45 imu_p | 45:48 imu_v | 48:51 imu_a | 51:54 imu_w
-    54:57 gyro | 57:60 accel | then per contact c, at 60 + 13 c: active, p (3), R (9)
+    54:57 gyro | 57:60 accel | then per contact c, at 60 + 25 c: active, p_l (3), R_l (9),
+    p_r (3), R_r (9) (placement in the local frame, rest placement in the world)
 
 Contact parameters, one row per contact: K_fs, K_fd, K_ts, K_td (9 each, row-major), beta_f,
-beta_t, isotropic flag.
+beta_t, isotropic flag.  Constants (:func:`pack_constants`): Q (324), R (36), then dt, m, g, z0,
+min_force, the touch-down rule (1: zero deflection, :func:`touch_down`) and its tilt weight.
+
+Output row of a step (:data:`OUT_FIELDS`): the state, the world covariance, the per-contact
+wrenches, their total's covariance, the CoP and its covariance, the innovation, its covariance,
+the whitened innovation and the NIS.
 """
 
 from __future__ import annotations
@@ -28,868 +37,532 @@ import math
 
 import numpy as np
 
-try:  # numba is optional: without it the EKF runs the numpy reference path.
-    from numba import njit, types
+from flexforce.factors import core
+from flexforce.factors.core import (
+    accel_solve_t, contact_t, eye, exp_t, jl_inv_t, jl_t, ld3, ldm, ldm9, log_t, madd, maxpy, mm, msub, mscl, mv,
+    njit, required_t, st3, stm, vadd, vaxpy, vscl, vsub, imu_t,
+)
 
-    AVAILABLE = True
-    A1 = types.float64[::1]
-    A2 = types.float64[:, ::1]
-    MB = types.Tuple((A2, types.boolean))
-    f8 = types.float64
-    i8 = types.int64
-    void = types.void
-except ImportError:  # pragma: no cover - exercised only without numba
-    AVAILABLE = False
-    A1 = A2 = MB = f8 = i8 = void = None
+AVAILABLE = core.HAVE_NUMBA
 
-    def njit(*args, **kwargs):
-        if args and callable(args[0]):
-            return args[0]
-        return lambda f: f
+NU0 = 60
+"""Packed columns before the contacts."""
+NUC = 25
+"""Packed columns per contact."""
+_NQ = 324
+_NR = 36
 
-
-def _leaf(sig):
-    """A small helper: one explicit signature (one specialisation, no literal-argument copies)."""
-    if not AVAILABLE:  # pragma: no cover
-        return lambda f: f
-    if callable(sig):
-        return njit(sig(), cache=True, no_cpython_wrapper=True)
-    return njit(sig, cache=True, no_cpython_wrapper=True)
+# Non-zero 3x3 blocks of F, filter order (t, Omega, v, w, a, dw).
+_F_NZ = np.array([[1, 0, 1, 0, 1, 0],
+                  [0, 1, 0, 1, 0, 1],
+                  [0, 0, 1, 0, 1, 0],
+                  [0, 0, 0, 1, 0, 1],
+                  [1, 1, 1, 1, 1, 1],
+                  [1, 1, 1, 1, 1, 1]], dtype=np.bool_)
+# Filter block of each world block (theta, t, w, v, dw, a).
+_PERM = np.array([1, 0, 3, 2, 5, 4])
 
 
-def _inline(f):
-    """A physics or filter function: inlined into its caller at numba-IR level, so the whole
-    step is one LLVM function optimised once (numba re-optimises every linked callee library at
-    every level of the call graph otherwise)."""
-    return njit(cache=True, inline="always")(f)
+def out_layout(n_c: int) -> dict:
+    """Column ranges of one step's output row: name -> (start, shape)."""
+    shapes = [("x", (18,)), ("cov", (18, 18)), ("wrench", (n_c, 6)), ("wrench_cov", (6, 6)), ("cop", (3,)),
+              ("cop_cov", (2, 2)), ("innovation", (6,)), ("S", (6, 6)), ("white", (6,)), ("nis", ())]
+    out, o = {}, 0
+    for name, shape in shapes:
+        out[name] = (o, shape)
+        o += int(np.prod(shape)) if shape else 1
+    out["_width"] = (o, ())
+    return out
 
 
-_NU0 = 60
-_NUC = 13
-
-# ----------------------------------------------------------------------------------------------
-# Small linear algebra.  Compile-time rules (docs/ekf.md, "Speed"): no array expressions
-# (``a + b`` on arrays), no slice assignments, no numpy calls beyond np.zeros / np.empty -- each
-# of those makes numba type and lower a separate broadcasting loop, which is where the first
-# version's minute of compilation went.  Every array is float64 and C-contiguous, so each helper
-# has exactly one specialisation per rank.
-# ----------------------------------------------------------------------------------------------
-
-
-@_leaf(lambda: A2(A1))
-def _skew(v):
-    S = np.zeros((3, 3))
-    S[0, 1] = -v[2]
-    S[0, 2] = v[1]
-    S[1, 0] = v[2]
-    S[1, 2] = -v[0]
-    S[2, 0] = -v[1]
-    S[2, 1] = v[0]
-    return S
-
-
-@_leaf(lambda: A1(A1, A1))
-def _cross(a, b):
-    r = np.empty(3)
-    r[0] = a[1] * b[2] - a[2] * b[1]
-    r[1] = a[2] * b[0] - a[0] * b[2]
-    r[2] = a[0] * b[1] - a[1] * b[0]
-    return r
-
-
-@_leaf(lambda: A2(A2, A2))
-def _mm(A, B):
-    n, m = A.shape
-    p = B.shape[1]
-    C = np.zeros((n, p))
-    for i in range(n):
-        for k in range(m):
-            a = A[i, k]
-            if a != 0.0:
-                for j in range(p):
-                    C[i, j] += a * B[k, j]
-    return C
-
-
-@_leaf(lambda: A1(A2, A1))
-def _mv(A, x):
-    n, m = A.shape
-    r = np.zeros(n)
-    for i in range(n):
-        s = 0.0
-        for k in range(m):
-            s += A[i, k] * x[k]
-        r[i] = s
-    return r
-
-
-@_leaf(lambda: A2(A2, A2))
-def _mmt(A, B):
-    """A @ B.T"""
-    n, m = A.shape
-    p = B.shape[0]
-    C = np.empty((n, p))
-    for i in range(n):
-        for j in range(p):
-            s = 0.0
-            for k in range(m):
-                s += A[i, k] * B[j, k]
-            C[i, j] = s
-    return C
-
-
-@_leaf(lambda: A2(A2))
-def _tr(A):
-    n, m = A.shape
-    C = np.empty((m, n))
-    for i in range(n):
-        for j in range(m):
-            C[j, i] = A[i, j]
-    return C
-
-
-@_leaf(lambda: A2(A2))
-def _sym(P):
-    n = P.shape[0]
-    C = np.empty((n, n))
-    for i in range(n):
-        for j in range(n):
-            C[i, j] = 0.5 * (P[i, j] + P[j, i])
-    return C
-
-
-@_leaf(lambda: A2(i8, f8))
-def _eye(n, d):
-    """d I_n"""
-    C = np.zeros((n, n))
-    for i in range(n):
-        C[i, i] = d
-    return C
-
-
-@_leaf(lambda: A2(A1, A1))
-def _outer(a, b):
-    C = np.empty((3, 3))
-    for i in range(3):
-        for j in range(3):
-            C[i, j] = a[i] * b[j]
-    return C
-
-
-@_leaf(lambda: A2(f8, A2))
-def _scl2(a, A):
-    """a A (new array)"""
-    n, m = A.shape
-    C = np.empty((n, m))
-    for i in range(n):
-        for j in range(m):
-            C[i, j] = a * A[i, j]
-    return C
-
-
-@_leaf(lambda: A2(f8, A2, f8, A2))
-def _lin2(a, A, b, B):
-    """a A + b B (new array)"""
-    n, m = A.shape
-    C = np.empty((n, m))
-    for i in range(n):
-        for j in range(m):
-            C[i, j] = a * A[i, j] + b * B[i, j]
-    return C
-
-
-@_leaf(lambda: void(A2, f8, A2))
-def _axpy2(Y, a, X):
-    """Y += a X, in place."""
-    n, m = Y.shape
-    for i in range(n):
-        for j in range(m):
-            Y[i, j] += a * X[i, j]
-
-
-@_leaf(lambda: A1(f8, A1))
-def _scl1(a, x):
-    n = x.shape[0]
-    r = np.empty(n)
-    for i in range(n):
-        r[i] = a * x[i]
-    return r
-
-
-@_leaf(lambda: A1(f8, A1, f8, A1))
-def _lin1(a, x, b, y):
-    """a x + b y (new array)"""
-    n = x.shape[0]
-    r = np.empty(n)
-    for i in range(n):
-        r[i] = a * x[i] + b * y[i]
-    return r
-
-
-@_leaf(lambda: void(A1, f8, A1))
-def _axpy1(y, a, x):
-    """y += a x, in place."""
-    for i in range(y.shape[0]):
-        y[i] += a * x[i]
-
-
-@_leaf(lambda: void(A2, i8, i8, A2))
-def _put(M, r, c, B):
-    """M[r:r+n, c:c+m] = B"""
-    n, m = B.shape
-    for i in range(n):
-        for j in range(m):
-            M[r + i, c + j] = B[i, j]
-
-
-@_leaf(lambda: A2(A2, i8, i8, i8, i8))
-def _block(M, r, c, n, m):
-    """copy of M[r:r+n, c:c+m]"""
-    C = np.empty((n, m))
-    for i in range(n):
-        for j in range(m):
-            C[i, j] = M[r + i, c + j]
-    return C
-
-
-@_leaf(lambda: A1(A1, i8, i8))
-def _seg(x, o, n):
-    """copy of x[o:o+n]"""
-    r = np.empty(n)
-    for i in range(n):
-        r[i] = x[o + i]
-    return r
-
-
-@_leaf(lambda: void(A1, i8, A1))
-def _vput(x, o, v):
-    """x[o:o+n] = v"""
-    for i in range(v.shape[0]):
-        x[o + i] = v[i]
-
-
-@_leaf(lambda: A2(A1, i8))
-def _mat3(x, o):
-    """3x3 matrix stored row-major at x[o:o+9]"""
-    C = np.empty((3, 3))
-    for i in range(3):
-        for j in range(3):
-            C[i, j] = x[o + 3 * i + j]
-    return C
-
-
-@_leaf(lambda: MB(A2))
-def _cholesky(S):
-    """Lower Cholesky factor; returns (L, ok)."""
-    n = S.shape[0]
-    L = np.zeros((n, n))
-    for j in range(n):
-        d = S[j, j]
-        for k in range(j):
-            d -= L[j, k] * L[j, k]
-        if not d > 0.0:
-            return L, False
-        L[j, j] = math.sqrt(d)
-        for i in range(j + 1, n):
-            s = S[i, j]
-            for k in range(j):
-                s -= L[i, k] * L[j, k]
-            L[i, j] = s / L[j, j]
-    return L, True
-
-
-@_leaf(lambda: A1(A2, A1))
-def _forward_sub(L, b):
-    n = L.shape[0]
-    x = np.empty(n)
-    for i in range(n):
-        s = b[i]
-        for k in range(i):
-            s -= L[i, k] * x[k]
-        x[i] = s / L[i, i]
-    return x
-
-
-@_leaf(lambda: A1(A2, A1))
-def _back_sub_t(L, b):
-    """Solve L^T x = b."""
-    n = L.shape[0]
-    x = np.empty(n)
-    for i in range(n - 1, -1, -1):
-        s = b[i]
-        for k in range(i + 1, n):
-            s -= L[k, i] * x[k]
-        x[i] = s / L[i, i]
-    return x
-
-
-@_leaf(lambda: MB(A2))
-def _inv6(A):
-    """Inverse of a 6x6 matrix by Gauss-Jordan with partial pivoting; (Ainv, ok)."""
-    n = A.shape[0]
-    M = _block(A, 0, 0, n, n)
-    Inv = _eye(n, 1.0)
-    for c in range(n):
-        p = c
-        best = abs(M[c, c])
-        for r in range(c + 1, n):
-            if abs(M[r, c]) > best:
-                best = abs(M[r, c])
-                p = r
-        if best == 0.0:
-            return Inv, False
-        if p != c:
-            for j in range(n):
-                tmp = M[c, j]
-                M[c, j] = M[p, j]
-                M[p, j] = tmp
-                tmp = Inv[c, j]
-                Inv[c, j] = Inv[p, j]
-                Inv[p, j] = tmp
-        d = 1.0 / M[c, c]
-        for j in range(n):
-            M[c, j] *= d
-            Inv[c, j] *= d
-        for r in range(n):
-            if r != c:
-                f = M[r, c]
-                if f != 0.0:
-                    for j in range(n):
-                        M[r, j] -= f * M[c, j]
-                        Inv[r, j] -= f * Inv[c, j]
-    return Inv, True
+# Offsets in the output row (the contacts' wrenches have a variable length: after them, offsets
+# are computed from n_c inside the kernel).
+_O_X, _O_COV, _O_WR = 0, 18, 342
 
 
 # ----------------------------------------------------------------------------------------------
-# SO(3), as flexforce.factors.so3
+# The model in the filter's parametrisation
 # ----------------------------------------------------------------------------------------------
 
 
-@_leaf(lambda: A2(A1, f8, f8))
-def _rodrigues(phi, a, b):
-    """I + a [phi]x + b [phi]x^2"""
-    K = _skew(phi)
-    KK = _mm(K, K)
-    R = np.empty((3, 3))
-    for i in range(3):
-        for j in range(3):
-            R[i, j] = a * K[i, j] + b * KK[i, j]
-        R[i, i] += 1.0
-    return R
+@njit
+def _contact(R, t, w, v, u, o, cp):
+    """:func:`~flexforce.factors.core.contact_t` of the contact packed at ``u[o:o+25]`` with the
+    parameters ``cp``."""
+    return contact_t(R, t, w, v, ld3(u, o + 1), ldm9(u, o + 4), ld3(u, o + 13), ldm9(u, o + 16), ldm9(cp, 0),
+                     ldm9(cp, 9), ldm9(cp, 18), ldm9(cp, 27), cp[36], cp[37], cp[38] != 0.0)
 
 
-@_leaf(lambda: A2(A1))
-def so3_exp(phi):
-    theta2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
-    if theta2 < 1e-16:
-        return _rodrigues(phi, 1.0, 0.5)
-    theta = math.sqrt(theta2)
-    return _rodrigues(phi, math.sin(theta) / theta, (1.0 - math.cos(theta)) / theta2)
+@njit
+def dynamics(R, t, w, v, u, CP, m, g):
+    """Accelerations from the contact law and Newton-Euler (eq. 24, 25 with 10, 12) at the inputs
+    ``u`` and their derivatives with respect to world increments ``(theta, t, w, v)``.
 
-
-@_leaf(lambda: A1(A2))
-def so3_log(R):
-    w = np.empty(3)
-    w[0] = R[2, 1] - R[1, 2]
-    w[1] = R[0, 2] - R[2, 0]
-    w[2] = R[1, 0] - R[0, 1]
-    cos_theta = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)
-    sin_theta = 0.5 * math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
-    theta = math.atan2(sin_theta, cos_theta)
-    if cos_theta > -0.9:
-        if sin_theta < 1e-8:
-            return _scl1(0.5 * (1.0 + sin_theta * sin_theta / 6.0), w)
-        return _scl1(0.5 * theta / sin_theta, w)
-    S = _sym(R)
-    for i in range(3):
-        S[i, i] -= cos_theta
-    k = 0
-    for i in range(1, 3):
-        if S[i, i] > S[k, k]:
-            k = i
-    axis = np.empty(3)
-    for i in range(3):
-        axis[i] = S[i, k]
-    sgn = 1.0
-    if axis[0] * w[0] + axis[1] * w[1] + axis[2] * w[2] < 0.0:
-        sgn = -1.0
-    return _scl1(sgn * theta / math.sqrt(axis[0] * axis[0] + axis[1] * axis[1] + axis[2] * axis[2]), axis)
-
-
-@_leaf(lambda: A2(A1))
-def so3_left_jacobian(phi):
-    theta2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
-    if theta2 < 1e-2:
-        a = 0.5 - theta2 * (1.0 / 24.0 - theta2 * (1.0 / 720.0 - theta2 / 40320.0))
-        b = 1.0 / 6.0 - theta2 * (1.0 / 120.0 - theta2 * (1.0 / 5040.0 - theta2 / 362880.0))
-    else:
-        theta = math.sqrt(theta2)
-        h = math.sin(0.5 * theta) / theta
-        a = 2.0 * h * h
-        b = (theta - math.sin(theta)) / (theta2 * theta)
-    return _rodrigues(phi, a, b)
-
-
-@_leaf(lambda: A2(A1))
-def so3_left_jacobian_inverse(phi):
-    theta2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
-    if theta2 < 1e-2:
-        c = 1.0 / 12.0 + theta2 * (1.0 / 720.0 + theta2 * (1.0 / 30240.0 + theta2 / 1209600.0))
-    else:
-        theta = math.sqrt(theta2)
-        c = 1.0 / theta2 - 0.5 / (theta * math.tan(0.5 * theta))
-    return _rodrigues(phi, -0.5, c)
-
-
-# ----------------------------------------------------------------------------------------------
-# Physics, as flexforce.factors.physics (world-frame increments, (theta, t, w, v) order)
-# ----------------------------------------------------------------------------------------------
-
-
-@njit(cache=True)
-def contact_wrench(R, t, w, v, p_l, R_l, cp, want_jac):
-    """physics.contact_wrench; ``cp`` a packed parameter row. Returns (wrench (6,), J (6x12))."""
-    Kfs = _mat3(cp, 0)
-    Kfd = _mat3(cp, 9)
-    Kts = _mat3(cp, 18)
-    Ktd = _mat3(cp, 27)
-    beta_f = cp[36]
-    beta_t = cp[37]
-    iso = cp[38] != 0.0
-    Rp = _mv(R, p_l)
-    s = np.empty(3)
-    for i in range(3):
-        s[i] = Rp[i] + t[i] - p_l[i]
-    ds = _cross(w, Rp)
-    _axpy1(ds, 1.0, v)
-    Omega = so3_log(R)
-    if not iso:
-        Rc = _mm(R, R_l)
-        Kfs = _mmt(_mm(Rc, Kfs), Rc)
-        Kfd = _mmt(_mm(Rc, Kfd), Rc)
-        Kts = _mmt(_mm(Rc, Kts), Rc)
-        Ktd = _mmt(_mm(Rc, Ktd), Rc)
-    gf = 1.0 + beta_f * (s[0] * s[0] + s[1] * s[1] + s[2] * s[2])
-    gt = 1.0 + beta_t * (Omega[0] * Omega[0] + Omega[1] * Omega[1] + Omega[2] * Omega[2])
-    ss = _scl1(gf, s)
-    OO = _scl1(gt, Omega)
-    F = _lin1(-1.0, _mv(Kfs, ss), -1.0, _mv(Kfd, ds))
-    p_w = _lin1(1.0, Rp, 1.0, t)
-    Tq = _lin1(-1.0, _mv(Kts, OO), -1.0, _mv(Ktd, w))
-    _axpy1(Tq, 1.0, _cross(p_w, F))
-    wrench = np.empty(6)
-    _vput(wrench, 0, F)
-    _vput(wrench, 3, Tq)
-    J = np.zeros((6, 12))
-    if not want_jac:
-        return wrench, J
-    S_Rp = _skew(Rp)
-    Ds = _eye(3, gf)
-    _axpy2(Ds, 2.0 * beta_f, _outer(s, s))
-    DO = _eye(3, gt)
-    _axpy2(DO, 2.0 * beta_t, _outer(Omega, Omega))
-    dF_dth = _mm(_mm(Kfs, Ds), S_Rp)
-    _axpy2(dF_dth, 1.0, _mm(_mm(Kfd, _skew(w)), S_Rp))
-    dT0_dth = _scl2(-1.0, _mm(_mm(Kts, DO), so3_left_jacobian_inverse(Omega)))
-    if not iso:
-        _axpy2(dF_dth, 1.0, _skew(_mv(Kfs, ss)))
-        _axpy2(dF_dth, -1.0, _mm(Kfs, _skew(ss)))
-        _axpy2(dF_dth, 1.0, _skew(_mv(Kfd, ds)))
-        _axpy2(dF_dth, -1.0, _mm(Kfd, _skew(ds)))
-        _axpy2(dT0_dth, 1.0, _skew(_mv(Kts, OO)))
-        _axpy2(dT0_dth, -1.0, _mm(Kts, _skew(OO)))
-        _axpy2(dT0_dth, 1.0, _skew(_mv(Ktd, w)))
-        _axpy2(dT0_dth, -1.0, _mm(Ktd, _skew(w)))
-    dF_dt = _scl2(-1.0, _mm(Kfs, Ds))
-    dF_dw = _mm(Kfd, S_Rp)
-    S_pw = _skew(p_w)
-    S_F = _skew(F)
-    _put(J, 0, 0, dF_dth)
-    _put(J, 0, 3, dF_dt)
-    _put(J, 0, 6, dF_dw)
-    _put(J, 0, 9, _scl2(-1.0, Kfd))
-    B = _mm(S_pw, dF_dth)
-    _axpy2(B, 1.0, dT0_dth)
-    _axpy2(B, 1.0, _mm(S_F, S_Rp))
-    _put(J, 3, 0, B)
-    B = _mm(S_pw, dF_dt)
-    _axpy2(B, -1.0, S_F)
-    _put(J, 3, 3, B)
-    B = _mm(S_pw, dF_dw)
-    _axpy2(B, -1.0, Ktd)
-    _put(J, 3, 6, B)
-    _put(J, 3, 9, _scl2(-1.0, _mm(S_pw, Kfd)))
-    return wrench, J
-
-
-@_inline
-def total_contact_wrench(R, t, w, v, u, CP, want_jac):
-    """Sum over the active contacts of row ``u``; also the per-contact wrenches (C, 6)."""
-    n_c = CP.shape[0]
-    per = np.zeros((n_c, 6))
-    total = np.zeros(6)
-    Jsum = np.zeros((6, 12))
-    for c in range(n_c):
-        o = _NU0 + _NUC * c
+    Returns ``ok, dw, a`` and the 3x3 blocks ``G_dw_*``, ``G_a_*`` (``*`` = th, t, w, v) of
+    ``d(dw, a)/d(theta, t, w, v) = A^-1 (dW_c/dx - dr/dx)``.
+    """
+    z = eye(0.0)
+    WF = (0.0, 0.0, 0.0)
+    WT = (0.0, 0.0, 0.0)
+    cF_th, cF_t, cF_w, cF_v, cT_th, cT_t, cT_w, cT_v = z, z, z, z, z, z, z, z
+    for c in range(CP.shape[0]):
+        o = NU0 + NUC * c
         if u[o] == 0.0:
             continue
-        wr, J = contact_wrench(R, t, w, v, _seg(u, o + 1, 3), _mat3(u, o + 4), CP[c], want_jac)
-        for i in range(6):
-            per[c, i] = wr[i]
-            total[i] += wr[i]
-        if want_jac:
-            _axpy2(Jsum, 1.0, J)
-    return total, per, Jsum
+        (F, T, dF_dth, dF_dt, dF_dw, dF_dv, dT_dth, dT_dt, dT_dw, dT_dv, _, _, _) = _contact(R, t, w, v, u, o, CP[c])
+        WF = vadd(WF, F)
+        WT = vadd(WT, T)
+        cF_th, cF_t, cF_w, cF_v = madd(cF_th, dF_dth), madd(cF_t, dF_dt), madd(cF_w, dF_dw), madd(cF_v, dF_dv)
+        cT_th, cT_t, cT_w, cT_v = madd(cT_th, dT_dth), madd(cT_t, dT_dt), madd(cT_w, dT_dw), madd(cT_v, dT_dv)
+    inputs = (ld3(u, 0), ld3(u, 3), ld3(u, 6), ldm9(u, 9), ldm9(u, 18), ld3(u, 27), ld3(u, 30))
+    zero = (0.0, 0.0, 0.0)
+    F0, T0, _, _, _, _, _, RIRt, S_Rc, S_t = required_t(R, t, w, zero, zero, m, inputs[0], inputs[1], inputs[2],
+                                                        inputs[3], inputs[4], inputs[5], inputs[6], g)
+    dw_F, dw_T, a_F, a_T, det = accel_solve_t(m, RIRt, S_Rc, S_t)
+    ok = det != 0.0 and math.isfinite(det)
+    bF = vsub(WF, F0)
+    bT = vsub(WT, T0)
+    dw = vadd(mv(dw_F, bF), mv(dw_T, bT))
+    a = vadd(mv(a_F, bF), mv(a_T, bT))
+    _, _, rF_th, rF_w, rT_th, rT_t, rT_w, _, _, _ = required_t(R, t, w, dw, a, m, inputs[0], inputs[1], inputs[2],
+                                                               inputs[3], inputs[4], inputs[5], inputs[6], g)
+    XF_th, XF_w = msub(cF_th, rF_th), msub(cF_w, rF_w)
+    XT_th, XT_t, XT_w = msub(cT_th, rT_th), msub(cT_t, rT_t), msub(cT_w, rT_w)
+    G_dw = (madd(mm(dw_F, XF_th), mm(dw_T, XT_th)), madd(mm(dw_F, cF_t), mm(dw_T, XT_t)),
+            madd(mm(dw_F, XF_w), mm(dw_T, XT_w)), madd(mm(dw_F, cF_v), mm(dw_T, cT_v)))
+    G_a = (madd(mm(a_F, XF_th), mm(a_T, XT_th)), madd(mm(a_F, cF_t), mm(a_T, XT_t)),
+           madd(mm(a_F, XF_w), mm(a_T, XT_w)), madd(mm(a_F, cF_v), mm(a_T, cT_v)))
+    return ok, dw, a, G_dw, G_a
 
 
-@njit(cache=True)
-def required_wrench_x(R, t, w, dw, a, u, m, g):
-    """physics.required_wrench and its 6x12 Jacobian with respect to (theta, t, w, v)."""
-    Ic = _mat3(u, 9)
-    dIc = _mat3(u, 18)
-    Rc = _mv(R, _seg(u, 0, 3))
-    Rdc = _mv(R, _seg(u, 3, 3))
-    Rddc = _mv(R, _seg(u, 6, 3))
-    RIRt = _mmt(_mm(R, Ic), R)
-    RdIRt = _mmt(_mm(R, dIc), R)
-    Rs = _mv(R, _seg(u, 27, 3))
-    Rds = _mv(R, _seg(u, 30, 3))
-    ag = _seg(a, 0, 3)
-    ag[2] += g
-    w_Rc = _cross(w, Rc)
-    F = _cross(dw, Rc)
-    _axpy1(F, 1.0, _cross(w, w_Rc))
-    _axpy1(F, 2.0, _cross(w, Rdc))
-    _axpy1(F, 1.0, Rddc)
-    _axpy1(F, 1.0, ag)
-    F = _scl1(m, F)
-    Iw = _mv(RIRt, w)
-    Tq = _cross(w, Iw)
-    _axpy1(Tq, 1.0, _mv(RdIRt, w))
-    _axpy1(Tq, 1.0, _mv(RIRt, dw))
-    _axpy1(Tq, 1.0, _cross(w, Rs))
-    _axpy1(Tq, 1.0, Rds)
-    _axpy1(Tq, 1.0, _cross(t, F))
-    _axpy1(Tq, m, _cross(Rc, ag))
-    wrench = np.empty(6)
-    _vput(wrench, 0, F)
-    _vput(wrench, 3, Tq)
-    Sw = _skew(w)
-    S_Rc = _skew(Rc)
-    S_t = _skew(t)
-    X = _scl2(-1.0, _mm(_skew(dw), S_Rc))
-    _axpy2(X, -1.0, _mm(_mm(Sw, Sw), S_Rc))
-    _axpy2(X, -2.0, _mm(Sw, _skew(Rdc)))
-    _axpy2(X, -1.0, _skew(Rddc))
-    dF_dth = _scl2(m, X)
-    X = _scl2(-1.0, _skew(w_Rc))
-    _axpy2(X, -1.0, _mm(Sw, S_Rc))
-    _axpy2(X, -2.0, _skew(Rdc))
-    dF_dw = _scl2(m, X)
-    dIw_dth = _mm(RIRt, Sw)
-    _axpy2(dIw_dth, -1.0, _skew(Iw))
-    dT_dth = _mm(Sw, dIw_dth)
-    _axpy2(dT_dth, -1.0, _skew(_mv(RdIRt, w)))
-    _axpy2(dT_dth, 1.0, _mm(RdIRt, Sw))
-    _axpy2(dT_dth, -1.0, _skew(_mv(RIRt, dw)))
-    _axpy2(dT_dth, 1.0, _mm(RIRt, _skew(dw)))
-    _axpy2(dT_dth, -1.0, _mm(Sw, _skew(Rs)))
-    _axpy2(dT_dth, -1.0, _skew(Rds))
-    _axpy2(dT_dth, 1.0, _mm(S_t, dF_dth))
-    _axpy2(dT_dth, m, _mm(_skew(ag), S_Rc))
-    dT_dw = _mm(Sw, RIRt)
-    _axpy2(dT_dw, -1.0, _skew(Iw))
-    _axpy2(dT_dw, 1.0, RdIRt)
-    _axpy2(dT_dw, -1.0, _skew(Rs))
-    _axpy2(dT_dw, 1.0, _mm(S_t, dF_dw))
-    Jx = np.zeros((6, 12))
-    _put(Jx, 0, 0, dF_dth)
-    _put(Jx, 0, 6, dF_dw)
-    _put(Jx, 3, 0, dT_dth)
-    _put(Jx, 3, 3, _scl2(-1.0, _skew(F)))
-    _put(Jx, 3, 6, dT_dw)
-    return wrench, Jx, RIRt, S_Rc, S_t
+@njit
+def dynamics_into(R, t, w, v, u, CP, m, g, acc, G):
+    """:func:`dynamics`, arrays in and out: ``acc`` = (a, dw) and ``G`` (6x12) its Jacobian, rows
+    (a, dw), columns world ``(theta, t, w, v)``.  Returns ok."""
+    ok, dw, a, G_dw, G_a = dynamics(ldm(R), ld3(t, 0), ld3(w, 0), ld3(v, 0), u, CP, m, g)
+    st3(acc, 0, a)
+    st3(acc, 3, dw)
+    for j in range(4):
+        stm(G, 0, 3 * j, G_a[j])
+        stm(G, 3, 3 * j, G_dw[j])
+    return ok
 
 
-@_inline
-def forward_dynamics(R, t, w, wrench_c, u, m, g):
-    """physics.forward_dynamics: (acc (dw, a), Jx 6x12, Jwrench 6x6, ok)."""
-    zero = np.zeros(3)
-    r0, _, RIRt, S_Rc, S_t = required_wrench_x(R, t, w, zero, zero, u, m, g)
-    A = np.empty((6, 6))
-    _put(A, 0, 0, _scl2(-m, S_Rc))
-    _put(A, 0, 3, _eye(3, m))
-    _put(A, 3, 0, _lin2(1.0, RIRt, -m, _mm(S_t, S_Rc)))
-    _put(A, 3, 3, _scl2(m, _lin2(1.0, S_t, 1.0, S_Rc)))
-    Ainv, ok = _inv6(A)
-    acc = _mv(Ainv, _lin1(1.0, wrench_c, -1.0, r0))
-    _, Jr, _, _, _ = required_wrench_x(R, t, w, _seg(acc, 0, 3), _seg(acc, 3, 3), u, m, g)
-    return acc, _scl2(-1.0, _mm(Ainv, Jr)), Ainv, ok
-
-
-@njit(cache=True)
-def imu_readings(R, w, dw, a, u, g):
-    """physics.imu_readings: (y (6,), H 6x18 over (theta, t, w, v, dw, a))."""
-    Rt = _tr(R)
-    uu = _mv(Rt, w)
-    ud = _mv(Rt, dw)
-    p = _seg(u, 42, 3)
-    pv = _seg(u, 45, 3)
-    RaT = _tr(_mat3(u, 33))
-    ag = _seg(a, 0, 3)
-    ag[2] += g
-    up = _cross(uu, p)
-    acc_l = _cross(ud, p)
-    _axpy1(acc_l, 1.0, _cross(uu, up))
-    _axpy1(acc_l, 2.0, _cross(uu, pv))
-    _axpy1(acc_l, 1.0, _seg(u, 48, 3))
-    _axpy1(acc_l, 1.0, _mv(Rt, ag))
-    y = np.empty(6)
-    _vput(y, 0, _mv(RaT, _lin1(1.0, uu, 1.0, _seg(u, 51, 3))))
-    _vput(y, 3, _mv(RaT, acc_l))
-    H = np.zeros((6, 18))
-    du_dth = _mm(Rt, _skew(w))
-    dacc_du = _scl2(-1.0, _skew(up))
-    _axpy2(dacc_du, -1.0, _mm(_skew(uu), _skew(p)))
-    _axpy2(dacc_du, -2.0, _skew(pv))
-    dacc_dud = _scl2(-1.0, _skew(p))
-    RaTRt = _mm(RaT, Rt)
-    _put(H, 0, 0, _mm(RaT, du_dth))
-    _put(H, 0, 6, RaTRt)
-    X = _mm(dacc_du, du_dth)
-    _axpy2(X, 1.0, _mm(_mm(dacc_dud, Rt), _skew(dw)))
-    _axpy2(X, 1.0, _mm(Rt, _skew(ag)))
-    _put(H, 3, 0, _mm(RaT, X))
-    _put(H, 3, 6, _mm(_mm(RaT, dacc_du), Rt))
-    _put(H, 3, 12, _mm(_mm(RaT, dacc_dud), Rt))
-    _put(H, 3, 15, RaTRt)
-    return y, H
-
-
-# ----------------------------------------------------------------------------------------------
-# The filter's step (state x = (t, Omega, v, w, a, dw), as compare.ekf)
-# ----------------------------------------------------------------------------------------------
-
-
-@_inline
-def transition(x, u, CP, dt, m, g):
-    """EKF.transition with its Jacobian: (x1, F, ok)."""
-    t = _seg(x, 0, 3)
-    Om = _seg(x, 3, 3)
-    v = _seg(x, 6, 3)
-    w = _seg(x, 9, 3)
-    a = _seg(x, 12, 3)
-    dw = _seg(x, 15, 3)
+@njit
+def predicted_pose(x, dt):
+    """The pose the transition predicts from ``x`` (filter order) over ``dt``:
+    ``phi = dt w + dt^2/2 dw``, ``E = exp(phi)``, ``R1 = E exp(Omega)``, ``t1 = t + dt v + dt^2/2 a``."""
     h = 0.5 * dt * dt
-    phi = _lin1(dt, w, h, dw)
-    E = so3_exp(phi)
-    R1 = _mm(E, so3_exp(Om))
-    t1 = _lin1(1.0, t, dt, v)
-    _axpy1(t1, h, a)
-    v1 = _lin1(1.0, v, dt, a)
-    w1 = _lin1(1.0, w, dt, dw)
-    Om1 = so3_log(R1)
-    W, _, Jc = total_contact_wrench(R1, t1, w1, v1, u, CP, True)
-    acc, Jx, Jw, ok = forward_dynamics(R1, t1, w1, W, u, m, g)
-    G = _mm(Jw, Jc)  # Jx + Jw Jc: rows (dw, a), columns (theta, t, w, v)
-    _axpy2(G, 1.0, Jx)
-    Jphi = so3_left_jacobian(phi)
-    D = np.zeros((12, 18))
-    _put(D, 0, 3, _mm(E, so3_left_jacobian(Om)))
-    _put(D, 0, 9, _scl2(dt, Jphi))
-    _put(D, 0, 15, _scl2(h, Jphi))
+    phi = vaxpy(vscl(dt, ld3(x, 9)), h, ld3(x, 15))
+    E = exp_t(phi)
+    return phi, E, mm(E, exp_t(ld3(x, 3))), vaxpy(vaxpy(ld3(x, 0), dt, ld3(x, 6)), h, ld3(x, 12))
+
+
+@njit
+def touch_down(k, x, U, dt, tilt_weight):
+    """Footholds of the contacts that land at step ``k`` (active at k, not at k-1): the rest
+    placement in the world is the contact's placement at the predicted pose, ``p_r = R p_l + t``,
+    ``R_r = R R_l`` (the landing spring starts at zero deflection), with the fraction
+    ``tilt_weight`` of the tilt of the sole (its z axis against gravity's) removed, yaw kept.
+    Written into the packed rows of the whole episode (k until the contact lifts)."""
+    _, _, R1, t1 = predicted_pose(x, dt)
+    for c in range((U.shape[1] - NU0) // NUC):
+        o = NU0 + NUC * c
+        if U[k, o] == 0.0 or U[k - 1, o] != 0.0:
+            continue
+        p_r = vadd(mv(R1, ld3(U[k], o + 1)), t1)
+        R_r = mm(R1, ldm9(U[k], o + 4))
+        if tilt_weight > 0.0:
+            # n x e_z for the sole normal n = R_r e_z: the rotation that levels the sole.
+            axis = (R_r[1][2], -R_r[0][2], 0.0)
+            sin_t = math.sqrt(axis[0] * axis[0] + axis[1] * axis[1])
+            if sin_t > 1e-12:
+                angle = math.atan2(sin_t, R_r[2][2])
+                R_r = mm(exp_t(vscl(tilt_weight * angle / sin_t, axis)), R_r)
+        for kk in range(k, U.shape[0]):
+            if U[kk, o] == 0.0:
+                break
+            st3(U[kk], o + 13, p_r)
+            for i in range(3):
+                st3(U[kk], o + 16 + 3 * i, R_r[i])
+
+
+@njit
+def transition(x, u, CP, dt, m, g, x1, F):
+    """``x1 = f(x)`` (the state predicted at the step of ``u``) and its Jacobian ``F`` (18x18),
+    filter order ``(t, Omega, v, w, a, dw)`` (see :mod:`flexforce.compare.ekf`).  Returns ok."""
+    t, Om, v, w, a, dw = ld3(x, 0), ld3(x, 3), ld3(x, 6), ld3(x, 9), ld3(x, 12), ld3(x, 15)
+    h = 0.5 * dt * dt
+    phi, E, R1, t1 = predicted_pose(x, dt)
+    v1 = vaxpy(v, dt, a)
+    w1 = vaxpy(w, dt, dw)
+    Om1 = log_t(R1)
+    ok, dw1, a1, G_dw, G_a = dynamics(R1, t1, w1, v1, u, CP, m, g)
+    st3(x1, 0, t1)
+    st3(x1, 3, Om1)
+    st3(x1, 6, v1)
+    st3(x1, 9, w1)
+    st3(x1, 12, a1)
+    st3(x1, 15, dw1)
+    # World increments (theta, t, w, v) at the new step from the filter's increments:
+    # d_theta = E J_l(Om) dOm + J_l(phi) (dt dw + h ddw); F's Omega rows are J_l^-1(Om1) d_theta.
+    EJ = mm(E, jl_t(Om))
+    Jphi = jl_t(phi)
+    Jinv1 = jl_inv_t(Om1)
+    for i in range(18):
+        for j in range(18):
+            F[i, j] = 0.0
     for i in range(3):
-        D[3 + i, i] = 1.0
-        D[3 + i, 6 + i] = dt
-        D[3 + i, 12 + i] = h
-        D[6 + i, 9 + i] = 1.0
-        D[6 + i, 15 + i] = dt
-        D[9 + i, 6 + i] = 1.0
-        D[9 + i, 12 + i] = dt
-    F = np.empty((18, 18))
-    _put(F, 0, 0, _block(D, 3, 0, 3, 18))
-    _put(F, 3, 0, _mm(so3_left_jacobian_inverse(Om1), _block(D, 0, 0, 3, 18)))
-    _put(F, 6, 0, _block(D, 9, 0, 3, 18))
-    _put(F, 9, 0, _block(D, 6, 0, 3, 18))
-    GD = _mm(G, D)
-    _put(F, 12, 0, _block(GD, 3, 0, 3, 18))
-    _put(F, 15, 0, _block(GD, 0, 0, 3, 18))
-    x1 = np.empty(18)
-    _vput(x1, 0, t1)
-    _vput(x1, 3, Om1)
-    _vput(x1, 6, v1)
-    _vput(x1, 9, w1)
-    for i in range(3):
-        x1[12 + i] = acc[3 + i]
-        x1[15 + i] = acc[i]
-    return x1, F, ok
+        F[i, i] = 1.0
+        F[i, 6 + i] = dt
+        F[i, 12 + i] = h
+        F[6 + i, 6 + i] = 1.0
+        F[6 + i, 12 + i] = dt
+        F[9 + i, 9 + i] = 1.0
+        F[9 + i, 15 + i] = dt
+    JiJphi = mm(Jinv1, Jphi)
+    stm(F, 3, 3, mm(Jinv1, EJ))
+    stm(F, 3, 9, mscl(dt, JiJphi))
+    stm(F, 3, 15, mscl(h, JiJphi))
+    _acc_rows(F, 12, G_a, EJ, Jphi, dt, h)
+    _acc_rows(F, 15, G_dw, EJ, Jphi, dt, h)
+    return ok
 
 
-@_inline
-def _paper_to_world(Om):
-    M = np.zeros((18, 18))
-    _put(M, 0, 3, so3_left_jacobian(Om))
-    for i in range(3):
-        M[3 + i, i] = 1.0
-        M[6 + i, 9 + i] = 1.0
-        M[9 + i, 6 + i] = 1.0
-        M[12 + i, 15 + i] = 1.0
-        M[15 + i, 12 + i] = 1.0
-    return M
+@njit
+def _acc_rows(F, r, G, EJ, Jphi, dt, h):
+    """F's acceleration rows: ``G D`` with ``D`` the world increments at the new step from the
+    filter's increments (columns t, Omega, v, w, a, dw)."""
+    G_th, G_t, G_w, G_v = G
+    G_thJ = mm(G_th, Jphi)
+    stm(F, r, 0, G_t)
+    stm(F, r, 3, mm(G_th, EJ))
+    stm(F, r, 6, maxpy(G_v, dt, G_t))
+    stm(F, r, 9, maxpy(G_w, dt, G_thJ))
+    stm(F, r, 12, madd(mscl(h, G_t), mscl(dt, G_v)))
+    stm(F, r, 15, madd(mscl(h, G_thJ), mscl(dt, G_w)))
 
 
-@_inline
-def predict(x, P, u, CP, Q0, dt, m, g):
-    """EKF.predict: (x1, P1, status) with status 0 ok, 1 P not positive definite, 5 singular dynamics."""
-    x1, F, ok = transition(x, u, CP, dt, m, g)
-    if not ok:
-        return x1, P, 5
-    B = _eye(18, 1.0)
-    _put(B, 3, 3, so3_left_jacobian_inverse(_seg(x1, 3, 3)))
-    P1 = _mmt(_mm(F, P), F)
-    _axpy2(P1, 1.0, _mmt(_mm(B, Q0), B))
-    P1 = _sym(P1)
-    _, okp = _cholesky(P1)
-    if not okp:
-        return x1, P1, 1
-    return x1, P1, 0
+@njit
+def measurement(x, u, g, hx, H):
+    """``h(x)``: gyro and accelerometer readings (IMU frame) into ``hx`` and ``H`` (6x18, filter
+    order; its position and velocity columns are zero)."""
+    Om = ld3(x, 3)
+    R = exp_t(Om)
+    yg, ya, g_th, RaTRt, a_th, a_w, a_dw = imu_t(R, ld3(x, 9), ld3(x, 15), ld3(x, 12), ldm9(u, 33), ld3(u, 42),
+                                                 ld3(u, 45), ld3(u, 48), ld3(u, 51), g)
+    st3(hx, 0, yg)
+    st3(hx, 3, ya)
+    Jl = jl_t(Om)
+    for i in range(6):
+        for j in range(18):
+            H[i, j] = 0.0
+    stm(H, 0, 3, mm(g_th, Jl))
+    stm(H, 0, 9, RaTRt)
+    stm(H, 3, 3, mm(a_th, Jl))
+    stm(H, 3, 9, a_w)
+    stm(H, 3, 12, RaTRt)
+    stm(H, 3, 15, a_dw)
 
 
-@_inline
-def update(x, P, u, Rn, g):
-    """EKF.update: (x1, P1, innovation, S, whitened, nis, status)."""
-    Om = _seg(x, 3, 3)
-    R = so3_exp(Om)
-    hx, Hw = imu_readings(R, _seg(x, 9, 3), _seg(x, 15, 3), _seg(x, 12, 3), u, g)
-    H = _mm(Hw, _paper_to_world(Om))
-    innov = _lin1(1.0, _seg(u, 54, 6), -1.0, hx)
-    PHt = _mmt(P, H)
-    S = _mm(H, PHt)
-    _axpy2(S, 1.0, Rn)
-    S = _sym(S)
-    L, ok = _cholesky(S)
-    white = np.zeros(6)
-    if not ok:
-        return x, P, innov, S, white, np.inf, 2
-    # K = P H^T S^-1, column by column of K^T: S K^T = H P
-    K = np.empty((18, 6))
-    for j in range(18):
-        col = _back_sub_t(L, _forward_sub(L, PHt[j]))
+# ----------------------------------------------------------------------------------------------
+# Covariance algebra on preallocated buffers
+# ----------------------------------------------------------------------------------------------
+
+
+@njit
+def propagate(F, P, Q, Jinv, FP, out):
+    """``out = F P F^T + B Q B^T`` (symmetric), ``B`` the identity but for its Omega block
+    ``Jinv``; ``F``'s zero blocks (``_F_NZ``) and zero entries are skipped."""
+    for i in range(18):
+        for j in range(18):
+            FP[i, j] = 0.0
+    for bi in range(6):
+        for bj in range(6):
+            if not _F_NZ[bi, bj]:
+                continue
+            for r in range(3):
+                i = 3 * bi + r
+                for kk in range(3):
+                    f = F[i, 3 * bj + kk]
+                    if f != 0.0:
+                        pr = 3 * bj + kk
+                        for c in range(18):
+                            FP[i, c] += f * P[pr, c]
+    for i in range(18):
+        for bj_row in range(6):
+            for r in range(3):
+                j = 3 * bj_row + r
+                if j < i:
+                    continue
+                s = 0.0
+                for bk in range(6):
+                    if _F_NZ[bj_row, bk]:
+                        for kk in range(3):
+                            f = F[j, 3 * bk + kk]
+                            if f != 0.0:
+                                s += FP[i, 3 * bk + kk] * f
+                out[i, j] = s
+    # B Q B^T: Q's rows and columns of Omega are mapped by Jinv.
+    for i in range(18):
+        for j in range(i, 18):
+            q = 0.0
+            if 3 <= i < 6 and 3 <= j < 6:
+                for a in range(3):
+                    for b in range(3):
+                        q += Jinv[i - 3][a] * Q[3 + a, 3 + b] * Jinv[j - 3][b]
+            elif 3 <= i < 6:
+                for a in range(3):
+                    q += Jinv[i - 3][a] * Q[3 + a, j]
+            elif 3 <= j < 6:
+                for b in range(3):
+                    q += Q[i, 3 + b] * Jinv[j - 3][b]
+            else:
+                q = Q[i, j]
+            out[i, j] += q
+            out[j, i] = out[i, j]
+
+
+@njit
+def predict(x, P, u, CP, Q, dt, m, g, WS):
+    """Propagate ``(x, P)`` in place to the step of ``u``.  Status: 0 ok, 1 P not positive
+    definite, 5 singular dynamics."""
+    x1 = WS[6, 0]
+    F = WS[0]
+    if not transition(x, u, CP, dt, m, g, x1, F):
+        return 5
+    propagate(F, P, Q, jl_inv_t(ld3(x1, 3)), WS[1], WS[2])
+    for i in range(18):
+        x[i] = x1[i]
+        for j in range(18):
+            P[i, j] = WS[2, i, j]
+    if not core.cholesky_into(P, WS[3]):
+        return 1
+    return 0
+
+
+@njit
+def update(x, P, u, Rn, g, WS, innov, S, white):
+    """Correct ``(x, P)`` in place with the IMU readings of ``u``; writes the innovation, its
+    covariance and the whitened innovation.  Returns ``(status, nis)``: 0 ok, 2 S not positive
+    definite (x, P unchanged), 3 P not positive definite, 4 state not finite."""
+    hx = WS[6, 1, 0:6]
+    H = WS[5, 0:6]
+    measurement(x, u, g, hx, H)
+    for i in range(6):
+        innov[i] = u[54 + i] - hx[i]
+    U = WS[4, :, 0:6]
+    K = WS[4, :, 6:12]
+    KS = WS[4, :, 12:18]
+    cols = (3, 4, 5, 9, 10, 11, 12, 13, 14, 15, 16, 17)  # H's non-zero columns
+    for i in range(18):
+        for r in range(6):
+            s = 0.0
+            for j in cols:
+                s += P[i, j] * H[r, j]
+            U[i, r] = s
+    for r in range(6):
+        for c in range(r, 6):
+            s = 0.0
+            for j in cols:
+                s += H[r, j] * U[j, c]
+            S[r, c] = s + 0.5 * (Rn[r, c] + Rn[c, r])
+            S[c, r] = S[r, c]
+    L = WS[5, 6:12, 0:6]
+    if not core.cholesky_into(S, L):
         for i in range(6):
-            K[j, i] = col[i]
-    white = _forward_sub(L, innov)
+            white[i] = 0.0
+        return 2, np.inf
+    for i in range(18):
+        for r in range(6):
+            K[i, r] = U[i, r]
+        core.trsv_lower_inplace(L, K[i])
+        core.trsv_upper_t_inplace(L, K[i])
     nis = 0.0
     for i in range(6):
+        white[i] = innov[i]
+    core.trsv_lower_inplace(L, white)
+    for i in range(6):
         nis += white[i] * white[i]
-    x1 = _lin1(1.0, x, 1.0, _mv(K, innov))
-    ph2 = x1[3] * x1[3] + x1[4] * x1[4] + x1[5] * x1[5]
-    if ph2 > math.pi * math.pi:
-        _vput(x1, 3, so3_log(so3_exp(_seg(x1, 3, 3))))
-    IKH = _eye(18, 1.0)
-    _axpy2(IKH, -1.0, _mm(K, H))
-    P1 = _mmt(_mm(IKH, P), IKH)
-    _axpy2(P1, 1.0, _mmt(_mm(K, Rn), K))
-    P1 = _sym(P1)
     for i in range(18):
-        if not math.isfinite(x1[i]):
-            return x1, P1, innov, S, white, nis, 4
-    _, okp = _cholesky(P1)
-    if not okp:
-        return x1, P1, innov, S, white, nis, 3
-    return x1, P1, innov, S, white, nis, 0
+        s = 0.0
+        for r in range(6):
+            s += K[i, r] * innov[r]
+        x[i] += s
+    if x[3] * x[3] + x[4] * x[4] + x[5] * x[5] > math.pi * math.pi:
+        st3(x, 3, log_t(exp_t(ld3(x, 3))))
+    core.matmul_into(K, S, KS)
+    for i in range(18):
+        for j in range(i, 18):
+            s = P[i, j]
+            for r in range(6):
+                s += KS[i, r] * K[j, r] - K[i, r] * U[j, r] - U[i, r] * K[j, r]
+            P[i, j] = s
+            P[j, i] = s
+    for i in range(18):
+        if not math.isfinite(x[i]):
+            return 4, nis
+    if not core.cholesky_into(P, WS[3]):
+        return 3, nis
+    return 0, nis
 
 
-@_inline
-def outputs(x, P, u, CP, z0, min_force):
-    """EKF.outputs: (world cov, per-contact wrench, wrench cov, cop, cop cov)."""
-    Om = _seg(x, 3, 3)
-    R = so3_exp(Om)
-    M = _paper_to_world(Om)
-    Pw = _sym(_mmt(_mm(M, P), M))
-    W, per, Jc = total_contact_wrench(R, _seg(x, 0, 3), _seg(x, 9, 3), _seg(x, 6, 3), u, CP, True)
-    Wcov = _sym(_mmt(_mm(Jc, _block(Pw, 0, 0, 12, 12)), Jc))
-    cop = np.empty(3)
-    cop[2] = z0
-    cop_cov = np.empty((2, 2))
-    Fz = W[2]
-    if not Fz > min_force:
-        cop[0] = np.nan
-        cop[1] = np.nan
+@njit
+def outputs(x, P, u, CP, z0, min_force, WS, Pw, per, Wcov, cop, cop_cov):
+    """World covariance ``Pw`` (order ``(theta, t, w, v, dw, a)``), per-contact wrenches ``per``
+    (C, 6), the total wrench's covariance ``Wcov``, the CoP and its covariance at ``(x, P)``."""
+    Om = ld3(x, 3)
+    R = exp_t(Om)
+    Jl = jl_t(Om)
+    # Pw = M P M^T, M = permutation with J_l(Omega) on the rotation block.
+    for bi in range(6):
+        for bj in range(6):
+            pi = _PERM[bi]
+            pj = _PERM[bj]
+            for r in range(3):
+                for c in range(3):
+                    Pw[3 * bi + r, 3 * bj + c] = P[3 * pi + r, 3 * pj + c]
+    T = WS[1, 0]
+    for j in range(18):
+        for r in range(3):
+            T[r] = Jl[r][0] * Pw[0, j] + Jl[r][1] * Pw[1, j] + Jl[r][2] * Pw[2, j]
+        for r in range(3):
+            Pw[r, j] = T[r]
+    for i in range(18):
+        for r in range(3):
+            T[r] = Pw[i, 0] * Jl[r][0] + Pw[i, 1] * Jl[r][1] + Pw[i, 2] * Jl[r][2]
+        for r in range(3):
+            Pw[i, r] = T[r]
+    for i in range(18):
+        for j in range(i + 1, 18):
+            s = 0.5 * (Pw[i, j] + Pw[j, i])
+            Pw[i, j] = s
+            Pw[j, i] = s
+    t, w, v = ld3(x, 0), ld3(x, 9), ld3(x, 6)
+    Jc = WS[5, 12:18, 0:12]
+    for i in range(6):
+        for j in range(12):
+            Jc[i, j] = 0.0
+    W = WS[6, 2, 0:6]
+    for i in range(6):
+        W[i] = 0.0
+    for c in range(CP.shape[0]):
+        o = NU0 + NUC * c
+        for i in range(6):
+            per[c, i] = 0.0
+        if u[o] == 0.0:
+            continue
+        (F, Tq, dF_dth, dF_dt, dF_dw, dF_dv, dT_dth, dT_dt, dT_dw, dT_dv, _, _, _) = _contact(R, t, w, v, u, o,
+                                                                                            CP[c])
+        for i in range(3):
+            per[c, i] = F[i]
+            per[c, 3 + i] = Tq[i]
+            W[i] += F[i]
+            W[3 + i] += Tq[i]
+        core.stm_add(Jc, 0, 0, dF_dth)
+        core.stm_add(Jc, 0, 3, dF_dt)
+        core.stm_add(Jc, 0, 6, dF_dw)
+        core.stm_add(Jc, 0, 9, dF_dv)
+        core.stm_add(Jc, 3, 0, dT_dth)
+        core.stm_add(Jc, 3, 3, dT_dt)
+        core.stm_add(Jc, 3, 6, dT_dw)
+        core.stm_add(Jc, 3, 9, dT_dv)
+    JP = WS[5, 0:6, 0:12]
+    core.matmul_into(Jc, Pw[0:12, 0:12], JP)
+    for i in range(6):
+        for j in range(i, 6):
+            s = 0.0
+            for k in range(12):
+                s += JP[i, k] * Jc[j, k]
+            Wcov[i, j] = s
+            Wcov[j, i] = s
+    Jcop = WS[6, 3:6, 0:6]
+    if not core.center_of_pressure(W, z0, min_force, cop, Jcop):
         for i in range(2):
             for j in range(2):
                 cop_cov[i, j] = np.nan
-        return Pw, per, Wcov, cop, cop_cov
-    px = (z0 * W[0] - W[4]) / Fz
-    py = (W[3] + z0 * W[1]) / Fz
-    cop[0] = px
-    cop[1] = py
-    Jcop = np.zeros((2, 6))
-    Jcop[0, 0] = z0 / Fz
-    Jcop[0, 2] = -px / Fz
-    Jcop[0, 4] = -1.0 / Fz
-    Jcop[1, 1] = z0 / Fz
-    Jcop[1, 2] = -py / Fz
-    Jcop[1, 3] = 1.0 / Fz
-    return Pw, per, Wcov, cop, _mmt(_mm(Jcop, Wcov), Jcop)
+        return
+    for i in range(2):
+        for j in range(2):
+            s = 0.0
+            for a in range(6):
+                if Jcop[i, a] != 0.0:
+                    for b in range(6):
+                        s += Jcop[i, a] * Wcov[a, b] * Jcop[j, b]
+            cop_cov[i, j] = s
 
 
-@njit(cache=True)
-def step(k, x, P, U, CP, Q0, Rn, prm, X, COV, WR, WCOV, COP, COPCOV, INNOV, S_OUT, WHITE, NIS):
-    """Predict (k > 0) and update at step k; x and P are overwritten; outputs written at k.
+# ----------------------------------------------------------------------------------------------
+# One step
+# ----------------------------------------------------------------------------------------------
 
-    ``prm`` = (dt, m, g, z0, min_force).  Returns the status (0 ok, see compare.ekf).
-    """
-    dt = prm[0]
-    m = prm[1]
-    g = prm[2]
+
+@njit
+def step(k, x, P, U, CP, C, WS, OUT, do_predict, want_outputs):
+    """Predict (``do_predict``, k > 0) and update at step ``k``: ``x`` and ``P`` are overwritten,
+    the step's output row ``OUT[k]`` written.  ``C`` the packed constants.  Returns the status
+    (0 ok, see :mod:`flexforce.compare.ekf`)."""
+    n_c = CP.shape[0]
+    Q = C[0:_NQ].reshape((18, 18))
+    Rn = C[_NQ:_NQ + _NR].reshape((6, 6))
+    o = _NQ + _NR
+    dt, m, g, z0, min_force = C[o], C[o + 1], C[o + 2], C[o + 3], C[o + 4]
+    touchdown, tilt_weight = C[o + 5], C[o + 6]
     u = U[k]
-    xk = x
-    Pk = P
-    if k > 0:
-        xk, Pk, st = predict(x, P, u, CP, Q0, dt, m, g)
+    row = OUT[k]
+    o_wc = _O_WR + 6 * n_c
+    o_cop = o_wc + 36
+    o_copc = o_cop + 3
+    o_in = o_copc + 4
+    o_S = o_in + 6
+    o_wh = o_S + 36
+    o_nis = o_wh + 6
+    if do_predict and k > 0:
+        if touchdown != 0.0:
+            touch_down(k, x, U, dt, tilt_weight)
+        st = predict(x, P, u, CP, Q, dt, m, g, WS)
         if st != 0:
-            _vput(x, 0, xk)
-            _put(P, 0, 0, Pk)
             return st
-    x1, P1, innov, S, white, nis, st = update(xk, Pk, u, Rn, g)
-    _vput(x, 0, x1)
-    _put(P, 0, 0, P1)
-    _vput(INNOV[k], 0, innov)
-    _put(S_OUT[k], 0, 0, S)
-    _vput(WHITE[k], 0, white)
-    NIS[k] = nis
+    S = row[o_S:o_S + 36].reshape((6, 6))
+    st, nis = update(x, P, u, Rn, g, WS, row[o_in:o_in + 6], S, row[o_wh:o_wh + 6])
+    row[o_nis] = nis
     if st != 0:
         return st
-    Pw, per, Wcov, cop, cop_cov = outputs(x1, P1, u, CP, prm[3], prm[4])
-    _vput(X[k], 0, x1)
-    _put(COV[k], 0, 0, Pw)
-    _put(WR[k], 0, 0, per)
-    _put(WCOV[k], 0, 0, Wcov)
-    _vput(COP[k], 0, cop)
-    _put(COPCOV[k], 0, 0, cop_cov)
+    for i in range(18):
+        row[i] = x[i]
+    if want_outputs:
+        outputs(x, P, u, CP, z0, min_force, WS, row[_O_COV:_O_COV + 324].reshape((18, 18)),
+                row[_O_WR:o_wc].reshape((n_c, 6)), row[o_wc:o_cop].reshape((6, 6)), row[o_cop:o_copc],
+                row[o_copc:o_in].reshape((2, 2)))
     return 0
 
 
 # ----------------------------------------------------------------------------------------------
-# Packing and the Python-side driver
+# Packing
 # ----------------------------------------------------------------------------------------------
 
 
-def pack_inputs(rec) -> np.ndarray:
-    """(N, 60 + 13 C) packed inputs and readings (see the module docstring)."""
+def pack_inputs(rec, rest_p=None, rest_R=None) -> np.ndarray:
+    """(N, 60 + 25 C) packed inputs and readings (see the module docstring); rest placements
+    default to the local ones."""
     n, n_c = rec.n, len(rec.contact_names)
-    U = np.zeros((n, _NU0 + _NUC * n_c))
+    rest_p = rec.contact_p if rest_p is None else rest_p
+    rest_R = rec.contact_R if rest_R is None else rest_R
+    U = np.zeros((n, NU0 + NUC * n_c))
     cols = [rec.com, rec.com_vel, rec.com_acc, rec.inertia.reshape(n, 9), rec.inertia_dot.reshape(n, 9),
             rec.sigma, rec.sigma_dot, rec.imu_R.reshape(n, 9), rec.imu_p, rec.imu_v, rec.imu_a, rec.imu_w,
             rec.gyro, rec.accel]
-    U[:, :_NU0] = np.hstack(cols)
+    U[:, :NU0] = np.hstack(cols)
+    eye9 = np.eye(3).ravel()
     for c in range(n_c):
-        o = _NU0 + _NUC * c
-        active = rec.contact_active[:, c]
-        U[:, o] = active
-        # Rest placements of inactive contacts are never read; keep them finite.
-        U[:, o + 1:o + 4] = np.where(active[:, None], rec.contact_p[:, c], 0.0)
-        U[:, o + 4:o + 13] = np.where(active[:, None], rec.contact_R[:, c].reshape(n, 9), np.eye(3).ravel())
+        o = NU0 + NUC * c
+        active = rec.contact_active[:, c][:, None]
+        U[:, o] = active[:, 0]
+        # Placements of inactive contacts are never read; keep them finite.
+        U[:, o + 1:o + 4] = np.where(active, rec.contact_p[:, c], 0.0)
+        U[:, o + 4:o + 13] = np.where(active, rec.contact_R[:, c].reshape(n, 9), eye9)
+        U[:, o + 13:o + 16] = np.where(active, rest_p[:, c], 0.0)
+        U[:, o + 16:o + 25] = np.where(active, np.asarray(rest_R)[:, c].reshape(n, 9), eye9)
     return np.ascontiguousarray(U)
 
 
@@ -902,17 +575,11 @@ def pack_params(params) -> np.ndarray:
     return np.ascontiguousarray(np.array(rows, dtype=float).reshape(len(rows), 39))
 
 
-class Kernel:
-    """Binds a :class:`~flexforce.compare.ekf.EKF` to the compiled step."""
+def pack_constants(Q, Rn, dt, m, g, z0, min_force, touchdown: bool = False, tilt_weight: float = 0.0) -> np.ndarray:
+    return np.concatenate([np.asarray(Q, float).ravel(), np.asarray(Rn, float).ravel(),
+                           [dt, m, g, z0, min_force, float(touchdown), tilt_weight]])
 
-    def __init__(self, ekf):
-        rec = ekf.rec
-        self.U = pack_inputs(rec)
-        self.CP = pack_params(ekf.model.contact_params)
-        self.Q0 = np.ascontiguousarray(ekf.noise.Q)
-        self.Rn = np.ascontiguousarray(ekf.noise.R)
-        self.prm = np.array([ekf.dt, rec.mass, ekf.g, ekf.config.z0, ekf.config.min_force])
 
-    def step(self, k: int, x: np.ndarray, P: np.ndarray, out) -> int:
-        return step(k, x, P, self.U, self.CP, self.Q0, self.Rn, self.prm, out.x, out.cov, out.wrench,
-                    out.wrench_cov, out.cop, out.cop_cov, out.innovation, out.S, out.white, out.nis)
+def workspace() -> np.ndarray:
+    """Scratch buffers of one filter: (7, 18, 18)."""
+    return np.zeros((7, 18, 18))

@@ -28,9 +28,11 @@ Jacobians
 The physics returns Jacobians with respect to world-frame increments ``(theta, t, w, v, dw, a)``;
 with ``d_theta = J_l(Omega) d_Omega`` (:func:`flexforce.factors.so3.left_jacobian`) they become
 Jacobians in the state's own parametrisation.  The authors differentiated numerically; that path is
-kept (``EKFConfig(jacobians="numeric")``) as the tests' reference.  A fused, compiled kernel
-(:mod:`flexforce.compare._ekf_kernel`, numba) runs the same arithmetic ~50x faster and is tested
-against this module to 1e-10.
+kept (``EKFConfig(jacobians="numeric")`` on :meth:`EKF.transition` and :meth:`EKF.measurement`)
+as the tests' reference.  The step -- model, covariance prediction, correction, outputs -- is
+compiled once (:mod:`flexforce.compare._ekf_kernel` on the physics core
+:mod:`flexforce.factors.core`); :meth:`EKF.predict` and :meth:`EKF.update` state it with the plain
+Kalman algebra of :func:`kf_predict` and :func:`kf_update`, and the tests hold the two together.
 
 Output
 ------
@@ -52,9 +54,10 @@ import numpy as np
 from flexforce.datasets.estimate import Estimate
 from flexforce.datasets.recording import Recording
 from flexforce.errors import ConfigError, DataError, EstimatorError, ModelError
-from flexforce.factors import physics as ph
+from flexforce.compare import _ekf_kernel as K
 from flexforce.factors import so3
 from flexforce.factors.model import ModelConfig, unmodelled_acceleration
+from flexforce.smoother.problem import rest_placements
 
 __all__ = [
     "EKF", "EKFConfig", "Update", "kf_predict", "kf_update", "run_ekf", "noise_model",
@@ -103,10 +106,12 @@ class EKFConfig:
     min_force: float = 1e-6
     """Vertical force below which the CoP is undefined (NaN), N."""
     jacobians: str = "analytic"
-    """``analytic`` (the physics module's) or ``numeric`` (central differences, the authors' way)."""
-    fast: bool | None = None
-    """Use the compiled kernel (numba); ``None``: when numba is importable.  ``False``: the
-    reference numpy path (about 50x slower)."""
+    """``analytic`` (the physics core's) or ``numeric`` (central differences, the authors' way):
+    how :meth:`EKF.transition` and :meth:`EKF.measurement` differentiate.  :func:`run_ekf` needs
+    ``analytic``."""
+    outputs: bool = True
+    """Compute every step's world covariance, contact wrenches, their covariance and the CoP.
+    ``False``: the state and the innovation only (the other fields of the Estimate are NaN)."""
     on_covariance_failure: str = "raise"
     """``raise`` (EstimatorError) or ``reset`` (P <- P0 with a RuntimeWarning) when the state
     covariance stops being positive definite."""
@@ -115,6 +120,16 @@ class EKFConfig:
     counts as diverged."""
     nis_steps: int = 20
     """Consecutive diverged steps after which the filter raises EstimatorError."""
+    touchdown: str = "local"
+    """Rest placement of a contact episode that starts during the run (active at step k, not at
+    k-1): ``local`` -- the given rest placements (default: the contact's local placement, the
+    paper's convention); ``zero-deflection`` -- the contact's world placement at the predicted
+    state, ``p_r = R p_l + t``, ``R_r = R R_l``, so that the landing spring starts unloaded where
+    the foot touches.  Episodes active at the first step keep the given rest placements."""
+    ground_tilt_weight: float = 0.0
+    """With ``touchdown='zero-deflection'``: fraction (0 to 1, dimensionless) of the landing sole's
+    roll and pitch with respect to gravity removed from its rest orientation (1: the foothold is
+    level, the yaw kept; 0: the sole's orientation as it lands)."""
 
     def __post_init__(self):
         if self.jacobians not in ("analytic", "numeric"):
@@ -126,6 +141,11 @@ class EKFConfig:
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise ConfigError(f"EKFConfig.{name} must be a positive number, got {value}")
+        if self.touchdown not in ("local", "zero-deflection"):
+            raise ConfigError(f"EKFConfig.touchdown must be 'local' or 'zero-deflection', got '{self.touchdown}'")
+        if not (math.isfinite(self.ground_tilt_weight) and 0.0 <= self.ground_tilt_weight <= 1.0):
+            raise ConfigError("EKFConfig.ground_tilt_weight is the fraction of the sole's tilt removed at a "
+                              f"touch-down, expected a number in [0, 1], got {self.ground_tilt_weight}")
         if not (self.p0_scale > 0 and self.nis_limit > 0 and self.nis_steps >= 1):
             raise ConfigError("EKFConfig.p0_scale and nis_limit must be positive and nis_steps >= 1")
 
@@ -297,15 +317,20 @@ def _numeric_jacobian(f, x: np.ndarray, h: float = 1e-6) -> np.ndarray:
 
 
 class EKF:
-    r"""The paper's EKF over a recording, step by step; pure ``predict`` and ``update``.
+    r"""The paper's EKF over a recording: its model functions and pure ``predict`` and ``update``.
 
-    ``predict(x, P, k)`` propagates the state of step ``k - 1`` to step ``k`` with step ``k``'s
-    inputs and active contacts; ``update(x, P, k)`` corrects it with step ``k``'s IMU readings.
-    Neither mutates its arguments.  This is the reference (numpy) implementation; the compiled
-    kernel used by :func:`run_ekf` is tested against it.
+    ``transition``, ``measurement``, ``dynamics`` and ``outputs`` are the compiled kernel's
+    (:mod:`flexforce.compare._ekf_kernel`, on the physics core); ``predict(x, P, k)`` and
+    ``update(x, P, k)`` combine them with the plain Kalman algebra of :func:`kf_predict` and
+    :func:`kf_update` and mutate nothing: they are the readable statement of the step that
+    :func:`run_ekf` runs compiled (``_ekf_kernel.step``), and the tests hold the two together.
+
+    ``rest_p``, ``rest_R``: (N, C, 3), (N, C, 3, 3) the contacts' rest placements in the world
+    per step; default the recording's local placements.
     """
 
-    def __init__(self, rec: Recording, model: ModelConfig, config: EKFConfig = EKFConfig()):
+    def __init__(self, rec: Recording, model: ModelConfig, config: EKFConfig = EKFConfig(), rest_p=None,
+                 rest_R=None):
         if len(model.contact_params) != len(rec.contact_names):
             raise ConfigError(f"the model has {len(model.contact_params)} contact(s), the recording "
                               f"{len(rec.contact_names)} ({', '.join(rec.contact_names)})")
@@ -315,81 +340,53 @@ class EKF:
         self.dt = rec.dt
         self.g = model.gravity
         self.noise = noise_model(rec, model, config)
+        rest_p, rest_R = rest_placements(rec, rest_p, rest_R)
+        self.U = K.pack_inputs(rec, rest_p, rest_R)
+        self.CP = K.pack_params(model.contact_params)
+        self.C = K.pack_constants(self.noise.Q, self.noise.R, self.dt, rec.mass, self.g, config.z0,
+                                  config.min_force, config.touchdown == "zero-deflection", config.ground_tilt_weight)
+        self.WS = K.workspace()
 
     # --- model functions ----------------------------------------------------------------------
-    def contacts(self, k: int):
-        """``(local_p, local_R, params)`` of the contacts active at step k."""
-        rec = self.rec
-        return [(rec.contact_p[k, i], rec.contact_R[k, i], self.model.contact_params[i])
-                for i in rec.active_contacts(k)]
-
     def dynamics(self, R, t, w, v, k: int, jacobian: bool = False):
         """Accelerations ``(a, dw)`` from the contact law and Newton-Euler at step k's inputs.
 
         With ``jacobian``, also the 6x12 Jacobian of ``(a, dw)`` -- filter order -- with respect
         to world increments ``(theta, t, w, v)``.
         """
-        contacts = self.contacts(k)
-        inp = self.rec.inputs(k)
-        if not jacobian:
-            wrench, _ = ph.total_contact_wrench(R, t, w, v, contacts)
-            acc = ph.forward_dynamics(R, t, w, v, wrench, inp, self.g)
-            return np.concatenate([acc[3:], acc[:3]])
-        wrench, _, Jc = ph.total_contact_wrench(R, t, w, v, contacts, jacobian=True)
-        acc, Jfd = ph.forward_dynamics(R, t, w, v, wrench, inp, self.g, jacobian=True)
-        G = Jfd.x + Jfd.wrench @ Jc
-        return np.concatenate([acc[3:], acc[:3]]), np.vstack([G[3:6], G[0:3]])
+        acc = np.empty(6)
+        G = np.empty((6, 12))
+        f = lambda a: np.ascontiguousarray(a, dtype=float)  # noqa: E731
+        if not K.dynamics_into(f(R), f(t), f(w), f(v), self.U[k], self.CP, self.rec.mass, self.g, acc, G):
+            raise ModelError(f"the Newton-Euler system is singular at sample {k}: check the mass "
+                             f"({self.rec.mass} kg, expected > 0) and the inertia inputs")
+        return (acc, G) if jacobian else acc
 
     def transition(self, x: np.ndarray, k: int, jacobian: bool = False):
         """``f(x_{k-1})``: the predicted state at step k, and its 18x18 Jacobian ``F``."""
-        dt = self.dt
-        t, Om, v, w, a, dw = _split(x)
-        phi = dt * w + 0.5 * dt * dt * dw
-        E = so3.exp(phi)
-        R1 = E @ so3.exp(Om)
-        t1 = t + dt * v + 0.5 * dt * dt * a
-        v1 = v + dt * a
-        w1 = w + dt * dw
-        Om1 = so3.log(R1)
+        x = np.ascontiguousarray(x, dtype=float)
+        x1 = np.empty(18)
+        F = np.empty((18, 18))
+        if not K.transition(x, self.U[k], self.CP, self.dt, self.rec.mass, self.g, x1, F):
+            raise ModelError(f"the Newton-Euler system is singular at sample {k}: check the mass "
+                             f"({self.rec.mass} kg, expected > 0) and the inertia inputs")
         if not jacobian:
-            acc = self.dynamics(R1, t1, w1, v1, k)
-            return np.concatenate([t1, Om1, v1, w1, acc])
-        acc, G = self.dynamics(R1, t1, w1, v1, k, jacobian=True)
-        x1 = np.concatenate([t1, Om1, v1, w1, acc])
+            return x1
         if self.config.jacobians == "numeric":
             return x1, _numeric_jacobian(lambda z: self.transition(z, k), x)
-        # D: world increments (theta, t, w, v) at step k from the filter's increments at k-1.
-        Jphi = so3.left_jacobian(phi)
-        D = np.zeros((12, 18))
-        D[0:3, OM] = E @ so3.left_jacobian(Om)
-        D[0:3, W] = dt * Jphi
-        D[0:3, DW] = 0.5 * dt * dt * Jphi
-        D[3:6, T] = _I3
-        D[3:6, V] = dt * _I3
-        D[3:6, A] = 0.5 * dt * dt * _I3
-        D[6:9, W] = _I3
-        D[6:9, DW] = dt * _I3
-        D[9:12, V] = _I3
-        D[9:12, A] = dt * _I3
-        F = np.empty((18, 18))
-        F[T] = D[3:6]
-        F[OM] = so3.left_jacobian_inverse(Om1) @ D[0:3]
-        F[V] = D[9:12]
-        F[W] = D[6:9]
-        F[12:18] = G @ D
         return x1, F
 
     def measurement(self, x: np.ndarray, k: int, jacobian: bool = False):
         """``h(x_k)``: gyro and accelerometer readings (IMU frame), eq. (26)-(28), and ``H`` (6x18)."""
-        t, Om, v, w, a, dw = _split(x)
-        R = so3.exp(Om)
-        imu = self.rec.imu(k)
+        x = np.ascontiguousarray(x, dtype=float)
+        hx = np.empty(6)
+        H = np.empty((6, 18))
+        K.measurement(x, self.U[k], self.g, hx, H)
         if not jacobian:
-            return ph.imu_readings(R, t, w, v, dw, a, imu, self.g)
+            return hx
         if self.config.jacobians == "numeric":
-            return self.measurement(x, k), _numeric_jacobian(lambda z: self.measurement(z, k), x)
-        y, J = ph.imu_readings(R, t, w, v, dw, a, imu, self.g, jacobian=True)
-        return y, np.hstack([J.x, J.acc]) @ paper_to_world(Om)
+            return hx, _numeric_jacobian(lambda z: self.measurement(z, k), x)
+        return hx, H
 
     def process_noise(self, x: np.ndarray) -> np.ndarray:
         """Q at the predicted state: the rotation block mapped from world increments to Omega."""
@@ -451,23 +448,18 @@ class EKF:
     # --- outputs ---------------------------------------------------------------------------
     def outputs(self, x: np.ndarray, P: np.ndarray, k: int) -> dict:
         """World-frame covariance, per-contact wrenches, CoP and their covariances at step k."""
-        t, Om, v, w, a, dw = _split(x)
-        R = so3.exp(Om)
-        M = paper_to_world(Om)
-        Pw = M @ P @ M.T
         n_c = len(self.rec.contact_names)
-        per = np.zeros((n_c, 6))
-        Jc = np.zeros((6, 12))
-        for i in self.rec.active_contacts(k):
-            per[i], J = ph.contact_wrench(R, t, w, v, self.rec.contact_p[k, i], self.rec.contact_R[k, i],
-                                          self.model.contact_params[i], jacobian=True)
-            Jc += J
-        Wcov = Jc @ Pw[:12, :12] @ Jc.T
-        cop, Jcop = ph.center_of_pressure(per.sum(axis=0), self.config.z0, jacobian=True,
-                                          min_force=self.config.min_force)
-        cop_cov = Jcop[:2] @ Wcov @ Jcop[:2].T
-        return {"R": R, "cov": 0.5 * (Pw + Pw.T), "wrench": per, "wrench_cov": 0.5 * (Wcov + Wcov.T),
-                "cop": cop, "cop_cov": cop_cov}
+        o = {"cov": np.empty((18, 18)), "wrench": np.empty((n_c, 6)), "wrench_cov": np.empty((6, 6)),
+             "cop": np.empty(3), "cop_cov": np.empty((2, 2))}
+        K.outputs(np.ascontiguousarray(x, dtype=float), np.ascontiguousarray(P, dtype=float), self.U[k], self.CP,
+                  self.config.z0, self.config.min_force, self.WS, o["cov"], o["wrench"], o["wrench_cov"], o["cop"],
+                  o["cop_cov"])
+        o["R"] = so3.exp(x[OM])
+        return o
+
+    def step(self, k: int, x: np.ndarray, P: np.ndarray, out: "_Outputs", predict: bool = True) -> int:
+        """The compiled step: predict (k > 0) and update in place, outputs into ``out`` at k."""
+        return K.step(k, x, P, self.U, self.CP, self.C, self.WS, out.row, predict, out.want)
 
 
 def _wrap(x: np.ndarray) -> np.ndarray:
@@ -518,26 +510,9 @@ def check_recording(rec: Recording, model: ModelConfig) -> None:
 # ----------------------------------------------------------------------------------------------
 
 
-def _use_fast(config: EKFConfig) -> bool:
-    if config.jacobians == "numeric":
-        if config.fast:
-            raise ConfigError("the compiled kernel has analytic Jacobians only; use fast=False with "
-                              "jacobians='numeric'")
-        return False
-    if config.fast is False:
-        return False
-    from flexforce.compare import _ekf_kernel
-
-    if not _ekf_kernel.AVAILABLE:
-        if config.fast:
-            raise ConfigError("EKFConfig(fast=True) needs numba, which is not installed")
-        return False
-    return True
-
-
 def run_ekf(rec: Recording, model: ModelConfig, progress: Callable[[float], None] | None = None,
             x0: np.ndarray | None = None, P0: np.ndarray | None = None,
-            config: EKFConfig | None = None, **options) -> Estimate:
+            config: EKFConfig | None = None, rest_p=None, rest_R=None, **options) -> Estimate:
     """Run the paper's EKF over a recording and return the common Estimate.
 
     Args:
@@ -548,6 +523,8 @@ def run_ekf(rec: Recording, model: ModelConfig, progress: Callable[[float], None
             from the dynamics.
         P0: 18x18 initial covariance in the filter's order; default: derived (docs/ekf.md).
         config: an :class:`EKFConfig`; ``options`` are its fields, as an alternative.
+        rest_p, rest_R: (N, C, 3), (N, C, 3, 3) the contacts' rest placements in the world per
+            step (footholds); default the recording's local placements ``contact_p``, ``contact_R``.
 
     Raises:
         DataError: NaN or inf in an input or a reading (naming the field, the sample, the time).
@@ -561,61 +538,60 @@ def run_ekf(rec: Recording, model: ModelConfig, progress: Callable[[float], None
             raise ConfigError(f"unknown EKF option: {err}; known: {', '.join(EKFConfig.__dataclass_fields__)}") from err
     elif options:
         raise ConfigError("give either config= or EKF options, not both")
+    if config.jacobians == "numeric":
+        raise ConfigError("EKFConfig(jacobians='numeric') differentiates EKF.transition and EKF.measurement "
+                          "numerically (to check the analytic Jacobians); run_ekf runs the compiled step, whose "
+                          "Jacobians are analytic: expected jacobians='analytic'")
     check_recording(rec, model)
     if model.use_ft:
         warnings.warn("the seed paper's EKF does not fuse F/T readings; use_ft is ignored", RuntimeWarning,
                       stacklevel=2)
-    ekf = EKF(rec, model, config)
-    fast = _use_fast(config)
+    ekf = EKF(rec, model, config, rest_p, rest_R)
     n, n_c = rec.n, len(rec.contact_names)
-    out = _Outputs(n, n_c)
+    out = _Outputs(n, n_c, config.outputs)
     x, P = ekf.initial_state(x0, P0)
     x = np.ascontiguousarray(x, dtype=float)
     P = np.ascontiguousarray(P, dtype=float)
     P_reset = P.copy()
-    kernel = None
-    if fast:
-        from flexforce.compare._ekf_kernel import Kernel
-
-        kernel = Kernel(ekf)
     start = time.perf_counter()
     diverged = 0
     every = max(1, n // 100)
+    step = K.step
+    U, CP, C, WS, row, want = ekf.U, ekf.CP, ekf.C, ekf.WS, out.row, out.want
     for k in range(n):
         t0 = time.perf_counter()
-        if kernel is not None:
-            status = kernel.step(k, x, P, out)  # x and P updated in place
-        else:
-            x, P, status = _reference_step(ekf, k, x, P, out)
+        status = step(k, x, P, U, CP, C, WS, row, True, want)  # x and P updated in place
         out.time_per_step[k] = time.perf_counter() - t0
         if status:
-            x, P = _handle_failure(status, k, ekf, x, P, P_reset, out)
-        if out.nis[k] > config.nis_limit:
+            _handle_failure(status, k, ekf, x, P, P_reset, out)
+        nis = out.nis[k]
+        if nis > config.nis_limit:
             diverged += 1
             if diverged >= config.nis_steps:
                 raise EstimatorError(
                     f"EKF diverged: the normalised innovation squared has exceeded {config.nis_limit:g} "
                     f"(chi^2, 6 dof, mean 6) for {diverged} consecutive steps, up to sample {k} "
-                    f"(t = {rec.time[k]:.3f} s, NIS = {out.nis[k]:.3g}); check the model (stiffness, "
+                    f"(t = {rec.time[k]:.3f} s, NIS = {nis:.3g}); check the model (stiffness, "
                     "mass, contacts) and the IMU placement")
         else:
             diverged = 0
         if progress is not None and (k % every == 0 or k == n - 1):
             progress((k + 1) / n)
     total = time.perf_counter() - start
-    return out.estimate(rec, ekf, total, fast)
+    return out.estimate(rec, ekf, total)
 
 
 _STATUS = {1: "the predicted state covariance", 2: "the innovation covariance", 3: "the corrected state covariance",
            4: "the state"}
 
 
-def _handle_failure(status: int, k: int, ekf: EKF, x, P, P_reset, out: "_Outputs"):
+def _handle_failure(status: int, k: int, ekf: EKF, x, P, P_reset, out: "_Outputs") -> None:
     """Raise, or (``on_covariance_failure='reset'``) restart P from P0 and redo step k's update."""
     rec = ekf.rec
     where = f"at sample {k} (t = {rec.time[k]:.3f} s)"
     if status == 5:
-        raise ModelError(f"the Newton-Euler system is singular {where}: check the mass and inertia inputs")
+        raise ModelError(f"the Newton-Euler system is singular {where}: check the mass ({rec.mass} kg, expected "
+                         "> 0) and the inertia inputs")
     what = _STATUS.get(status, "the filter")
     msg = f"{what} is not positive definite and finite {where}"
     if status == 4 or not np.all(np.isfinite(x)) or ekf.config.on_covariance_failure == "raise":
@@ -623,81 +599,42 @@ def _handle_failure(status: int, k: int, ekf: EKF, x, P, P_reset, out: "_Outputs
                                    "restarts the covariance from P0)")
     warnings.warn(msg + "; covariance reset to P0, state kept (EKFConfig.on_covariance_failure='reset')",
                   RuntimeWarning, stacklevel=3)
-    x2, P2, st = _reference_step(ekf, k, np.array(x), P_reset.copy(), out, predict=False)
-    if st:
+    P[...] = P_reset
+    if ekf.step(k, x, P, out, predict=False):
         raise EstimatorError(msg + "; the reset to P0 did not recover the filter")
-    x[...] = x2
-    P[...] = P2
-    return x, P
-
-
-def _reference_step(ekf: EKF, k: int, x, P, out: "_Outputs", predict: bool = True):
-    """One predict (k > 0) + update with the numpy reference; fills ``out`` at k."""
-    if k > 0 and predict:
-        x, P = ekf.predict(x, P, k)
-        if not _is_pd(P):
-            return x, P, 1
-    try:
-        up = ekf.update(x, P, k)
-    except np.linalg.LinAlgError:
-        return x, P, 2
-    x, P = up.x, up.P
-    if not np.all(np.isfinite(x)):
-        return x, P, 4
-    if not _is_pd(P):
-        return x, P, 3
-    out.x[k] = x
-    out.innovation[k] = up.innovation
-    out.S[k] = up.S
-    out.white[k] = up.whitened
-    out.nis[k] = up.nis
-    o = ekf.outputs(x, P, k)
-    out.cov[k] = o["cov"]
-    out.wrench[k] = o["wrench"]
-    out.wrench_cov[k] = o["wrench_cov"]
-    out.cop[k] = o["cop"]
-    out.cop_cov[k] = o["cop_cov"]
-    return x, P, 0
-
-
-def _is_pd(P: np.ndarray) -> bool:
-    if not np.all(np.isfinite(P)):
-        return False
-    try:
-        np.linalg.cholesky(P)
-    except np.linalg.LinAlgError:
-        return False
-    return True
 
 
 class _Outputs:
-    """Preallocated per-step outputs (filled in place by either path)."""
+    """Preallocated per-step outputs: one row per step, filled in place by the compiled step;
+    the named fields are views into it."""
 
-    def __init__(self, n: int, n_c: int):
-        self.x = np.zeros((n, 18))
-        self.cov = np.zeros((n, 18, 18))
-        self.wrench = np.zeros((n, n_c, 6))
-        self.wrench_cov = np.zeros((n, 6, 6))
-        self.cop = np.zeros((n, 3))
-        self.cop_cov = np.zeros((n, 2, 2))
-        self.innovation = np.zeros((n, 6))
-        self.S = np.zeros((n, 6, 6))
-        self.white = np.zeros((n, 6))
-        self.nis = np.zeros(n)
+    def __init__(self, n: int, n_c: int, want: bool = True):
+        layout = K.out_layout(n_c)
+        self.want = bool(want)
+        self.row = np.zeros((n, layout["_width"][0]))
+        if not self.want:
+            self.row[:] = np.nan
+        for name, (o, shape) in layout.items():
+            if name != "_width":
+                size = int(np.prod(shape)) if shape else 1
+                view = self.row[:, o:o + size]
+                setattr(self, name, view.reshape((n,) + shape) if shape else view[:, 0])
         self.time_per_step = np.zeros(n)
 
-    def estimate(self, rec: Recording, ekf: EKF, total: float, fast: bool) -> Estimate:
+    def estimate(self, rec: Recording, ekf: EKF, total: float) -> Estimate:
         x = self.x
         R = np.array([so3.exp(Om) for Om in x[:, OM]])
         nm = ekf.noise
+        c = np.array
         return Estimate(
             estimator="ekf", t_ns=rec.t_ns.copy(), contact_names=tuple(rec.contact_names),
             R=R, t=x[:, T].copy(), w=x[:, W].copy(), v=x[:, V].copy(), dw=x[:, DW].copy(), a=x[:, A].copy(),
-            wrench=self.wrench, cop=self.cop, cov=self.cov, wrench_cov=self.wrench_cov, cop_cov=self.cop_cov,
-            residuals={"imu": self.white}, residual_labels={"imu": IMU_LABELS},
-            innovation=self.innovation, innovation_cov=self.S, time_per_step=self.time_per_step,
+            wrench=c(self.wrench), cop=c(self.cop), cov=c(self.cov), wrench_cov=c(self.wrench_cov),
+            cop_cov=c(self.cop_cov), residuals={"imu": c(self.white)}, residual_labels={"imu": IMU_LABELS},
+            innovation=c(self.innovation), innovation_cov=c(self.S), time_per_step=self.time_per_step,
             total_time=total,
-            meta={"kernel": "numba" if fast else "numpy", "jacobians": ekf.config.jacobians,
+            meta={"kernel": "numba", "outputs": self.want, "jacobians": ekf.config.jacobians,
+                  "touchdown": ekf.config.touchdown, "ground_tilt_weight": ekf.config.ground_tilt_weight,
                   "sigma_unmodelled_accel": nm.sigma_a, "sigma_unmodelled_ang_accel": nm.sigma_dw,
                   "p0_sigma": nm.p0_sigma.tolist(), "gyro_sigma": ekf.model.gyro_sigma,
                   "accel_sigma": ekf.model.accel_sigma, "mean_nis": float(np.mean(self.nis)), "z0": ekf.config.z0},

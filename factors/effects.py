@@ -575,7 +575,7 @@ class ComOffset(_Constant):
     def residual_terms(self, family, problem, steps, R, q, W, e):
         if family != "newton_euler":
             return None
-        from flexforce.factors import kernels
+        from flexforce.factors import core
 
         steps = np.asarray(steps)
         n = len(steps)
@@ -588,8 +588,8 @@ class ComOffset(_Constant):
         r1, J1 = np.empty((n, 6)), np.empty((n, 6, 18))
         r0, J0 = np.empty((n, 6)), np.empty((n, 6, 18))
         c, dc, ddc, I, dI, sig, dsig = self.inputs(problem, steps, d)
-        kernels.newton_euler_all(R, q, zero, M, cc(c), cc(dc), cc(ddc), cc(I), cc(dI), cc(sig), cc(dsig), g, r1, J1)
-        kernels.newton_euler_all(R, q, zero, M, cc(problem.com[steps]), cc(dc), cc(ddc), cc(problem.inertia[steps]),
+        core.newton_euler_all(R, q, zero, M, cc(c), cc(dc), cc(ddc), cc(I), cc(dI), cc(sig), cc(dsig), g, r1, J1)
+        core.newton_euler_all(R, q, zero, M, cc(problem.com[steps]), cc(dc), cc(ddc), cc(problem.inertia[steps]),
                                  cc(problem.inertia_dot[steps]), cc(problem.sigma_l[steps]),
                                  cc(problem.sigma_dot[steps]), g, r0, J0)
         # d/d delta (analytic; module docstring of the class)

@@ -9,7 +9,7 @@ Variables of step ``k`` (keys from :func:`X`, :func:`V`, :func:`A`, :func:`W`):
   only while the contact is active.
 
 Every factor is a ``gtsam.CustomFactor`` whose arithmetic is a compiled kernel of
-:mod:`flexforce.factors.kernels` (Jacobians with respect to world-frame increments).  GTSAM's
+:mod:`flexforce.factors.core` (Jacobians with respect to world-frame increments).  GTSAM's
 ``Pose3`` tangent is ``(d_phi, d_rho)`` in the body frame, rotation first, with
 ``d_theta = R d_phi`` and ``d_t = R d_rho`` (physics.py's docstring), so the pose block of a
 Jacobian is ``[J_theta R, J_t R]``; the vector variables are in world axes already.
@@ -20,7 +20,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from flexforce.factors import kernels
+from flexforce.factors import core
 
 MAX_CONTACTS = 64
 """Contacts per step addressable by :func:`W`."""
@@ -83,7 +83,7 @@ def newton_euler_factor(noise, k: int, contacts: list[int], m: float, c, dc, ddc
         Wsum = np.zeros(6)
         for key in keys[3:]:
             Wsum += values.atVector(key)
-        kernels.newton_euler(R, q, Wsum, m, c, dc, ddc, I, dI, sig, dsig, g, r, J)
+        core.newton_euler(R, q, Wsum, m, c, dc, ddc, I, dI, sig, dsig, g, r, J)
         if H is not None:
             H[0] = _pose_block(J, R)
             H[1] = J[:, 6:12].copy()
@@ -95,11 +95,18 @@ def newton_euler_factor(noise, k: int, contacts: list[int], m: float, c, dc, ddc
     return gtsam.CustomFactor(noise, gtsam.KeyVector(keys), error)
 
 
-def contact_factor(noise, k: int, i: int, p_l, R_l, params) -> gtsam.CustomFactor:
-    """Contact law (eq. 6-12) on ``X, V, W_i``: spring-damper wrench minus ``W_i`` (N, N m)."""
+def contact_factor(noise, k: int, i: int, p_l, R_l, params, p_r=None, R_r=None) -> gtsam.CustomFactor:
+    """Contact law (eq. 6-12) on ``X, V, W_i``: spring-damper wrench minus ``W_i`` (N, N m).
+
+    ``p_l, R_l``: the contact's placement in the local frame; ``p_r, R_r``: its rest placement in
+    the world (foothold), default ``p_l, R_l``.
+    """
     keys = [X(k), V(k), W(k, i)]
     p_l = np.ascontiguousarray(p_l, dtype=float)
     R_l = np.ascontiguousarray(R_l, dtype=float)
+    p_r = p_l if p_r is None else np.ascontiguousarray(p_r, dtype=float)
+    R_r = R_l if R_r is None else np.ascontiguousarray(R_r, dtype=float)
+    no_rest_jac = np.empty((0, 6))
     Ks = [np.ascontiguousarray(K, dtype=float) for K in (params.K_fs, params.K_fd, params.K_ts, params.K_td)]
     bf, bt, iso = float(params.beta_f), float(params.beta_t), bool(params.isotropic)
     r = np.empty(6)
@@ -108,7 +115,8 @@ def contact_factor(noise, k: int, i: int, p_l, R_l, params) -> gtsam.CustomFacto
 
     def error(this, values, H):
         R, q = _state(values, keys[0], keys[1], None)
-        kernels.contact_law(R, q, values.atVector(keys[2]), p_l, R_l, Ks[0], Ks[1], Ks[2], Ks[3], bf, bt, iso, r, J)
+        core.contact_law(R, q, values.atVector(keys[2]), p_l, R_l, p_r, R_r, Ks[0], Ks[1], Ks[2], Ks[3], bf, bt, iso,
+                         r, J, no_rest_jac)
         if H is not None:
             H[0] = _pose_block(J, R)
             H[1] = J[:, 6:12].copy()
@@ -127,7 +135,7 @@ def imu_factor(noise, k: int, y, Ra, p, pv, pa, pw, g: float) -> gtsam.CustomFac
 
     def error(this, values, H):
         R, q = _state(values, keys[0], keys[1], keys[2])
-        kernels.imu(R, q, y, Ra, p, pv, pa, pw, g, r, J)
+        core.imu(R, q, y, Ra, p, pv, pa, pw, g, r, J)
         if H is not None:
             H[0] = _pose_block(J, R)
             H[1] = J[:, 6:12].copy()
@@ -147,7 +155,7 @@ def integration_factor(noise, k: int, dt: float) -> gtsam.CustomFactor:
     def error(this, values, H):
         R0, q0 = _state(values, keys[0], keys[1], keys[2])
         R1, q1 = _state(values, keys[3], keys[4], keys[5])
-        kernels.integration(R0, q0, R1, q1, dt, r, J0, J1)
+        core.integration(R0, q0, R1, q1, dt, r, J0, J1)
         if H is not None:
             H[0] = _pose_block(J0, R0)
             H[1] = J0[:, 6:12].copy()
@@ -174,7 +182,7 @@ def ft_factor(noise, k: int, i: int, p_l, R_l, y) -> gtsam.CustomFactor:
         pose = values.atPose3(keys[0])
         R = pose.rotation().matrix()
         q[0:3] = pose.translation()
-        kernels.ft(R, q, values.atVector(keys[1]), p_l, R_l, y, r, Js, JW)
+        core.ft(R, q, values.atVector(keys[1]), p_l, R_l, y, r, Js, JW)
         if H is not None:
             H[0] = _pose_block(Js, R)
             H[1] = JW.copy()

@@ -1,7 +1,9 @@
-r"""The flexible-contact model of Mifsud, Benallegue & Lamiraux (IROS 2015), in plain numpy.
+r"""The flexible-contact model of Mifsud, Benallegue & Lamiraux (IROS 2015): its readable face.
 
-One place for the EKF and the factor-graph smoothers alike.  Equation numbers are the seed
-paper's; DESIGN.md's corrections are applied and cited as "correction k".
+The laws are computed by the compiled core :mod:`flexforce.factors.core` (one implementation for
+the EKF, the smoothers, the GTSAM factors and the Cramér–Rao bound); this module states them with
+the seed paper's equation numbers, DESIGN.md's corrections ("correction k") and the conventions,
+and calls the core with numpy arrays.
 
 Frames and state
 ----------------
@@ -31,20 +33,17 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from flexforce.errors import ModelError
-from flexforce.factors import so3
+from flexforce.factors import core
 
 GRAVITY = 9.81
 """Default gravity (m/s^2), along -z of the world (correction 6: a parameter)."""
 
 E_Z = np.array([0.0, 0.0, 1.0])
-_I3 = np.eye(3)
+_NO_REST_JAC = np.empty((0, 6))
 
 
-def _cross(a, b):
-    """``a x b`` of two 3-vectors; np.cross costs ~20 us a call, this ~1 us."""
-    a0, a1, a2 = np.asarray(a).tolist()
-    b0, b1, b2 = np.asarray(b).tolist()
-    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
+def _f(a) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=float)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -176,84 +175,60 @@ class Jacobians:
 # ----------------------------------------------------------------------------------------------
 
 
-def contact_wrench(R, t, w, v, local_p_c, local_R_c, params: ContactParams, jacobian: bool = False):
+def contact_wrench(R, t, w, v, local_p_c, local_R_c, params: ContactParams, jacobian: bool = False,
+                   world_p_rest=None, world_R_rest=None, rest_jacobian: bool = False):
     r"""Wrench of one flexible contact, force and moment about the world origin.
 
-    Eq. (6)-(9) and (11) with corrections 1, 2 and 5::
+    Eq. (6)-(9) and (11) with corrections 1, 2 and 5, generalised to a rest placement
+    ``(p_r, R_r)`` in the world (the contact episode's foothold)::
 
-        s  = R p_l + t - p_l                        (7)  displacement of the contact point
-        ds = [w]x R p_l + v                         (9)
-        F  = -K_fs s (1 + beta_f |s|^2) - K_fd ds   (6)
-        T  = -K_ts Omega (1 + beta_t |Omega|^2) - K_td w + [R p_l + t]x F      (11), Omega = log R
+        s     = R p_l + t - p_r                      (7)  displacement of the contact point
+        ds    = [w]x R p_l + v                       (9)
+        Omega = log(R R_l R_r^T)                          rotation of the contact from its rest
+        F     = -K_fs s (1 + beta_f |s|^2) - K_fd ds                                   (6)
+        T     = -K_ts Omega (1 + beta_t |Omega|^2) - K_td w + [R p_l + t]x F          (11)
 
-    The rest placement is ``p_l`` itself: at zero deformation the local and world frames agree.
+    By default the rest placement is the local placement itself, ``p_r = p_l``, ``R_r = R_l``: at
+    zero deformation the local and world frames agree, ``s = R p_l + t - p_l`` and
+    ``Omega = log R`` (the paper's law).  ``K`` in the contact frame is rotated into the world with
+    the contact's current orientation ``R R_l`` (correction 5).
 
     Args:
         R, t: flexibility rotation (3x3) and translation (m).
         w, v: flexibility angular (rad/s, world) and linear (m/s) velocity.
-        local_p_c, local_R_c: the contact's rest position (m) and orientation in the local frame.
+        local_p_c, local_R_c: the contact's position (m) and orientation in the local frame.
         params: the contact's stiffness and damping in its own frame.
         jacobian: also return the 6x12 Jacobian with respect to ``(theta, t, w, v)``.
+        world_p_rest, world_R_rest: the rest placement in the world (m, rotation matrix).
+        rest_jacobian: with ``jacobian``, also return the 6x6 Jacobian with respect to the rest
+            placement's increments ``(d_p, d_r)``: ``p_r <- p_r + d_p``, ``R_r <- exp([d_r]x) R_r``.
 
     Returns:
-        ``wrench`` (6,) = (F [N], T [N m]) or ``(wrench, J)``.
+        ``wrench`` (6,) = (F [N], T [N m]), ``(wrench, J)`` or ``(wrench, J, J_rest)``.
     """
-    Rp = R @ local_p_c
-    s = Rp + t - local_p_c
-    ds = _cross(w, Rp) + v
-    Omega = so3.log(R)
-    if params.isotropic:
-        Kfs, Kfd, Kts, Ktd = params.K_fs, params.K_fd, params.K_ts, params.K_td
-        aniso = False
-    else:
-        Rc = R @ local_R_c
-        Kfs, Kfd, Kts, Ktd = (Rc @ K @ Rc.T for K in (params.K_fs, params.K_fd, params.K_ts, params.K_td))
-        aniso = True
-    gf = 1.0 + params.beta_f * (s @ s)
-    gt = 1.0 + params.beta_t * (Omega @ Omega)
-    ss = s * gf
-    OO = Omega * gt
-    F = -Kfs @ ss - Kfd @ ds
-    p_w = Rp + t
-    T = -Kts @ OO - Ktd @ w + _cross(p_w, F)
-    wrench = np.concatenate([F, T])
+    p_l, R_l = _f(local_p_c), _f(local_R_c)
+    p_r = p_l if world_p_rest is None else _f(world_p_rest)
+    R_r = R_l if world_R_rest is None else _f(world_R_rest)
+    q = np.zeros(15)
+    q[0:3], q[3:6], q[6:9] = t, w, v
+    r = np.empty(6)
+    J = np.empty((6, core.STATE_DIM))
+    Jr = np.empty((6, 6)) if rest_jacobian else _NO_REST_JAC
+    core.contact_law(_f(R), q, np.zeros(6), p_l, R_l, p_r, R_r, params.K_fs, params.K_fd, params.K_ts,
+                     params.K_td, float(params.beta_f), float(params.beta_t), bool(params.isotropic), r, J, Jr)
     if not jacobian:
-        return wrench
-    S_Rp = so3.skew(Rp)
-    # d(s (1 + beta |s|^2))/ds
-    Ds = gf * _I3 + 2.0 * params.beta_f * np.outer(s, s)
-    DO = gt * _I3 + 2.0 * params.beta_t * np.outer(Omega, Omega)
-    # ds/dtheta = -[Rp]x ; d ds/dtheta = -[w]x [Rp]x
-    dF_dth = Kfs @ Ds @ S_Rp + Kfd @ so3.skew(w) @ S_Rp
-    dOmega_dth = so3.left_jacobian_inverse(Omega)
-    dT0_dth = -Kts @ DO @ dOmega_dth
-    if aniso:
-        # d(K_world y)/dtheta = -[K y]x + K [y]x  for y held fixed (correction 5).
-        dF_dth += so3.skew(Kfs @ ss) - Kfs @ so3.skew(ss) + so3.skew(Kfd @ ds) - Kfd @ so3.skew(ds)
-        dT0_dth += so3.skew(Kts @ OO) - Kts @ so3.skew(OO) + so3.skew(Ktd @ w) - Ktd @ so3.skew(w)
-    dF_dt = -Kfs @ Ds
-    dF_dw = Kfd @ S_Rp
-    dF_dv = -Kfd
-    S_pw = so3.skew(p_w)
-    S_F = so3.skew(F)
-    J = np.zeros((6, 12))
-    J[0:3, 0:3] = dF_dth
-    J[0:3, 3:6] = dF_dt
-    J[0:3, 6:9] = dF_dw
-    J[0:3, 9:12] = dF_dv
-    # d([p_w]x F) = -[F]x dp_w + [p_w]x dF, dp_w/dtheta = -[Rp]x, dp_w/dt = I
-    J[3:6, 0:3] = dT0_dth + S_F @ S_Rp + S_pw @ dF_dth
-    J[3:6, 3:6] = -S_F + S_pw @ dF_dt
-    J[3:6, 6:9] = -Ktd + S_pw @ dF_dw
-    J[3:6, 9:12] = S_pw @ dF_dv
-    return wrench, J
+        return r
+    if rest_jacobian:
+        return r, J[:, :12].copy(), Jr
+    return r, J[:, :12].copy()
 
 
 def total_contact_wrench(R, t, w, v, contacts, jacobian: bool = False):
     """Sum of :func:`contact_wrench` over ``contacts`` (eq. 10, 12).
 
     Args:
-        contacts: iterable of ``(local_p_c, local_R_c, params)`` for the active contacts.
+        contacts: iterable of ``(local_p_c, local_R_c, params)`` for the active contacts, or of
+            ``(local_p_c, local_R_c, params, world_p_rest, world_R_rest)``.
 
     Returns:
         ``(wrench, per_contact)`` with ``per_contact`` an (n, 6) array, plus the summed 6x12
@@ -261,12 +236,14 @@ def total_contact_wrench(R, t, w, v, contacts, jacobian: bool = False):
     """
     per = []
     Jsum = np.zeros((6, 12))
-    for p_l, R_l, params in contacts:
+    for c in contacts:
+        p_l, R_l, params = c[:3]
+        rest = c[3:5] if len(c) > 3 else (None, None)
         if jacobian:
-            wr, J = contact_wrench(R, t, w, v, p_l, R_l, params, jacobian=True)
+            wr, J = contact_wrench(R, t, w, v, p_l, R_l, params, True, *rest)
             Jsum += J
         else:
-            wr = contact_wrench(R, t, w, v, p_l, R_l, params)
+            wr = contact_wrench(R, t, w, v, p_l, R_l, params, False, *rest)
         per.append(wr)
     per_arr = np.array(per).reshape(-1, 6)
     total = per_arr.sum(axis=0) if per else np.zeros(6)
@@ -278,6 +255,16 @@ def total_contact_wrench(R, t, w, v, contacts, jacobian: bool = False):
 # ----------------------------------------------------------------------------------------------
 # Newton-Euler, eq. (13)-(25)
 # ----------------------------------------------------------------------------------------------
+
+
+def _state(t, w, v, dw, a) -> np.ndarray:
+    q = np.empty(15)
+    q[0:3], q[3:6], q[6:9], q[9:12], q[12:15] = t, w, v, dw, a
+    return q
+
+
+def _inputs(inp: Inputs) -> tuple:
+    return tuple(_f(x) for x in (inp.c, inp.dc, inp.ddc, inp.I, inp.dI, inp.sigma, inp.dsigma))
 
 
 def required_wrench(R, t, w, v, dw, a, inp: Inputs, g: float = GRAVITY, jacobian: bool = False):
@@ -296,53 +283,12 @@ def required_wrench(R, t, w, v, dw, a, inp: Inputs, g: float = GRAVITY, jacobian
     Returns:
         ``wrench`` (6,) or ``(wrench, Jacobians)`` with ``x`` (6x12) and ``acc`` (6x6) blocks.
     """
-    m = inp.m
-    Rc = R @ inp.c
-    Rdc = R @ inp.dc
-    Rddc = R @ inp.ddc
-    RIRt = R @ inp.I @ R.T
-    RdIRt = R @ inp.dI @ R.T
-    Rs = R @ inp.sigma
-    Rds = R @ inp.dsigma
-    ag = a + g * E_Z
-    w_Rc = _cross(w, Rc)
-    F = m * (_cross(dw, Rc) + _cross(w, w_Rc) + 2.0 * _cross(w, Rdc) + Rddc + ag)
-    Iw = RIRt @ w
-    T = (_cross(w, Iw) + RdIRt @ w + RIRt @ dw + _cross(w, Rs) + Rds
-         + _cross(t, F) + m * _cross(Rc, ag))
-    wrench = np.concatenate([F, T])
+    r = np.empty(6)
+    J = np.empty((6, core.STATE_DIM))
+    core.newton_euler(_f(R), _state(t, w, v, dw, a), np.zeros(6), float(inp.m), *_inputs(inp), float(g), r, J)
     if not jacobian:
-        return wrench
-    Sw = so3.skew(w)
-    S_Rc = so3.skew(Rc)
-    S_t = so3.skew(t)
-    # Derivatives of F. For a world vector u = R u_l: du/dtheta = -[u]x.
-    dF_dth = m * (-so3.skew(dw) @ S_Rc - Sw @ Sw @ S_Rc - 2.0 * Sw @ so3.skew(Rdc) - so3.skew(Rddc))
-    dF_dw = m * (-so3.skew(w_Rc) - Sw @ S_Rc - 2.0 * so3.skew(Rdc))
-    dF_ddw = -m * S_Rc
-    dF_da = m * _I3
-    # d(R X R^T y)/dtheta = [theta]x X' y - X'[theta]x y = -[X' y]x + X'[y]x   (X' = R X R^T)
-    dIw_dth = -so3.skew(Iw) + RIRt @ Sw
-    dT_dth = (Sw @ dIw_dth - so3.skew(RdIRt @ w) + RdIRt @ Sw
-              - so3.skew(RIRt @ dw) + RIRt @ so3.skew(dw)
-              - Sw @ so3.skew(Rs) - so3.skew(Rds)
-              + S_t @ dF_dth + m * so3.skew(ag) @ S_Rc)
-    dT_dt = -so3.skew(F)
-    dT_dw = -so3.skew(Iw) + Sw @ RIRt + RdIRt - so3.skew(Rs) + S_t @ dF_dw
-    dT_ddw = RIRt + S_t @ dF_ddw
-    dT_da = S_t @ dF_da + m * S_Rc
-    Jx = np.zeros((6, 12))
-    Jx[0:3, 0:3] = dF_dth
-    Jx[0:3, 6:9] = dF_dw
-    Jx[3:6, 0:3] = dT_dth
-    Jx[3:6, 3:6] = dT_dt
-    Jx[3:6, 6:9] = dT_dw
-    Ja = np.zeros((6, 6))
-    Ja[0:3, 0:3] = dF_ddw
-    Ja[0:3, 3:6] = dF_da
-    Ja[3:6, 0:3] = dT_ddw
-    Ja[3:6, 3:6] = dT_da
-    return wrench, Jacobians(x=Jx, acc=Ja)
+        return r
+    return r, Jacobians(x=J[:, :12].copy(), acc=J[:, 12:].copy())
 
 
 def newton_euler_residual(R, t, w, v, dw, a, wrench_c, inp: Inputs, g: float = GRAVITY,
@@ -366,8 +312,10 @@ def newton_euler_residual(R, t, w, v, dw, a, wrench_c, inp: Inputs, g: float = G
 def forward_dynamics(R, t, w, v, wrench_c, inp: Inputs, g: float = GRAVITY, jacobian: bool = False):
     r"""The flexibility acceleration ``(dw, a)`` that the contact wrench produces, eq. (24), (25).
 
-    Solves the 6x6 linear system ``required_wrench(dw, a) = wrench_c`` in the accelerations; this
-    is eq. (24) as corrected (correction 4) and eq. (25)::
+    Solves the 6x6 linear system ``required_wrench(dw, a) = wrench_c`` in the accelerations (the
+    required wrench is affine in them, with the acceleration block ``A`` of
+    :func:`required_wrench`'s Jacobian); by ``A``'s structure this is eq. (24) as corrected
+    (correction 4) and eq. (25)::
 
         dw = R (I + m[c]x^2)^-1 R^T (T_c - [w]x R I R^T w - R dI R^T w - R dsigma - [w]x R sigma
              + m [R c]x (R ddc + 2 [w]x R dc + [w]x^2 R c) - [R c + t]x F_c)
@@ -379,30 +327,21 @@ def forward_dynamics(R, t, w, v, wrench_c, inp: Inputs, g: float = GRAVITY, jaco
     Returns:
         ``acc`` (6,) = (dw [rad/s^2], a [m/s^2]) or ``(acc, Jacobians)`` where ``x`` (6x12) and
         ``wrench`` (6x6) are the derivatives of ``acc`` (implicit function theorem).
+
+    Raises:
+        ModelError: when the system is singular (mass or inertia not positive).
     """
-    zero = np.zeros(3)
-    r0 = required_wrench(R, t, w, v, zero, zero, inp, g)
-    # required_wrench is affine in the accelerations: required = r0 + A (dw, a), with A its
-    # acceleration Jacobian (see there), which depends on (R, t) only.
-    m = inp.m
-    S_Rc = so3.skew(R @ inp.c)
-    S_t = so3.skew(t)
-    A = np.empty((6, 6))
-    A[0:3, 0:3] = -m * S_Rc
-    A[0:3, 3:6] = m * _I3
-    A[3:6, 0:3] = R @ inp.I @ R.T - m * (S_t @ S_Rc)
-    A[3:6, 3:6] = m * (S_t + S_Rc)
-    rhs = np.asarray(wrench_c, dtype=float) - r0
-    try:
-        if not jacobian:
-            return np.linalg.solve(A, rhs)
-        Ainv = np.linalg.inv(A)
-    except np.linalg.LinAlgError as err:
-        raise ModelError("Newton-Euler system is singular: check the mass and inertia inputs") from err
-    acc = Ainv @ rhs
-    # r(x, acc) = required(x, acc) - wrench = 0  =>  d acc = -A^-1 (dr/dx dx - d wrench)
-    _, Jr = required_wrench(R, t, w, v, acc[:3], acc[3:], inp, g, jacobian=True)
-    return acc, Jacobians(x=-Ainv @ Jr.x, wrench=Ainv)
+    acc = np.empty(6)
+    Jx = np.empty((6, 12))
+    Jw = np.empty((6, 6))
+    ok = core.forward_dynamics(_f(R), _state(t, w, v, np.zeros(3), np.zeros(3)), _f(wrench_c), float(inp.m),
+                               *_inputs(inp), float(g), acc, Jx, Jw)
+    if not ok:
+        raise ModelError(f"Newton-Euler system is singular (mass {inp.m} kg): check the mass and inertia inputs, "
+                         "expected a positive mass and a positive definite inertia about the CoM")
+    if not jacobian:
+        return acc
+    return acc, Jacobians(x=Jx, wrench=Jw)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -422,30 +361,13 @@ def imu_readings(R, t, w, v, dw, a, imu: ImuPlacement, g: float = GRAVITY, jacob
         ``y`` (6,) = (gyro [rad/s], accelerometer [m/s^2]) or ``(y, Jacobians)`` with ``x`` (6x12)
         and ``acc`` (6x6).
     """
-    Rt = R.T
-    u = Rt @ w
-    ud = Rt @ dw
-    p = imu.p
-    ag = a + g * E_Z
-    up = _cross(u, p)
-    acc_l = _cross(ud, p) + _cross(u, up) + 2.0 * _cross(u, imu.v) + imu.a + Rt @ ag
-    RaT = imu.R.T
-    y = np.concatenate([RaT @ (u + imu.w), RaT @ acc_l])
+    r = np.empty(6)
+    J = np.empty((6, core.STATE_DIM))
+    core.imu(_f(R), _state(t, w, v, dw, a), np.zeros(6), _f(imu.R), _f(imu.p), _f(imu.v), _f(imu.a), _f(imu.w),
+             float(g), r, J)
     if not jacobian:
-        return y
-    # d(R^T y)/dtheta = R^T [y]x
-    du_dth = Rt @ so3.skew(w)
-    dacc_du = -so3.skew(up) - so3.skew(u) @ so3.skew(p) - 2.0 * so3.skew(imu.v)
-    dacc_dud = -so3.skew(p)
-    Jx = np.zeros((6, 12))
-    Ja = np.zeros((6, 6))
-    Jx[0:3, 0:3] = RaT @ du_dth
-    Jx[0:3, 6:9] = RaT @ Rt
-    Jx[3:6, 0:3] = RaT @ (dacc_du @ du_dth + dacc_dud @ Rt @ so3.skew(dw) + Rt @ so3.skew(ag))
-    Jx[3:6, 6:9] = RaT @ dacc_du @ Rt
-    Ja[3:6, 0:3] = RaT @ dacc_dud @ Rt
-    Ja[3:6, 3:6] = RaT @ Rt
-    return y, Jacobians(x=Jx, acc=Ja)
+        return r
+    return r, Jacobians(x=J[:, :12].copy(), acc=J[:, 12:].copy())
 
 
 # ----------------------------------------------------------------------------------------------
@@ -463,25 +385,10 @@ def center_of_pressure(wrench, z0: float = 0.0, jacobian: bool = False, min_forc
         ``p`` (3,) in m or ``(p, J)`` with ``J`` the 3x6 Jacobian with respect to (F, T).  When the
         vertical force is below ``min_force`` (N) the CoP is undefined and NaN is returned.
     """
-    F = wrench[:3]
-    T = wrench[3:]
-    Fz = F[2]
-    if not Fz > min_force:
-        p = np.array([np.nan, np.nan, z0])
-        return (p, np.full((3, 6), np.nan)) if jacobian else p
-    px = (z0 * F[0] - T[1]) / Fz
-    py = (T[0] + z0 * F[1]) / Fz
-    p = np.array([px, py, z0])
-    if not jacobian:
-        return p
-    J = np.zeros((3, 6))
-    J[0, 0] = z0 / Fz
-    J[0, 2] = -px / Fz
-    J[0, 4] = -1.0 / Fz
-    J[1, 1] = z0 / Fz
-    J[1, 2] = -py / Fz
-    J[1, 3] = 1.0 / Fz
-    return p, J
+    p = np.empty(3)
+    J = np.empty((3, 6))
+    core.center_of_pressure(_f(wrench), float(z0), float(min_force), p, J)
+    return (p, J) if jacobian else p
 
 
 def wrench_about(wrench, point):

@@ -3,7 +3,7 @@ r"""Batch smoothing: Levenberg-Marquardt over the whole recording.
 The factor graph (DESIGN.md, "The factor graph") is a chain, so its Gauss-Newton system is block
 tridiagonal.  Instead of handing ~5 N Python factors to gtsam (6 us of binding per factor and
 linearisation, ~1 s per iteration for a minute of data before any arithmetic), the batch smoother
-linearises all steps at once with the compiled kernels of :mod:`flexforce.factors.kernels` and
+linearises all steps at once with the compiled kernels of :mod:`flexforce.factors.core` and
 solves the system by block elimination (an information filter and its RTS back substitution),
 which also yields the marginal covariances exactly.  The same factors, as gtsam CustomFactors,
 drive the fixed-lag smoother; ``tests/test_smoother.py`` checks that both agree with gtsam's own
@@ -193,7 +193,7 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
 
 def run_batch(rec, model, progress: Callable[[float], None] | None = None, rule: NoiseRule | None = None,
               max_iterations: int = 30, covariance: bool = True, global_constants: bool | None = None,
-              **options):
+              rest_p=None, rest_R=None, **options):
     """Batch (whole-recording) smoothing of a Recording; returns an :class:`Estimate`.
 
     Args:
@@ -204,12 +204,14 @@ def run_batch(rec, model, progress: Callable[[float], None] | None = None, rule:
         max_iterations: Levenberg-Marquardt iterations at most.
         covariance: compute the marginal covariances (cheap: one extra block elimination).
         global_constants: constant effects as one global block (:func:`optimize`).
+        rest_p, rest_R: (N, C, 3), (N, C, 3, 3) the contacts' rest placements in the world per step
+            (footholds); default the recording's local placements (:meth:`Problem.build`).
     """
     if options:
         raise EstimatorError(f"batch smoother: unknown option(s) {sorted(options)}; known: rule, "
-                             "max_iterations, covariance, global_constants")
+                             "max_iterations, covariance, global_constants, rest_p, rest_R")
     t0 = time.perf_counter()
-    prob = Problem.build(rec, model, rule or NoiseRule())
+    prob = Problem.build(rec, model, rule or NoiseRule(), rest_p, rest_R)
     if progress is not None:
         progress(0.05)
     traj, P, info = optimize(prob, max_iterations=max_iterations, progress=progress, want_cov=covariance,

@@ -22,7 +22,7 @@ with ``x*`` the states' optimum for ``theta``, ``H_post`` the Gauss-Newton Hessi
 per-step states (the constant parameters held) and ``H_model`` that of the model factors alone
 (``ln Z = -1/2 ln det H_model`` + const: the model factors have as many rows as the states have
 unknowns, so their minimum is zero).  Both are block tridiagonal: their log-determinants are the
-block Cholesky pivots' (:func:`flexforce.factors.kernels.block_tridiag_logdet`).
+block Cholesky pivots' (:func:`flexforce.factors.solvers.block_tridiag_logdet`).
 
 :func:`flexforce.smoother.batch.optimize` estimates ``theta`` by minimising this (type-II maximum
 likelihood, with ``theta``'s own prior), the states by MAP given it; the diagnostics score an
@@ -34,7 +34,7 @@ from __future__ import annotations
 import numpy as np
 
 from flexforce.errors import EstimatorError
-from flexforce.factors import kernels
+from flexforce.smoother import solvers
 from flexforce.smoother.linearize import Linearization, assemble, drop_global_walks, is_global, linearize
 
 MEASUREMENT_FAMILIES = ("imu", "ft")
@@ -69,7 +69,7 @@ def log_dets(prob, lin: Linearization, cidx: np.ndarray) -> tuple[float, float]:
         Hs = np.ascontiguousarray(H * s[:, :, None] * s[:, None, :])
         Bs = np.ascontiguousarray(Bk * s[:-1, :, None] * s[1:, None, :])
         try:
-            out.append(float(kernels.block_tridiag_logdet(Hs, Bs)) + shift)
+            out.append(float(solvers.block_tridiag_logdet(Hs, Bs)) + shift)
         except np.linalg.LinAlgError as exc:
             raise EstimatorError(f"smoother: the {what} information of the states is not positive definite "
                                  "(an unobservable direction: check contacts and stiffness)") from exc

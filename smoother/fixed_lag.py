@@ -17,7 +17,7 @@ Two backends share the factors and the noise of :class:`Problem`:
     left it since are read out, each smoothed with at least ``lag`` of future data (output
     latency ``lag`` plus up to ``report_every - 1`` samples).  Covariances: the window's
     marginals at the same moments, by the recursion of
-    :func:`flexforce.factors.kernels.window_marginals`, timed apart from the updates.
+    :func:`flexforce.factors.solvers.window_marginals`, timed apart from the updates.
 
 ``gtsam`` (:class:`GtsamFixedLagSmoother`)
     gtsam's IncrementalFixedLagSmoother (iSAM2) on the CustomFactors of
@@ -46,13 +46,14 @@ import numpy as np
 
 from flexforce.errors import EstimatorError
 from flexforce.factors import gtsam_factors as gf
-from flexforce.factors import kernels
+from flexforce.factors import core
+from flexforce.smoother import solvers
 from flexforce.smoother.graph import GraphBuilder
 from flexforce.smoother.linearize import Trajectory, assemble_split, linearize
 from flexforce.smoother.problem import NoiseRule, Problem
 from flexforce.smoother.result import make_estimate
 
-S = kernels.STATE_DIM
+S = core.STATE_DIM
 
 
 RELINEARIZE_THRESHOLD = {
@@ -86,7 +87,7 @@ def predict_step(R_prev, q_prev, dt: float):
     ``q = (t, w, v, dw, a)``; the rotation is composed on SO(3) with the world-frame increment.
     """
     w, v, dw, a = q_prev[3:6], q_prev[6:9], q_prev[9:12], q_prev[12:15]
-    R = kernels.so3_exp(w * dt + 0.5 * dw * dt * dt) @ R_prev
+    R = core.so3_exp(w * dt + 0.5 * dw * dt * dt) @ R_prev
     q = q_prev.copy()
     q[0:3] = q_prev[0:3] + v * dt + 0.5 * a * dt * dt
     q[3:6] = w + dw * dt
@@ -244,7 +245,7 @@ class FixedLagSmoother:
         p = k % self.cap
         S_, nc = S, self.prob.nc
         d = self.dx[p]
-        R = kernels.so3_exp(d[:3]) @ self.Rb[p]
+        R = core.so3_exp(d[:3]) @ self.Rb[p]
         q = self.qb[p] + d[3:S_]
         W = self.Wb[p] + d[S_:S_ + 6 * nc].reshape(nc, 6)
         e = self.eb[p] + d[S_ + 6 * nc:]
@@ -292,7 +293,7 @@ class FixedLagSmoother:
         pf = pos[0]
         has_prev = (not frozen_first) and f > 0
         try:
-            kernels.window_eliminate(self.Sp[pf], self.rp[pf], frozen_first, U, gU, Fw, gF,
+            solvers.window_eliminate(self.Sp[pf], self.rp[pf], frozen_first, U, gU, Fw, gF,
                                      B if m > 1 else np.zeros((1, D, D)), self.C[(f - 1) % cap],
                                      self.y[(f - 1) % cap], has_prev, Ld, C, y, Sp, rp)
         except np.linalg.LinAlgError as err:
@@ -314,7 +315,7 @@ class FixedLagSmoother:
         full = j >= 0 and (j + 1) % self.report_every == 0
         oldest = max(0, j - self.report_every + 1) if full else f
         order = np.arange(k, oldest - 1, -1) % cap
-        kernels.window_back_substitute(self.Ld, self.C, self.y, order, self.dx)
+        solvers.window_back_substitute(self.Ld, self.C, self.y, order, self.dx)
         if not np.all(np.isfinite(self.dx[pk])):
             raise EstimatorError(f"fixed-lag smoother: non-finite estimate at step {k} (t = {k * prob.dt:.3f} s)")
         self.update_time[k] = time.perf_counter() - t0
@@ -331,7 +332,7 @@ class FixedLagSmoother:
         """Window marginals (timed apart); kept for steps ``j0 .. j1-1``."""
         t0 = time.perf_counter()
         order = np.arange(k, j0 - 1, -1) % self.cap
-        kernels.window_marginals(self.Ld, self.C, order, self.Pw)
+        solvers.window_marginals(self.Ld, self.C, order, self.Pw)
         self.cov_time[k] = time.perf_counter() - t0
 
     def _report(self, j: int) -> None:
@@ -346,7 +347,7 @@ class FixedLagSmoother:
             return
         j0 = self.next_report
         order = np.arange(self.k - 1, j0 - 1, -1) % self.cap
-        kernels.window_back_substitute(self.Ld, self.C, self.y, order, self.dx)
+        solvers.window_back_substitute(self.Ld, self.C, self.y, order, self.dx)
         if self.covariance:
             self._covariances(self.k - 1, j0, self.k)
         for j in range(j0, self.k):
@@ -356,7 +357,7 @@ class FixedLagSmoother:
 def run_fixed_lag(rec, model, progress: Callable[[float], None] | None = None, lag: float = 1.0,
                   rule: NoiseRule | None = None, backend: str = "window", relinearize: int = 3,
                   report_every: int = 10, relinearize_threshold: float | None = None,
-                  relinearize_skip: int = 10, covariance: bool = True, **options):
+                  relinearize_skip: int = 10, covariance: bool = True, rest_p=None, rest_R=None, **options):
     """Fixed-lag smoothing of a Recording, one update per sample; returns an :class:`Estimate`.
 
     Args:
@@ -368,6 +369,8 @@ def run_fixed_lag(rec, model, progress: Callable[[float], None] | None = None, l
             one included), and how often (updates) the window is read out.
         relinearize_threshold, relinearize_skip: gtsam backend: iSAM2's relinearisation settings.
         covariance: extract the marginal covariances (timed apart from the updates).
+        rest_p, rest_R: (N, C, 3), (N, C, 3, 3) the contacts' rest placements in the world per step
+            (footholds); default the recording's local placements (:meth:`Problem.build`).
 
     ``Estimate.time_per_step`` holds the wall-clock time of each update (prediction,
     linearisation, elimination, back substitution); the covariance extraction is in
@@ -375,11 +378,11 @@ def run_fixed_lag(rec, model, progress: Callable[[float], None] | None = None, l
     """
     if options:
         raise EstimatorError(f"fixed-lag smoother: unknown option(s) {sorted(options)}; known: lag, rule, backend, "
-                             "relinearize, report_every, relinearize_threshold, relinearize_skip, covariance")
+                             "relinearize, report_every, relinearize_threshold, relinearize_skip, covariance, rest_p, rest_R")
     if backend not in ("window", "gtsam"):
         raise EstimatorError(f"fixed-lag smoother: backend must be 'window' or 'gtsam', got {backend!r}")
     t0 = time.perf_counter()
-    prob = Problem.build(rec, model, rule or NoiseRule())
+    prob = Problem.build(rec, model, rule or NoiseRule(), rest_p, rest_R)
     if backend == "window":
         fls = FixedLagSmoother(prob, lag, relinearize=relinearize, covariance=covariance, report_every=report_every)
     else:

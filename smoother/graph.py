@@ -43,7 +43,7 @@ class GraphBuilder:
         ]
         for i in contacts:
             out.append(gf.contact_factor(self.noise_contact, k, i, p.contact_p[k, i], p.contact_R[k, i],
-                                         p.model.contact_params[i]))
+                                         p.model.contact_params[i], p.rest_p[k, i], p.rest_R[k, i]))
             if p.use_ft:
                 out.append(gf.ft_factor(self.noise_ft, k, i, p.contact_p[k, i], p.contact_R[k, i], p.y_ft[k, i]))
         if k > 0 and link:

@@ -3,7 +3,7 @@ r"""Whole-trajectory linearisation of the factor graph, vectorised over the step
 The graph is a chain: every factor touches one step except the integration factors, which touch
 two successive steps.  Ordered by time, the Gauss-Newton matrix is block tridiagonal with blocks
 of the per-step state dimension ``D = 18 + 6 C + effects``; :func:`assemble` builds its blocks and
-:func:`flexforce.factors.kernels.block_tridiag_solve` solves it in ``O(N D^3)``.
+:func:`flexforce.factors.solvers.block_tridiag_solve` solves it in ``O(N D^3)``.
 
 Per-step state (columns of every Jacobian): ``(theta, t, w, v, dw, a)`` (world-frame increments),
 then ``W_1 .. W_C`` (F N, T N m about the world origin), then the effects' unknowns.
@@ -16,9 +16,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from flexforce.errors import EstimatorError
-from flexforce.factors import kernels
+from flexforce.factors import core
+from flexforce.smoother import solvers
 
-S = kernels.STATE_DIM
+S = core.STATE_DIM
+_NO_REST_JAC = np.empty((0, 1, 6, 6))
 
 
 @dataclass
@@ -37,7 +39,7 @@ class Trajectory:
     def retract(self, dx: np.ndarray) -> "Trajectory":
         """A new trajectory moved by ``dx`` (N, D) in world-frame increments."""
         out = self.copy()
-        kernels.retract_all(out.R, out.q, np.ascontiguousarray(dx[:, :S]))
+        core.retract_all(out.R, out.q, np.ascontiguousarray(dx[:, :S]))
         nc = self.W.shape[1]
         out.W += dx[:, S:S + 6 * nc].reshape(out.W.shape)
         out.e += dx[:, S + 6 * nc:]
@@ -124,7 +126,7 @@ def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True) -> Linea
     Wsum = np.ascontiguousarray((W * act[:, :, None]).sum(axis=1))
     r = np.empty((n, 6))
     Js = np.empty((n, 6, S))
-    kernels.newton_euler_all(R, q, Wsum, float(prob.rec.mass), prob.com[sl], prob.com_vel[sl], prob.com_acc[sl],
+    core.newton_euler_all(R, q, Wsum, float(prob.rec.mass), prob.com[sl], prob.com_vel[sl], prob.com_acc[sl],
                              prob.inertia[sl], prob.inertia_dot[sl], prob.sigma_l[sl], prob.sigma_dot[sl], prob.g,
                              r, Js)
     J = np.zeros((n, 6, D))
@@ -143,8 +145,8 @@ def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True) -> Linea
     # Contact law (eq. 6-12), one factor per contact; an inactive contact's wrench is held at zero.
     rc = np.empty((n, nc, 6))
     Jc = np.empty((n, nc, 6, S))
-    kernels.contact_all(R, q, W, act, prob.contact_p[sl], prob.contact_R[sl], prob.K_fs, prob.K_fd, prob.K_ts,
-                        prob.K_td, prob.beta, prob.iso, rc, Jc)
+    core.contact_all(R, q, W, act, prob.contact_p[sl], prob.contact_R[sl], prob.rest_p[sl], prob.rest_R[sl],
+                     prob.K_fs, prob.K_fd, prob.K_ts, prob.K_td, prob.beta, prob.iso, rc, Jc, _NO_REST_JAC)
     # Effects acting on the contact law (stiffness scales, anisotropy, cubic terms): their term,
     # per contact, is added where the contact is active (an inactive one's wrench stays at zero).
     c_terms = []
@@ -170,7 +172,7 @@ def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True) -> Linea
     # IMU (eq. 26-28).
     r = np.empty((n, 6))
     Js = np.empty((n, 6, S))
-    kernels.imu_all(R, q, prob.y_imu[sl], prob.imu_R[sl], prob.imu_p[sl], prob.imu_v[sl], prob.imu_a[sl],
+    core.imu_all(R, q, prob.y_imu[sl], prob.imu_R[sl], prob.imu_p[sl], prob.imu_v[sl], prob.imu_a[sl],
                     prob.imu_w[sl], prob.g, r, Js)
     J = np.zeros((n, 6, D))
     J[:, :, :S] = Js
@@ -182,7 +184,7 @@ def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True) -> Linea
         rf = np.empty((n, nc, 6))
         Jf = np.empty((n, nc, 6, S))
         JW = np.empty((n, nc, 6, 6))
-        kernels.ft_all(R, q, W, act, prob.contact_p[sl], prob.contact_R[sl], prob.y_ft[sl], rf, Jf, JW)
+        core.ft_all(R, q, W, act, prob.contact_p[sl], prob.contact_R[sl], prob.y_ft[sl], rf, Jf, JW)
         for i in range(nc):
             J = np.zeros((n, 6, D))
             J[:, :, :S] = Jf[:, i]
@@ -192,10 +194,10 @@ def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True) -> Linea
     # Prior on the first step (core state), around the static equilibrium.
     if k0 == 0:
         R0, q0 = prob.prior_mean
-        phi = kernels.so3_log(R[0] @ R0.T)
+        phi = core.so3_log(R[0] @ R0.T)
         r = np.concatenate([phi, q[0] - q0])[None, :]
         J = np.zeros((1, S, D))
-        J[0, :3, :3] = kernels.so3_jl_inv(phi)
+        J[0, :3, :3] = core.so3_jl_inv(phi)
         J[0, 3:S, 3:S] = np.eye(S - 3)
         lin.unary["prior"] = _whiten_rows(r, J, sig.prior)
 
@@ -227,7 +229,7 @@ def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True) -> Linea
         r = np.empty((n - 1, 12))
         J0s = np.empty((n - 1, 12, S))
         J1s = np.empty((n - 1, 12, S))
-        kernels.integration_all(R, q, prob.dt, r, J0s, J1s)
+        core.integration_all(R, q, prob.dt, r, J0s, J1s)
         Linv = prob.integration_whitener
         J0 = np.zeros((n - 1, 12, D))
         J1 = np.zeros((n - 1, 12, D))
@@ -304,7 +306,7 @@ def covariances(Hd, B):
     Hs = np.ascontiguousarray(Hd * scale[:, :, None] * scale[:, None, :])
     Bs = np.ascontiguousarray(B * scale[:-1, :, None] * scale[1:, None, :])
     try:
-        P, Pc = kernels.block_tridiag_covariances(Hs, Bs)
+        P, Pc = solvers.block_tridiag_covariances(Hs, Bs)
     except np.linalg.LinAlgError as err:
         raise EstimatorError("smoother: the Gauss-Newton system is not positive definite "
                              "(an unobservable direction: check contacts and stiffness)") from err
@@ -336,10 +338,10 @@ def solve(Hd, B, g, damping: float = 0.0, want_cov: bool = False):
     Bs = np.ascontiguousarray(Bs)
     gs = np.ascontiguousarray(g * scale)
     try:
-        x, P = kernels.block_tridiag_solve(Hs, Bs, gs, want_cov)
+        x, P = solvers.block_tridiag_solve(Hs, Bs, gs, want_cov)
         # One step of iterative refinement: the tight integration factors leave the scaled
         # system with a condition number near 1e10 (measured), costing ~5 digits.
-        x2, _ = kernels.block_tridiag_solve(Hs, Bs, np.ascontiguousarray(gs - _matvec(Hs, Bs, x)), False)
+        x2, _ = solvers.block_tridiag_solve(Hs, Bs, np.ascontiguousarray(gs - _matvec(Hs, Bs, x)), False)
     except np.linalg.LinAlgError as err:
         raise EstimatorError("smoother: the Gauss-Newton system is not positive definite "
                              "(an unobservable direction: check contacts and stiffness)") from err
@@ -466,7 +468,7 @@ def solve_arrow(Hd, B, g, cidx, damping: float = 0.0, want_cov: bool = False, fr
     err = ("smoother: the Gauss-Newton system is not positive definite "
            "(an unobservable direction: check contacts and stiffness)")
     try:
-        X, _, _ = kernels.block_tridiag_solve_multi(
+        X, _, _ = solvers.block_tridiag_solve_multi(
             As, ABs, np.ascontiguousarray(np.concatenate([gas[:, :, None], Fs], axis=2)), False)
     except np.linalg.LinAlgError as exc:
         raise EstimatorError(err) from exc
@@ -489,7 +491,7 @@ def solve_arrow(Hd, B, g, cidx, damping: float = 0.0, want_cov: bool = False, fr
     ra = gas - _matvec(As, ABs, xa) - Fs @ xc
     rc = gcs - np.einsum("nai,na->i", Fs, xa) - Gs @ xc
     try:
-        u2, _ = kernels.block_tridiag_solve(As, ABs, np.ascontiguousarray(ra), False)
+        u2, _ = solvers.block_tridiag_solve(As, ABs, np.ascontiguousarray(ra), False)
     except np.linalg.LinAlgError as exc:
         raise EstimatorError(err) from exc
     xa2, xc2 = schur(u2, rc)
@@ -501,7 +503,7 @@ def solve_arrow(Hd, B, g, cidx, damping: float = 0.0, want_cov: bool = False, fr
         return dx, None, None
     if damping > 0.0:
         raise ValueError("solve_arrow: covariances of a damped system are not defined")
-    _, Pa, Pca = kernels.block_tridiag_solve_multi(As, ABs, np.zeros((n, As.shape[1], 1)), True)
+    _, Pa, Pca = solvers.block_tridiag_solve_multi(As, ABs, np.zeros((n, As.shape[1], 1)), True)
     Minv = np.linalg.solve(Lsc, np.eye(len(cidx)))
     Sinv = Minv.T @ Minv
     VS = V @ Sinv

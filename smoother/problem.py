@@ -41,7 +41,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from flexforce.errors import ConfigError, DataError, ModelError
-from flexforce.factors import kernels
+from flexforce.factors import core
 from flexforce.factors.model import unmodelled_acceleration
 from flexforce.factors.physics import ContactParams
 
@@ -217,8 +217,8 @@ def derive_sigmas(rec, model, rule: NoiseRule = NoiseRule()) -> Sigmas:
     # static equilibrium of the first sample (eq. 16, 23 are affine in (dw, a)).
     R0, q0 = _static_state(rec, model)
     r = np.empty(6)
-    J = np.empty((6, kernels.STATE_DIM))
-    kernels.newton_euler(R0, q0, np.zeros(6), m, np.ascontiguousarray(rec.com[0], float),
+    J = np.empty((6, core.STATE_DIM))
+    core.newton_euler(R0, q0, np.zeros(6), m, np.ascontiguousarray(rec.com[0], float),
                          np.ascontiguousarray(rec.com_vel[0], float), np.ascontiguousarray(rec.com_acc[0], float),
                          np.ascontiguousarray(rec.inertia[0], float), np.ascontiguousarray(rec.inertia_dot[0], float),
                          np.ascontiguousarray(rec.sigma[0], float), np.ascontiguousarray(rec.sigma_dot[0], float),
@@ -259,40 +259,84 @@ def derive_sigmas(rec, model, rule: NoiseRule = NoiseRule()) -> Sigmas:
     )
 
 
-def _static_state(rec, model):
-    """Static equilibrium of the first sample (a Problem-free version of :meth:`Problem.equilibrium`)."""
-    nc = len(rec.contact_names)
-    K, beta, iso = _contact_arrays(tuple(model.contact_params))
+def static_equilibrium(mass: float, g: float, inputs: tuple, active, local_p, local_R, rest_p, rest_R,
+                       K: list, beta, iso, iterations: int = 30, where: str = "the first sample"):
+    """Static flexibility ``(R, q)`` of one sample: zero velocity and acceleration, the contact
+    springs carrying the weight and the inputs' momentum rates (Newton's method on eq. 16, 23 with
+    eq. 10, 12).
+
+    Args:
+        mass, g: kg, m/s^2.
+        inputs: ``(com, com_vel, com_acc, inertia, inertia_dot, sigma, sigma_dot)`` of the sample
+            (local frame, see :class:`flexforce.factors.physics.Inputs`).
+        active: (C,) bool; local_p, local_R (C, 3), (C, 3, 3) the contacts' placements in the local
+            frame; rest_p, rest_R their rest placements in the world.
+        K, beta, iso: contact parameters as :func:`_contact_arrays` returns them.
+
+    Raises:
+        ModelError: when the residual wrench does not fall below 1e-9 (N, N m) within
+            ``iterations`` Newton steps (e.g. stiffness too low to carry the robot).
+    """
+    c = lambda a: np.ascontiguousarray(a, float)  # noqa: E731
+    inp = [c(a) for a in inputs]
     R = np.eye(3)
     q = np.zeros(15)
-    rne, Jne = np.empty(6), np.empty((6, 18))
-    rc, Jc = np.empty(6), np.empty((6, 18))
+    rne, Jne = np.empty(6), np.empty((6, core.STATE_DIM))
+    rc, Jc = np.empty(6), np.empty((6, core.STATE_DIM))
+    no_rest_jac = np.empty((0, 6))
     zero = np.zeros(6)
-    c = lambda a: np.ascontiguousarray(a, float)  # noqa: E731
-    for _ in range(30):
+    for _ in range(iterations):
         Wsum = np.zeros(6)
-        Jw = np.zeros((6, 6))
-        for i in range(nc):
-            if rec.contact_active[0, i]:
-                kernels.contact_law(R, q, zero, c(rec.contact_p[0, i]), c(rec.contact_R[0, i]), K[0][i], K[1][i],
-                                    K[2][i], K[3][i], beta[i, 0], beta[i, 1], iso[i], rc, Jc)
+        J = np.zeros((6, 6))
+        for i in range(len(active)):
+            if active[i]:
+                core.contact_law(R, q, zero, c(local_p[i]), c(local_R[i]), c(rest_p[i]), c(rest_R[i]), K[0][i],
+                                 K[1][i], K[2][i], K[3][i], beta[i, 0], beta[i, 1], iso[i], rc, Jc, no_rest_jac)
                 Wsum += rc
-                Jw -= Jc[:, :6]
-        kernels.newton_euler(R, q, Wsum, float(rec.mass), c(rec.com[0]), c(rec.com_vel[0]), c(rec.com_acc[0]),
-                             c(rec.inertia[0]), c(rec.inertia_dot[0]), c(rec.sigma[0]), c(rec.sigma_dot[0]),
-                             float(model.gravity), rne, Jne)
-        Jw += Jne[:, :6]
+                J -= Jc[:, :6]
+        core.newton_euler(R, q, Wsum, float(mass), *inp, float(g), rne, Jne)
+        J += Jne[:, :6]
         if np.max(np.abs(rne)) < 1e-9:
-            break
-        step = np.linalg.solve(Jw, -rne)
-        R = kernels.so3_exp(step[:3]) @ R
+            return R, q
+        step = np.linalg.solve(J, -rne)
+        R = core.so3_exp(step[:3]) @ R
         q[:3] += step[3:]
-    return R, q
+    raise ModelError(f"no static equilibrium at {where}: after {iterations} Newton steps the contact springs "
+                     f"leave {np.max(np.abs(rne)):.3g} N (or N m) of the weight and momentum rates unexplained, "
+                     "expected below 1e-9; check the stiffness (can it carry the robot?) and the mass")
+
+
+def _static_state(rec, model):
+    """Static equilibrium of the first sample, before a Problem exists (rest = local placement)."""
+    K, beta, iso = _contact_arrays(tuple(model.contact_params))
+    return static_equilibrium(rec.mass, model.gravity, _inputs(rec, 0), rec.contact_active[0], rec.contact_p[0],
+                              rec.contact_R[0], rec.contact_p[0], rec.contact_R[0], K, beta, iso)
+
+
+def _inputs(rec, k: int) -> tuple:
+    return (rec.com[k], rec.com_vel[k], rec.com_acc[k], rec.inertia[k], rec.inertia_dot[k], rec.sigma[k],
+            rec.sigma_dot[k])
 
 
 # ----------------------------------------------------------------------------------------------
 # The problem
 # ----------------------------------------------------------------------------------------------
+
+
+def rest_placements(rec, rest_p=None, rest_R=None):
+    """Validated (N, C, 3) and (N, C, 3, 3) world rest placements, default the local placements."""
+    n, nc = rec.n, len(rec.contact_names)
+    out = []
+    for name, value, default, shape in (("rest_p", rest_p, rec.contact_p, (n, nc, 3)),
+                                        ("rest_R", rest_R, rec.contact_R, (n, nc, 3, 3))):
+        a = np.ascontiguousarray(default if value is None else value, dtype=float)
+        if a.shape != shape:
+            raise ConfigError(f"{name} must have shape {shape} (steps, contacts, ...), got {a.shape}")
+        if not np.isfinite(a[rec.contact_active]).all():
+            raise DataError(f"{name} is not finite (NaN or inf) where a contact is active; rest placements "
+                            "are in m and rotation matrices")
+        out.append(a)
+    return out[0], out[1]
 
 
 def _contact_arrays(params: tuple[ContactParams, ...]):
@@ -318,7 +362,12 @@ class Problem:
     use_ft: bool
 
     @classmethod
-    def build(cls, rec, model, rule: NoiseRule = NoiseRule()) -> "Problem":
+    def build(cls, rec, model, rule: NoiseRule = NoiseRule(), rest_p=None, rest_R=None) -> "Problem":
+        """Args:
+            rest_p, rest_R: (N, C, 3) and (N, C, 3, 3) the contacts' rest placements in the world
+                (footholds) per step; default: the recording's local placements ``contact_p``,
+                ``contact_R`` (the spring is at rest where the local frame puts the contact).
+        """
         rec.validate()
         nc = len(rec.contact_names)
         if len(model.contact_params) != nc:
@@ -344,6 +393,7 @@ class Problem:
         prob.y_imu = c(np.concatenate([rec.gyro, rec.accel], axis=1), float)
         prob.active = c(rec.contact_active, bool)
         prob.contact_p, prob.contact_R = c(rec.contact_p, float), c(rec.contact_R, float)
+        prob.rest_p, prob.rest_R = rest_placements(rec, rest_p, rest_R)
         prob.y_ft = c(rec.ft, float) if use_ft else None
         (prob.K_fs, prob.K_fd, prob.K_ts, prob.K_td), prob.beta, prob.iso = _contact_arrays(model.contact_params)
         prob.effect_dims = tuple(int(e.dim) for e in prob.effects)
@@ -361,7 +411,7 @@ class Problem:
     @property
     def state_dim(self) -> int:
         """Unknowns per step: 18 + 6 C + effects."""
-        return kernels.STATE_DIM + 6 * self.nc + self.effect_dim
+        return core.STATE_DIM + 6 * self.nc + self.effect_dim
 
     def contact_wrenches(self, k: int, R, q) -> np.ndarray:
         """(C, 6) contact-law wrenches at step ``k`` (zero for inactive contacts)."""
@@ -369,11 +419,12 @@ class Problem:
         r = np.empty(6)
         J = np.empty((6, 18))
         zero = np.zeros(6)
+        no_rest_jac = np.empty((0, 6))
         for i in range(self.nc):
             if self.active[k, i]:
-                kernels.contact_law(R, q, zero, self.contact_p[k, i], self.contact_R[k, i], self.K_fs[i],
-                                    self.K_fd[i], self.K_ts[i], self.K_td[i], self.beta[i, 0],
-                                    self.beta[i, 1], self.iso[i], r, J)
+                core.contact_law(R, q, zero, self.contact_p[k, i], self.contact_R[k, i], self.rest_p[k, i],
+                                 self.rest_R[k, i], self.K_fs[i], self.K_fd[i], self.K_ts[i], self.K_td[i],
+                                 self.beta[i, 0], self.beta[i, 1], self.iso[i], r, J, no_rest_jac)
                 out[i] = r
         return out
 
@@ -398,43 +449,16 @@ class Problem:
         c = lambda a: np.ascontiguousarray(a, dtype=float)  # noqa: E731
         beta = self.beta if beta is None else beta
         r = np.empty((n, nc, 6))
-        J = np.empty((n, nc, 6, kernels.STATE_DIM))
-        kernels.contact_all(c(R), c(q), np.zeros((n, nc, 6)), np.ascontiguousarray(self.active[steps]),
-                            c(self.contact_p[steps]), c(self.contact_R[steps]), c(K_fs), c(K_fd), c(K_ts), c(K_td),
-                            c(np.reshape(beta, (nc, 2))), np.zeros(nc, dtype=bool), r, J)
+        J = np.empty((n, nc, 6, core.STATE_DIM))
+        core.contact_all(c(R), c(q), np.zeros((n, nc, 6)), np.ascontiguousarray(self.active[steps]),
+                         c(self.contact_p[steps]), c(self.contact_R[steps]), c(self.rest_p[steps]),
+                         c(self.rest_R[steps]), c(K_fs), c(K_fd), c(K_ts), c(K_td), c(np.reshape(beta, (nc, 2))),
+                         np.zeros(nc, dtype=bool), r, J, np.empty((0, nc, 6, 6)))
         return r, J
 
     def equilibrium(self, k: int = 0, iterations: int = 30):
-        """Static flexibility ``(R, q)`` at step ``k``: zero velocity and acceleration, the contact
-        springs carrying the weight and the inputs' momentum rates (Newton on eq. 16, 23 = eq. 10, 12).
-        """
-        R = np.eye(3)
-        q = np.zeros(15)
-        rne = np.empty(6)
-        Jne = np.empty((6, 18))
-        rc = np.empty(6)
-        Jc = np.empty((6, 18))
-        zero = np.zeros(6)
-        for _ in range(iterations):
-            Wsum = np.zeros(6)
-            J = np.zeros((6, 6))
-            for i in range(self.nc):
-                if self.active[k, i]:
-                    kernels.contact_law(R, q, zero, self.contact_p[k, i], self.contact_R[k, i], self.K_fs[i],
-                                        self.K_fd[i], self.K_ts[i], self.K_td[i], self.beta[i, 0],
-                                        self.beta[i, 1], self.iso[i], rc, Jc)
-                    Wsum += rc
-                    J -= Jc[:, :6]
-            kernels.newton_euler(R, q, Wsum, self.rec.mass, self.com[k], self.com_vel[k], self.com_acc[k],
-                                 self.inertia[k], self.inertia_dot[k], self.sigma_l[k], self.sigma_dot[k],
-                                 self.g, rne, Jne)
-            J += Jne[:, :6]
-            if np.max(np.abs(rne)) < 1e-9:
-                break
-            step = np.linalg.solve(J, -rne)
-            R = kernels.so3_exp(step[:3]) @ R
-            q[:3] += step[3:]
-        else:
-            raise ModelError(f"no static equilibrium at step {k}: the contact stiffness cannot carry the robot "
-                             f"(residual {np.max(np.abs(rne)):.3g} N)")
-        return R, q
+        """Static flexibility ``(R, q)`` at step ``k`` (:func:`static_equilibrium`)."""
+        return static_equilibrium(self.rec.mass, self.g, _inputs(self.rec, k), self.active[k], self.contact_p[k],
+                                  self.contact_R[k], self.rest_p[k], self.rest_R[k],
+                                  [self.K_fs, self.K_fd, self.K_ts, self.K_td], self.beta, self.iso,
+                                  iterations, where=f"step {k}")

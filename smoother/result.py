@@ -7,11 +7,11 @@ import inspect
 import numpy as np
 
 from flexforce.datasets.estimate import Estimate
-from flexforce.factors import kernels
+from flexforce.factors import core
 from flexforce.factors.physics import center_of_pressure
 from flexforce.smoother.linearize import Trajectory, linearize
 
-S = kernels.STATE_DIM
+S = core.STATE_DIM
 _AX = ("x", "y", "z")
 WRENCH_LABELS = tuple(f"F_{a} [N]" for a in _AX) + tuple(f"T_{a} [N m]" for a in _AX)
 RESIDUAL_LABELS = {

@@ -19,7 +19,7 @@ import pytest
 
 from flexforce.datasets.scenario import Scenario
 from flexforce.datasets.simulator import Simulator
-from flexforce.factors import kernels, so3
+from flexforce.factors import core, so3
 from flexforce.factors.effects import EFFECTS, make_effect
 from flexforce.factors.model import ModelConfig
 from flexforce.smoother import Effect, Problem, fit, run_fixed_lag
@@ -134,8 +134,8 @@ def test_residual_terms_match_finite_differences(name, small_problem):
             d = np.zeros((n, 18))
             d[:, j] = h
             Rp, qp, Rm, qm = R.copy(), q.copy(), R.copy(), q.copy()
-            kernels.retract_all(Rp, qp, d)
-            kernels.retract_all(Rm, qm, -d)
+            core.retract_all(Rp, qp, d)
+            core.retract_all(Rm, qm, -d)
             num = (eff.residual_terms(fam, prob, steps, Rp, qp, W, e)[0]
                    - eff.residual_terms(fam, prob, steps, Rm, qm, W, e)[0]) / (2 * h)
             np.testing.assert_allclose(Js[..., j], num, atol=1e-6 * (np.abs(Js).max() + 1.0))

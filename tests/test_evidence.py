@@ -10,7 +10,7 @@ import pytest
 
 from flexforce.datasets.scenario import Scenario
 from flexforce.datasets.simulator import Simulator
-from flexforce.factors import kernels
+from flexforce.smoother import solvers
 from flexforce.factors.effects import make_effect
 from flexforce.factors.model import ModelConfig
 from flexforce.smoother import Problem, fit
@@ -39,7 +39,7 @@ def test_block_logdet_matches_dense(n, d):
     H, D, B = block_tridiagonal(n, d, seed=n)
     sign, ref = np.linalg.slogdet(H)
     assert sign > 0
-    assert kernels.block_tridiag_logdet(D, B) == pytest.approx(ref, rel=1e-10, abs=1e-9)
+    assert solvers.block_tridiag_logdet(D, B) == pytest.approx(ref, rel=1e-10, abs=1e-9)
 
 
 def test_block_logdet_refuses_an_indefinite_matrix():
@@ -47,7 +47,7 @@ def test_block_logdet_refuses_an_indefinite_matrix():
     D = D.copy()
     D[3] -= 100.0 * np.eye(3)
     with pytest.raises(np.linalg.LinAlgError):
-        kernels.block_tridiag_logdet(D, B)
+        solvers.block_tridiag_logdet(D, B)
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""Tests of the factor families: the compiled kernels against physics.py, and every gtsam factor's
+"""Tests of the factor families: closed forms of the compiled kernels, and every gtsam factor's
 analytic Jacobians against numerical derivatives taken through ``Values.retract``.
 
 The numerical check is a port of GTSAM's ``factorTesting.h`` (the Python wheel lacks it): for
@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from flexforce.factors import gtsam_factors as gf
-from flexforce.factors import kernels
+from flexforce.factors import core
+from flexforce.smoother import solvers
 from flexforce.factors import physics as ph
 from flexforce.factors import so3
 
@@ -117,61 +118,9 @@ def values_of(k, R, q, W=None, contacts=(), k1=None, R1=None, q1=None):
 
 
 # ----------------------------------------------------------------------------------------------
-# Kernels against physics.py (the readable reference)
+# Core kernels with closed-form answers (the laws themselves are checked in test_physics.py
+# against independent references and numerical derivatives)
 # ----------------------------------------------------------------------------------------------
-
-
-@pytest.mark.parametrize("params", [ISO, ANISO], ids=["isotropic", "anisotropic-cubic"])
-@pytest.mark.parametrize("near_identity", [False, True])
-def test_contact_kernel_matches_physics(params, near_identity):
-    rng = np.random.default_rng(1)
-    for _ in range(5):
-        R, q = random_state(rng, near_identity=near_identity)
-        p_l, R_l = CONTACTS[0]
-        Wv = rng.normal(size=6) * 50
-        wrench, J = ph.contact_wrench(R, q[0:3], q[3:6], q[6:9], p_l, R_l, params, jacobian=True)
-        r = np.empty(6)
-        Jk = np.empty((6, 18))
-        kernels.contact_law(R, q, Wv, p_l, R_l, params.K_fs, params.K_fd, params.K_ts, params.K_td,
-                            params.beta_f, params.beta_t, params.isotropic, r, Jk)
-        np.testing.assert_allclose(r, wrench - Wv, rtol=1e-12, atol=1e-9)
-        np.testing.assert_allclose(Jk[:, :12], J, rtol=1e-10, atol=1e-8)
-        assert np.all(Jk[:, 12:] == 0.0)
-
-
-@pytest.mark.parametrize("near_identity", [False, True])
-def test_newton_euler_and_imu_kernels_match_physics(near_identity):
-    rng = np.random.default_rng(2)
-    for _ in range(5):
-        R, q = random_state(rng, near_identity=near_identity)
-        inp = inputs(rng)
-        t, w, v, dw, a = q[0:3], q[3:6], q[6:9], q[9:12], q[12:15]
-        Wsum = rng.normal(size=6) * 100
-        res, Jp = ph.newton_euler_residual(R, t, w, v, dw, a, Wsum, inp, G, jacobian=True)
-        r = np.empty(6)
-        J = np.empty((6, 18))
-        kernels.newton_euler(R, q, Wsum, inp.m, inp.c, inp.dc, inp.ddc, inp.I, inp.dI, inp.sigma, inp.dsigma, G, r, J)
-        np.testing.assert_allclose(r, res, rtol=1e-12, atol=1e-9)
-        np.testing.assert_allclose(J[:, :12], Jp.x, rtol=1e-10, atol=1e-9)
-        np.testing.assert_allclose(J[:, 12:], Jp.acc, rtol=1e-10, atol=1e-9)
-        imu = imu_placement(rng)
-        y = rng.normal(size=6)
-        pred, Ji = ph.imu_readings(R, t, w, v, dw, a, imu, G, jacobian=True)
-        kernels.imu(R, q, y, imu.R, imu.p, imu.v, imu.a, imu.w, G, r, J)
-        np.testing.assert_allclose(r, pred - y, rtol=1e-12, atol=1e-12)
-        np.testing.assert_allclose(J[:, :12], Ji.x, rtol=1e-10, atol=1e-12)
-        np.testing.assert_allclose(J[:, 12:], Ji.acc, rtol=1e-10, atol=1e-12)
-
-
-def test_so3_kernels_match_so3():
-    rng = np.random.default_rng(3)
-    for angle in (1e-9, 1e-7, 0.05, 1.0, np.pi - 1e-6):
-        phi = rng.normal(size=3)
-        phi *= angle / np.linalg.norm(phi)
-        R = so3.exp(phi)
-        np.testing.assert_allclose(kernels.so3_exp(phi), R, atol=1e-14)
-        np.testing.assert_allclose(kernels.so3_log(R), so3.log(R), atol=1e-9)
-        np.testing.assert_allclose(kernels.so3_jl_inv(phi), so3.left_jacobian_inverse(phi), atol=1e-12)
 
 
 def test_integration_is_exact_for_constant_jerk():
@@ -197,7 +146,7 @@ def test_integration_is_exact_for_constant_jerk():
     r = np.empty(12)
     J0 = np.empty((12, 18))
     J1 = np.empty((12, 18))
-    kernels.integration(Ra, qa, Rb, qb, dt, r, J0, J1)
+    core.integration(Ra, qa, Rb, qb, dt, r, J0, J1)
     np.testing.assert_allclose(r, 0.0, atol=1e-15)
 
 
@@ -212,7 +161,7 @@ def test_ft_kernel_matches_the_sensor_definition():
     moved = ph.wrench_about(Wv, p)
     expected = np.concatenate([Rc.T @ moved[:3], Rc.T @ moved[3:]])
     r = np.empty(6)
-    kernels.ft(R, q, Wv, p_l, R_l, np.zeros(6), r, np.empty((6, 18)), np.empty((6, 6)))
+    core.ft(R, q, Wv, p_l, R_l, np.zeros(6), r, np.empty((6, 18)), np.empty((6, 6)))
     np.testing.assert_allclose(r, expected, rtol=1e-12, atol=1e-10)
 
 
@@ -232,7 +181,7 @@ def test_block_tridiagonal_solver_matches_dense():
     g = rng.normal(size=n * d)
     Dm = np.array([H[k * d:(k + 1) * d, k * d:(k + 1) * d] for k in range(n)])
     B = np.array([H[k * d:(k + 1) * d, (k + 1) * d:(k + 2) * d] for k in range(n - 1)])
-    x, P = kernels.block_tridiag_solve(Dm, B, g.reshape(n, d), True)
+    x, P = solvers.block_tridiag_solve(Dm, B, g.reshape(n, d), True)
     np.testing.assert_allclose(x.ravel(), np.linalg.solve(H, g), rtol=1e-10, atol=1e-12)
     Hinv = np.linalg.inv(H)
     for k in range(n):
@@ -278,6 +227,23 @@ def test_contact_factor_near_contact_change():
     values = values_of(0, R, q, np.zeros((1, 6)), [0])
     check_factor_jacobians(f, values)
     assert f.error(values) < 1e-12
+
+
+@pytest.mark.parametrize("params", [ISO, ANISO], ids=["isotropic", "anisotropic-cubic"])
+def test_contact_factor_with_foothold_jacobians(params):
+    """A world rest placement away from the local one (a foothold found at touch-down)."""
+    rng = np.random.default_rng(13)
+    for label, R, q in _states(rng):
+        for i, (p_l, R_l) in enumerate(CONTACTS):
+            p_r = R @ p_l + q[0:3] + 0.004 * rng.normal(size=3)
+            R_r = so3.exp(0.05 * rng.normal(size=3)) @ R @ R_l
+            f = gf.contact_factor(NOISE6, 3, i, p_l, R_l, params, p_r, R_r)
+            W0 = ph.contact_wrench(R, q[0:3], q[3:6], q[6:9], p_l, R_l, params, world_p_rest=p_r, world_R_rest=R_r)
+            wrenches = np.zeros((2, 6))
+            wrenches[i] = W0
+            values = values_of(3, R, q, wrenches, [i])
+            check_factor_jacobians(f, values)
+            assert f.error(values) < 1e-12, label
 
 
 @pytest.mark.parametrize("contacts", [[0], [0, 1]], ids=["one-contact", "two-contacts"])

@@ -216,6 +216,76 @@ def test_contact_wrench_jacobian_larger_deflection_cubic():
         assert_jacobian(J, Jn)
 
 
+def _reference_contact_wrench_rest(R, t, w, v, p_l, R_cl, p_r, R_r, params):
+    """The contact law with a world rest placement, written out independently::
+
+        s = R p_l + t - p_r, Omega = log(R R_cl R_r^T), the rest as eq. (6)-(11).
+    """
+    Rc = R @ R_cl
+    Kw = [Rc @ K @ Rc.T for K in (params.K_fs, params.K_fd, params.K_ts, params.K_td)]
+    s = R @ p_l + t - p_r
+    sd = so3.skew(w) @ R @ p_l + v
+    Omega = so3.log(Rc @ R_r.T)
+    F = -Kw[0] @ s * (1.0 + params.beta_f * s @ s) - Kw[1] @ sd
+    T = (-Kw[2] @ Omega * (1.0 + params.beta_t * Omega @ Omega) - Kw[3] @ w
+         + so3.skew(R @ p_l + t) @ F)
+    return np.concatenate([F, T])
+
+
+def _foothold(R, t, p_l, R_cl, deflection: str, rng):
+    """A rest placement near the contact's current world placement (deflection 1e-7 m / rad),
+    at a moderate one (mm, 0.05 rad) or at a large one (4 cm, 0.4 rad)."""
+    size = {"near_identity": 1e-7, "moderate": 1.0, "large": 1.0}[deflection]
+    lin, ang = {"near_identity": (1.0, 1.0), "moderate": (3e-3, 0.05), "large": (0.04, 0.4)}[deflection]
+    d_p = size * lin * rng.normal(size=3)
+    d_r = rng.normal(size=3)
+    d_r *= size * ang / np.linalg.norm(d_r)
+    return R @ p_l + t + d_p, so3.exp(d_r) @ R @ R_cl
+
+
+@pytest.mark.parametrize("deflection", ["near_identity", "moderate", "large"])
+@pytest.mark.parametrize("pname", list(PARAMS))
+def test_contact_wrench_with_foothold_and_its_jacobians(deflection, pname):
+    """World rest placement: the wrench against the independent reference, the Jacobian on the
+    state and the Jacobian on the foothold (p_r, world increment of R_r) against central
+    differences."""
+    params = PARAMS[pname]
+    rng = np.random.default_rng(7 + list(PARAMS).index(pname))
+    R, t, w, v, _, _ = make_state("large_deflection" if deflection == "large" else "random", seed=5)
+    (p_l, R_cl, _), = make_contacts(1, seed=3, params=params)
+    p_r, R_r = _foothold(R, t, p_l, R_cl, deflection, rng)
+    wrench, J, J_rest = ph.contact_wrench(R, t, w, v, p_l, R_cl, params, jacobian=True, world_p_rest=p_r,
+                                          world_R_rest=R_r, rest_jacobian=True)
+    ref = _reference_contact_wrench_rest(R, t, w, v, p_l, R_cl, p_r, R_r, params)
+    np.testing.assert_allclose(wrench, ref, rtol=1e-12, atol=1e-9 * np.abs(ref).max())
+
+    def f(R_, t_, w_, v_):
+        return ph.contact_wrench(R_, t_, w_, v_, p_l, R_cl, params, world_p_rest=p_r, world_R_rest=R_r)
+
+    def f_rest(p_, R_):
+        return ph.contact_wrench(R, t, w, v, p_l, R_cl, params, world_p_rest=p_, world_R_rest=R_)
+
+    assert_jacobian(J, numerical_jacobian(f, [R, t, w, v]), what=f"state {deflection}/{pname}")
+    # The foothold moves by mm at most in the differences: step relative to 1 m, not to |p_r|.
+    assert_jacobian(J_rest, numerical_jacobian(f_rest, [p_r, R_r]), what=f"foothold {deflection}/{pname}")
+    assert np.all(J_rest[0:3, 3:6] == 0.0)  # the force does not depend on the rest orientation
+
+
+@pytest.mark.parametrize("kind", STATE_KINDS)
+@pytest.mark.parametrize("pname", list(PARAMS))
+def test_default_rest_is_the_local_placement(kind, pname):
+    """``p_r = p_l``, ``R_r = R_l`` is the paper's law (``s = R p_l + t - p_l``, ``Omega = log R``)."""
+    params = PARAMS[pname]
+    R, t, w, v, _, _ = make_state(kind, seed=2)
+    (p_l, R_cl, _), = make_contacts(1, seed=3, params=params)
+    a, Ja = ph.contact_wrench(R, t, w, v, p_l, R_cl, params, jacobian=True)
+    b, Jb = ph.contact_wrench(R, t, w, v, p_l, R_cl, params, jacobian=True, world_p_rest=p_l, world_R_rest=R_cl)
+    np.testing.assert_allclose(b, a, rtol=1e-13, atol=1e-12)
+    np.testing.assert_allclose(Jb, Ja, rtol=1e-13, atol=1e-10)
+    np.testing.assert_allclose(a, _reference_contact_wrench(R, t, w, v, p_l, R_cl, params), rtol=1e-12,
+                               atol=1e-9 * np.abs(a).max())
+
+
 def test_contact_statics_translation():
     """One isotropic contact at the origin, R = I, t = (0, 0, -d): F = (0, 0, k_fs d), T = 0."""
     k_fs, d = 6e4, 0.004

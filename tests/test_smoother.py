@@ -17,6 +17,7 @@ import pytest
 from scipy.stats import chi2
 
 from flexforce.datasets.estimate import Estimate
+from flexforce.errors import ConfigError
 from flexforce.datasets.scenario import Scenario
 from flexforce.datasets.simulator import Simulator
 from flexforce.factors import so3
@@ -115,6 +116,47 @@ def test_noise_free_standing_is_recovered_exactly():
     est = run_batch(rec, ModelConfig.from_recording(rec))
     force, cop, theta = errors(est, rec)
     assert force < 0.05 and cop < 1e-5 and theta < 1e-6, (force, cop, theta)
+
+
+def test_world_rest_placements_move_the_equilibrium_with_them():
+    """The contact law depends on the rest placements only through ``R p_l + t - p_r`` and
+    ``R R_l R_r^T``, and gravity is along z: rest placements translated by ``d`` give the
+    equilibrium ``(R0, t0 + d)``; rotated by ``Rz`` about the vertical, ``(Rz R0, Rz t0)``."""
+    sc = Scenario.load("stand")
+    sc.duration = 0.05
+    rec = Simulator(sc, noise=False).run()
+    model = ModelConfig.from_recording(rec)
+    R0, q0 = Problem.build(rec, model).equilibrium(0)
+    d = np.array([0.03, -0.02, 0.004])
+    R1, q1 = Problem.build(rec, model, rest_p=rec.contact_p + d).equilibrium(0)
+    np.testing.assert_allclose(R1, R0, atol=1e-12)
+    np.testing.assert_allclose(q1[:3], q0[:3] + d, atol=1e-12)
+    Rz = so3.exp(np.array([0.0, 0.0, 0.3]))
+    R2, q2 = Problem.build(rec, model, rest_p=rec.contact_p @ Rz.T, rest_R=Rz @ rec.contact_R).equilibrium(0)
+    np.testing.assert_allclose(R2, Rz @ R0, atol=1e-12)
+    np.testing.assert_allclose(q2[:3], Rz @ q0[:3], atol=1e-12)
+    same = Problem.build(rec, model, rest_p=rec.contact_p, rest_R=rec.contact_R).equilibrium(0)
+    np.testing.assert_array_equal(same[0], R0)
+
+
+def test_smoothers_follow_the_rest_placements():
+    """Noise-free standing with every foothold 3 cm away: the whole estimate moves by as much."""
+    sc = Scenario.load("stand")
+    sc.duration = 0.5
+    rec = Simulator(sc, noise=False).run()
+    model = ModelConfig.from_recording(rec)
+    d = np.array([0.0, 0.03, -0.002])
+    base = run_batch(rec, model)
+    moved = run_batch(rec, model, rest_p=rec.contact_p + d)
+    np.testing.assert_allclose(moved.t, base.t + d, atol=1e-9)
+    # the same wrenches, their moments about the world origin shifted by d x F
+    shifted = base.wrench.copy()
+    shifted[..., 3:] += np.cross(d, base.wrench[..., :3])
+    np.testing.assert_allclose(moved.wrench, shifted, atol=1e-6 * np.abs(base.wrench).max())
+    lag = run_fixed_lag(rec, model, lag=0.1, rest_p=rec.contact_p + d)
+    np.testing.assert_allclose(lag.t, base.t + d, atol=1e-6)
+    with pytest.raises(ConfigError, match=r"rest_p must have shape \(101, 2, 3\)"):
+        run_batch(rec, model, rest_p=rec.contact_p[:, :1])
 
 
 def test_batch_solver_equals_gtsam_levenberg_marquardt(rec, model):

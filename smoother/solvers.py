@@ -1,0 +1,230 @@
+r"""Linear algebra of the smoothers' Gauss-Newton systems (numba).
+
+The normal equations of a chain of steps are block tridiagonal (each factor touches one step or
+two successive ones): their block Cholesky factorisation is a square-root information filter and
+its back substitution the RTS smoother.  This module holds that solver, the marginal and lag-one
+covariances, the log-determinant (the evidence's) and the fixed-lag window's incremental
+elimination.  The physics the systems are built from is :mod:`flexforce.factors.core`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from flexforce.factors.core import njit, trsv_lower_inplace, trsv_upper_t_inplace
+
+# ----------------------------------------------------------------------------------------------
+# Block-tridiagonal solver (the Gauss-Newton system of a chain)
+# ----------------------------------------------------------------------------------------------
+
+
+@njit
+def _trsm_lower(L, B):
+    """L^-1 B for lower-triangular L (d, d) and B (d, m)."""
+    X = B.copy()
+    for j in range(X.shape[1]):
+        trsv_lower_inplace(L, X[:, j])
+    return X
+
+
+@njit
+def _trsv_lower(L, b):
+    x = b.copy()
+    trsv_lower_inplace(L, x)
+    return x
+
+
+@njit
+def _trsv_upper_t(L, b):
+    """L^-T b for lower-triangular L."""
+    x = b.copy()
+    trsv_upper_t_inplace(L, x)
+    return x
+
+
+@njit
+def _trsm_upper_t(L, B):
+    """L^-T B for lower-triangular L (d, d) and B (d, m)."""
+    X = B.copy()
+    for j in range(X.shape[1]):
+        trsv_upper_t_inplace(L, X[:, j])
+    return X
+
+
+@njit
+def _block_cholesky(D, B):
+    """Block Cholesky ``H = L L^T`` of the block-tridiagonal ``H`` (diagonal blocks ``D``, upper
+    blocks ``B``): the diagonal factors ``Ld`` (N, d, d) and ``C_k = L_k+1,k`` (N-1, d, d)."""
+    n, d = D.shape[0], D.shape[1]
+    Ld = np.empty((n, d, d))
+    C = np.empty((max(n - 1, 0), d, d))
+    S = D[0].copy()
+    for k in range(n):
+        if k > 0:
+            S = D[k] - C[k - 1] @ C[k - 1].T
+        Ld[k] = np.linalg.cholesky(S)
+        if k < n - 1:
+            C[k] = _trsm_lower(Ld[k], B[k]).T.copy()
+    return Ld, C
+
+
+@njit
+def _marginals(Ld, C):
+    """Diagonal blocks ``P`` and lag-one blocks ``Pc`` of ``H^-1`` from its block Cholesky factor:
+    ``P_k = M_k^T (I + C_k^T P_k+1 C_k) M_k``, ``Pc_k = -M_k^T C_k^T P_k+1`` with ``M_k = L_kk^-1``
+    (block row ``k`` of ``L^T H^-1 = L^-1``)."""
+    n, d = Ld.shape[0], Ld.shape[1]
+    P = np.empty((n, d, d))
+    Pc = np.empty((max(n - 1, 0), d, d))
+    eye = np.eye(d)
+    for k in range(n - 1, -1, -1):
+        M = _trsm_lower(Ld[k], eye)
+        if k == n - 1:
+            P[k] = M.T @ M
+        else:
+            CP = C[k].T @ P[k + 1]
+            P[k] = M.T @ (eye + CP @ C[k]) @ M
+            Pc[k] = -(M.T @ CP)
+    return P, Pc
+
+
+@njit
+def block_tridiag_solve_multi(D, B, G, want_cov):
+    """Solve ``H X = G`` for ``H`` symmetric positive definite, block tridiagonal, with ``m``
+    right-hand sides ``G`` (N, d, m) -> ``X`` (N, d, m).
+
+    ``D`` (N, d, d) diagonal blocks, ``B`` (N-1, d, d) upper blocks ``H[k, k+1]``.  Block
+    Cholesky ``H = L L^T`` (``L`` block lower bidiagonal: ``L_kk``, ``C_k = L_k+1,k``), i.e. a
+    square-root information filter, then back substitution (its RTS smoother); one factorisation
+    serves every column (the batch smoother's arrow system: the state's right-hand side and the
+    border columns of the global effect parameters).  With ``want_cov`` also returns the marginal
+    covariances ``P`` (N, d, d) and the lag-one cross blocks ``Pc`` (N-1, d, d) of ``H^-1`` (see
+    :func:`_marginals`).  Raises ``np.linalg.LinAlgError`` when ``H`` is not positive definite.
+    """
+    n, d, m = G.shape[0], G.shape[1], G.shape[2]
+    Ld, C = _block_cholesky(D, B)
+    Y = np.empty((n, d, m))
+    for k in range(n):
+        rhs = G[k].copy()
+        if k > 0:
+            rhs -= C[k - 1] @ Y[k - 1]
+        Y[k] = _trsm_lower(Ld[k], rhs)
+    X = np.empty((n, d, m))
+    X[n - 1] = _trsm_upper_t(Ld[n - 1], Y[n - 1])
+    for k in range(n - 2, -1, -1):
+        X[k] = _trsm_upper_t(Ld[k], Y[k] - C[k].T @ X[k + 1])
+    if want_cov:
+        P, Pc = _marginals(Ld, C)
+        return X, P, Pc
+    return X, np.empty((0, d, d)), np.empty((0, d, d))
+
+
+@njit
+def block_tridiag_solve(D, B, g, want_cov):
+    """:func:`block_tridiag_solve_multi` with one right-hand side ``g`` (N, d) -> ``(x, P)``."""
+    n, d = g.shape[0], g.shape[1]
+    X, P, _ = block_tridiag_solve_multi(D, B, g.copy().reshape((n, d, 1)), want_cov)
+    return X.reshape((n, d)), P
+
+
+@njit
+def block_tridiag_covariances(D, B):
+    """Marginal covariances of ``H^-1`` for ``H`` as in :func:`block_tridiag_solve_multi`: the
+    diagonal blocks ``P`` (N, d, d) and the lag-one cross blocks ``Pc`` (N-1, d, d),
+    ``Pc[k] = (H^-1)[k, k+1]`` (the smoother's lag-one covariance)."""
+    Ld, C = _block_cholesky(D, B)
+    return _marginals(Ld, C)
+
+
+@njit
+def block_tridiag_logdet(D, B):
+    """``log det H`` for ``H`` symmetric positive definite, block tridiagonal (as
+    :func:`block_tridiag_solve_multi`): twice the sum of the logs of the block Cholesky pivots.
+    Raises ``np.linalg.LinAlgError`` when ``H`` is not positive definite."""
+    Ld, _ = _block_cholesky(D, B)
+    out = 0.0
+    for k in range(Ld.shape[0]):
+        for i in range(Ld.shape[1]):
+            out += 2.0 * np.log(Ld[k, i, i])
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Fixed-lag window (smoother/fixed_lag.py): incremental block elimination, oldest first
+# ----------------------------------------------------------------------------------------------
+
+
+@njit
+def window_eliminate(Sp0, rp0, first_partial, U, gU, Fw, gF, B, Cprev, yprev, has_prev, Ld, C, y, Sp, rp):
+    """Forward (oldest-first) block Cholesky of the newest steps of a chain.
+
+    Steps ``0..m-1`` of the arrays are consecutive steps of the window.  ``U[i]``, ``gU[i]``: the
+    information of step i's own factors and of the link from step i-1; ``Fw[i]``, ``gF[i]`` that
+    of the link to step i+1 on step i; ``B[i]`` the cross block ``H[i, i+1]``.  With
+    ``first_partial`` the first step's eliminated-so-far information is ``(Sp0, rp0)`` (a frozen
+    step whose predecessors are already eliminated); otherwise it is ``U[0] - Cprev Cprev^T``
+    (``has_prev``) or ``U[0]``.  Writes ``Ld[i]`` (Cholesky factor), ``C[i] = (Ld[i]^-1 B[i])^T``,
+    ``y[i]`` and the partials ``Sp[i], rp[i]`` (before the forward link).  Raises LinAlgError if
+    not positive definite.
+    """
+    m = U.shape[0]
+    for i in range(m):
+        if i == 0:
+            if first_partial:
+                Sp[0] = Sp0
+                rp[0] = rp0
+            elif has_prev:
+                Sp[0] = U[0] - Cprev @ Cprev.T
+                rp[0] = gU[0] - Cprev @ yprev
+            else:
+                Sp[0] = U[0]
+                rp[0] = gU[0]
+        else:
+            Sp[i] = U[i] - C[i - 1] @ C[i - 1].T
+            rp[i] = gU[i] - C[i - 1] @ y[i - 1]
+        S = Sp[i] + Fw[i]
+        Ld[i] = np.linalg.cholesky(S)
+        if i < m - 1:
+            C[i] = _trsm_lower(Ld[i], B[i]).T.copy()
+        y[i] = _trsv_lower(Ld[i], rp[i] + gF[i])
+
+
+@njit
+def window_back_substitute(Ld, C, y, order, x):
+    """Back substitution over ring-buffer positions ``order`` (newest first): ``x[p]`` for each
+    (``x_k = Ld_k^-T (y_k - C_k^T x_k+1)``), without temporaries."""
+    d = y.shape[1]
+    b = np.empty(d)
+    for kk in range(order.shape[0]):
+        p = order[kk]
+        for i in range(d):
+            b[i] = y[p, i]
+        if kk > 0:
+            pn = order[kk - 1]
+            for j in range(d):
+                xj = x[pn, j]
+                if xj != 0.0:
+                    for i in range(d):
+                        b[i] -= C[p, j, i] * xj
+        for i in range(d - 1, -1, -1):
+            acc = b[i]
+            for m in range(i + 1, d):
+                acc -= Ld[p, m, i] * x[p, m]
+            x[p, i] = acc / Ld[p, i, i]
+
+
+@njit
+def window_marginals(Ld, C, order, P):
+    """Marginal covariances ``P[p]`` of the window at ring positions ``order`` (newest first):
+    ``P_k = M_k^T (I + C_k^T P_k+1 C_k) M_k``, ``M_k = Ld_k^-1`` (as :func:`block_tridiag_solve`)."""
+    d = Ld.shape[1]
+    eye = np.eye(d)
+    Pn = np.empty((d, d))
+    for k in range(order.shape[0]):
+        p = order[k]
+        M = _trsm_lower(Ld[p], eye)
+        if k == 0:
+            Pn = M.T @ M
+        else:
+            Pn = M.T @ (eye + C[p].T @ Pn @ C[p]) @ M
+        P[p] = Pn
