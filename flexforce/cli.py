@@ -74,11 +74,19 @@ def open_recording(path: Path, robot: str | None = None, contacts: str = "ft", q
     return import_bag(path, robot, contacts=contacts, progress=Progress(f"import {path.name}", enabled=not quiet and None))
 
 
+def _window(rec, args):
+    """The part of ``rec`` chosen with --start/--end (the whole recording without them)."""
+    start, end = getattr(args, "start", None), getattr(args, "end", None)
+    if start is None and end is None:
+        return rec
+    return rec.window(start, end)
+
+
 def _cmd_run(args) -> int:
     from flexforce.estimators import run_estimator
     from flexforce.factors.model import ModelConfig
 
-    rec = open_recording(args.recording, args.robot, args.contacts, args.quiet)
+    rec = _window(open_recording(args.recording, args.robot, args.contacts, args.quiet), args)
     model = ModelConfig.from_recording(rec, robot=args.robot, use_ft=args.ft)
     options = {}
     if args.lag is not None:
@@ -172,7 +180,7 @@ def _cmd_compare(args) -> int:
     out = Path(args.output)
     comps = []
     for label, src, seed in sources:
-        rec = _load_or_simulate(src, seed, args.quiet, args.robot, args.contacts)
+        rec = _window(_load_or_simulate(src, seed, args.quiet, args.robot, args.contacts), args)
         target = out if len(sources) == 1 else out / label
         comp = _compare_one(rec, args, target)
         comps.append(comp)
@@ -197,6 +205,7 @@ def _cmd_demo(args) -> int:
     args.robot = None
     args.ft = False
     args.contacts = "ft"
+    args.start = args.end = None
     args.estimators = "ekf,fixed-lag,batch"
     print(f"flexforce demo: simulate '{args.recordings[0]}' (Romeo, pushed on the torso then the hand), "
           f"run the EKF, the fixed-lag and the batch smoothers, compare them against ground truth")
@@ -208,7 +217,7 @@ def _cmd_diagnose(args) -> int:
     from flexforce.compare.diagnose_report import write_diagnosis
     from flexforce.factors.model import ModelConfig
 
-    rec = _load_or_simulate(str(args.recording), args.seed, args.quiet, args.robot, args.contacts)
+    rec = _window(_load_or_simulate(str(args.recording), args.seed, args.quiet, args.robot, args.contacts), args)
     model = ModelConfig.from_recording(rec, robot=args.robot, use_ft=args.ft)
     plugins = [eff for path in args.plugin for eff in load_plugin(path)]
     if args.candidates:
@@ -245,6 +254,10 @@ def _add_input_options(p: argparse.ArgumentParser) -> None:
                                    "raw robot bag)")
     p.add_argument("--contacts", choices=("ft", "fixed"), default="ft",
                    help="raw bags: contacts from the F/T normal force (Schmitt trigger) or the config's fixed set")
+    p.add_argument("--start", type=float, metavar="S",
+                   help="keep the recording from S seconds after its first sample (default: its start)")
+    p.add_argument("--end", type=float, metavar="S",
+                   help="keep the recording up to S seconds after its first sample (default: its end)")
 
 
 def build_parser() -> argparse.ArgumentParser:
