@@ -149,20 +149,34 @@ def _compare_one(rec, args, out: Path):
 
 
 def _print_table(comp) -> None:
-    print(f"{'estimator':10s} {'force[N]':>9s} {'Fz[N]':>7s} {'CoP[mm]':>8s} {'rot[mrad]':>9s} {'hand[mm]':>8s} "
-          f"{'NEES':>7s} {'step[us]':>9s}")
-    for key, m in comp.metrics.items():
+    def f(x, s=1.0):
+        return f"{x * s:.3g}" if x is not None else "-"
+
+    rows = [(k, m, False) for k, m in comp.metrics.items()] + [(k, m, True) for k, m in comp.baselines.items()]
+    contacts = list(dict.fromkeys(c for _, m, _ in rows for c in m.per_contact))
+    short = {c: c.replace("_foot", "").replace("foot_", "")[:6] for c in contacts}
+    head = (f"{'estimator':13s} {'force[N]':>9s} {'Fz[N]':>7s} {'CoP[mm]':>8s} {'rot[mrad]':>9s} {'hand[mm]':>8s} "
+            f"{'NEES':>7s} {'step[us]':>9s}")
+    head += "".join(f" {'Fz ' + short[c] + '[N]':>12s}" for c in contacts)
+    print(head)
+    for key, m, baseline in rows:
         r = m.rmse
-
-        def f(x, s=1.0):
-            return f"{x * s:.3g}" if x is not None else "-"
-
         med = (m.time_per_step.get("median") or m.time_per_step.get("amortized")) if m.time_per_step else None
-        print(f"{key:10s} {f(r.get('force_N')):>9s} {f(r.get('vertical_force_N')):>7s} {f(r.get('cop_m'), 1e3):>8s} "
-              f"{f(r.get('rotation_rad'), 1e3):>9s} "
-              f"{f(r.get('hand_m'), 1e3):>8s} {f(m.nees):>7s} {f(med, 1e6):>9s}")
+        line = (f"{key + (' *' if baseline else ''):13s} {f(r.get('force_N')):>9s} {f(r.get('vertical_force_N')):>7s} "
+                f"{f(r.get('cop_m'), 1e3):>8s} {f(r.get('rotation_rad'), 1e3):>9s} "
+                f"{f(r.get('hand_m'), 1e3):>8s} {f(m.nees):>7s} {f(med, 1e6):>9s}")
+        line += "".join(f" {f(m.per_contact.get(c, {}).get('vertical_force_N')):>12s}" for c in contacts)
+        print(line)
+    refs = sorted({v for _, m, _ in rows for v in m.references.values()})
+    notes = []
+    if comp.baselines:
+        notes.append("* baseline without estimation (rigid robot, static CoM split)")
+    if refs:
+        notes.append("errors against " + ", ".join(refs))
+    if notes:
+        print("; ".join(notes))
     for key, msg in comp.failures.items():
-        print(f"{key:10s} failed: {msg}")
+        print(f"{key:13s} failed: {msg}")
 
 
 def _cmd_compare(args) -> int:
