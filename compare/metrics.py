@@ -308,7 +308,10 @@ def base_tilt_error(est, rec, link: str) -> np.ndarray:
 
 
 def mocap_label(rec) -> str:
-    """``Vicon`` when the recording's motion-capture topics say so, else ``motion capture``."""
+    """The motion-capture system's name: ``meta["mocap_system"]`` when the importer sets it, ``Vicon``
+    when a topic name says so, else ``motion capture``."""
+    if rec.meta.get("mocap_system"):
+        return str(rec.meta["mocap_system"])
     topics = " ".join((rec.meta.get("source") or {}).get("topics", {}) if isinstance(rec.meta.get("source"), dict)
                       else []).lower()
     return "Vicon" if "vicon" in topics else "motion capture"
