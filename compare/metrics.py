@@ -62,6 +62,19 @@ class Metrics:
     peak_memory_mb: float | None = None
     reference: str = "truth"
     """``truth`` (simulated) or ``sensors`` (real logs: F/T, motion capture)."""
+    references: dict[str, str] = field(default_factory=dict)
+    """Error key -> what it is measured against: ``truth``, ``reference: F/T``, ``reference: Vicon``
+    (a reference sensor is not ground truth: its own noise and offsets are in the error)."""
+    kind: str = "estimator"
+    """``estimator``, or ``baseline`` for a row without estimation (leg odometry): no timing, no NEES."""
+    per_contact: dict[str, dict[str, float | None]] = field(default_factory=dict)
+    """Contact name -> RMSE per key, in the contact frame about its origin (like an F/T sensor):
+    ``vertical_force_N`` (|F_z error|), ``force_N`` (3-D force error), ``moment_Nm`` (3-D torque
+    error), ``cop_m`` (the foot's own CoP, while the reference and the estimate both carry more
+    than :data:`COP_MIN_LOAD` of the weight).  A key is absent when the reference lacks the
+    components it needs."""
+    contact_errors: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    """Contact name -> key -> (N,) error series behind :attr:`per_contact` (NaN where undefined)."""
     extra: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
@@ -83,8 +96,65 @@ class Metrics:
             "nis": clean(self.nis),
             "nis_bounds": list(self.nis_bounds) if self.nis_bounds else None,
             "reference": self.reference,
+            "references": dict(self.references),
+            "kind": self.kind,
+            "per_contact": {c: {k: clean(v) for k, v in d.items()} for c, d in self.per_contact.items()},
             **({"extra": self.extra} if self.extra else {}),
         }
+
+
+COP_MIN_LOAD = 0.05
+"""Fraction of the weight a foot must carry (estimate and reference) for its CoP to be compared:
+below it the CoP, a torque over a small force, is dominated by the sensor's torque noise."""
+
+
+def contact_frame_wrench(R: np.ndarray, t: np.ndarray, wrench: np.ndarray, rec) -> np.ndarray:
+    """(N, C, 6) per-contact wrench in the contact frame about its origin, as an F/T sensor reads it.
+
+    Args:
+        R, t: (N, 3, 3), (N, 3) flexibility placing the local frame (and its contacts) in the world.
+        wrench: (N, C, 6) world wrench (F, T about the world origin).
+    Inactive contacts read zero.
+    """
+    Rc = np.einsum("nij,ncjk->ncik", R, rec.contact_R)  # world_R_contact
+    p = np.einsum("nij,ncj->nci", R, rec.contact_p) + t[:, None, :]
+    F = wrench[..., :3]
+    T = wrench[..., 3:] - np.cross(p, F)
+    out = np.concatenate([np.einsum("ncji,ncj->nci", Rc, F), np.einsum("ncji,ncj->nci", Rc, T)], axis=2)
+    out[~rec.contact_active] = 0.0
+    return out
+
+
+def _per_contact(m: "Metrics", est_local: np.ndarray, ref: np.ndarray, rec, keep: np.ndarray) -> None:
+    """Per-contact errors of ``est_local`` against ``ref`` (both (N, C, 6), contact frame)."""
+    weight = rec.mass * rec.gravity
+    diff = est_local - ref
+    for i, name in enumerate(rec.contact_names):
+        series = {}
+        fz = np.abs(diff[:, i, 2])
+        if np.isfinite(fz[keep]).any():
+            series["vertical_force_N"] = fz
+        f3 = np.linalg.norm(diff[:, i, :3], axis=1)
+        if np.isfinite(f3[keep]).any():
+            series["force_N"] = f3
+        t3 = np.linalg.norm(diff[:, i, 3:], axis=1)
+        if np.isfinite(t3[keep]).any():
+            series["moment_Nm"] = t3
+        with np.errstate(invalid="ignore", divide="ignore"):
+            loaded = (ref[:, i, 2] > COP_MIN_LOAD * weight) & (est_local[:, i, 2] > COP_MIN_LOAD * weight)
+            # sole CoP of a wrench about the sole origin: x = -T_y / F_z, y = T_x / F_z
+            cop_ref = np.stack([-ref[:, i, 4], ref[:, i, 3]], axis=1) / ref[:, i, 2:3]
+            cop_est = np.stack([-est_local[:, i, 4], est_local[:, i, 3]], axis=1) / est_local[:, i, 2:3]
+            cop = np.linalg.norm(cop_est - cop_ref, axis=1)
+        cop[~loaded] = np.nan
+        if np.isfinite(cop[keep]).any():
+            series["cop_m"] = cop
+        m.contact_errors[name] = series
+        m.per_contact[name] = {}
+        for key, e in series.items():
+            s = e.copy()
+            s[~keep] = np.nan
+            m.per_contact[name][key] = _summ(s)[0]
 
 
 def _summ(err: np.ndarray) -> tuple[float | None, float | None]:
@@ -199,6 +269,9 @@ def _against_truth(m: Metrics, est, rec, keep):
         s[~keep] = np.nan
         m.errors[key] = series
         m.rmse[key], m.max[key] = _summ(s)
+    m.references = {k: "truth" for k in err}
+    _per_contact(m, contact_frame_wrench(est.R, est.t, est.wrench, rec),
+                 contact_frame_wrench(tr.R, tr.t, tr.wrench, rec), rec, keep)
     ns = nees_series(est, tr)
     if ns is not None:
         m.nees_series = ns
@@ -234,6 +307,16 @@ def base_tilt_error(est, rec, link: str) -> np.ndarray:
     return out
 
 
+def mocap_label(rec) -> str:
+    """The motion-capture system's name: ``meta["mocap_system"]`` when the importer sets it, ``Vicon``
+    when a topic name says so, else ``motion capture``."""
+    if rec.meta.get("mocap_system"):
+        return str(rec.meta["mocap_system"])
+    topics = " ".join((rec.meta.get("source") or {}).get("topics", {}) if isinstance(rec.meta.get("source"), dict)
+                      else []).lower()
+    return "Vicon" if "vicon" in topics else "motion capture"
+
+
 def _against_sensors(m: Metrics, est, rec, keep):
     """Real logs: F/T wrenches (NaN components skipped), per-contact vertical force, mocap."""
     m.reference = "sensors"
@@ -248,21 +331,9 @@ def _against_sensors(m: Metrics, est, rec, keep):
         s[~keep] = np.nan
         m.rmse["rotation_rad"], m.max["rotation_rad"] = _summ(s)
         m.extra["rotation_reference"] = f"tilt of {base} against motion capture"
+        m.references["rotation_rad"] = f"reference: {mocap_label(rec)}"
     if rec.ft is not None:
-        # Estimated per-contact wrench in the contact frame about its origin, like the sensor.
-        n, c = rec.n, len(rec.contact_names)
-        local = np.full((n, c, 6), np.nan)
-        for k in range(n):
-            for i in range(c):
-                if not rec.contact_active[k, i]:
-                    local[k, i] = 0.0
-                    continue
-                Rc = est.R[k] @ rec.contact_R[k, i]
-                p = est.R[k] @ rec.contact_p[k, i] + est.t[k]
-                F = est.wrench[k, i, :3]
-                T = est.wrench[k, i, 3:] - np.cross(p, F)
-                local[k, i, :3] = Rc.T @ F
-                local[k, i, 3:] = Rc.T @ T
+        local = contact_frame_wrench(est.R, est.t, est.wrench, rec)
         diff = local - rec.ft
         fz = np.abs(diff[:, :, 2])
         fz[~keep] = np.nan
@@ -276,3 +347,6 @@ def _against_sensors(m: Metrics, est, rec, keep):
             norm[~np.isfinite(ff).any(axis=2)] = np.nan
             norm[~keep] = np.nan
             m.rmse["contact_force_N"], m.max["contact_force_N"] = _summ(norm.ravel())
+            m.references["contact_force_N"] = "reference: F/T"
+        m.references["vertical_force_N"] = "reference: F/T"
+        _per_contact(m, local, rec.ft, rec, keep)

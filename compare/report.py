@@ -21,7 +21,7 @@ import numpy as np  # noqa: E402
 from flexforce.compare.metrics import RMSE_KEYS  # noqa: E402
 from flexforce.factors import so3  # noqa: E402
 
-COLORS = {"ekf": "tab:red", "fixed_lag": "tab:blue", "batch": "tab:green"}
+COLORS = {"ekf": "tab:red", "fixed_lag": "tab:blue", "batch": "tab:green", "leg_odometry": "tab:gray"}
 LABELS = {
     "force_N": "force [N]", "moment_Nm": "moment [N m]", "cop_m": "CoP [m]", "rotation_rad": "rotation [rad]",
     "translation_m": "translation [m]", "hand_m": "hand [m]", "angular_velocity_rad_s": "ang. vel. [rad/s]",
@@ -34,17 +34,95 @@ def _color(key: str) -> str:
     return COLORS.get(key, "tab:purple")
 
 
+def _rows(comp) -> dict:
+    """Estimates to draw: the estimators', then the baselines' (leg odometry)."""
+    return {**comp.estimates, **getattr(comp, "baseline_estimates", {})}
+
+
+def _row_label(key: str, comp=None) -> str:
+    if comp is not None and key in getattr(comp, "baselines", {}):
+        return f"{key} (baseline)"
+    return key
+
+
+def _reference_label(rec) -> str:
+    """What the reference curves are: ``truth`` on simulated data, else the sensor's name."""
+    return "truth" if rec.truth is not None else "reference: F/T"
+
+
+ROBUST_PERCENTILES = (0.5, 99.5)
+"""Percentiles of the plotted values that set the axis limits: one spike (a sensor glitch, an
+estimator's first step) no longer flattens every curve."""
+ROBUST_MARGIN = 0.25
+"""Margin added on both sides, as a fraction of the percentile range."""
+
+
+def robust_limits(ax, values, percentiles=ROBUST_PERCENTILES, margin=ROBUST_MARGIN, log: bool = False) -> int:
+    """Set the y limits of ``ax`` from robust percentiles of ``values`` (arrays, NaN ignored).
+
+    Returns the number of points left outside, and says so in the panel when there are any.
+    """
+    v = np.concatenate([np.ravel(np.asarray(x, dtype=float)) for x in values]) if values else np.zeros(0)
+    v = v[np.isfinite(v)]
+    if log:
+        v = np.log10(v[v > 0])
+    if v.size == 0:
+        return 0
+    lo, hi = np.percentile(v, percentiles)
+    span = hi - lo
+    if span <= 0:
+        span = max(abs(hi), 1.0) * 0.1
+    lo, hi = lo - margin * span, hi + margin * span
+    clipped = int(np.sum((v < lo) | (v > hi)))
+    if clipped:
+        ax.set_ylim(10**lo, 10**hi) if log else ax.set_ylim(lo, hi)
+        ax.text(0.01, 0.97, f"{clipped} point(s) beyond the axis (limits: {percentiles[0]}–{percentiles[1]} "
+                f"percentile ± {int(100 * margin)}%)", transform=ax.transAxes, ha="left", va="top", fontsize=7,
+                color="0.3")
+    return clipped
+
+
+def intervals(mask: np.ndarray, time: np.ndarray) -> list[tuple[float, float]]:
+    """(start, end) seconds of the runs where ``mask`` is true (end: the run's last sample)."""
+    m = np.asarray(mask, dtype=bool)
+    if m.size == 0:
+        return []
+    edges = np.flatnonzero(np.diff(m.astype(np.int8)))
+    starts = [0] if m[0] else []
+    ends = []
+    for e in edges:
+        if m[e + 1]:
+            starts.append(e + 1)
+        else:
+            ends.append(e)
+    if m[-1]:
+        ends.append(m.size - 1)
+    return [(float(time[a]), float(time[b])) for a, b in zip(starts, ends)]
+
+
+def _shade_contact(ax, rec, i):
+    for a, b in intervals(rec.contact_active[:, i], rec.time):
+        ax.axvspan(a, b, color="tab:olive", alpha=0.12, lw=0)
+
+
 # ----------------------------------------------------------------------------------------------
 # Plot functions: each draws on the Axes it is given
 # ----------------------------------------------------------------------------------------------
 
 
-def plot_series(ax, time, estimates: dict, value, std=None, truth=None, label: str = "", scale: float = 1.0):
-    """One quantity over time: truth (black) and each estimate with a +-2 sigma band."""
+def plot_series(ax, time, estimates: dict, value, std=None, truth=None, label: str = "", scale: float = 1.0,
+                truth_label: str = "truth"):
+    """One quantity over time: the truth or reference (black) and each estimate with a +-2 sigma band.
+
+    The y limits come from :func:`robust_limits`, so a single spike does not flatten the rest.
+    """
+    shown = []
     if truth is not None:
-        ax.plot(time, truth * scale, color="k", lw=1.2, label="truth")
+        ax.plot(time, truth * scale, color="k", lw=1.2, label=truth_label)
+        shown.append(truth * scale)
     for key, est in estimates.items():
         y = value(est) * scale
+        shown.append(y)
         ax.plot(est.time, y, color=_color(key), lw=0.9, label=key)
         if std is not None:
             s = std(est)
@@ -52,6 +130,7 @@ def plot_series(ax, time, estimates: dict, value, std=None, truth=None, label: s
                 ax.fill_between(est.time, y - 2 * s * scale, y + 2 * s * scale, color=_color(key), alpha=0.15, lw=0)
     ax.set_ylabel(label)
     ax.grid(alpha=0.3)
+    robust_limits(ax, shown)
 
 
 def _wrench_std(est, i):
@@ -76,19 +155,20 @@ def _rotvec(R):
 
 
 def figure_forces(comp, rec):
-    est = comp.estimates
+    est = _rows(comp)
     t = rec.time
     tr = rec.truth
     fig, axes = plt.subplots(3, 1, figsize=(10, 8), sharex=True)
+    ft_sum = None
+    if tr is None and rec.ft is not None and np.isfinite(rec.ft[:, :, 2]).any():
+        ft_sum = np.nansum(rec.ft[:, :, 2], axis=1)
     plot_series(axes[0], t, est, lambda e: e.total_wrench[:, 2], lambda e: _wrench_std(e, 2),
-                None if tr is None else tr.total_wrench[:, 2], "total F_z [N]")
+                tr.total_wrench[:, 2] if tr is not None else ft_sum, "total F_z [N]",
+                truth_label="truth" if tr is not None else "reference: F/T (sum)")
     plot_series(axes[1], t, est, lambda e: e.cop[:, 0], lambda e: _cop_std(e, 0),
                 None if tr is None else tr.cop[:, 0], "CoP x [cm]", scale=100)
     plot_series(axes[2], t, est, lambda e: e.cop[:, 1], lambda e: _cop_std(e, 1),
                 None if tr is None else tr.cop[:, 1], "CoP y [cm]", scale=100)
-    if tr is None and rec.ft is not None:
-        fz = np.nansum(rec.ft[:, :, 2], axis=1)
-        axes[0].plot(t, fz, color="k", lw=1.0, label="F/T sum")
     axes[0].legend(loc="upper right", fontsize=8, ncol=4)
     axes[-1].set_xlabel("time [s]")
     fig.suptitle("Contact force and centre of pressure (bands: ±2σ)")
@@ -113,21 +193,150 @@ def figure_flexibility(comp, rec):
 
 
 def figure_errors(comp, rec):
-    keys = [k for k in ("force_N", "cop_m", "rotation_rad", "hand_m")
-            if any(np.isfinite(m.errors.get(k, np.array([np.nan]))).any() for m in comp.metrics.values())]
+    rows = {**comp.metrics, **getattr(comp, "baselines", {})}
+    keys = [k for k in ("force_N", "vertical_force_N", "cop_m", "rotation_rad", "hand_m")
+            if any(np.isfinite(m.errors.get(k, np.array([np.nan]))).any() for m in rows.values())]
+    if rec.truth is not None and "force_N" in keys and "vertical_force_N" in keys:
+        keys.remove("vertical_force_N")
     if not keys:
         return None
     fig, axes = plt.subplots(len(keys), 1, figsize=(10, 2.2 * len(keys) + 1), sharex=True, squeeze=False)
     for ax, key in zip(axes[:, 0], keys):
-        for name, m in comp.metrics.items():
+        shown = []
+        ref = None
+        for name, m in rows.items():
             e = m.errors.get(key)
             if e is not None:
-                ax.semilogy(rec.time, np.maximum(e, 1e-12), color=_color(name), lw=0.8, label=name)
-        ax.set_ylabel(LABELS[key])
+                ax.semilogy(rec.time, np.maximum(e, 1e-12), color=_color(name), lw=0.8, label=_row_label(name, comp))
+                shown.append(e)
+                ref = ref or m.references.get(key)
+        ax.set_ylabel(LABELS[key] + (f"\n{ref}" if ref and ref != "truth" else ""), fontsize=8)
         ax.grid(alpha=0.3, which="both")
-    axes[0, 0].legend(loc="upper right", fontsize=8, ncol=3)
+        robust_limits(ax, shown, log=True)
+    axes[0, 0].legend(loc="upper right", fontsize=8, ncol=4)
     axes[-1, 0].set_xlabel("time [s]")
-    fig.suptitle("Estimation errors against ground truth")
+    fig.suptitle("Estimation errors against ground truth" if rec.truth is not None else
+                 "Estimation errors against reference sensors (references, not ground truth)")
+    return fig
+
+
+def _reference_contact_wrench(rec):
+    """(N, C, 6) reference per-contact wrench in the contact frame: the truth's, else the F/T's."""
+    from flexforce.compare.metrics import contact_frame_wrench
+
+    if rec.truth is not None:
+        return contact_frame_wrench(rec.truth.R, rec.truth.t, rec.truth.wrench, rec)
+    return rec.ft
+
+
+def figure_foot_forces(comp, rec):
+    """One panel per contact: each row's F_z (contact frame) against the reference, contact shaded."""
+    from flexforce.compare.metrics import contact_frame_wrench
+
+    ref = _reference_contact_wrench(rec)
+    names = rec.contact_names
+    if not names:
+        return None
+    fig, axes = plt.subplots(len(names), 1, figsize=(10, 2.4 * len(names) + 1), sharex=True, squeeze=False)
+    rows = _rows(comp)
+    local = {key: contact_frame_wrench(e.R, e.t, e.wrench, rec) for key, e in rows.items()}
+    for i, (ax, name) in enumerate(zip(axes[:, 0], names)):
+        _shade_contact(ax, rec, i)
+        shown = []
+        if ref is not None and np.isfinite(ref[:, i, 2]).any():
+            ax.plot(rec.time, ref[:, i, 2], color="k", lw=1.1, label=_reference_label(rec))
+            shown.append(ref[:, i, 2])
+        for key, w in local.items():
+            ax.plot(rec.time, w[:, i, 2], color=_color(key), lw=0.8, label=_row_label(key, comp))
+            shown.append(w[:, i, 2])
+        ax.set_ylabel(f"{name}\nF_z [N]", fontsize=8)
+        ax.grid(alpha=0.3)
+        robust_limits(ax, shown)
+    axes[0, 0].legend(loc="upper right", fontsize=7, ncol=5)
+    axes[-1, 0].set_xlabel("time [s]")
+    fig.suptitle("Per-contact normal force in the sole frame (shaded: contact active)")
+    return fig
+
+
+def figure_foot_wrench(comp, rec):
+    """Torque and CoP of each contact against a 6-D reference; None when no contact has one."""
+    from flexforce.compare.metrics import COP_MIN_LOAD, contact_frame_wrench
+
+    ref = _reference_contact_wrench(rec)
+    if ref is None:
+        return None
+    idx = [i for i in range(len(rec.contact_names)) if np.isfinite(ref[:, i, 3:5]).any()]
+    if not idx:
+        return None
+    rows = _rows(comp)
+    local = {key: contact_frame_wrench(e.R, e.t, e.wrench, rec) for key, e in rows.items()}
+    min_load = COP_MIN_LOAD * rec.mass * rec.gravity
+    fig, axes = plt.subplots(len(idx), 4, figsize=(14, 2.6 * len(idx) + 1), sharex=True, squeeze=False)
+
+    def cop(w, i):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out = np.stack([-w[:, i, 4], w[:, i, 3]], axis=1) / w[:, i, 2:3] * 1000
+        out[~(w[:, i, 2] > min_load)] = np.nan
+        return out
+
+    for r, i in enumerate(idx):
+        name = rec.contact_names[i]
+        series = [("T_x [N m]", lambda w: w[:, i, 3]), ("T_y [N m]", lambda w: w[:, i, 4]),
+                  ("CoP x [mm]", lambda w: cop(w, i)[:, 0]), ("CoP y [mm]", lambda w: cop(w, i)[:, 1])]
+        for c, (label, f) in enumerate(series):
+            ax = axes[r, c]
+            _shade_contact(ax, rec, i)
+            y = f(ref)
+            ax.plot(rec.time, y, color="k", lw=1.0, label=_reference_label(rec))
+            shown = [y]
+            for key, w in local.items():
+                yy = f(w)
+                ax.plot(rec.time, yy, color=_color(key), lw=0.7, label=_row_label(key, comp))
+                shown.append(yy)
+            ax.set_ylabel(f"{name}\n{label}", fontsize=8)
+            ax.grid(alpha=0.3)
+            robust_limits(ax, shown)
+    axes[0, 0].legend(loc="upper right", fontsize=6, ncol=2)
+    for ax in axes[-1]:
+        ax.set_xlabel("time [s]")
+    fig.suptitle(f"Sole torque and CoP (sole frame; CoP where the foot carries > {int(COP_MIN_LOAD * 100)}% "
+                 f"of the weight)")
+    return fig
+
+
+def figure_contacts(comp, rec):
+    """Contact timeline: which contact is active when, and the leg-odometry anchor's switches."""
+    names = rec.contact_names
+    if not names:
+        return None
+    anchor = rec.meta.get("anchor") if isinstance(rec.meta.get("anchor"), dict) else {}
+    switches = [s for s in anchor.get("switches", []) or [] if isinstance(s, dict) and "t" in s]
+    fig, ax = plt.subplots(1, 1, figsize=(10, 0.6 * len(names) + 1.6))
+    for i, name in enumerate(names):
+        spans = [(a, max(b - a, rec.dt)) for a, b in intervals(rec.contact_active[:, i], rec.time)]
+        ax.broken_barh(spans, (i - 0.35, 0.7), color="tab:olive", alpha=0.8)
+    if anchor.get("first") in names or switches:
+        # the anchor (stance foot of the local frame) as a thin dark bar inside its contact's row
+        t_end = float(rec.time[-1])
+        current = anchor.get("first")
+        t_from = 0.0
+        for sw in switches + [{"t": t_end, "to": None}]:
+            if current in names:
+                j = names.index(current)
+                ax.broken_barh([(t_from, max(sw["t"] - t_from, rec.dt))], (j - 0.08, 0.16), color="k")
+            current, t_from = sw.get("to"), sw["t"]
+        for sw in switches:
+            ax.axvline(sw["t"], color="tab:red", lw=0.6, alpha=0.6)
+    ax.set_yticks(range(len(names)))
+    ax.set_yticklabels(names, fontsize=8)
+    ax.set_ylim(-0.6, len(names) - 0.4)
+    ax.set_xlim(float(rec.time[0]), float(rec.time[-1]))
+    ax.set_xlabel("time [s]")
+    ax.grid(alpha=0.3, axis="x")
+    title = "Contacts in force (bars)"
+    if switches or anchor.get("first"):
+        title += f"; black: leg-odometry anchor, red lines: its {len(switches)} switch(es)"
+    ax.set_title(title, fontsize=10)
     return fig
 
 
@@ -184,7 +393,10 @@ def figure_consistency(comp, rec):
 
 
 FIGURES = {
+    "contacts.png": figure_contacts,
     "forces.png": figure_forces,
+    "foot_forces.png": figure_foot_forces,
+    "foot_wrench.png": figure_foot_wrench,
     "flexibility.png": figure_flexibility,
     "errors.png": figure_errors,
     "residuals.png": figure_residuals,
@@ -203,29 +415,91 @@ def _fmt(x, scale=1.0, digits=3):
     return f"{x * scale:.{digits}g}"
 
 
+TABLE_COLUMNS = (("force_N", "force RMSE [N]", 1), ("vertical_force_N", "F_z RMSE [N]", 1),
+                 ("moment_Nm", "moment RMSE [N m]", 1), ("cop_m", "CoP RMSE [mm]", 1e3),
+                 ("rotation_rad", "rotation RMSE [mrad]", 1e3), ("translation_m", "translation RMSE [mm]", 1e3),
+                 ("hand_m", "hand RMSE [mm]", 1e3))
+PER_CONTACT_COLUMNS = (("vertical_force_N", "F_z RMSE [N]", 1), ("force_N", "3-D force RMSE [N]", 1),
+                       ("moment_Nm", "torque RMSE [N m]", 1), ("cop_m", "CoP RMSE [mm]", 1e3))
+
+
+def _table_rows(summary: dict):
+    """(label, row dict, is baseline) for every estimator, then every baseline."""
+    for key, m in summary["estimators"].items():
+        yield key, m, False
+    for key, m in (summary.get("baselines") or {}).items():
+        yield key, m, True
+
+
+def _references(summary: dict) -> dict:
+    refs = {}
+    for _, m, _ in _table_rows(summary):
+        for k, v in (m.get("references") or {}).items():
+            refs.setdefault(k, v)
+    return refs
+
+
 def summary_table_html(summary: dict) -> str:
-    """The summary table, from the very numbers of summary.json."""
-    est = summary["estimators"]
-    cols = [("force_N", "force RMSE [N]", 1), ("moment_Nm", "moment RMSE [N m]", 1), ("cop_m", "CoP RMSE [mm]", 1e3),
-            ("rotation_rad", "rotation RMSE [mrad]", 1e3), ("translation_m", "translation RMSE [mm]", 1e3),
-            ("hand_m", "hand RMSE [mm]", 1e3)]
-    head = "".join(f"<th>{html.escape(c[1])}</th>" for c in cols)
+    """The summary table, from the very numbers of summary.json (estimators, then baselines)."""
+    refs = _references(summary)
+    cols = [c for c in TABLE_COLUMNS
+            if any(m["rmse"].get(c[0]) is not None for _, m, _ in _table_rows(summary))] or list(TABLE_COLUMNS[:1])
+
+    def th(c):
+        ref = refs.get(c[0])
+        return f"<th>{html.escape(c[1])}" + (f"<br><small>{html.escape(ref)}</small>" if ref else "") + "</th>"
+
+    head = "".join(th(c) for c in cols)
     head += ("<th>NEES (18)</th><th>NIS (6)</th><th>median step [µs]</th><th>p99 step [µs]</th><th>amortized step [µs]</th>"
              "<th>total [s]</th>")
     head += "<th>peak memory [MB]</th>"
     rows = []
-    for key, m in est.items():
+    for key, m, baseline in _table_rows(summary):
         cells = "".join(f"<td>{_fmt(m['rmse'].get(c[0]), c[2])}</td>" for c in cols)
-        nb = m.get("nees_bounds")
-        nees = _fmt(m.get("nees")) + (f" <small>[{nb[0]:.1f}, {nb[1]:.1f}]</small>" if nb else "")
-        nib = m.get("nis_bounds")
-        nis = _fmt(m.get("nis")) + (f" <small>[{nib[0]:.2f}, {nib[1]:.2f}]</small>" if nib else "")
-        tps = m.get("time_per_step_s") or {}
-        cells += (f"<td>{nees}</td><td>{nis}</td><td>{_fmt(tps.get('median'), 1e6)}</td><td>{_fmt(tps.get('p99'), 1e6)}"
-                  f"</td><td>{_fmt(tps.get('amortized'), 1e6)}</td><td>{_fmt(m.get('total_time_s'))}</td>"
-                  f"<td>{_fmt(m.get('peak_memory_mb'))}</td>")
-        rows.append(f"<tr><th>{html.escape(key)}</th>{cells}</tr>")
-    return f"<table><tr><th>estimator</th>{head}</tr>{''.join(rows)}</table>"
+        if baseline:
+            cells += '<td colspan="7" style="text-align:center"><i>baseline: no estimation (no NEES, no timing)</i></td>'
+            label = f"{html.escape(key)} <small>(baseline)</small>"
+        else:
+            nb = m.get("nees_bounds")
+            nees = _fmt(m.get("nees")) + (f" <small>[{nb[0]:.1f}, {nb[1]:.1f}]</small>" if nb else "")
+            nib = m.get("nis_bounds")
+            nis = _fmt(m.get("nis")) + (f" <small>[{nib[0]:.2f}, {nib[1]:.2f}]</small>" if nib else "")
+            tps = m.get("time_per_step_s") or {}
+            cells += (f"<td>{nees}</td><td>{nis}</td><td>{_fmt(tps.get('median'), 1e6)}</td>"
+                      f"<td>{_fmt(tps.get('p99'), 1e6)}</td><td>{_fmt(tps.get('amortized'), 1e6)}</td>"
+                      f"<td>{_fmt(m.get('total_time_s'))}</td><td>{_fmt(m.get('peak_memory_mb'))}</td>")
+            label = html.escape(key)
+        rows.append(f'<tr class="{"baseline" if baseline else "estimator"}"><th>{label}</th>{cells}</tr>')
+    return f'<table class="summary"><tr><th>estimator</th>{head}</tr>{"".join(rows)}</table>'
+
+
+def per_contact_table_html(summary: dict) -> str:
+    """Per-contact errors (contact frame, like an F/T sensor): one column group per contact."""
+    contacts = []
+    for _, m, _ in _table_rows(summary):
+        for c in (m.get("per_contact") or {}):
+            if c not in contacts:
+                contacts.append(c)
+    if not contacts:
+        return ""
+    groups = []
+    for c in contacts:
+        keys = [col for col in PER_CONTACT_COLUMNS
+                if any((m.get("per_contact") or {}).get(c, {}).get(col[0]) is not None for _, m, _ in _table_rows(summary))]
+        if keys:
+            groups.append((c, keys))
+    if not groups:
+        return ""
+    top = "".join(f'<th colspan="{len(k)}">{html.escape(c)}</th>' for c, k in groups)
+    sub = "".join(f"<th>{html.escape(col[1])}</th>" for _, k in groups for col in k)
+    rows = []
+    for key, m, baseline in _table_rows(summary):
+        pc = m.get("per_contact") or {}
+        cells = "".join(f"<td>{_fmt(pc.get(c, {}).get(col[0]), col[2])}</td>" for c, k in groups for col in k)
+        label = html.escape(key) + (" <small>(baseline)</small>" if baseline else "")
+        rows.append(f"<tr><th>{label}</th>{cells}</tr>")
+    return (f'<table class="per-contact"><tr><th rowspan="2">estimator</th>{top}</tr><tr>{sub}</tr>'
+            f'{"".join(rows)}</table>')
 
 
 def write_report(comp, rec, out_dir: str | Path, title: str | None = None) -> Path:
@@ -271,18 +545,37 @@ def write_report(comp, rec, out_dir: str | Path, title: str | None = None) -> Pa
         if d is not None:
             extra.append(f"Uncompensated, the flexibility moves the hands by up to {d * 1000:.1f} mm.")
             break
+    per_contact_html = per_contact_table_html(summary)
+    win = info.get("window")
+    window_text = (f", the window {win['start_s']:.3f}–{win['end_s']:.3f} s of a {win['of_duration_s']:.3f} s "
+                   f"recording" if win else "")
+    refs = sorted({v for v in _references(summary).values() if v != "truth"})
+    if info.get("has_truth"):
+        ref_text = "Errors against the simulator's ground truth."
+    else:
+        ref_text = ("Errors against reference sensors (" + ", ".join(html.escape(r) for r in refs) + "): references, "
+                    "not ground truth; their own noise, offsets and calibration are part of each error.") if refs else \
+            "No reference sensor in this recording: no errors."
+    baseline_text = ""
+    if summary.get("baselines"):
+        baseline_text = ("<i>leg_odometry</i> is the baseline without estimation: the rigid robot (flexibility = "
+                         "identity: the base orientation of the leg-odometry frame), the weight split between the "
+                         "contacts in force by the static CoM, zero velocity.")
     page = f"""<!DOCTYPE html>
 <html><head><meta charset="utf-8"><title>{html.escape(title)}</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:auto}}table{{border-collapse:collapse}}
 td,th{{border:1px solid #ccc;padding:3px 6px;text-align:right}}img{{max-width:100%}}</style></head>
 <body><h1>{html.escape(title)}</h1>
 <p>Robot <b>{html.escape(str(info.get('robot')))}</b>, {info.get('samples')} samples at {_fmt(info.get('rate_hz'))} Hz
-({_fmt(info.get('duration_s'))} s). {html.escape(info.get('description') or '')}</p>
+({_fmt(info.get('duration_s'))} s{window_text}). {html.escape(info.get('description') or '')}</p>
 <p>Hidden effects in the data (not in the estimators' nominal model):</p><ul>{eff_html}</ul>
 <h2>Summary</h2>{summary_table_html(summary)}
-<p>Errors against {'ground truth' if info.get('has_truth') else 'reference sensors'}; statistics skip the
-first 0.5 s (convergence). NEES and NIS are run means with their 95% band for a consistent estimator.
-{' '.join(extra)}</p>
+<p>{ref_text} Statistics skip the first 0.5 s (convergence). NEES and NIS are run means with their 95% band
+for a consistent estimator. {baseline_text} {' '.join(extra)}</p>
+{'<h2>Per-contact errors</h2>' + per_contact_html + '<p>Each contact in its sole frame about its origin, as '
+ 'an F/T sensor reads it; F_z over every step (zero when the contact is released), the CoP while the foot '
+ 'carries more than 5% of the weight in both the estimate and the ' + ('truth' if info.get('has_truth') else
+ 'reference') + '.</p>' if per_contact_html else ''}
 {rel_html}
 {crb_html}
 {'<h2>Failures</h2><ul>' + fail_html + '</ul>' if fail_html else ''}

@@ -78,11 +78,18 @@ class Comparison:
     """summary key -> error message of an estimator that failed."""
     crb: object | None = None
     """:class:`flexforce.compare.crb.CramerRao` of the recording (simulated data only)."""
+    baselines: dict[str, Metrics] = field(default_factory=dict)
+    """summary key -> metrics of a row without estimation (``leg_odometry``), kept apart from the
+    estimators: it has no timing, no covariance and no NEES."""
+    baseline_estimates: dict = field(default_factory=dict)
+    """summary key -> the baseline's Estimate-like object."""
 
     def summary(self) -> dict:
         """The numbers of the report's table (summary.json)."""
         out = {"recording": self.recording,
                "estimators": {k: m.to_dict() for k, m in self.metrics.items()}}
+        if self.baselines:
+            out["baselines"] = {k: m.to_dict() for k, m in self.baselines.items()}
         if self.failures:
             out["failures"] = self.failures
         ekf = self.metrics.get("ekf")
@@ -115,12 +122,13 @@ def describe(rec) -> dict:
         "hidden_effects": rec.meta.get("hidden_effects", []),
         "has_truth": rec.truth is not None,
         "contacts": list(rec.contact_names),
+        **({"window": rec.meta["window"]} if rec.meta.get("window") else {}),
     }
 
 
 def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
             progress: Callable[[str, float], None] | None = None, options: dict | None = None,
-            crb: bool = True) -> Comparison:
+            crb: bool = True, baseline: bool = True) -> Comparison:
     """Run each estimator on ``rec`` and evaluate it.
 
     Args:
@@ -128,6 +136,7 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
         skip: seconds at the start left out of the statistics (filter convergence).
         progress: called with (estimator name, fraction done).
         options: estimator name -> keyword options.
+        baseline: add the leg-odometry row (:func:`flexforce.compare.baseline.leg_odometry`).
     """
     from flexforce.estimators import run_estimator
     from flexforce.factors.model import ModelConfig
@@ -150,6 +159,17 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
             est.total_time = time.perf_counter() - t0
         result.estimates[key] = est
         result.metrics[key] = evaluate(est, rec, skip=skip, peak_memory_mb=mem.peak_mb)
+    if baseline:
+        from flexforce.compare.baseline import NAME, leg_odometry
+
+        key = summary_key(NAME)
+        est = leg_odometry(rec)
+        m = evaluate(est, rec, skip=skip)
+        m.kind = "baseline"
+        m.time_per_step = {}
+        m.total_time = None
+        result.baseline_estimates[key] = est
+        result.baselines[key] = m
     if crb and rec.truth is not None:
         from flexforce.compare.crb import cramer_rao
 
@@ -162,26 +182,34 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
 
 def aggregate(comparisons: list[Comparison]) -> dict:
     """Mean and spread (standard deviation, min, max) of every number over several recordings."""
-    keys = sorted({k for c in comparisons for k in c.metrics})
     out = {"recordings": [c.recording for c in comparisons], "estimators": {}}
-    for key in keys:
-        ms = [c.metrics[key] for c in comparisons if key in c.metrics]
-        entry = {"count": len(ms), "rmse": {}, "rmse_std": {}, "rmse_min": {}, "rmse_max": {}}
-        for k in RMSE_KEYS:
-            vals = np.array([m.rmse.get(k) for m in ms if m.rmse.get(k) is not None], dtype=float)
-            if vals.size:
-                entry["rmse"][k] = float(vals.mean())
-                entry["rmse_std"][k] = float(vals.std())
-                entry["rmse_min"][k] = float(vals.min())
-                entry["rmse_max"][k] = float(vals.max())
-            else:
-                entry["rmse"][k] = entry["rmse_std"][k] = entry["rmse_min"][k] = entry["rmse_max"][k] = None
-        entry["time_per_step_s"] = {}
-        for stat, how in (("median", np.median), ("p99", np.max), ("amortized", np.median)):
-            vals = [m.time_per_step.get(stat) for m in ms if m.time_per_step.get(stat) is not None]
-            entry["time_per_step_s"][stat] = float(how(vals)) if vals else None
-        nees = [m.nees for m in ms if m.nees is not None]
-        entry["nees"] = float(np.mean(nees)) if nees else None
-        entry["nees_std"] = float(np.std(nees)) if nees else None
-        out["estimators"][key] = entry
+    groups = [("estimators", lambda c: c.metrics)]
+    if any(c.baselines for c in comparisons):
+        out["baselines"] = {}
+        groups.append(("baselines", lambda c: c.baselines))
+    for group, rows in groups:
+        for key in sorted({k for c in comparisons for k in rows(c)}):
+            out[group][key] = _aggregate_rows([rows(c)[key] for c in comparisons if key in rows(c)])
     return out
+
+
+def _aggregate_rows(ms: list[Metrics]) -> dict:
+    """Mean and spread of one row's numbers over several recordings."""
+    entry = {"count": len(ms), "rmse": {}, "rmse_std": {}, "rmse_min": {}, "rmse_max": {}}
+    for k in RMSE_KEYS:
+        vals = np.array([m.rmse.get(k) for m in ms if m.rmse.get(k) is not None], dtype=float)
+        if vals.size:
+            entry["rmse"][k] = float(vals.mean())
+            entry["rmse_std"][k] = float(vals.std())
+            entry["rmse_min"][k] = float(vals.min())
+            entry["rmse_max"][k] = float(vals.max())
+        else:
+            entry["rmse"][k] = entry["rmse_std"][k] = entry["rmse_min"][k] = entry["rmse_max"][k] = None
+    entry["time_per_step_s"] = {}
+    for stat, how in (("median", np.median), ("p99", np.max), ("amortized", np.median)):
+        vals = [m.time_per_step.get(stat) for m in ms if m.time_per_step.get(stat) is not None]
+        entry["time_per_step_s"][stat] = float(how(vals)) if vals else None
+    nees = [m.nees for m in ms if m.nees is not None]
+    entry["nees"] = float(np.mean(nees)) if nees else None
+    entry["nees_std"] = float(np.std(nees)) if nees else None
+    return entry

@@ -12,6 +12,7 @@ nanoseconds (``t_ns``); :attr:`Recording.time` gives float seconds from the firs
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from dataclasses import dataclass, field
 
@@ -184,6 +185,71 @@ class Recording:
         if self.truth is not None:
             truth = Truth(**{f.name: cut(getattr(self.truth, f.name)) for f in dataclasses.fields(Truth)})
         return Recording(**kwargs, truth=truth)
+
+    MIN_WINDOW_SAMPLES = 10
+    """Fewest samples :meth:`window` accepts: below this no estimator has anything to converge on."""
+
+    def window(self, start: float | None = None, end: float | None = None) -> "Recording":
+        """The samples with ``start <= time <= end`` (seconds from the first sample) as a new Recording.
+
+        Every per-step array is cut (inputs, readings, F/T, motion capture, base pose, truth).  The
+        new recording's time starts at 0 again; the times kept in ``meta`` (anchor switches, contact
+        phases) are shifted to it and those outside the window are dropped, and
+        ``meta["window"]`` records the cut in the original recording's seconds.
+
+        Raises:
+            DataError: ``start >= end``, a bound outside the recording, or fewer than
+                :attr:`MIN_WINDOW_SAMPLES` samples in the window.
+        """
+        duration = float(self.time[-1]) if self.n else 0.0
+        span = f"the recording covers 0 to {duration:.3f} s"
+        lo = 0.0 if start is None else float(start)
+        hi = duration if end is None else float(end)
+        if start is not None and not (0.0 <= lo < duration):
+            raise DataError(f"start = {lo:g} s is outside the recording; {span}")
+        if end is not None and not (0.0 < hi <= duration + 0.5 * self.dt):
+            raise DataError(f"end = {hi:g} s is outside the recording; {span}")
+        if lo >= hi:
+            raise DataError(f"start = {lo:g} s is not before end = {hi:g} s; {span}")
+        time = self.time
+        eps = 1e-9
+        idx = np.flatnonzero((time >= lo - eps) & (time <= hi + eps))
+        if idx.size < self.MIN_WINDOW_SAMPLES:
+            raise DataError(f"window {lo:g} to {hi:g} s holds {idx.size} sample(s) at {1.0 / self.dt:.0f} Hz; "
+                            f"at least {self.MIN_WINDOW_SAMPLES} are needed ({span})")
+        out = self.slice(int(idx[0]), int(idx[-1]) + 1)
+        t0 = float(time[idx[0]])
+        t1 = float(time[idx[-1]])
+        meta = copy.deepcopy(self.meta)
+        previous = meta.get("window")
+        offset = t0 + (previous["start_s"] if previous else 0.0)
+        meta["window"] = {"start_s": offset, "end_s": offset + (t1 - t0), "samples": int(idx.size),
+                          "of_duration_s": previous["of_duration_s"] if previous else duration}
+        anchor = meta.get("anchor")
+        if isinstance(anchor, dict) and isinstance(anchor.get("switches"), list):
+            kept = []
+            for sw in anchor["switches"]:
+                if t0 <= sw.get("t", -1.0) <= t1:
+                    kept.append({**sw, "t": round(sw["t"] - t0, 6)})
+            before = [sw for sw in anchor["switches"] if sw.get("t", -1.0) < t0]
+            if before:
+                anchor["first"] = before[-1].get("to", anchor.get("first"))
+            anchor["switches"] = kept
+        contacts = meta.get("contacts")
+        if isinstance(contacts, dict) and isinstance(contacts.get("phases"), dict):
+            phases = {}
+            for name, ivs in contacts["phases"].items():
+                cut = []
+                for a, b in ivs:
+                    a, b = max(a, t0), min(b, t1)
+                    if a < b:
+                        cut.append([round(a - t0, 6), round(b - t0, 6)])
+                phases[name] = cut
+            contacts["phases"] = phases
+        if isinstance(meta.get("grid"), dict) and "n" in meta["grid"]:
+            meta["grid"]["n"] = int(idx.size)
+        out.meta = meta
+        return out
 
     # ------------------------------------------------------------------------------------------
     def validate(self) -> "Recording":

@@ -74,11 +74,19 @@ def open_recording(path: Path, robot: str | None = None, contacts: str = "ft", q
     return import_bag(path, robot, contacts=contacts, progress=Progress(f"import {path.name}", enabled=not quiet and None))
 
 
+def _window(rec, args):
+    """The part of ``rec`` chosen with --start/--end (the whole recording without them)."""
+    start, end = getattr(args, "start", None), getattr(args, "end", None)
+    if start is None and end is None:
+        return rec
+    return rec.window(start, end)
+
+
 def _cmd_run(args) -> int:
     from flexforce.estimators import run_estimator
     from flexforce.factors.model import ModelConfig
 
-    rec = open_recording(args.recording, args.robot, args.contacts, args.quiet)
+    rec = _window(open_recording(args.recording, args.robot, args.contacts, args.quiet), args)
     model = ModelConfig.from_recording(rec, robot=args.robot, use_ft=args.ft)
     options = {}
     if args.lag is not None:
@@ -141,20 +149,34 @@ def _compare_one(rec, args, out: Path):
 
 
 def _print_table(comp) -> None:
-    print(f"{'estimator':10s} {'force[N]':>9s} {'Fz[N]':>7s} {'CoP[mm]':>8s} {'rot[mrad]':>9s} {'hand[mm]':>8s} "
-          f"{'NEES':>7s} {'step[us]':>9s}")
-    for key, m in comp.metrics.items():
+    def f(x, s=1.0):
+        return f"{x * s:.3g}" if x is not None else "-"
+
+    rows = [(k, m, False) for k, m in comp.metrics.items()] + [(k, m, True) for k, m in comp.baselines.items()]
+    contacts = list(dict.fromkeys(c for _, m, _ in rows for c in m.per_contact))
+    short = {c: c.replace("_foot", "").replace("foot_", "")[:6] for c in contacts}
+    head = (f"{'estimator':13s} {'force[N]':>9s} {'Fz[N]':>7s} {'CoP[mm]':>8s} {'rot[mrad]':>9s} {'hand[mm]':>8s} "
+            f"{'NEES':>7s} {'step[us]':>9s}")
+    head += "".join(f" {'Fz ' + short[c] + '[N]':>12s}" for c in contacts)
+    print(head)
+    for key, m, baseline in rows:
         r = m.rmse
-
-        def f(x, s=1.0):
-            return f"{x * s:.3g}" if x is not None else "-"
-
         med = (m.time_per_step.get("median") or m.time_per_step.get("amortized")) if m.time_per_step else None
-        print(f"{key:10s} {f(r.get('force_N')):>9s} {f(r.get('vertical_force_N')):>7s} {f(r.get('cop_m'), 1e3):>8s} "
-              f"{f(r.get('rotation_rad'), 1e3):>9s} "
-              f"{f(r.get('hand_m'), 1e3):>8s} {f(m.nees):>7s} {f(med, 1e6):>9s}")
+        line = (f"{key + (' *' if baseline else ''):13s} {f(r.get('force_N')):>9s} {f(r.get('vertical_force_N')):>7s} "
+                f"{f(r.get('cop_m'), 1e3):>8s} {f(r.get('rotation_rad'), 1e3):>9s} "
+                f"{f(r.get('hand_m'), 1e3):>8s} {f(m.nees):>7s} {f(med, 1e6):>9s}")
+        line += "".join(f" {f(m.per_contact.get(c, {}).get('vertical_force_N')):>12s}" for c in contacts)
+        print(line)
+    refs = sorted({v for _, m, _ in rows for v in m.references.values()})
+    notes = []
+    if comp.baselines:
+        notes.append("* baseline without estimation (rigid robot, static CoM split)")
+    if refs:
+        notes.append("errors against " + ", ".join(refs))
+    if notes:
+        print("; ".join(notes))
     for key, msg in comp.failures.items():
-        print(f"{key:10s} failed: {msg}")
+        print(f"{key:13s} failed: {msg}")
 
 
 def _cmd_compare(args) -> int:
@@ -172,7 +194,7 @@ def _cmd_compare(args) -> int:
     out = Path(args.output)
     comps = []
     for label, src, seed in sources:
-        rec = _load_or_simulate(src, seed, args.quiet, args.robot, args.contacts)
+        rec = _window(_load_or_simulate(src, seed, args.quiet, args.robot, args.contacts), args)
         target = out if len(sources) == 1 else out / label
         comp = _compare_one(rec, args, target)
         comps.append(comp)
@@ -197,6 +219,7 @@ def _cmd_demo(args) -> int:
     args.robot = None
     args.ft = False
     args.contacts = "ft"
+    args.start = args.end = None
     args.estimators = "ekf,fixed-lag,batch"
     print(f"flexforce demo: simulate '{args.recordings[0]}' (Romeo, pushed on the torso then the hand), "
           f"run the EKF, the fixed-lag and the batch smoothers, compare them against ground truth")
@@ -208,7 +231,7 @@ def _cmd_diagnose(args) -> int:
     from flexforce.compare.diagnose_report import write_diagnosis
     from flexforce.factors.model import ModelConfig
 
-    rec = _load_or_simulate(str(args.recording), args.seed, args.quiet, args.robot, args.contacts)
+    rec = _window(_load_or_simulate(str(args.recording), args.seed, args.quiet, args.robot, args.contacts), args)
     model = ModelConfig.from_recording(rec, robot=args.robot, use_ft=args.ft)
     plugins = [eff for path in args.plugin for eff in load_plugin(path)]
     if args.candidates:
@@ -245,6 +268,10 @@ def _add_input_options(p: argparse.ArgumentParser) -> None:
                                    "raw robot bag)")
     p.add_argument("--contacts", choices=("ft", "fixed"), default="ft",
                    help="raw bags: contacts from the F/T normal force (Schmitt trigger) or the config's fixed set")
+    p.add_argument("--start", type=float, metavar="S",
+                   help="keep the recording from S seconds after its first sample (default: its start)")
+    p.add_argument("--end", type=float, metavar="S",
+                   help="keep the recording up to S seconds after its first sample (default: its end)")
 
 
 def build_parser() -> argparse.ArgumentParser:

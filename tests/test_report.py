@@ -1,0 +1,165 @@
+"""The comparison report's content: the leg-odometry row, per-contact errors, references, figures.
+
+Checked on numbers and HTML text, not pixels (STYLE.md, habit 12).
+"""
+
+from __future__ import annotations
+
+import json
+
+import matplotlib.pyplot as plt
+import numpy as np
+import pytest
+
+from conftest import ICUB_DIR
+
+from flexforce.cli import main
+from flexforce.compare.baseline import leg_odometry, static_split
+from flexforce.compare.metrics import evaluate
+from flexforce.compare.report import figure_contacts, intervals, robust_limits, write_report
+from flexforce.compare.runner import compare
+from flexforce.datasets.scenario import Scenario
+from flexforce.datasets.simulator import Simulator
+
+WALK = ICUB_DIR / "icub-walk-12s"
+
+
+@pytest.fixture(scope="module")
+def rec():
+    sc = Scenario.load("push-pitch")
+    sc.duration = 1.0
+    return Simulator(sc).run()
+
+
+@pytest.fixture(scope="module")
+def report(rec, tmp_path_factory):
+    comp = compare(rec, estimators=("ekf",), crb=False)
+    out = write_report(comp, rec, tmp_path_factory.mktemp("report"))
+    return comp, out
+
+
+def test_static_split_by_hand():
+    feet = np.array([[0.0, 0.1], [0.0, -0.1]])
+    # CoM a quarter of the way from the left foot: 3/4 of the weight on it
+    np.testing.assert_allclose(static_split(np.array([0.0, 0.05]), feet, 400.0), [300.0, 100.0])
+    # CoM outside the support: everything on the nearer foot, nothing negative
+    np.testing.assert_allclose(static_split(np.array([0.0, 0.3]), feet, 400.0), [400.0, 0.0])
+    np.testing.assert_allclose(static_split(np.array([0.2, 0.3]), feet[:1], 400.0), [400.0])
+    # four contacts at the corners of a square, CoM in the middle: a quarter each
+    sq = np.array([[1.0, 1.0], [1.0, -1.0], [-1.0, 1.0], [-1.0, -1.0]])
+    np.testing.assert_allclose(static_split(np.zeros(2), sq, 400.0), [100.0] * 4)
+
+
+def test_leg_odometry_is_the_rigid_robot(rec):
+    est = leg_odometry(rec)
+    assert est.n == rec.n
+    np.testing.assert_array_equal(est.R, np.tile(np.eye(3), (rec.n, 1, 1)))
+    assert not est.t.any() and not est.v.any() and not est.w.any()
+    np.testing.assert_allclose(est.total_wrench[:, 2], rec.mass * rec.gravity)
+    assert not est.wrench[..., :2].any()
+    assert est.cov is None and est.time_per_step is None
+    m = evaluate(est, rec)
+    # its rotation error is the flexibility itself
+    tilt = np.linalg.norm([np.linalg.norm(R - np.eye(3)) for R in rec.truth.R])
+    assert tilt > 0 and m.rmse["rotation_rad"] > 0
+    assert m.nees is None
+
+
+def test_summary_json_keys(report):
+    comp, out = report
+    s = json.loads((out / "summary.json").read_text())
+    assert set(s["estimators"]) == {"ekf"}
+    base = s["baselines"]["leg_odometry"]
+    assert base["kind"] == "baseline" and s["estimators"]["ekf"]["kind"] == "estimator"
+    assert base["nees"] is None and base["total_time_s"] is None and base["time_per_step_s"] == {}
+    assert base["rmse"]["rotation_rad"] > 0 and base["rmse"]["force_N"] > 0
+    for row in (base, s["estimators"]["ekf"]):
+        assert row["references"]["rotation_rad"] == "truth"
+        for foot in ("left_foot", "right_foot"):
+            assert set(row["per_contact"][foot]) == {"vertical_force_N", "force_N", "moment_Nm", "cop_m"}
+            assert all(v is not None and v >= 0 for v in row["per_contact"][foot].values())
+    # the leg-odometry forces sit at the sole origins: its per-foot CoP error is the true CoP offset
+    assert base["per_contact"]["left_foot"]["cop_m"] > s["estimators"]["ekf"]["per_contact"]["left_foot"]["cop_m"]
+
+
+def test_html_has_the_baseline_row_and_per_contact_columns(report):
+    comp, out = report
+    page = (out / "index.html").read_text()
+    assert "leg_odometry <small>(baseline)</small>" in page
+    assert "baseline: no estimation" in page
+    assert "<h2>Per-contact errors</h2>" in page
+    for text in ("left_foot", "right_foot", "F_z RMSE [N]", "3-D force RMSE [N]", "torque RMSE [N m]",
+                 "CoP RMSE [mm]"):
+        assert text in page, text
+    assert "simulator's ground truth" in page
+    for fig in ("contacts.png", "foot_forces.png", "foot_wrench.png"):
+        assert (out / fig).exists() and f'src="{fig}"' in page
+
+
+def test_robust_limits_clip_a_single_spike():
+    fig, ax = plt.subplots()
+    y = np.sin(np.linspace(0, 10, 1000))
+    y[500] = 1e4
+    ax.plot(y)
+    assert robust_limits(ax, [y]) == 1
+    lo, hi = ax.get_ylim()
+    assert hi < 2.0 and lo > -2.0
+    assert any("beyond the axis" in t.get_text() for t in ax.texts)
+    fig2, ax2 = plt.subplots()
+    assert robust_limits(ax2, [np.sin(np.linspace(0, 10, 1000))]) == 0
+    assert not ax2.texts
+    plt.close(fig)
+    plt.close(fig2)
+
+
+def test_intervals():
+    t = np.arange(8) * 0.1
+    m = np.array([1, 1, 0, 0, 1, 0, 1, 1], dtype=bool)
+    assert intervals(m, t) == [(0.0, 0.1), (pytest.approx(0.4), pytest.approx(0.4)),
+                               (pytest.approx(0.6), pytest.approx(0.7))]
+    assert intervals(np.zeros(3, bool), t[:3]) == []
+
+
+def test_contact_timeline_shows_anchor_switches(rec, report):
+    comp, _ = report
+    rec = rec.slice(0, rec.n)
+    rec.meta["anchor"] = {"first": "left_foot", "switches": [{"t": 0.4, "from": "left_foot", "to": "right_foot"}]}
+    fig = figure_contacts(comp, rec)
+    assert "1 switch(es)" in fig.axes[0].get_title()
+    assert [t.get_text() for t in fig.axes[0].get_yticklabels()] == list(rec.contact_names)
+    plt.close(fig)
+
+
+@pytest.mark.skipif(not WALK.exists(), reason="the iCub recordings are not beside this checkout")
+def test_real_walk_window_references_and_leg_odometry(tmp_path, capsys):
+    """A 3 s window of the real walk, EKF only: F/T and Vicon named as references, leg odometry's
+    tilt equal to the one computed directly from the base pose and Vicon (an independent path)."""
+    from scipy.spatial.transform import Rotation
+
+    from flexforce.datasets.rosimport import import_bag
+
+    out = tmp_path / "walk"
+    assert main(["compare", str(WALK), "--robot", "icub", "-o", str(out), "-q", "--estimators", "ekf",
+                 "--start", "2", "--end", "5"]) == 0
+    table = capsys.readouterr().out
+    assert "leg_odometry *" in table and "reference: F/T" in table
+    s = json.loads((out / "summary.json").read_text())
+    assert s["recording"]["window"]["start_s"] == pytest.approx(2.0, abs=0.01)
+    base = s["baselines"]["leg_odometry"]
+    assert base["references"]["vertical_force_N"] == "reference: F/T"
+    assert base["references"]["rotation_rad"] in ("reference: Vicon", "reference: motion capture")
+    # the F/T measures F_z only: no 3-D force, torque or CoP per foot, and no crash
+    for foot, d in base["per_contact"].items():
+        assert set(d) == {"vertical_force_N"}, foot
+    page = (out / "index.html").read_text()
+    assert "references, not ground truth" in page and "leg_odometry <small>(baseline)</small>" in page
+    assert not (out / "foot_wrench.png").exists()
+
+    rec = import_bag(WALK, "icub").window(2, 5)
+    keep = rec.time >= 0.5
+    moc = rec.mocap[rec.meta["base_frame"]]
+    ok = keep & np.all(np.isfinite(moc), axis=1)
+    up_odo = Rotation.from_quat(rec.base_pose[ok, 3:]).as_matrix()[:, 2, :]
+    up_vicon = Rotation.from_quat(moc[ok, 3:]).as_matrix()[:, 2, :]
+    tilt = float(np.sqrt(np.mean(np.arccos(np.clip(np.sum(up_odo * up_vicon, axis=1), -1, 1)) ** 2)))
+    assert base["rmse"]["rotation_rad"] == pytest.approx(tilt, rel=1e-9)
