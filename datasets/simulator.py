@@ -17,6 +17,20 @@ with the classical 4th-order Runge-Kutta scheme at ``sim_rate`` (1 kHz by defaul
 The local-frame motion is computed exactly (inverse kinematics with analytic velocities and
 accelerations) at the sample instants and interpolated between them with quintic Hermite
 polynomials, which match position, velocity and acceleration at every sample.
+
+The simulator is the truth the estimators are measured against, so it shares none of their code:
+its SO(3) is pinocchio's (``exp3``, ``log3``), its contact springs (:class:`Spring`) and centre of
+pressure (:func:`center_of_pressure`) are its own, checked by the tests against pinocchio's
+statics; its ambient disturbance, its sensor noise and its touch-down rule are parameters of the
+scenario (:class:`flexforce.datasets.scenario.Ambient`, ``[imu_noise]``, ``touchdown``).
+
+Touch-down.  A contact's spring acts between the contact frame's actual world placement and a
+rest placement fixed for the contact episode.  With ``touchdown = "relaxed"`` (the default) the
+rest is the contact frame's world placement at the instant it lands, so the spring starts
+unloaded and the force rises from zero (plus damping).  With ``"deflected"`` the rest is the
+contact's placement in the local frame read as a world placement: the landing foot is pulled from
+where it is to where the robot believes it is, a force step of ``K (world - local placement)``.
+The recording's contact placements are always the local-frame ones, the robot's belief.
 """
 
 from __future__ import annotations
@@ -28,17 +42,75 @@ from typing import Callable
 
 import numpy as np
 import pinocchio as pin
+from scipy import signal
 
 from flexforce.errors import ConfigError, ModelError
-from flexforce.factors import so3
-from flexforce.factors.model import unmodelled_acceleration
-from flexforce.factors.physics import ContactParams, center_of_pressure
 from flexforce.datasets.effects import HiddenEffect, parse_effects
 from flexforce.datasets.recording import Recording, Truth
 from flexforce.datasets.robot import ROBOTS_DIR, FtNoise, ImuNoise, RobotConfig, RobotModel
-from flexforce.datasets.scenario import Scenario
+from flexforce.datasets.scenario import Ambient, Scenario
 
 E_Z = np.array([0.0, 0.0, 1.0])
+
+
+@dataclass(frozen=True)
+class Spring:
+    """The simulated 6-D spring-damper of one contact, its matrices in the contact frame.
+
+    Force on the robot ``F = -K_fs s (1 + beta_f |s|^2) - K_fd v``, torque about the contact point
+    ``T = -K_ts Omega (1 + beta_t |Omega|^2) - K_td w``, with ``s`` (m) and ``Omega = log3(R_c
+    R_rest^T)`` (rad, pinocchio's log) the displacement of the contact frame from its rest
+    placement, ``v`` and ``w`` the contact frame's world-aligned linear and angular velocity, and
+    every matrix rotated into the world with the contact frame's actual orientation.
+    """
+
+    K_fs: np.ndarray
+    """3x3, N/m."""
+    K_fd: np.ndarray
+    """3x3, N s/m."""
+    K_ts: np.ndarray
+    """3x3, N m/rad."""
+    K_td: np.ndarray
+    """3x3, N m s/rad."""
+    beta_f: float = 0.0
+    """1/m^2."""
+    beta_t: float = 0.0
+    """1/rad^2."""
+
+    @classmethod
+    def from_stiffness(cls, stiffness) -> "Spring":
+        """From a robot configuration's :class:`~flexforce.datasets.robot.Stiffness` (scalars are
+        isotropic, 3-vectors diagonal in the contact frame, 3x3 full)."""
+        def mat(x, key):
+            a = np.asarray(x, dtype=float)
+            if a.shape == ():
+                return float(a) * np.eye(3)
+            if a.shape == (3,):
+                return np.diag(a)
+            if a.shape == (3, 3):
+                return a.copy()
+            raise ConfigError(f"stiffness {key} = {x!r}: expected a scalar, 3 values or a 3x3 matrix")
+        return cls(mat(stiffness.k_fs, "k_fs"), mat(stiffness.k_fd, "k_fd"), mat(stiffness.k_ts, "k_ts"),
+                   mat(stiffness.k_td, "k_td"))
+
+    def wrench(self, world_M_contact: pin.SE3, world_M_rest: pin.SE3, velocity: pin.Motion) -> np.ndarray:
+        """(6,) force (N) and torque about the contact point (N m), world axes."""
+        Rc = world_M_contact.rotation
+        s = world_M_contact.translation - world_M_rest.translation
+        Omega = pin.log3(Rc @ world_M_rest.rotation.T)
+        F = -(Rc @ (self.K_fs @ (Rc.T @ s))) * (1.0 + self.beta_f * (s @ s)) - Rc @ (self.K_fd @ (Rc.T @ velocity.linear))
+        T = (-(Rc @ (self.K_ts @ (Rc.T @ Omega))) * (1.0 + self.beta_t * (Omega @ Omega))
+             - Rc @ (self.K_td @ (Rc.T @ velocity.angular)))
+        return np.concatenate([F, T])
+
+
+def center_of_pressure(wrench: np.ndarray, z0: float = 0.0) -> np.ndarray:
+    """Point of the plane ``z = z0`` where the total contact wrench (F, T about the world origin)
+    has no horizontal moment: the CoP, m.  NaN when the vertical force is not positive."""
+    F, T = wrench[:3], wrench[3:]
+    if not F[2] > 1e-6:
+        return np.array([np.nan, np.nan, z0])
+    return np.array([(z0 * F[0] - T[1]) / F[2], (T[0] + z0 * F[1]) / F[2], z0])
 
 
 def _cross(a, b):
@@ -105,7 +177,7 @@ class LocalMotion:
             if any(iv in lv for lv in self.leg_v):
                 raise ConfigError(f"joint '{name}' belongs to a leg; legs follow the contacts, move the base instead")
             self.joint_segments.append((iq, iv, seg))
-        base_segments = scenario.segments(self._resolve_toward(scenario.base), robot.name, 3)
+        base_segments = scenario.segments(self._resolve_toward(scenario.base_items()), robot.name, 3)
         self.base_segments = []
         com_map = None
         for target, seg in base_segments:
@@ -312,11 +384,21 @@ class Simulator:
         self.noise = scenario.noise if noise is None else noise
         self.effects: list[HiddenEffect] = parse_effects(scenario.effects)
         cfg = self.robot.config
+        # The simulated sensors: the robot configuration's noise unless the scenario says otherwise;
+        # ``scale`` multiplies the white-noise levels (a sensor noisier than its data sheet).
         try:
-            self.imu_noise = ImuNoise(**{**cfg.imu_noise.__dict__, **scenario.imu_noise})
-            self.ft_noise = FtNoise(**{**cfg.ft_noise.__dict__, **scenario.ft_noise})
+            imu = {**cfg.imu_noise.__dict__, **{k: v for k, v in scenario.imu_noise.items() if k != "scale"}}
+            ft = {**cfg.ft_noise.__dict__, **{k: v for k, v in scenario.ft_noise.items() if k != "scale"}}
+            imu_scale, ft_scale = scenario.noise_scale("imu_noise"), scenario.noise_scale("ft_noise")
+            imu["gyro_density"] = float(imu["gyro_density"]) * imu_scale
+            imu["accel_density"] = float(imu["accel_density"]) * imu_scale
+            ft = {k: float(v) * ft_scale for k, v in ft.items()}
+            self.imu_noise = ImuNoise(**imu)
+            self.ft_noise = FtNoise(**ft)
         except TypeError as err:
-            raise ConfigError(f"scenario '{scenario.name}': bad noise override: {err}") from err
+            raise ConfigError(f"scenario '{scenario.name}': bad noise override: {err}; "
+                              f"known keys: {sorted(ImuNoise.__dataclass_fields__)} (imu_noise), "
+                              f"{sorted(FtNoise.__dataclass_fields__)} (ft_noise), and scale") from err
         self.g = cfg.gravity
         self.motion = LocalMotion(self.robot, scenario)
         # The simulated robot: the nominal model, with the hidden mass-model error if any.
@@ -324,14 +406,13 @@ class Simulator:
         self.sim_model.gravity = pin.Motion(np.array([0.0, 0.0, -self.g]), np.zeros(3))
         self._apply_com_offset()
         self.sim_data = self.sim_model.createData()
-        self.contact_params = self._true_contact_params()
-        # Ambient disturbance: the nominal model's unmodelled acceleration made real (Scenario.ambient).
+        self.springs = self._true_springs()
+        self.touchdown = scenario.touchdown
+        # Ambient disturbance: a property of the scenario's world (Ambient), None when absent.
+        self.ambient_spec = scenario.ambient_spec()
         self.ambient = None
-        if self.noise and scenario.ambient:
-            kin = self.robot.kinematics(self.robot.q_reference, np.zeros(self.robot.model.nv),
-                                        np.zeros(self.robot.model.nv))
-            self.ambient = unmodelled_acceleration(self.imu_noise.accel_sigma(scenario.rate), kin.imu.p,
-                                                   kin.contact_p.mean(axis=0))
+        if self.noise and self.ambient_spec.enabled:
+            self.ambient = self._ambient_levels(self.ambient_spec)
         self.ext_effects = []
         for eff in self.effects:
             if eff.type == "external-wrench":
@@ -366,10 +447,51 @@ class Simulator:
         # Keep the rotational inertia about the body's own CoM: rebuild with the moved lever.
         model.inertias[j] = pin.Inertia(Y.mass, Y.lever + shift, Y.inertia)
 
-    def _true_contact_params(self) -> list[ContactParams]:
-        params = self.robot.contact_params()
+    def _ambient_levels(self, spec: Ambient) -> tuple[float, float]:
+        """RMS (linear m/s^2, angular rad/s^2) of the ambient acceleration (defaults: see Ambient)."""
+        model = self.robot.model
+        data = model.createData()
+        pin.framesForwardKinematics(model, data, self.robot.q_reference)
+        p_imu = data.oMf[self.robot.imu_frame_id].translation
+        centroid = np.mean([data.oMf[f].translation for f in self.robot.contact_frame_ids], axis=0)
+        lever = max(float(np.linalg.norm(p_imu - centroid)), 1e-3)
+        linear = spec.linear if spec.linear is not None else self.robot.config.imu_noise.accel_sigma(self.scenario.rate)
+        angular = spec.angular if spec.angular is not None else linear / lever
+        return spec.scale * linear, spec.scale * angular
+
+    def _ambient_table(self, n: int, sub: int) -> np.ndarray | None:
+        """((n - 1) sub + 1, 6) ambient acceleration (dw rad/s^2, a m/s^2) at the integration instants.
+
+        Without a corner: white at the samples, linear in between (a continuous acceleration).
+        With one: white at the integration rate through a second-order Butterworth low-pass
+        (scipy's ``butter``), normalised by the filter's white-noise gain so that the
+        stationary RMS is the level; run from 2 s before the start so it is stationary at t = 0.
+        """
+        if self.ambient is None:
+            return None
+        sa, sdw = self.ambient
+        sc = self.scenario
+        rng = np.random.default_rng((sc.seed, 7))
+        scale = np.array([sdw] * 3 + [sa] * 3)
+        if self.ambient_spec.corner is None:
+            white = np.concatenate([rng.standard_normal((n, 3)), rng.standard_normal((n, 3))], axis=1) * scale
+            fine = np.arange((n - 1) * sub + 1) / sub
+            k = np.minimum(fine.astype(int), n - 2) if n > 1 else np.zeros(len(fine), dtype=int)
+            s = (fine - k)[:, None]
+            return white[k] * (1.0 - s) + white[np.minimum(k + 1, n - 1)] * s
+        fs = sc.sim_rate
+        b, a = signal.butter(2, self.ambient_spec.corner, fs=fs)
+        lead = int(round(2.0 * fs))
+        y = signal.lfilter(b, a, rng.standard_normal(((n - 1) * sub + 1 + lead, 6)), axis=0)
+        impulse = np.zeros(4 * lead)
+        impulse[0] = 1.0
+        gain = math.sqrt(float(np.sum(signal.lfilter(b, a, impulse) ** 2)))  # white-noise RMS gain
+        return y[lead:] / gain * scale
+
+    def _true_springs(self) -> list[Spring]:
+        nominal = Spring.from_stiffness(self.robot.config.stiffness)
         out = []
-        for p in params:
+        for p in [nominal] * len(self.robot.contact_names):
             Kfs, Kfd, Kts, Ktd = p.K_fs.copy(), p.K_fd.copy(), p.K_ts.copy(), p.K_td.copy()
             bf, bt = p.beta_f, p.beta_t
             for e in self.effects:
@@ -383,7 +505,7 @@ class Simulator:
                 elif e.type == "nonlinear-stiffness":
                     bf += float(e.params.get("beta_f", 0.0))
                     bt += float(e.params.get("beta_t", 0.0))
-            out.append(ContactParams(Kfs, Kfd, Kts, Ktd, bf, bt))
+            out.append(Spring(Kfs, Kfd, Kts, Ktd, bf, bt))
         return out
 
     # ------------------------------------------------------------------------------------------
@@ -424,17 +546,14 @@ class Simulator:
         local_wrenches = np.zeros((nc, 6))
         F_sum = np.zeros(3)
         M_sum = np.zeros(3)  # moment about the base origin
-        for ci, (fid, M0, par) in enumerate(zip(self.robot.contact_frame_ids, rest, self.contact_params)):
+        for ci, (fid, M0, spring) in enumerate(zip(self.robot.contact_frame_ids, rest, self.springs)):
             if M0 is None:
                 continue
             M = pin.updateFramePlacement(model, data, fid)
             vel = pin.getFrameVelocity(model, data, fid, pin.LOCAL_WORLD_ALIGNED)
             Rc = M.rotation
-            s = M.translation - M0.translation
-            Omega = so3.log(Rc @ M0.rotation.T)
-            Kfs, Kfd, Kts, Ktd = (Rc @ K @ Rc.T for K in (par.K_fs, par.K_fd, par.K_ts, par.K_td))
-            F = -Kfs @ (s * (1.0 + par.beta_f * (s @ s))) - Kfd @ vel.linear
-            tau = -Kts @ (Omega * (1.0 + par.beta_t * (Omega @ Omega))) - Ktd @ vel.angular
+            wr = spring.wrench(M, M0, vel)
+            F, tau = wr[:3], wr[3:]
             wrenches[ci, :3] = F
             wrenches[ci, 3:] = tau + _cross(M.translation, F)
             local_wrenches[ci, :3] = Rc.T @ F
@@ -481,7 +600,7 @@ class Simulator:
 
     def _equilibrium(self, local: LocalSample, rest) -> tuple[np.ndarray, np.ndarray]:
         """Static flexibility (R, t) at the start: zero velocity and zero acceleration."""
-        k_total = sum(float(np.trace(p.K_fs)) / 3.0 for p, M0 in zip(self.contact_params, rest) if M0 is not None)
+        k_total = sum(float(np.trace(p.K_fs)) / 3.0 for p, M0 in zip(self.springs, rest) if M0 is not None)
         if k_total <= 0:
             raise ConfigError("the scenario must start with at least one contact in force")
         R = np.eye(3)
@@ -501,12 +620,12 @@ class Simulator:
             for i in range(6):
                 d = np.zeros(6)
                 d[i] = h
-                Rp, tp = so3.exp(d[:3]) @ R, tr + d[3:]
+                Rp, tp = pin.exp3(d[:3]) @ R, tr + d[3:]
                 d[i] = -h
-                Rm, tm = so3.exp(d[:3]) @ R, tr + d[3:]
+                Rm, tm = pin.exp3(d[:3]) @ R, tr + d[3:]
                 J[:, i] = (acc(Rp, tp) - acc(Rm, tm)) / (2 * h)
             step = np.linalg.solve(J, -f0)
-            R = so3.exp(step[:3]) @ R
+            R = pin.exp3(step[:3]) @ R
             tr = tr + step[3:]
         else:
             raise ModelError("no static equilibrium found at the start of the scenario: "
@@ -544,12 +663,16 @@ class Simulator:
         rec_rest_R = np.tile(np.eye(3), (n, nc, 1, 1))
         active = np.zeros((n, nc), dtype=bool)
 
-        amb_rng = np.random.default_rng((sc.seed, 7))
-        amb = None
-        if self.ambient is not None:  # white at the samples, linear in between (continuous acceleration)
-            sa, sdw = self.ambient
-            amb = np.concatenate([sdw * amb_rng.standard_normal((n, 3)), sa * amb_rng.standard_normal((n, 3))], axis=1)
+        amb = self._ambient_table(n, sub)
         disturbance = None
+        # The world's rest placement of each contact in force (the spring's anchor), and the local
+        # placement the robot believes in (the recording's contact placement).
+        local_rest = [pin.SE3(M) if M is not None else None for M in rest]
+        episodes = [{"contact": robot.contact_names[ci], "start": 0.0, "end": None,
+                     "world_p": rest[ci].translation.tolist(), "world_R": rest[ci].rotation.tolist(),
+                     "local_p": rest[ci].translation.tolist()} if rest[ci] is not None else None
+                    for ci in range(nc)]
+        closed = []
 
         def deriv(t, y, local, rest):
             qw = y[:4] / np.linalg.norm(y[:4])
@@ -589,14 +712,27 @@ class Simulator:
             tk = float(times[k])
             local = samples[k]
             if amb is not None:
-                disturbance = amb[k]
+                disturbance = amb[k * sub]
             # contact set for the interval starting at t_k: rest placement taken when a contact lands
             for ci in range(nc):
                 if local.active[ci] and rest[ci] is None:
                     pin.framesForwardKinematics(self.motion.model, self.motion.data, local.q)
-                    rest[ci] = self.motion.data.oMf[robot.contact_frame_ids[ci]].copy()
+                    local_rest[ci] = self.motion.data.oMf[robot.contact_frame_ids[ci]].copy()
+                    if self.touchdown == "relaxed":  # where the foot is in the world: unloaded spring
+                        world_T_local = pin.SE3(_quat_to_R(y[:4] / np.linalg.norm(y[:4])), y[4:7].copy())
+                        rest[ci] = world_T_local * local_rest[ci]
+                    else:  # where the robot believes it is: preloaded by the flexibility's deflection
+                        rest[ci] = pin.SE3(local_rest[ci])
+                    episodes[ci] = {"contact": robot.contact_names[ci], "start": tk, "end": None,
+                                    "world_p": rest[ci].translation.tolist(), "world_R": rest[ci].rotation.tolist(),
+                                    "local_p": local_rest[ci].translation.tolist()}
                 elif not local.active[ci]:
+                    if episodes[ci] is not None:
+                        episodes[ci]["end"] = tk
+                        closed.append(episodes[ci])
+                        episodes[ci] = None
                     rest[ci] = None
+                    local_rest[ci] = None
             _, ev = deriv(tk, y, local, rest)
             qw = y[:4] / np.linalg.norm(y[:4])
             truth_R[k] = _quat_to_R(qw)
@@ -612,8 +748,8 @@ class Simulator:
             active[k] = local.active
             for ci in range(nc):
                 if rest[ci] is not None:
-                    rec_rest_p[k, ci] = rest[ci].translation
-                    rec_rest_R[k, ci] = rest[ci].rotation
+                    rec_rest_p[k, ci] = local_rest[ci].translation
+                    rec_rest_R[k, ci] = local_rest[ci].rotation
                 else:
                     # placement in the air: where the contact frame is in the local frame
                     pin.framesForwardKinematics(self.motion.model, self.motion.data, local.q)
@@ -641,14 +777,14 @@ class Simulator:
                     samples[k + 1].q, samples[k + 1].v, samples[k + 1].a, local.active)
                 t0 = tk + j * h
                 if amb is not None:
-                    disturbance = amb[k] + s0 * (amb[k + 1] - amb[k])
+                    disturbance = amb[k * sub + j]
                 k1, _ = deriv(t0, y, l0, rest)
                 if amb is not None:
-                    disturbance = amb[k] + (s0 + 0.5 / sub) * (amb[k + 1] - amb[k])
+                    disturbance = 0.5 * (amb[k * sub + j] + amb[k * sub + j + 1])
                 k2, _ = deriv(t0 + 0.5 * h, y + 0.5 * h * k1, lm, rest)
                 k3, _ = deriv(t0 + 0.5 * h, y + 0.5 * h * k2, lm, rest)
                 if amb is not None:
-                    disturbance = amb[k] + (s0 + 1.0 / sub) * (amb[k + 1] - amb[k])
+                    disturbance = amb[k * sub + j + 1]
                 k4, _ = deriv(t0 + h, y + h * k3, l1, rest)
                 y = y + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
                 y[:4] /= np.linalg.norm(y[:4])
@@ -659,6 +795,8 @@ class Simulator:
                 progress(k / (n - 1))
         if progress is not None:
             progress(1.0)
+        self.episodes = closed + [e for e in episodes if e is not None]
+        self.episodes.sort(key=lambda e: (e["start"], e["contact"]))
         return self._recording(times, samples, truth_R, truth, truth_wrench, truth_ext, truth_amb, links, ft_true,
                                gyro_true, accel_true, rec_rest_p, rec_rest_R, active)
 
@@ -710,7 +848,12 @@ class Simulator:
                           for k, v in robot.config.stiffness.__dict__.items()},
             "hidden_effects": [{"type": e.type, **e.params} for e in self.effects],
             "ambient": (None if self.ambient is None else
-                        {"sigma_linear_m_s2": self.ambient[0], "sigma_angular_rad_s2": self.ambient[1]}),
+                        {"sigma_linear_m_s2": self.ambient[0], "sigma_angular_rad_s2": self.ambient[1],
+                         "corner_hz": self.ambient_spec.corner, "scale": self.ambient_spec.scale}),
+            "touchdown": self.touchdown,
+            # Per contact episode: the spring's rest placement in the world (the true foothold)
+            # and the local placement the recording gives the estimators.
+            "contact_episodes": self.episodes,
         }
         return Recording(
             t_ns=np.arange(n, dtype=np.int64) * step_ns,

@@ -37,6 +37,38 @@ BUSY = {
 }
 
 
+def _params(spring) -> ph.ContactParams:
+    """The model's parameters for one of the simulator's springs (same matrices, same stiffening)."""
+    return ph.ContactParams(spring.K_fs, spring.K_fd, spring.K_ts, spring.K_td, spring.beta_f, spring.beta_t)
+
+
+def _foothold(rec, k: int, i: int):
+    """World rest placement (p, R) of contact ``i``'s spring at sample ``k``, from the recording's
+    contact episodes (the simulator's truth of each touch-down)."""
+    t = rec.time[k]
+    for ep in rec.meta["contact_episodes"]:
+        if ep["contact"] == rec.contact_names[i] and ep["start"] <= t + 1e-9 and (ep["end"] is None or t < ep["end"] - 1e-9):
+            return np.array(ep["world_p"]), np.array(ep["world_R"])
+    raise AssertionError(f"no episode of {rec.contact_names[i]} at {t} s")
+
+
+def _model_wrench(rec, k: int, i: int, params) -> np.ndarray:
+    """Eq. (6)-(12) at the truth of sample ``k``, for a spring anchored at the true foothold.
+
+    The model anchors a contact at its local placement p_l (rest = p_l in the world).  A foothold
+    (p_r, R_r) is the placement of p_l under the flexibility (R_f, t_f) the robot had when it
+    landed, so the model's law applies to the flexibility relative to it: R' = R R_f^T and
+    t' = t - R' t_f with the contact at p_r, R_r (same displacement, velocity and lever arm).
+    """
+    tr = rec.truth
+    p_r, R_r = _foothold(rec, k, i)
+    R_f = R_r @ rec.contact_R[k, i].T
+    t_f = p_r - R_f @ rec.contact_p[k, i]
+    R1 = tr.R[k] @ R_f.T
+    off = R1 @ t_f
+    return ph.contact_wrench(R1, tr.t[k] - off, tr.w[k], tr.v[k] - np.cross(tr.w[k], off), p_r, R_r, params)
+
+
 @pytest.fixture(scope="module", params=["romeo", "talos"])
 def busy(request):
     sc = Scenario.from_dict({**BUSY, "robot": request.param})
@@ -91,8 +123,7 @@ def test_contact_law_reproduces_ground_truth_wrenches(busy):
             if not rec.contact_active[k, i]:
                 np.testing.assert_array_equal(tr.wrench[k, i], 0.0)
                 continue
-            wr = ph.contact_wrench(tr.R[k], tr.t[k], tr.w[k], tr.v[k], rec.contact_p[k, i], rec.contact_R[k, i],
-                                   sim.contact_params[i])
+            wr = _model_wrench(rec, k, i, _params(sim.springs[i]))
             np.testing.assert_allclose(wr, tr.wrench[k, i], atol=1e-6 * np.abs(tr.wrench[k, i]).max())
 
 
@@ -112,9 +143,12 @@ def test_step_changes_contacts_without_jump_in_flexibility(busy):
         assert np.all(np.abs(dv) <= bound + 0.5 * dt * dt * 50.0), k
         dtr = tr.t[k] - tr.t[k - 1] - 0.5 * dt * (tr.v[k] + tr.v[k - 1])
         assert np.abs(dtr).max() < dt * dt * np.abs(tr.a[k - 1:k + 1]).max() + 1e-9
-    # The force does jump at touch-down: the landing spring starts from the tilted pose.
+    # The landing spring starts unloaded where the foot is (touchdown = "relaxed"): at the first
+    # contact sample its force is the damping of the foot's velocity alone (see test_touchdown_*).
     k = changes[1]
-    assert np.abs(tr.wrench[k, 1, 2]) > 0 and tr.wrench[k - 1, 1, 2] == 0.0
+    assert tr.wrench[k - 1, 1, 2] == 0.0
+    v_foot = np.cross(tr.w[k], tr.R[k] @ rec.contact_p[k, 1]) + tr.v[k]  # the foot lands at rest in the local frame
+    np.testing.assert_allclose(tr.wrench[k, 1, :3], -sim.springs[1].K_fd @ v_foot, atol=1e-9)
     # while in the air the contact's placement moves; the landing rest placement is where it landed
     np.testing.assert_allclose(rec.contact_p[-1, 1][:2] - rec.contact_p[0, 1][:2], [0.05, 0.0], atol=1e-9)
 
@@ -126,7 +160,7 @@ def test_statics_standing_still():
     rec = sim.run()
     tr = rec.truth
     m, g = rec.mass, rec.gravity
-    k_fs = sum(p.K_fs[0, 0] for p in sim.contact_params)
+    k_fs = sum(p.K_fs[0, 0] for p in sim.springs)
     np.testing.assert_allclose(tr.total_wrench[:, 2], m * g, rtol=1e-9)
     np.testing.assert_allclose(tr.total_wrench[:, :2], 0.0, atol=1e-9)
     np.testing.assert_allclose(tr.t[:, 2], -m * g / k_fs, rtol=1e-6)
@@ -167,7 +201,7 @@ def test_anisotropic_and_cubic_springs_match_the_contact_law():
     for k in range(0, rec.n, 5):
         for i in range(2):
             wr = ph.contact_wrench(tr.R[k], tr.t[k], tr.w[k], tr.v[k], rec.contact_p[k, i], rec.contact_R[k, i],
-                                   sim.contact_params[i])
+                                   _params(sim.springs[i]))
             np.testing.assert_allclose(wr, tr.wrench[k, i], atol=1e-6 * np.abs(tr.wrench[k, i]).max())
     nominal = [ph.contact_wrench(tr.R[k], tr.t[k], tr.w[k], tr.v[k], rec.contact_p[k, 0], rec.contact_R[k, 0],
                                  sim.robot.contact_params()[0]) for k in (rec.n - 1,)]
