@@ -160,7 +160,7 @@ class Swing:
                 (self.displacement * dds + ez * self.height * ddh) / T**2)
 
 
-TOUCHDOWN_MODES = ("relaxed", "deflected")
+TOUCHDOWN_MODES = ("floor", "relaxed", "deflected")
 
 
 def _number(where: str, key: str, value, unit: str, expect: str, ok) -> float:
@@ -333,13 +333,17 @@ class Scenario:
     ambient: bool | dict = True
     """The world's ambient disturbance: true (the default levels of :class:`Ambient`), false (none),
     or an ``[ambient]`` table of :class:`Ambient` fields."""
-    touchdown: str = "relaxed"
+    touchdown: str = "floor"
     """Rest placement of a landing contact's spring.  ``"relaxed"``: the contact's actual placement
     in the world at touch-down (the spring starts unloaded, no force jump).  ``"deflected"``: its
     placement in the local frame (the spring starts preloaded by the flexibility's deflection at
     that instant; the convention of the nominal model before footholds, kept as a mismatched case)."""
     walk: dict = field(default_factory=dict)
     """A ``[walk]`` table of :class:`Walk` fields; empty for none."""
+    posture: dict = field(default_factory=dict)
+    """Per robot, joint values (rad) overriding its reference posture for this scenario, e.g.
+    ``[posture.icub]`` with bent knees for a robot whose reference has straight legs (singular for
+    the legs' inverse kinematics)."""
     source: str = ""
 
     @classmethod
@@ -376,6 +380,11 @@ class Scenario:
         if sc.touchdown not in TOUCHDOWN_MODES:
             raise ConfigError(f"scenario {sc.name}: touchdown = {sc.touchdown!r}: expected one of {list(TOUCHDOWN_MODES)}")
         sc.ambient_spec()
+        for robot, joints in sc.posture.items():
+            if not isinstance(joints, dict):
+                raise ConfigError(f"scenario {sc.name}: posture.{robot} = {joints!r}: expected a table of joint = angle [rad]")
+            for joint, value in joints.items():
+                _number(f"scenario {sc.name}", f"posture.{robot}.{joint}", value, "rad", "a joint angle", lambda x: abs(x) < 10.0)
         sc.noise_scale("imu_noise")
         sc.noise_scale("ft_noise")
         if sc.walk:

@@ -36,6 +36,7 @@ The recording's contact placements are always the local-frame ones, the robot's 
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Callable
@@ -252,6 +253,13 @@ class LocalMotion:
                                  "the scenario asks for an unreachable placement")
         return q
 
+    def swing_at(self, ci: int, t: float):
+        """The swing of contact ``ci`` under way at ``t`` (lift <= t < land), or None."""
+        for i, sw in zip(self.swing_index, self.swings):
+            if i == ci and sw.lift <= t < sw.land:
+                return sw
+        return None
+
     def contact_targets(self, t: float):
         """Per contact: placement (SE3), LWA velocity and classical acceleration (6,), active flag."""
         n = len(self.fids)
@@ -381,6 +389,11 @@ class Simulator:
         if robot is None:
             robot = scenario.robot
         self.robot = robot if isinstance(robot, RobotModel) else RobotModel(robot)
+        posture = scenario.posture.get(self.robot.name)
+        if posture:  # the scenario's own reference posture for this robot
+            cfg = dataclasses.replace(self.robot.config,
+                                      reference_joints={**self.robot.config.reference_joints, **posture})
+            self.robot = RobotModel(cfg)
         self.noise = scenario.noise if noise is None else noise
         self.effects: list[HiddenEffect] = parse_effects(scenario.effects)
         cfg = self.robot.config
@@ -673,12 +686,83 @@ class Simulator:
                      "local_p": rest[ci].translation.tolist()} if rest[ci] is not None else None
                     for ci in range(nc)]
         closed = []
+        scheduled = [bool(a) for a in samples[0].active]
+        swinging = [None] * nc
+        releasing = [False] * nc
+        floor_mode = self.touchdown == "floor"
+        # The floor: the plane of the contacts in force at the start (z = 0 for the built-in robots).
+        floor_z = float(np.mean([M.translation[2] for M in rest if M is not None]))
+        # Each sole's normal to the floor, in its own frame (from the standing posture).
+        floor_normal = [M.rotation.T @ E_Z for M in self.motion.placements0]
+
+        def land(ci, t, y, q_local):
+            """Start a contact episode at ``t``: the spring's rest placement and the recorded one."""
+            model, data = self.motion.model, self.motion.data
+            fid = robot.contact_frame_ids[ci]
+            sw = swinging[ci]
+            # What the robot believes: where its foot is planned to land, in the local frame.
+            local_rest[ci] = (self.motion.contact_targets(sw.land)[0][ci] if sw is not None else
+                              (pin.framesForwardKinematics(model, data, q_local), data.oMf[fid].copy())[1])
+            if self.touchdown == "deflected":  # where the robot believes it is: preloaded by the deflection
+                rest[ci] = pin.SE3(local_rest[ci])
+            else:  # where the foot is in the world: the spring starts unloaded
+                pin.framesForwardKinematics(model, data, q_local)
+                world_T_local = pin.SE3(_quat_to_R(y[:4] / np.linalg.norm(y[:4])), y[4:7].copy())
+                rest[ci] = world_T_local * data.oMf[fid]
+                if floor_mode:  # the sole lies flat on the floor, at its height, with the foot's heading
+                    n_w = rest[ci].rotation @ floor_normal[ci]
+                    axis = np.cross(n_w, E_Z)
+                    angle = math.atan2(np.linalg.norm(axis), float(n_w @ E_Z))
+                    if angle > 0.0:
+                        rest[ci].rotation = pin.exp3(axis / np.linalg.norm(axis) * angle) @ rest[ci].rotation
+                    if rest[ci].translation[2] < floor_z:
+                        rest[ci].translation = np.array([*rest[ci].translation[:2], floor_z])
+            swinging[ci] = None
+            episodes[ci] = {"contact": robot.contact_names[ci], "start": float(t), "end": None,
+                            "world_p": rest[ci].translation.tolist(), "world_R": rest[ci].rotation.tolist(),
+                            "local_p": local_rest[ci].translation.tolist(),
+                            "above_floor": float(rest[ci].translation[2] - floor_z)}
+
+        def release(ci, t):
+            """End contact ``ci``'s episode at ``t``."""
+            if episodes[ci] is not None:
+                episodes[ci]["end"] = float(t)
+                closed.append(episodes[ci])
+                episodes[ci] = None
+            rest[ci] = None
+            local_rest[ci] = None
+            releasing[ci] = False
 
         def deriv(t, y, local, rest):
             qw = y[:4] / np.linalg.norm(y[:4])
             Rm = _quat_to_R(qw)
             ev = self.world_dynamics(t, Rm, y[4:7], y[7:10], y[10:13], local, rest, disturbance)
             return np.concatenate([_quat_rate(qw, y[7:10]), y[10:13], ev.dw, ev.a]), ev
+
+        def deriv_with_events(t, y, local):
+            """``deriv`` at the start of an integration step, after the floor's contact events: a
+            descending foot that reached the floor touches it; a lifting foot whose spring no
+            longer pushes (normal force <= 0) leaves it."""
+            if floor_mode:
+                R_f = None
+                for ci in range(nc):
+                    sw = swinging[ci]
+                    if rest[ci] is not None or sw is None or t < 0.5 * (sw.lift + sw.land):
+                        continue
+                    if R_f is None:
+                        R_f = _quat_to_R(y[:4] / np.linalg.norm(y[:4]))
+                        pin.framesForwardKinematics(self.motion.model, self.motion.data, local.q)
+                    M = self.motion.data.oMf[robot.contact_frame_ids[ci]]
+                    if (R_f @ M.translation + y[4:7])[2] <= floor_z:
+                        land(ci, t, y, local.q)
+            out = deriv(t, y, local, rest)
+            if floor_mode:
+                gone = [ci for ci in range(nc) if releasing[ci] and out[1].wrenches[ci, 2] <= 0.0]
+                for ci in gone:
+                    release(ci, t)
+                if gone:
+                    out = deriv(t, y, local, rest)
+            return out
 
         def local_at(k, s):
             if s == 0.0:
@@ -713,27 +797,18 @@ class Simulator:
             local = samples[k]
             if amb is not None:
                 disturbance = amb[k * sub]
-            # contact set for the interval starting at t_k: rest placement taken when a contact lands
+            # contact set for the interval starting at t_k (see the module documentation, Touch-down)
             for ci in range(nc):
-                if local.active[ci] and rest[ci] is None:
-                    pin.framesForwardKinematics(self.motion.model, self.motion.data, local.q)
-                    local_rest[ci] = self.motion.data.oMf[robot.contact_frame_ids[ci]].copy()
-                    if self.touchdown == "relaxed":  # where the foot is in the world: unloaded spring
-                        world_T_local = pin.SE3(_quat_to_R(y[:4] / np.linalg.norm(y[:4])), y[4:7].copy())
-                        rest[ci] = world_T_local * local_rest[ci]
-                    else:  # where the robot believes it is: preloaded by the flexibility's deflection
-                        rest[ci] = pin.SE3(local_rest[ci])
-                    episodes[ci] = {"contact": robot.contact_names[ci], "start": tk, "end": None,
-                                    "world_p": rest[ci].translation.tolist(), "world_R": rest[ci].rotation.tolist(),
-                                    "local_p": local_rest[ci].translation.tolist()}
-                elif not local.active[ci]:
-                    if episodes[ci] is not None:
-                        episodes[ci]["end"] = tk
-                        closed.append(episodes[ci])
-                        episodes[ci] = None
-                    rest[ci] = None
-                    local_rest[ci] = None
-            _, ev = deriv(tk, y, local, rest)
+                if local.active[ci] and rest[ci] is None:  # scheduled landing, not touched yet
+                    land(ci, tk, y, local.q)
+                elif not local.active[ci] and scheduled[ci]:  # the foot starts to lift
+                    swinging[ci] = self.motion.swing_at(ci, tk)
+                    if floor_mode:  # it leaves the floor when its spring is unloaded
+                        releasing[ci] = True
+                    else:
+                        release(ci, tk)
+                scheduled[ci] = bool(local.active[ci])
+            k1_sample, ev = deriv_with_events(tk, y, local)
             qw = y[:4] / np.linalg.norm(y[:4])
             truth_R[k] = _quat_to_R(qw)
             truth["t"][k] = y[4:7]
@@ -745,7 +820,7 @@ class Simulator:
             truth_ext[k] = ev.external
             truth_amb[k] = ev.ambient
             ft_true[k] = ev.local_wrenches
-            active[k] = local.active
+            active[k] = [M is not None for M in rest]
             for ci in range(nc):
                 if rest[ci] is not None:
                     rec_rest_p[k, ci] = local_rest[ci].translation
@@ -778,7 +853,7 @@ class Simulator:
                 t0 = tk + j * h
                 if amb is not None:
                     disturbance = amb[k * sub + j]
-                k1, _ = deriv(t0, y, l0, rest)
+                k1 = k1_sample if j == 0 else deriv_with_events(t0, y, l0)[0]
                 if amb is not None:
                     disturbance = 0.5 * (amb[k * sub + j] + amb[k * sub + j + 1])
                 k2, _ = deriv(t0 + 0.5 * h, y + 0.5 * h * k1, lm, rest)
