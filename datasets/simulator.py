@@ -757,8 +757,12 @@ class Simulator:
                         land(ci, t, y, local.q)
             out = deriv(t, y, local, rest)
             if floor_mode:
-                gone = [ci for ci in range(nc) if releasing[ci] and out[1].wrenches[ci, 2] <= 0.0]
+                # A foot still pushing a quarter into its swing is torn off the floor (a force step,
+                # kept in the episode): the floor cannot hold it, nor the robot drag it further.
+                gone = [ci for ci in range(nc) if releasing[ci] and (
+                    out[1].wrenches[ci, 2] <= 0.0 or t >= swinging[ci].lift + 0.25 * (swinging[ci].land - swinging[ci].lift))]
                 for ci in gone:
+                    episodes[ci]["release_force"] = [float(x) for x in out[1].wrenches[ci, :3]]
                     release(ci, t)
                 if gone:
                     out = deriv(t, y, local, rest)
