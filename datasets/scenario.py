@@ -36,8 +36,9 @@ A scenario is a TOML file (the built-in ones live in ``flexforce/datasets/scenar
     corner = 20.0            # Hz, band limit (second-order low-pass)
     scale = 3.0              # factor on the levels
 
-    touchdown = "relaxed"    # a landing contact's spring starts unloaded where the foot is in the
-                             # world; "deflected": its rest is its placement in the local frame
+    touchdown = "floor"      # a landing foot's spring starts unloaded where it reaches the floor;
+                             # "relaxed" (where it is at the scheduled landing) or "deflected"
+                             # (its rest is its placement in the local frame: a preload)
 
     [walk]                   # a walk: generates the [[base]] and [[swing]] items (see Walk)
     steps = 20; stride = 0.1; double_support = 0.8; single_support = 0.7
@@ -334,10 +335,12 @@ class Scenario:
     """The world's ambient disturbance: true (the default levels of :class:`Ambient`), false (none),
     or an ``[ambient]`` table of :class:`Ambient` fields."""
     touchdown: str = "floor"
-    """Rest placement of a landing contact's spring.  ``"relaxed"``: the contact's actual placement
-    in the world at touch-down (the spring starts unloaded, no force jump).  ``"deflected"``: its
-    placement in the local frame (the spring starts preloaded by the flexibility's deflection at
-    that instant; the convention of the nominal model before footholds, kept as a mismatched case)."""
+    """Rest placement (foothold) of a landing contact's spring (see :mod:`flexforce.datasets.simulator`).
+    ``"floor"``: where the descending foot reaches the floor, flat on it; contact from that instant,
+    lift-off when the spring stops pushing (no force jump at either).  ``"relaxed"``: the foot's
+    actual world placement at the scheduled landing (unloaded, but footholds inherit the body's
+    tilt).  ``"deflected"``: its placement in the local frame (the spring starts preloaded by the
+    flexibility's deflection; a mismatched case)."""
     walk: dict = field(default_factory=dict)
     """A ``[walk]`` table of :class:`Walk` fields; empty for none."""
     posture: dict = field(default_factory=dict)

@@ -25,12 +25,29 @@ statics; its ambient disturbance, its sensor noise and its touch-down rule are p
 scenario (:class:`flexforce.datasets.scenario.Ambient`, ``[imu_noise]``, ``touchdown``).
 
 Touch-down.  A contact's spring acts between the contact frame's actual world placement and a
-rest placement fixed for the contact episode.  With ``touchdown = "relaxed"`` (the default) the
-rest is the contact frame's world placement at the instant it lands, so the spring starts
-unloaded and the force rises from zero (plus damping).  With ``"deflected"`` the rest is the
-contact's placement in the local frame read as a world placement: the landing foot is pulled from
-where it is to where the robot believes it is, a force step of ``K (world - local placement)``.
-The recording's contact placements are always the local-frame ones, the robot's belief.
+rest placement (the foothold) fixed for the contact episode; ``meta["contact_episodes"]`` lists
+every episode with its foothold in the world.  Three conventions (``Scenario.touchdown``):
+
+- ``"floor"`` (the default): the floor is the plane of the feet at the start.  A swinging foot
+  touches it at the first integration instant of its descent (second half of the swing) at which
+  it reaches the floor, or at its scheduled landing at the latest; its foothold is where it
+  touches, flat on the floor with the foot's heading.  The spring starts with no deflection but
+  the sole's tilt (the body's tilt at that instant, taken by the ankle's rotational spring): no
+  force jump, the force rising as the robot keeps moving its foot down as planned.  A lifting
+  foot leaves the floor when its spring no longer pushes (vertical force <= 0), or a quarter into
+  its swing at the latest (the episode keeps the force it was torn off with).  The recording's
+  contact flags are the truth's, as a perfect contact detector would give them.
+- ``"relaxed"``: at the scheduled landing, wherever the foot is in the world, sole tilt included:
+  the spring starts fully unloaded.  Each foothold inherits the body's tilt and sinking at its
+  touch-down, so an open-loop walk drifts (measured on 4 steps of Romeo: foothold tilts 1.9, 5.5,
+  13 and 29 deg); kept for short single steps.
+- ``"deflected"``: the rest is the contact's placement in the local frame read as a world
+  placement: the landing foot is pulled from where it is to where the robot believes it is, a
+  force step of ``K_fs (world - local placement)`` -- the convention of a model that freezes
+  footholds from its own belief, kept as the mismatched case.
+
+The recording's contact placements are always the local-frame ones, the robot's belief: where it
+planned the foot to land.
 """
 
 from __future__ import annotations
