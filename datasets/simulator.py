@@ -39,8 +39,9 @@ every episode with its foothold in the world.  Three conventions (``Scenario.tou
   contact flags are the truth's, as a perfect contact detector would give them.
 - ``"relaxed"``: at the scheduled landing, wherever the foot is in the world, sole tilt included:
   the spring starts fully unloaded.  Each foothold inherits the body's tilt and sinking at its
-  touch-down, so an open-loop walk drifts (measured on 4 steps of Romeo: foothold tilts 1.9, 5.5,
-  13 and 29 deg); kept for short single steps.
+  touch-down, so an open-loop walk drifts (measured on 4 steps of Romeo with 0.7 s weight
+  shifts: footholds 12, -14, 44 and -106 mm off the floor, body tilt up to 63 deg); kept for
+  single steps.
 - ``"deflected"``: the rest is the contact's placement in the local frame read as a world
   placement: the landing foot is pulled from where it is to where the robot believes it is, a
   force step of ``K_fs (world - local placement)`` -- the convention of a model that freezes
