@@ -304,11 +304,13 @@ class Walk:
         for i in range(self.steps):
             foot, stance = (self.first, self.other) if i % 2 == 0 else (self.other, self.first)
             t0 = self.start + i * period
-            base.append({"toward": stance, "fraction": self.shift, "start": t0, "duration": self.double_support})
+            base.append({"toward": stance, "fraction": self.shift, "start": t0, "duration": self.double_support,
+                         "horizontal": True})
             length = 0.5 * self.stride if i in (0, self.steps - 1) else self.stride
             swing.append({"contact": foot, "lift": t0 + self.double_support, "land": t0 + period,
                           "displacement": [length, 0.0, 0.0], "height": self.height})
-        base.append({"toward": "middle", "start": self.start + self.steps * period, "duration": self.settle})
+        base.append({"toward": "middle", "start": self.start + self.steps * period, "duration": self.settle,
+                     "horizontal": True})
         return base, swing
 
 

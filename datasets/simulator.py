@@ -196,18 +196,60 @@ class LocalMotion:
             if any(iv in lv for lv in self.leg_v):
                 raise ConfigError(f"joint '{name}' belongs to a leg; legs follow the contacts, move the base instead")
             self.joint_segments.append((iq, iv, seg))
-        base_segments = scenario.segments(self._resolve_toward(scenario.base_items()), robot.name, 3)
         self.base_segments = []
-        com_map = None
-        for target, seg in base_segments:
-            if target == "com":
-                if com_map is None:
-                    com_map = np.linalg.inv(self._com_jacobian())
-                seg = type(seg)(seg.kind, seg.start, seg.duration, com_map @ seg.value, seg.frequency, seg.ramp)
-            elif target not in (None, "base"):
-                raise ConfigError(f"base segment target must be 'base' or 'com', got '{target}'")
-            self.base_segments.append(seg)
         self._q_guess = self.q_ref.copy()
+        self._com_maps = None
+        for item in self._resolve_toward(scenario.base_items()):
+            if item.get("horizontal"):
+                item = self._walk_shift(item)
+            for target, seg in scenario.segments([item], robot.name, 3):
+                if target in ("com", "com-horizontal"):
+                    full, horizontal = self._com_map()
+                    value = (full if target == "com" else horizontal) @ seg.value
+                    seg = type(seg)(seg.kind, seg.start, seg.duration, value, seg.frequency, seg.ramp)
+                elif target not in (None, "base"):
+                    raise ConfigError(f"base segment target must be 'base' or 'com', got '{target}'")
+                self.base_segments.append(seg)
+        self._q_guess = self.q_ref.copy()
+
+    def _com_map(self):
+        """Pelvis translation per CoM translation with the contacts held: the full 3x3 map, and the
+        horizontal one that keeps the pelvis's height."""
+        if self._com_maps is None:
+            J = self._com_jacobian()
+            horizontal = np.zeros((3, 3))
+            horizontal[:2, :2] = np.linalg.inv(J[:2, :2])
+            self._com_maps = (np.linalg.inv(J), horizontal)
+        return self._com_maps
+
+    def _walk_shift(self, item: dict) -> dict:
+        """A walk's weight shift: the CoM moves horizontally by ``fraction`` of the way from where
+        it actually is at the shift's start (the motion so far, exact) to the stance foot (or the
+        middle of the feet); the pelvis keeps its height.
+
+        Walking carries the feet along, so a map linearised with the feet held drifts with the
+        distance walked (measured on Romeo with the full map and estimated CoM: the pelvis 15 mm
+        higher and 3 cm ahead of the CoM after 0.6 m, the legs out of reach at 0.7 m); starting
+        each shift from the actual CoM keeps the error to one shift's linearisation.
+        """
+        item = dict(item)
+        toward = item.pop("toward")
+        fraction = float(item.pop("fraction", 1.0))
+        item.pop("horizontal")
+        start = float(item.get("start", 0.0))
+        q = self.sample(start).q
+        com = pin.centerOfMass(self.model, self.data, q)
+        placements = self.contact_targets(start)[0]
+        names = self.robot.contact_names
+        if toward == "middle":
+            goal = np.mean([M.translation for M in placements], axis=0)
+        elif toward in names:
+            goal = placements[names.index(toward)].translation
+        else:
+            raise ConfigError(f"base segment toward '{toward}': expected 'middle' or one of {list(names)}")
+        item.update(offset=[fraction * (goal[0] - com[0]), fraction * (goal[1] - com[1]), 0.0],
+                    target="com-horizontal", kind="step")
+        return item
 
     # ------------------------------------------------------------------------------------------
     def _resolve_toward(self, items: list[dict]) -> list[dict]:
@@ -221,6 +263,9 @@ class LocalMotion:
         names = self.robot.contact_names
         for item in sorted(items, key=lambda it: it.get("start", 0.0)):
             item = dict(item)
+            if item.get("horizontal"):  # resolved from the actual motion (_walk_shift)
+                out.append(item)
+                continue
             toward = item.pop("toward", None)
             fraction = float(item.pop("fraction", 1.0))
             if toward is not None:
