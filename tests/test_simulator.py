@@ -342,3 +342,25 @@ def test_floor_lift_off_unloads_the_foot(one_step):
     assert ep["release_force"][2] < 0.5 * at_lift  # measured 0.21
     # the recording's contact flags are the truth's: the estimators see when the foot is down
     np.testing.assert_array_equal(rec.contact_active[:, 1], np.abs(tr.wrench[:, 1]).max(axis=1) > 0)
+
+
+def test_simulator_imports_no_estimator_code():
+    """The truth shares no code with what it tests: no import of flexforce.factors, smoother or
+    compare in the simulator, its scenarios and hidden effects."""
+    import ast
+    from pathlib import Path
+
+    import flexforce.datasets.simulator as simulator
+
+    folder = Path(simulator.__file__).parent
+    for name in ("simulator.py", "scenario.py", "effects.py"):
+        tree = ast.parse((folder / name).read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom):
+                modules = [node.module or ""]
+            elif isinstance(node, ast.Import):
+                modules = [a.name for a in node.names]
+            else:
+                continue
+            for m in modules:
+                assert not m.startswith(("flexforce.factors", "flexforce.smoother", "flexforce.compare")), (name, m)
