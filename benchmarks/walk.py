@@ -32,10 +32,10 @@ from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
-
 from flexforce.compare.metrics import chi2_mean_bounds, nees_series, state_error
 from flexforce.datasets.scenario import Scenario
 from flexforce.datasets.simulator import Simulator
+
 from flexforce.estimators import run_estimator
 
 RESULTS = Path(__file__).resolve().parent / "results"

@@ -16,10 +16,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from flexforce.compare.metrics import chi2_mean_bounds, nees_series, state_error
 from flexforce.datasets.scenario import Scenario
 from flexforce.datasets.simulator import Simulator
+
 from flexforce.estimators import run_estimator
 
 SKIP = 0.5  # s, start-up excluded from the figures

@@ -10,13 +10,13 @@ import math
 
 import numpy as np
 import pytest
-from scipy import signal
-
 from flexforce.datasets.robot import RobotConfig
 from flexforce.datasets.scenario import Scenario, Walk
 from flexforce.datasets.simulator import Simulator
-from flexforce.errors import ConfigError
 from flexforce.factors.model import ModelConfig
+from scipy import signal
+
+from flexforce.errors import ConfigError
 
 
 @pytest.mark.parametrize("raw, match", [

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 import pytest
-
 from flexforce.datasets.scenario import Scenario
 from flexforce.datasets.simulator import Simulator
+
 from flexforce.estimators import run_estimator
 
 
@@ -18,7 +18,7 @@ def walk_short():
 
 
 def test_walk_short_steps_forward(walk_short):
-    sim, rec = walk_short
+    _, rec = walk_short
     active = rec.contact_active
     lands = [(k, int(np.flatnonzero(active[k] & ~active[k - 1])[0])) for k in range(1, rec.n)
              if np.any(active[k] & ~active[k - 1])]
@@ -58,6 +58,6 @@ def test_walk_short_flexibility_is_bounded(walk_short):
 
 
 def test_estimators_go_through_walk_short(walk_short):
-    sim, rec = walk_short
+    _, rec = walk_short
     est = run_estimator("ekf", rec)
     assert np.all(np.isfinite(est.t)) and np.all(np.isfinite(est.wrench))
