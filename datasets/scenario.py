@@ -148,12 +148,19 @@ class Swing:
     land: float
     displacement: np.ndarray
     height: float = 0.03
+    travel: tuple = (0.0, 1.0)
+    """Fractions of the swing between which the foot moves horizontally (minimum jerk); before and
+    after, it only rises and descends.  A walk travels in the middle half, (0.25, 0.75): a foot that
+    touches the floor before its planned landing (the stance leg sinking) or leaves it after its
+    planned lift (its spring still pushing) is then not dragged along the floor."""
 
     def __call__(self, t: float):
         """Displacement of the contact from its initial placement, with derivatives."""
         T = self.land - self.lift
         tau = (t - self.lift) / T
-        s, ds, dds = minjerk(tau)
+        a, b = self.travel
+        s, ds, dds = minjerk((tau - a) / (b - a))
+        ds, dds = ds / (b - a), dds / (b - a) ** 2
         h, dh, ddh = bump(tau)
         ez = np.array([0.0, 0.0, 1.0])
         return (self.displacement * s + ez * self.height * h,
@@ -261,6 +268,8 @@ class Walk:
     """The first swinging foot."""
     other: str = "left_foot"
     """The other foot."""
+    travel: tuple = (0.25, 0.75)
+    """Fractions of each swing between which the foot moves forward (see :class:`Swing`)."""
 
     @classmethod
     def parse(cls, raw, where: str) -> "Walk":
@@ -284,6 +293,14 @@ class Walk:
                 ("settle", "s", "a positive duration", lambda x: x > 0.0)):
             if key in raw:
                 out[key] = _number(where, f"walk.{key}", raw[key], unit, expect, ok)
+        if "travel" in raw:
+            tr = raw["travel"]
+            if (not isinstance(tr, (list, tuple)) or len(tr) != 2
+                    or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in tr)
+                    or not 0.0 <= tr[0] < tr[1] <= 1.0):
+                raise ConfigError(f"{where}: walk.travel = {tr!r} (fractions of the swing): "
+                                  "expected [start, end] with 0 <= start < end <= 1")
+            out["travel"] = (float(tr[0]), float(tr[1]))
         for key in ("first", "other"):
             if key in raw and not isinstance(raw[key], str):
                 raise ConfigError(f"{where}: walk.{key} = {raw[key]!r}: expected a contact name")
@@ -308,7 +325,7 @@ class Walk:
                          "horizontal": True})
             length = 0.5 * self.stride if i in (0, self.steps - 1) else self.stride
             swing.append({"contact": foot, "lift": t0 + self.double_support, "land": t0 + period,
-                          "displacement": [length, 0.0, 0.0], "height": self.height})
+                          "displacement": [length, 0.0, 0.0], "height": self.height, "travel": list(self.travel)})
         base.append({"toward": "middle", "start": self.start + self.steps * period, "duration": self.settle,
                      "horizontal": True})
         return base, swing
@@ -463,9 +480,13 @@ class Scenario:
             item = dict(item)
             try:
                 disp = np.asarray(item.pop("displacement", [0.0, 0.0, 0.0]), dtype=float)
-                sw = Swing(displacement=disp, **item)
-            except TypeError as err:
+                travel = tuple(float(x) for x in item.pop("travel", (0.0, 1.0)))
+                sw = Swing(displacement=disp, travel=travel, **item)
+            except (TypeError, ValueError) as err:
                 raise ConfigError(f"bad swing {item}: {err}") from err
+            if len(sw.travel) != 2 or not 0.0 <= sw.travel[0] < sw.travel[1] <= 1.0:
+                raise ConfigError(f"swing of {sw.contact}: travel = {list(sw.travel)} (fractions of the swing): "
+                                  "expected [start, end] with 0 <= start < end <= 1")
             if sw.land <= sw.lift:
                 raise ConfigError(f"swing of {sw.contact}: land ({sw.land} s) must come after lift ({sw.lift} s)")
             out.append(sw)
