@@ -409,6 +409,7 @@ class Scenario:
                 _number(f"scenario {sc.name}", f"posture.{robot}.{joint}", value, "rad", "a joint angle", lambda x: abs(x) < 10.0)
         sc.noise_scale("imu_noise")
         sc.noise_scale("ft_noise")
+        sc.swings()
         if sc.walk:
             walk = sc.walk_spec()
             if walk.end > sc.duration:

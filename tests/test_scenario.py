@@ -34,10 +34,32 @@ from flexforce.errors import ConfigError
     ({"walk": {"pace": 1}}, r"unknown key\(s\) \['pace'\] in \[walk\]"),
     ({"walk": {"steps": 20}}, r"duration = 5.0 s: expected at least the walk's end \(32.5 s"),
     ({"posture": {"icub": {"l_knee": "bent"}}}, r"posture.icub.l_knee = 'bent' rad"),
+    ({"walk": {"travel": [0.8, 0.2]}},
+     r"walk.travel = \[0.8, 0.2\] \(fractions of the swing\): expected \[start, end\] with 0 <= start < end <= 1"),
+    ({"swing": [{"contact": "right_foot", "lift": 1.0, "land": 2.0, "travel": [0.5, 1.5]}]},
+     r"swing of right_foot: travel = \[0.5, 1.5\] \(fractions of the swing\)"),
 ])
 def test_bad_scenario_input_is_named(raw, match):
     with pytest.raises(ConfigError, match=match):
         Scenario.from_dict({"name": "bad", "duration": 5.0, **raw})
+
+
+def test_swing_travels_in_the_middle():
+    sc = Scenario.from_dict({"name": "s", "duration": 3.0, "swing": [
+        {"contact": "right_foot", "lift": 1.0, "land": 2.0, "displacement": [0.1, 0.0, 0.0], "travel": [0.25, 0.75]}]})
+    sw = sc.swings()[0]
+    for t in (1.0, 1.1, 1.25):  # lifting: no horizontal motion yet
+        d, v, a = sw(t)
+        assert d[0] == 0.0 and v[0] == 0.0 and a[0] == 0.0
+    assert sw(1.5)[0][0] == pytest.approx(0.05)
+    for t in (1.75, 1.9, 2.0):  # descending: arrived
+        d, v, a = sw(t)
+        assert d[0] == pytest.approx(0.1) and v[0] == 0.0 and a[0] == 0.0
+    # velocity and acceleration are the derivatives of the displacement (central differences)
+    h = 1e-5
+    for t in (1.3, 1.5, 1.7):
+        np.testing.assert_allclose(sw(t)[1], (sw(t + h)[0] - sw(t - h)[0]) / (2 * h), atol=1e-6)
+        np.testing.assert_allclose(sw(t)[2], (sw(t + h)[1] - sw(t - h)[1]) / (2 * h), atol=1e-4)
 
 
 def test_walk_alternates_single_and_double_support():
