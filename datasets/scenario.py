@@ -185,14 +185,18 @@ def _number(where: str, key: str, value, unit: str, expect: str, ok) -> float:
 @dataclass(frozen=True)
 class Ambient:
     """The world's ambient disturbance: what no model holds (floor vibration, cable pulls, air,
-    servo chatter), as a random acceleration of the flexibility produced by a wrench on the base
-    through the simulated robot's own inertia (pinocchio's CRBA).  Gaussian, independent per axis.
+    servo chatter).  ``kind = "acceleration"`` (default): a random acceleration of the flexibility,
+    produced by a wrench on the base through the simulated robot's own inertia (pinocchio's CRBA);
+    ``kind = "wrench"``: a random force and torque on the base (world axes, torque about the base
+    origin), whatever acceleration they cause.  Gaussian, independent per axis.
 
     It is a property of the simulated world, written in the scenario; the estimators know nothing
     of it beyond their own process-noise assumption.
     """
 
     enabled: bool = True
+    kind: str = "acceleration"
+    """``acceleration`` (levels ``linear``, ``angular``) or ``wrench`` (levels ``force``, ``torque``)."""
     linear: float | None = None
     """RMS linear acceleration per axis, m/s^2.  Default: the accelerometer's white noise of the
     robot configuration at the recording rate (``accel_density * sqrt(rate)``): a world shaken at
@@ -205,6 +209,10 @@ class Ambient:
     """Band limit, Hz.  None: white at the recording's samples and linear in between (a flat
     spectrum up to the recording's Nyquist frequency).  Else white at the integration rate through
     a second-order Butterworth low-pass with this corner, scaled so that the RMS is the level."""
+    force: float | None = None
+    """RMS force per axis on the base, N (``kind = "wrench"``, required)."""
+    torque: float | None = None
+    """RMS torque per axis on the base, N m (``kind = "wrench"``, required)."""
     scale: float = 1.0
     """Factor on both levels (3 gives the mismatched case "ambient x3")."""
 
@@ -215,15 +223,27 @@ class Ambient:
         if not isinstance(raw, dict):
             raise ConfigError(f"{where}: ambient = {raw!r}: expected true, false or a table "
                               "with linear [m/s^2], angular [rad/s^2], corner [Hz], scale")
-        known = {"enabled", "linear", "angular", "corner", "scale"}
+        known = {"enabled", "kind", "linear", "angular", "force", "torque", "corner", "scale"}
         unknown = set(raw) - known
         if unknown:
             raise ConfigError(f"{where}: unknown key(s) {sorted(unknown)} in [ambient]; known: {sorted(known)}")
         enabled = raw.get("enabled", True)
         if not isinstance(enabled, bool):
             raise ConfigError(f"{where}: ambient.enabled = {enabled!r}: expected true or false")
-        out = {"enabled": enabled}
-        for key, unit in (("linear", "m/s^2"), ("angular", "rad/s^2")):
+        kind = raw.get("kind", "acceleration")
+        if kind not in ("acceleration", "wrench"):
+            raise ConfigError(f"{where}: ambient.kind = {kind!r}: expected 'acceleration' or 'wrench'")
+        out = {"enabled": enabled, "kind": kind}
+        levels = (("linear", "m/s^2"), ("angular", "rad/s^2")) if kind == "acceleration" else (("force", "N"), ("torque", "N m"))
+        for key in ({"linear", "angular", "force", "torque"} - {k for k, _ in levels}) & set(raw):
+            raise ConfigError(f"{where}: ambient.{key} does not apply to kind = {kind!r}; "
+                              f"its levels are {', '.join(k for k, _ in levels)}")
+        if kind == "wrench":
+            for key, unit in levels:
+                if raw.get(key) is None:
+                    raise ConfigError(f"{where}: ambient.{key} is missing: a wrench disturbance needs an RMS "
+                                      f"{key} per axis [{unit}]")
+        for key, unit in levels:
             if raw.get(key) is not None:
                 out[key] = _number(where, f"ambient.{key}", raw[key], unit, "a non-negative RMS level",
                                    lambda x: x >= 0.0)

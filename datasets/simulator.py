@@ -524,7 +524,10 @@ class Simulator:
         model.inertias[j] = pin.Inertia(Y.mass, Y.lever + shift, Y.inertia)
 
     def _ambient_levels(self, spec: Ambient) -> tuple[float, float]:
-        """RMS (linear m/s^2, angular rad/s^2) of the ambient acceleration (defaults: see Ambient)."""
+        """RMS (linear m/s^2, angular rad/s^2) of the ambient acceleration (defaults: see Ambient),
+        or (force N, torque N m) of the ambient wrench."""
+        if spec.kind == "wrench":
+            return spec.scale * spec.force, spec.scale * spec.torque
         model = self.robot.model
         data = model.createData()
         pin.framesForwardKinematics(model, data, self.robot.q_reference)
@@ -536,7 +539,8 @@ class Simulator:
         return spec.scale * linear, spec.scale * angular
 
     def _ambient_table(self, n: int, sub: int) -> np.ndarray | None:
-        """((n - 1) sub + 1, 6) ambient acceleration (dw rad/s^2, a m/s^2) at the integration instants.
+        """((n - 1) sub + 1, 6) ambient acceleration (dw rad/s^2, a m/s^2), or wrench (torque N m
+        about the base origin, force N; world axes), at the integration instants.
 
         Without a corner: white at the samples, linear in between (a continuous acceleration).
         With one: white at the integration rate through a second-order Butterworth low-pass
@@ -593,7 +597,8 @@ class Simulator:
             local: the robot's local-frame q, v, a at ``t``.
             rest: per contact, its rest placement (SE3) when in contact, else None.
             disturbance: (6,) ambient flexibility acceleration (dw rad/s^2, a m/s^2) to produce with an
-                external wrench on the base, or None.
+                external wrench on the base, or with ``Ambient.kind == "wrench"`` the wrench itself
+                (torque N m about the base origin, force N; world axes); None for none.
         """
         model, data = self.sim_model, self.sim_data
         ql, vl, al = local.q, local.v, local.a
@@ -654,7 +659,12 @@ class Simulator:
         Mfull = pin.crba(model, data, q_w)
         Mbb = np.triu(Mfull[:6, :6]) + np.triu(Mfull[:6, :6], 1).T
         f_b = np.concatenate([R_b.T @ F_sum, R_b.T @ M_sum])
-        if disturbance is not None:
+        if disturbance is not None and self.ambient_spec.kind == "wrench":
+            T_d, F_d = disturbance[:3], disturbance[3:]  # world axes, torque about the base origin
+            f_dist = np.concatenate([R_b.T @ F_d, R_b.T @ T_d])
+            ambient = np.concatenate([F_d, T_d + _cross(p_b, F_d)])
+            f_b = f_b + f_dist
+        elif disturbance is not None:
             # The base acceleration that moves the flexibility by the disturbance, and the wrench
             # on the base (pinocchio's inertia) that produces it.
             ddw = disturbance[:3]
@@ -990,8 +1000,11 @@ class Simulator:
                           for k, v in robot.config.stiffness.__dict__.items()},
             "hidden_effects": [{"type": e.type, **e.params} for e in self.effects],
             "ambient": (None if self.ambient is None else
-                        {"sigma_linear_m_s2": self.ambient[0], "sigma_angular_rad_s2": self.ambient[1],
-                         "corner_hz": self.ambient_spec.corner, "scale": self.ambient_spec.scale}),
+                        ({"sigma_linear_m_s2": self.ambient[0], "sigma_angular_rad_s2": self.ambient[1]}
+                         if self.ambient_spec.kind == "acceleration" else
+                         {"sigma_force_N": self.ambient[0], "sigma_torque_Nm": self.ambient[1]})
+                        | {"kind": self.ambient_spec.kind, "corner_hz": self.ambient_spec.corner,
+                           "scale": self.ambient_spec.scale}),
             "touchdown": self.touchdown,
             # Per contact episode: the spring's rest placement in the world (the true foothold)
             # and the local placement the recording gives the estimators.

@@ -26,6 +26,10 @@ from flexforce.errors import ConfigError
     ({"ambient": {"scale": -3}}, r"ambient.scale = -3 \(factor\): expected a non-negative factor"),
     ({"ambient": {"level": 1.0}}, r"unknown key\(s\) \['level'\] in \[ambient\]"),
     ({"ambient": "loud"}, r"ambient = 'loud': expected true, false or a table"),
+    ({"ambient": {"kind": "wind"}}, r"ambient.kind = 'wind': expected 'acceleration' or 'wrench'"),
+    ({"ambient": {"kind": "wrench", "force": 5.0}}, r"ambient.torque is missing: .* \[N m\]"),
+    ({"ambient": {"kind": "wrench", "force": 5.0, "torque": 1.0, "linear": 0.1}},
+     r"ambient.linear does not apply to kind = 'wrench'"),
     ({"touchdown": "soft"}, r"touchdown = 'soft': expected one of \['floor', 'relaxed', 'deflected'\]"),
     ({"imu_noise": {"scale": 0.0 - 2}}, r"imu_noise.scale = -2.0 \(factor\)"),
     ({"walk": {"steps": 0}}, r"walk.steps = 0: expected a whole number of swings, at least 1"),
@@ -139,3 +143,30 @@ def test_band_limited_ambient_has_its_level_and_corner():
     p = pxx.mean(axis=1)
     low = p[(f > 0.5) & (f < 5.0)].mean()
     assert p[(f > 40.0) & (f < 60.0)].mean() < 0.01 * low  # second order: (10/50)^4 = 1.6e-3
+
+
+@pytest.mark.parametrize("ambient", [{"scale": 3.0}, {"kind": "wrench", "force": 4.0, "torque": 0.5, "corner": 20.0}])
+def test_ambient_disturbance_is_the_missing_wrench(ambient):
+    """The truth's ambient wrench is what Newton-Euler (eq. 16, 23, written independently of the
+    simulator) misses on the ground truth: with it, the residual vanishes."""
+    from flexforce.factors import physics as ph
+
+    sc = Scenario.from_dict({"name": "amb", "duration": 0.5, "ambient": ambient})
+    sim = Simulator(sc)
+    rec = sim.run()
+    tr = rec.truth
+    if ambient.get("kind") == "wrench":  # the wrench on the base is the table itself
+        table = sim._ambient_table(rec.n, 5)[::5]
+        np.testing.assert_allclose(tr.ambient_wrench[:, :3], table[:, 3:], atol=1e-12)
+        assert rec.meta["ambient"]["sigma_force_N"] == 4.0
+    m, g = rec.mass, rec.gravity
+    h = rec.com[0, 2]
+    for k in range(0, rec.n, 10):
+        res = ph.newton_euler_residual(tr.R[k], tr.t[k], tr.w[k], tr.v[k], tr.dw[k], tr.a[k],
+                                       tr.total_wrench[k] + tr.disturbance_wrench[k], rec.inputs(k), g)
+        assert np.abs(res[:3]).max() < 1e-7 * m * g
+        assert np.abs(res[3:]).max() < 1e-7 * m * g * h
+        # without it, the residual is the ambient wrench
+        miss = ph.newton_euler_residual(tr.R[k], tr.t[k], tr.w[k], tr.v[k], tr.dw[k], tr.a[k],
+                                        tr.total_wrench[k], rec.inputs(k), g)
+        np.testing.assert_allclose(miss, res + tr.ambient_wrench[k], atol=1e-9)
