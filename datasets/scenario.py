@@ -9,6 +9,9 @@ A scenario is a TOML file (the built-in ones live in ``flexforce/datasets/scenar
     rate = 200.0             # Hz, sampling of the recording
     sim_rate = 1000.0        # Hz, integration (a multiple of rate)
     seed = 0                 # noise seed
+    touchdown = "floor"      # a landing foot's spring starts unloaded where it reaches the floor;
+                             # "relaxed" (where it is at the scheduled landing) or "deflected"
+                             # (its rest is its placement in the local frame: a preload)
 
     [[base]]                 # pelvis motion in the local frame, summed over segments (m)
     kind = "step"            # "step" (minimum-jerk transition) or "sine" (smooth envelope)
@@ -23,6 +26,7 @@ A scenario is a TOML file (the built-in ones live in ``flexforce/datasets/scenar
 
     [[swing]]                # a contact lifts at `lift`, moves by `displacement` and lands at `land`
     contact = "right_foot"; lift = 2.0; land = 2.8; displacement = [0.1, 0.0, 0.0]; height = 0.03
+    travel = [0.25, 0.75]    # fractions of the swing with horizontal motion (default [0, 1])
 
     [[effects]]              # hidden effects, see flexforce.datasets.effects
     type = "external-wrench"; link = "@base"; force = [40.0, 0.0, 0.0]; start = 1.0; duration = 0.2
@@ -34,14 +38,13 @@ A scenario is a TOML file (the built-in ones live in ``flexforce/datasets/scenar
     [ambient]                # ambient disturbance of the world (see Ambient); ``ambient = false`` removes it
     linear = 0.055           # m/s^2, RMS linear acceleration of the flexibility
     corner = 20.0            # Hz, band limit (second-order low-pass)
-    scale = 3.0              # factor on the levels
-
-    touchdown = "floor"      # a landing foot's spring starts unloaded where it reaches the floor;
-                             # "relaxed" (where it is at the scheduled landing) or "deflected"
-                             # (its rest is its placement in the local frame: a preload)
+    scale = 3.0              # factor on the levels (kind = "wrench": force [N], torque [N m])
 
     [walk]                   # a walk: generates the [[base]] and [[swing]] items (see Walk)
-    steps = 20; stride = 0.1; double_support = 0.8; single_support = 0.7
+    steps = 20; stride = 0.1; double_support = 1.4; single_support = 0.8
+
+    [posture.icub]           # this robot's reference posture for the scenario (rad)
+    l_knee = -0.7
 
 The noise sections describe the simulated sensors only: the estimators take their noise model
 from the robot configuration, so a scenario that changes it is a mismatched case.
