@@ -9,6 +9,9 @@ A scenario is a TOML file (the built-in ones live in ``flexforce/datasets/scenar
     rate = 200.0             # Hz, sampling of the recording
     sim_rate = 1000.0        # Hz, integration (a multiple of rate)
     seed = 0                 # noise seed
+    touchdown = "floor"      # a landing foot's spring starts unloaded where it reaches the floor;
+                             # "relaxed" (where it is at the scheduled landing) or "deflected"
+                             # (its rest is its placement in the local frame: a preload)
 
     [[base]]                 # pelvis motion in the local frame, summed over segments (m)
     kind = "step"            # "step" (minimum-jerk transition) or "sine" (smooth envelope)
@@ -23,12 +26,28 @@ A scenario is a TOML file (the built-in ones live in ``flexforce/datasets/scenar
 
     [[swing]]                # a contact lifts at `lift`, moves by `displacement` and lands at `land`
     contact = "right_foot"; lift = 2.0; land = 2.8; displacement = [0.1, 0.0, 0.0]; height = 0.03
+    travel = [0.25, 0.75]    # fractions of the swing with horizontal motion (default [0, 1])
 
     [[effects]]              # hidden effects, see flexforce.datasets.effects
     type = "external-wrench"; link = "@base"; force = [40.0, 0.0, 0.0]; start = 1.0; duration = 0.2
 
-    [imu_noise]              # overrides of the robot's noise model (same keys as ImuNoise)
-    ambient = true           # ambient disturbance at the nominal model's level (see Scenario.ambient)
+    [imu_noise]              # the simulated IMU (same keys as ImuNoise, default the robot's),
+    scale = 2.0              # and a factor on its white-noise densities (mismatched sensor)
+    [ft_noise]               # the simulated F/T sensors (same keys as FtNoise, plus ``scale``)
+
+    [ambient]                # ambient disturbance of the world (see Ambient); ``ambient = false`` removes it
+    linear = 0.055           # m/s^2, RMS linear acceleration of the flexibility
+    corner = 20.0            # Hz, band limit (second-order low-pass)
+    scale = 3.0              # factor on the levels (kind = "wrench": force [N], torque [N m])
+
+    [walk]                   # a walk: generates the [[base]] and [[swing]] items (see Walk)
+    steps = 20; stride = 0.1; double_support = 1.4; single_support = 0.8
+
+    [posture.icub]           # this robot's reference posture for the scenario (rad)
+    l_knee = -0.7
+
+The noise sections describe the simulated sensors only: the estimators take their noise model
+from the robot configuration, so a scenario that changes it is a mismatched case.
 
 Step and sine segments have continuous position, velocity and acceleration, so the joints the
 robot tracks (stiff position control) are smooth; contacts switch only at swing events.
@@ -132,17 +151,207 @@ class Swing:
     land: float
     displacement: np.ndarray
     height: float = 0.03
+    travel: tuple = (0.0, 1.0)
+    """Fractions of the swing between which the foot moves horizontally (minimum jerk); before and
+    after, it only rises and descends.  A walk travels in the middle half, (0.25, 0.75): a foot that
+    touches the floor before its planned landing (the stance leg sinking) or leaves it after its
+    planned lift (its spring still pushing) is then not dragged along the floor."""
 
     def __call__(self, t: float):
         """Displacement of the contact from its initial placement, with derivatives."""
         T = self.land - self.lift
         tau = (t - self.lift) / T
-        s, ds, dds = minjerk(tau)
+        a, b = self.travel
+        s, ds, dds = minjerk((tau - a) / (b - a))
+        ds, dds = ds / (b - a), dds / (b - a) ** 2
         h, dh, ddh = bump(tau)
         ez = np.array([0.0, 0.0, 1.0])
         return (self.displacement * s + ez * self.height * h,
                 (self.displacement * ds + ez * self.height * dh) / T,
                 (self.displacement * dds + ez * self.height * ddh) / T**2)
+
+
+TOUCHDOWN_MODES = ("floor", "relaxed", "deflected")
+
+
+def _number(where: str, key: str, value, unit: str, expect: str, ok) -> float:
+    """``value`` as a float, or a ConfigError naming the key, the value, its unit and what is expected."""
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        x = math.nan
+    if isinstance(value, bool) or not math.isfinite(x) or not ok(x):
+        raise ConfigError(f"{where}: {key} = {value!r} {unit}: expected {expect}")
+    return x
+
+
+@dataclass(frozen=True)
+class Ambient:
+    """The world's ambient disturbance: what no model holds (floor vibration, cable pulls, air,
+    servo chatter).  ``kind = "acceleration"`` (default): a random acceleration of the flexibility,
+    produced by a wrench on the base through the simulated robot's own inertia (pinocchio's CRBA);
+    ``kind = "wrench"``: a random force and torque on the base (world axes, torque about the base
+    origin), whatever acceleration they cause.  Gaussian, independent per axis.
+
+    It is a property of the simulated world, written in the scenario; the estimators know nothing
+    of it beyond their own process-noise assumption.
+    """
+
+    enabled: bool = True
+    kind: str = "acceleration"
+    """``acceleration`` (levels ``linear``, ``angular``) or ``wrench`` (levels ``force``, ``torque``)."""
+    linear: float | None = None
+    """RMS linear acceleration per axis, m/s^2.  Default: the accelerometer's white noise of the
+    robot configuration at the recording rate (``accel_density * sqrt(rate)``): a world shaken at
+    the level its IMU just resolves in one sample."""
+    angular: float | None = None
+    """RMS angular acceleration per axis, rad/s^2.  Default: ``linear / l``, ``l`` the distance
+    from the IMU to the contacts' centroid in the reference posture (the rotation that moves the
+    IMU by as much)."""
+    corner: float | None = None
+    """Band limit, Hz.  None: white at the recording's samples and linear in between (a flat
+    spectrum up to the recording's Nyquist frequency).  Else white at the integration rate through
+    a second-order Butterworth low-pass with this corner, scaled so that the RMS is the level."""
+    force: float | None = None
+    """RMS force per axis on the base, N (``kind = "wrench"``, required)."""
+    torque: float | None = None
+    """RMS torque per axis on the base, N m (``kind = "wrench"``, required)."""
+    scale: float = 1.0
+    """Factor on both levels (3 gives the mismatched case "ambient x3")."""
+
+    @classmethod
+    def parse(cls, raw, where: str, sim_rate: float) -> "Ambient":
+        if isinstance(raw, bool):
+            return cls(enabled=raw)
+        if not isinstance(raw, dict):
+            raise ConfigError(f"{where}: ambient = {raw!r}: expected true, false or a table "
+                              "with linear [m/s^2], angular [rad/s^2], corner [Hz], scale")
+        known = {"enabled", "kind", "linear", "angular", "force", "torque", "corner", "scale"}
+        unknown = set(raw) - known
+        if unknown:
+            raise ConfigError(f"{where}: unknown key(s) {sorted(unknown)} in [ambient]; known: {sorted(known)}")
+        enabled = raw.get("enabled", True)
+        if not isinstance(enabled, bool):
+            raise ConfigError(f"{where}: ambient.enabled = {enabled!r}: expected true or false")
+        kind = raw.get("kind", "acceleration")
+        if kind not in ("acceleration", "wrench"):
+            raise ConfigError(f"{where}: ambient.kind = {kind!r}: expected 'acceleration' or 'wrench'")
+        out = {"enabled": enabled, "kind": kind}
+        levels = (("linear", "m/s^2"), ("angular", "rad/s^2")) if kind == "acceleration" else (("force", "N"), ("torque", "N m"))
+        for key in ({"linear", "angular", "force", "torque"} - {k for k, _ in levels}) & set(raw):
+            raise ConfigError(f"{where}: ambient.{key} does not apply to kind = {kind!r}; "
+                              f"its levels are {', '.join(k for k, _ in levels)}")
+        if kind == "wrench":
+            for key, unit in levels:
+                if raw.get(key) is None:
+                    raise ConfigError(f"{where}: ambient.{key} is missing: a wrench disturbance needs an RMS "
+                                      f"{key} per axis [{unit}]")
+        for key, unit in levels:
+            if raw.get(key) is not None:
+                out[key] = _number(where, f"ambient.{key}", raw[key], unit, "a non-negative RMS level",
+                                   lambda x: x >= 0.0)
+        if raw.get("corner") is not None:
+            nyquist = 0.5 * sim_rate
+            out["corner"] = _number(where, "ambient.corner", raw["corner"], "Hz",
+                                    f"a corner frequency above 0 and below half the integration rate ({nyquist:g} Hz)",
+                                    lambda x: 0.0 < x < nyquist)
+        if "scale" in raw:
+            out["scale"] = _number(where, "ambient.scale", raw["scale"], "(factor)", "a non-negative factor",
+                                   lambda x: x >= 0.0)
+        return cls(**out)
+
+
+@dataclass(frozen=True)
+class Walk:
+    """A straight walk forward, generated as ``[[base]]`` and ``[[swing]]`` items.
+
+    Each step is a double-support phase, where the CoM moves (minimum jerk) over the next stance
+    foot, then a single-support phase, where the other foot lifts, moves forward and lands flat.
+    The first and last swings cover half a stride, so that the feet start and end side by side;
+    after the last landing the CoM returns to the middle of the feet.
+    """
+
+    start: float = 1.0
+    """Start of the first weight shift, s."""
+    steps: int = 20
+    """Number of swings."""
+    stride: float = 0.10
+    """Forward displacement of a swinging foot, m (half of it on the first and last swings)."""
+    height: float = 0.03
+    """Lift of a swinging foot at mid-swing, m."""
+    double_support: float = 0.8
+    """Duration of each weight shift (both feet in contact), s."""
+    single_support: float = 0.7
+    """Duration of each swing (one foot in contact), s."""
+    shift: float = 1.0
+    """Fraction of the horizontal way from the CoM to the stance foot covered by a weight shift."""
+    settle: float = 1.5
+    """Duration of the final shift of the CoM to the middle of the feet, s."""
+    first: str = "right_foot"
+    """The first swinging foot."""
+    other: str = "left_foot"
+    """The other foot."""
+    travel: tuple = (0.25, 0.75)
+    """Fractions of each swing between which the foot moves forward (see :class:`Swing`)."""
+
+    @classmethod
+    def parse(cls, raw, where: str) -> "Walk":
+        if not isinstance(raw, dict):
+            raise ConfigError(f"{where}: walk = {raw!r}: expected a table (see flexforce.datasets.scenario.Walk)")
+        known = set(cls.__dataclass_fields__)
+        unknown = set(raw) - known
+        if unknown:
+            raise ConfigError(f"{where}: unknown key(s) {sorted(unknown)} in [walk]; known: {sorted(known)}")
+        out = dict(raw)
+        steps = raw.get("steps", cls.steps)
+        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+            raise ConfigError(f"{where}: walk.steps = {steps!r}: expected a whole number of swings, at least 1")
+        for key, unit, expect, ok in (
+                ("start", "s", "a time at or after 0", lambda x: x >= 0.0),
+                ("stride", "m", "a forward displacement between -0.5 and 0.5 m", lambda x: abs(x) <= 0.5),
+                ("height", "m", "a lift between 0 and 0.2 m", lambda x: 0.0 <= x <= 0.2),
+                ("double_support", "s", "a positive duration", lambda x: x > 0.0),
+                ("single_support", "s", "a positive duration", lambda x: x > 0.0),
+                ("shift", "(fraction)", "a fraction between 0 and 1", lambda x: 0.0 <= x <= 1.0),
+                ("settle", "s", "a positive duration", lambda x: x > 0.0)):
+            if key in raw:
+                out[key] = _number(where, f"walk.{key}", raw[key], unit, expect, ok)
+        if "travel" in raw:
+            tr = raw["travel"]
+            if (not isinstance(tr, (list, tuple)) or len(tr) != 2
+                    or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in tr)
+                    or not 0.0 <= tr[0] < tr[1] <= 1.0):
+                raise ConfigError(f"{where}: walk.travel = {tr!r} (fractions of the swing): "
+                                  "expected [start, end] with 0 <= start < end <= 1")
+            out["travel"] = (float(tr[0]), float(tr[1]))
+        for key in ("first", "other"):
+            if key in raw and not isinstance(raw[key], str):
+                raise ConfigError(f"{where}: walk.{key} = {raw[key]!r}: expected a contact name")
+        walk = cls(**out)
+        if walk.first == walk.other:
+            raise ConfigError(f"{where}: walk.first and walk.other are both '{walk.first}': expected two different feet")
+        return walk
+
+    @property
+    def end(self) -> float:
+        """When the CoM is back in the middle of the feet, s."""
+        return self.start + self.steps * (self.double_support + self.single_support) + self.settle
+
+    def items(self) -> tuple[list[dict], list[dict]]:
+        """The ``[[base]]`` and ``[[swing]]`` items of the walk."""
+        base, swing = [], []
+        period = self.double_support + self.single_support
+        for i in range(self.steps):
+            foot, stance = (self.first, self.other) if i % 2 == 0 else (self.other, self.first)
+            t0 = self.start + i * period
+            base.append({"toward": stance, "fraction": self.shift, "start": t0, "duration": self.double_support,
+                         "horizontal": True})
+            length = 0.5 * self.stride if i in (0, self.steps - 1) else self.stride
+            swing.append({"contact": foot, "lift": t0 + self.double_support, "land": t0 + period,
+                          "displacement": [length, 0.0, 0.0], "height": self.height, "travel": list(self.travel)})
+        base.append({"toward": "middle", "start": self.start + self.steps * period, "duration": self.settle,
+                     "horizontal": True})
+        return base, swing
 
 
 @dataclass
@@ -164,10 +373,22 @@ class Scenario:
     ft_noise: dict = field(default_factory=dict)
     noise: bool = True
     """Add sensor noise and the ambient disturbance; False gives an exact world and readings (tests)."""
-    ambient: bool = True
-    """Ambient unmodelled disturbance: a white acceleration of the flexibility at the samples, linear
-    in between (continuous), at the level the nominal model assumes (:func:`flexforce.factors.model.unmodelled_acceleration`),
-    applied as an external wrench on the base; so that the nominal world is the nominal model."""
+    ambient: bool | dict = True
+    """The world's ambient disturbance: true (the default levels of :class:`Ambient`), false (none),
+    or an ``[ambient]`` table of :class:`Ambient` fields."""
+    touchdown: str = "floor"
+    """Rest placement (foothold) of a landing contact's spring (see :mod:`flexforce.datasets.simulator`).
+    ``"floor"``: where the descending foot reaches the floor, flat on it; contact from that instant,
+    lift-off when the spring stops pushing (no force jump at either).  ``"relaxed"``: the foot's
+    actual world placement at the scheduled landing (unloaded, but footholds inherit the body's
+    tilt).  ``"deflected"``: its placement in the local frame (the spring starts preloaded by the
+    flexibility's deflection; a mismatched case)."""
+    walk: dict = field(default_factory=dict)
+    """A ``[walk]`` table of :class:`Walk` fields; empty for none."""
+    posture: dict = field(default_factory=dict)
+    """Per robot, joint values (rad) overriding its reference posture for this scenario, e.g.
+    ``[posture.icub]`` with bent knees for a robot whose reference has straight legs (singular for
+    the legs' inverse kinematics)."""
     source: str = ""
 
     @classmethod
@@ -201,7 +422,43 @@ class Scenario:
         ratio = sc.sim_rate / sc.rate
         if abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 1:
             raise ConfigError(f"sim_rate ({sc.sim_rate} Hz) must be a multiple of rate ({sc.rate} Hz)")
+        if sc.touchdown not in TOUCHDOWN_MODES:
+            raise ConfigError(f"scenario {sc.name}: touchdown = {sc.touchdown!r}: expected one of {list(TOUCHDOWN_MODES)}")
+        sc.ambient_spec()
+        for robot, joints in sc.posture.items():
+            if not isinstance(joints, dict):
+                raise ConfigError(f"scenario {sc.name}: posture.{robot} = {joints!r}: expected a table of joint = angle [rad]")
+            for joint, value in joints.items():
+                _number(f"scenario {sc.name}", f"posture.{robot}.{joint}", value, "rad", "a joint angle", lambda x: abs(x) < 10.0)
+        sc.noise_scale("imu_noise")
+        sc.noise_scale("ft_noise")
+        sc.swings()
+        if sc.walk:
+            walk = sc.walk_spec()
+            if walk.end > sc.duration:
+                raise ConfigError(f"scenario {sc.name}: duration = {sc.duration} s: expected at least the walk's "
+                                  f"end ({walk.end:g} s: start + steps x (double_support + single_support) + settle)")
         return sc
+
+    # ------------------------------------------------------------------------------------------
+    def ambient_spec(self) -> Ambient:
+        """The parsed ``ambient`` entry."""
+        return Ambient.parse(self.ambient, f"scenario {self.name}", self.sim_rate)
+
+    def walk_spec(self) -> Walk | None:
+        """The parsed ``[walk]`` table, or None."""
+        return Walk.parse(self.walk, f"scenario {self.name}") if self.walk else None
+
+    def noise_scale(self, section: str) -> float:
+        """The ``scale`` factor of a noise section (``imu_noise`` or ``ft_noise``), 1 by default."""
+        raw = getattr(self, section).get("scale", 1.0)
+        return _number(f"scenario {self.name}", f"{section}.scale", raw, "(factor)",
+                       "a non-negative factor on the white-noise levels", lambda x: x >= 0.0)
+
+    def base_items(self) -> list[dict]:
+        """The ``[[base]]`` items, with the walk's weight shifts."""
+        walk = self.walk_spec()
+        return list(self.base) + (walk.items()[0] if walk else [])
 
     def to_dict(self) -> dict:
         """JSON-serialisable description (stored in the recording's metadata)."""
@@ -242,13 +499,18 @@ class Scenario:
 
     def swings(self) -> list[Swing]:
         out = []
-        for item in self.swing:
+        walk = self.walk_spec()
+        for item in list(self.swing) + (walk.items()[1] if walk else []):
             item = dict(item)
             try:
                 disp = np.asarray(item.pop("displacement", [0.0, 0.0, 0.0]), dtype=float)
-                sw = Swing(displacement=disp, **item)
-            except TypeError as err:
+                travel = tuple(float(x) for x in item.pop("travel", (0.0, 1.0)))
+                sw = Swing(displacement=disp, travel=travel, **item)
+            except (TypeError, ValueError) as err:
                 raise ConfigError(f"bad swing {item}: {err}") from err
+            if len(sw.travel) != 2 or not 0.0 <= sw.travel[0] < sw.travel[1] <= 1.0:
+                raise ConfigError(f"swing of {sw.contact}: travel = {list(sw.travel)} (fractions of the swing): "
+                                  "expected [start, end] with 0 <= start < end <= 1")
             if sw.land <= sw.lift:
                 raise ConfigError(f"swing of {sw.contact}: land ({sw.land} s) must come after lift ({sw.lift} s)")
             out.append(sw)

@@ -17,28 +17,119 @@ with the classical 4th-order Runge-Kutta scheme at ``sim_rate`` (1 kHz by defaul
 The local-frame motion is computed exactly (inverse kinematics with analytic velocities and
 accelerations) at the sample instants and interpolated between them with quintic Hermite
 polynomials, which match position, velocity and acceleration at every sample.
+
+The simulator is the truth the estimators are measured against, so it shares none of their code:
+its SO(3) is pinocchio's (``exp3``, ``log3``), its contact springs (:class:`Spring`) and centre of
+pressure (:func:`center_of_pressure`) are its own, checked by the tests against pinocchio's
+statics; its ambient disturbance, its sensor noise and its touch-down rule are parameters of the
+scenario (:class:`flexforce.datasets.scenario.Ambient`, ``[imu_noise]``, ``touchdown``).
+
+Touch-down.  A contact's spring acts between the contact frame's actual world placement and a
+rest placement (the foothold) fixed for the contact episode; ``meta["contact_episodes"]`` lists
+every episode with its foothold in the world.  Three conventions (``Scenario.touchdown``):
+
+- ``"floor"`` (the default): the floor is the plane of the feet at the start.  A swinging foot
+  touches it at the first integration instant of its descent (second half of the swing) at which
+  it reaches the floor, or at its scheduled landing at the latest; its foothold is where it
+  touches, flat on the floor with the foot's heading.  The spring starts with no deflection but
+  the sole's tilt (the body's tilt at that instant, taken by the ankle's rotational spring): no
+  force jump, the force rising as the robot keeps moving its foot down as planned.  A lifting
+  foot leaves the floor when its spring no longer pushes (vertical force <= 0), or a quarter into
+  its swing at the latest (the episode keeps the force it was torn off with).  The recording's
+  contact flags are the truth's, as a perfect contact detector would give them.
+- ``"relaxed"``: at the scheduled landing, wherever the foot is in the world, sole tilt included:
+  the spring starts fully unloaded.  Each foothold inherits the body's tilt and sinking at its
+  touch-down, so an open-loop walk drifts (measured on 4 steps of Romeo with 0.7 s weight
+  shifts: footholds 12, -14, 44 and -106 mm off the floor, body tilt up to 63 deg); kept for
+  single steps.
+- ``"deflected"``: the rest is the contact's placement in the local frame read as a world
+  placement: the landing foot is pulled from where it is to where the robot believes it is, a
+  force step of ``K_fs (world - local placement)`` -- the convention of a model that freezes
+  footholds from its own belief, kept as the mismatched case.
+
+The recording's contact placements are always the local-frame ones, the robot's belief: where it
+planned the foot to land.
 """
 
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 import pinocchio as pin
+from scipy import signal
 
 from flexforce.errors import ConfigError, ModelError
-from flexforce.factors import so3
-from flexforce.factors.model import unmodelled_acceleration
-from flexforce.factors.physics import ContactParams, center_of_pressure
 from flexforce.datasets.effects import HiddenEffect, parse_effects
 from flexforce.datasets.recording import Recording, Truth
 from flexforce.datasets.robot import ROBOTS_DIR, FtNoise, ImuNoise, RobotConfig, RobotModel
-from flexforce.datasets.scenario import Scenario
+from flexforce.datasets.scenario import Ambient, Scenario
 
 E_Z = np.array([0.0, 0.0, 1.0])
+
+
+@dataclass(frozen=True)
+class Spring:
+    """The simulated 6-D spring-damper of one contact, its matrices in the contact frame.
+
+    Force on the robot ``F = -K_fs s (1 + beta_f |s|^2) - K_fd v``, torque about the contact point
+    ``T = -K_ts Omega (1 + beta_t |Omega|^2) - K_td w``, with ``s`` (m) and ``Omega = log3(R_c
+    R_rest^T)`` (rad, pinocchio's log) the displacement of the contact frame from its rest
+    placement, ``v`` and ``w`` the contact frame's world-aligned linear and angular velocity, and
+    every matrix rotated into the world with the contact frame's actual orientation.
+    """
+
+    K_fs: np.ndarray
+    """3x3, N/m."""
+    K_fd: np.ndarray
+    """3x3, N s/m."""
+    K_ts: np.ndarray
+    """3x3, N m/rad."""
+    K_td: np.ndarray
+    """3x3, N m s/rad."""
+    beta_f: float = 0.0
+    """1/m^2."""
+    beta_t: float = 0.0
+    """1/rad^2."""
+
+    @classmethod
+    def from_stiffness(cls, stiffness) -> "Spring":
+        """From a robot configuration's :class:`~flexforce.datasets.robot.Stiffness` (scalars are
+        isotropic, 3-vectors diagonal in the contact frame, 3x3 full)."""
+        def mat(x, key):
+            a = np.asarray(x, dtype=float)
+            if a.shape == ():
+                return float(a) * np.eye(3)
+            if a.shape == (3,):
+                return np.diag(a)
+            if a.shape == (3, 3):
+                return a.copy()
+            raise ConfigError(f"stiffness {key} = {x!r}: expected a scalar, 3 values or a 3x3 matrix")
+        return cls(mat(stiffness.k_fs, "k_fs"), mat(stiffness.k_fd, "k_fd"), mat(stiffness.k_ts, "k_ts"),
+                   mat(stiffness.k_td, "k_td"))
+
+    def wrench(self, world_M_contact: pin.SE3, world_M_rest: pin.SE3, velocity: pin.Motion) -> np.ndarray:
+        """(6,) force (N) and torque about the contact point (N m), world axes."""
+        Rc = world_M_contact.rotation
+        s = world_M_contact.translation - world_M_rest.translation
+        Omega = pin.log3(Rc @ world_M_rest.rotation.T)
+        F = -(Rc @ (self.K_fs @ (Rc.T @ s))) * (1.0 + self.beta_f * (s @ s)) - Rc @ (self.K_fd @ (Rc.T @ velocity.linear))
+        T = (-(Rc @ (self.K_ts @ (Rc.T @ Omega))) * (1.0 + self.beta_t * (Omega @ Omega))
+             - Rc @ (self.K_td @ (Rc.T @ velocity.angular)))
+        return np.concatenate([F, T])
+
+
+def center_of_pressure(wrench: np.ndarray, z0: float = 0.0) -> np.ndarray:
+    """Point of the plane ``z = z0`` where the total contact wrench (F, T about the world origin)
+    has no horizontal moment: the CoP, m.  NaN when the vertical force is not positive."""
+    F, T = wrench[:3], wrench[3:]
+    if not F[2] > 1e-6:
+        return np.array([np.nan, np.nan, z0])
+    return np.array([(z0 * F[0] - T[1]) / F[2], (T[0] + z0 * F[1]) / F[2], z0])
 
 
 def _cross(a, b):
@@ -105,18 +196,60 @@ class LocalMotion:
             if any(iv in lv for lv in self.leg_v):
                 raise ConfigError(f"joint '{name}' belongs to a leg; legs follow the contacts, move the base instead")
             self.joint_segments.append((iq, iv, seg))
-        base_segments = scenario.segments(self._resolve_toward(scenario.base), robot.name, 3)
         self.base_segments = []
-        com_map = None
-        for target, seg in base_segments:
-            if target == "com":
-                if com_map is None:
-                    com_map = np.linalg.inv(self._com_jacobian())
-                seg = type(seg)(seg.kind, seg.start, seg.duration, com_map @ seg.value, seg.frequency, seg.ramp)
-            elif target not in (None, "base"):
-                raise ConfigError(f"base segment target must be 'base' or 'com', got '{target}'")
-            self.base_segments.append(seg)
         self._q_guess = self.q_ref.copy()
+        self._com_maps = None
+        for item in self._resolve_toward(scenario.base_items()):
+            if item.get("horizontal"):
+                item = self._walk_shift(item)
+            for target, seg in scenario.segments([item], robot.name, 3):
+                if target in ("com", "com-horizontal"):
+                    full, horizontal = self._com_map()
+                    value = (full if target == "com" else horizontal) @ seg.value
+                    seg = type(seg)(seg.kind, seg.start, seg.duration, value, seg.frequency, seg.ramp)
+                elif target not in (None, "base"):
+                    raise ConfigError(f"base segment target must be 'base' or 'com', got '{target}'")
+                self.base_segments.append(seg)
+        self._q_guess = self.q_ref.copy()
+
+    def _com_map(self):
+        """Pelvis translation per CoM translation with the contacts held: the full 3x3 map, and the
+        horizontal one that keeps the pelvis's height."""
+        if self._com_maps is None:
+            J = self._com_jacobian()
+            horizontal = np.zeros((3, 3))
+            horizontal[:2, :2] = np.linalg.inv(J[:2, :2])
+            self._com_maps = (np.linalg.inv(J), horizontal)
+        return self._com_maps
+
+    def _walk_shift(self, item: dict) -> dict:
+        """A walk's weight shift: the CoM moves horizontally by ``fraction`` of the way from where
+        it actually is at the shift's start (the motion so far, exact) to the stance foot (or the
+        middle of the feet); the pelvis keeps its height.
+
+        Walking carries the feet along, so a map linearised with the feet held drifts with the
+        distance walked (measured on Romeo with the full map and estimated CoM: the pelvis 15 mm
+        higher and 3 cm ahead of the CoM after 0.6 m, the legs out of reach at 0.7 m); starting
+        each shift from the actual CoM keeps the error to one shift's linearisation.
+        """
+        item = dict(item)
+        toward = item.pop("toward")
+        fraction = float(item.pop("fraction", 1.0))
+        item.pop("horizontal")
+        start = float(item.get("start", 0.0))
+        q = self.sample(start).q
+        com = pin.centerOfMass(self.model, self.data, q)
+        placements = self.contact_targets(start)[0]
+        names = self.robot.contact_names
+        if toward == "middle":
+            goal = np.mean([M.translation for M in placements], axis=0)
+        elif toward in names:
+            goal = placements[names.index(toward)].translation
+        else:
+            raise ConfigError(f"base segment toward '{toward}': expected 'middle' or one of {list(names)}")
+        item.update(offset=[fraction * (goal[0] - com[0]), fraction * (goal[1] - com[1]), 0.0],
+                    target="com-horizontal", kind="step")
+        return item
 
     # ------------------------------------------------------------------------------------------
     def _resolve_toward(self, items: list[dict]) -> list[dict]:
@@ -130,6 +263,9 @@ class LocalMotion:
         names = self.robot.contact_names
         for item in sorted(items, key=lambda it: it.get("start", 0.0)):
             item = dict(item)
+            if item.get("horizontal"):  # resolved from the actual motion (_walk_shift)
+                out.append(item)
+                continue
             toward = item.pop("toward", None)
             fraction = float(item.pop("fraction", 1.0))
             if toward is not None:
@@ -179,6 +315,13 @@ class LocalMotion:
                 raise ModelError(f"inverse kinematics of contact {ci} did not converge (residual {np.abs(err).max():.2e}); "
                                  "the scenario asks for an unreachable placement")
         return q
+
+    def swing_at(self, ci: int, t: float):
+        """The swing of contact ``ci`` under way at ``t`` (lift <= t < land), or None."""
+        for i, sw in zip(self.swing_index, self.swings):
+            if i == ci and sw.lift <= t < sw.land:
+                return sw
+        return None
 
     def contact_targets(self, t: float):
         """Per contact: placement (SE3), LWA velocity and classical acceleration (6,), active flag."""
@@ -309,14 +452,29 @@ class Simulator:
         if robot is None:
             robot = scenario.robot
         self.robot = robot if isinstance(robot, RobotModel) else RobotModel(robot)
+        posture = scenario.posture.get(self.robot.name)
+        if posture:  # the scenario's own reference posture for this robot
+            cfg = dataclasses.replace(self.robot.config,
+                                      reference_joints={**self.robot.config.reference_joints, **posture})
+            self.robot = RobotModel(cfg)
         self.noise = scenario.noise if noise is None else noise
         self.effects: list[HiddenEffect] = parse_effects(scenario.effects)
         cfg = self.robot.config
+        # The simulated sensors: the robot configuration's noise unless the scenario says otherwise;
+        # ``scale`` multiplies the white-noise levels (a sensor noisier than its data sheet).
         try:
-            self.imu_noise = ImuNoise(**{**cfg.imu_noise.__dict__, **scenario.imu_noise})
-            self.ft_noise = FtNoise(**{**cfg.ft_noise.__dict__, **scenario.ft_noise})
+            imu = {**cfg.imu_noise.__dict__, **{k: v for k, v in scenario.imu_noise.items() if k != "scale"}}
+            ft = {**cfg.ft_noise.__dict__, **{k: v for k, v in scenario.ft_noise.items() if k != "scale"}}
+            imu_scale, ft_scale = scenario.noise_scale("imu_noise"), scenario.noise_scale("ft_noise")
+            imu["gyro_density"] = float(imu["gyro_density"]) * imu_scale
+            imu["accel_density"] = float(imu["accel_density"]) * imu_scale
+            ft = {k: float(v) * ft_scale for k, v in ft.items()}
+            self.imu_noise = ImuNoise(**imu)
+            self.ft_noise = FtNoise(**ft)
         except TypeError as err:
-            raise ConfigError(f"scenario '{scenario.name}': bad noise override: {err}") from err
+            raise ConfigError(f"scenario '{scenario.name}': bad noise override: {err}; "
+                              f"known keys: {sorted(ImuNoise.__dataclass_fields__)} (imu_noise), "
+                              f"{sorted(FtNoise.__dataclass_fields__)} (ft_noise), and scale") from err
         self.g = cfg.gravity
         self.motion = LocalMotion(self.robot, scenario)
         # The simulated robot: the nominal model, with the hidden mass-model error if any.
@@ -324,14 +482,13 @@ class Simulator:
         self.sim_model.gravity = pin.Motion(np.array([0.0, 0.0, -self.g]), np.zeros(3))
         self._apply_com_offset()
         self.sim_data = self.sim_model.createData()
-        self.contact_params = self._true_contact_params()
-        # Ambient disturbance: the nominal model's unmodelled acceleration made real (Scenario.ambient).
+        self.springs = self._true_springs()
+        self.touchdown = scenario.touchdown
+        # Ambient disturbance: a property of the scenario's world (Ambient), None when absent.
+        self.ambient_spec = scenario.ambient_spec()
         self.ambient = None
-        if self.noise and scenario.ambient:
-            kin = self.robot.kinematics(self.robot.q_reference, np.zeros(self.robot.model.nv),
-                                        np.zeros(self.robot.model.nv))
-            self.ambient = unmodelled_acceleration(self.imu_noise.accel_sigma(scenario.rate), kin.imu.p,
-                                                   kin.contact_p.mean(axis=0))
+        if self.noise and self.ambient_spec.enabled:
+            self.ambient = self._ambient_levels(self.ambient_spec)
         self.ext_effects = []
         for eff in self.effects:
             if eff.type == "external-wrench":
@@ -366,10 +523,55 @@ class Simulator:
         # Keep the rotational inertia about the body's own CoM: rebuild with the moved lever.
         model.inertias[j] = pin.Inertia(Y.mass, Y.lever + shift, Y.inertia)
 
-    def _true_contact_params(self) -> list[ContactParams]:
-        params = self.robot.contact_params()
+    def _ambient_levels(self, spec: Ambient) -> tuple[float, float]:
+        """RMS (linear m/s^2, angular rad/s^2) of the ambient acceleration (defaults: see Ambient),
+        or (force N, torque N m) of the ambient wrench."""
+        if spec.kind == "wrench":
+            return spec.scale * spec.force, spec.scale * spec.torque
+        model = self.robot.model
+        data = model.createData()
+        pin.framesForwardKinematics(model, data, self.robot.q_reference)
+        p_imu = data.oMf[self.robot.imu_frame_id].translation
+        centroid = np.mean([data.oMf[f].translation for f in self.robot.contact_frame_ids], axis=0)
+        lever = max(float(np.linalg.norm(p_imu - centroid)), 1e-3)
+        linear = spec.linear if spec.linear is not None else self.robot.config.imu_noise.accel_sigma(self.scenario.rate)
+        angular = spec.angular if spec.angular is not None else linear / lever
+        return spec.scale * linear, spec.scale * angular
+
+    def _ambient_table(self, n: int, sub: int) -> np.ndarray | None:
+        """((n - 1) sub + 1, 6) ambient acceleration (dw rad/s^2, a m/s^2), or wrench (torque N m
+        about the base origin, force N; world axes), at the integration instants.
+
+        Without a corner: white at the samples, linear in between (a continuous acceleration).
+        With one: white at the integration rate through a second-order Butterworth low-pass
+        (scipy's ``butter``), normalised by the filter's white-noise gain so that the
+        stationary RMS is the level; run from 2 s before the start so it is stationary at t = 0.
+        """
+        if self.ambient is None:
+            return None
+        sa, sdw = self.ambient
+        sc = self.scenario
+        rng = np.random.default_rng((sc.seed, 7))
+        scale = np.array([sdw] * 3 + [sa] * 3)
+        if self.ambient_spec.corner is None:
+            white = np.concatenate([rng.standard_normal((n, 3)), rng.standard_normal((n, 3))], axis=1) * scale
+            fine = np.arange((n - 1) * sub + 1) / sub
+            k = np.minimum(fine.astype(int), n - 2) if n > 1 else np.zeros(len(fine), dtype=int)
+            s = (fine - k)[:, None]
+            return white[k] * (1.0 - s) + white[np.minimum(k + 1, n - 1)] * s
+        fs = sc.sim_rate
+        b, a = signal.butter(2, self.ambient_spec.corner, fs=fs)
+        lead = int(round(2.0 * fs))
+        y = signal.lfilter(b, a, rng.standard_normal(((n - 1) * sub + 1 + lead, 6)), axis=0)
+        impulse = np.zeros(4 * lead)
+        impulse[0] = 1.0
+        gain = math.sqrt(float(np.sum(signal.lfilter(b, a, impulse) ** 2)))  # white-noise RMS gain
+        return y[lead:] / gain * scale
+
+    def _true_springs(self) -> list[Spring]:
+        nominal = Spring.from_stiffness(self.robot.config.stiffness)
         out = []
-        for p in params:
+        for p in [nominal] * len(self.robot.contact_names):
             Kfs, Kfd, Kts, Ktd = p.K_fs.copy(), p.K_fd.copy(), p.K_ts.copy(), p.K_td.copy()
             bf, bt = p.beta_f, p.beta_t
             for e in self.effects:
@@ -383,7 +585,7 @@ class Simulator:
                 elif e.type == "nonlinear-stiffness":
                     bf += float(e.params.get("beta_f", 0.0))
                     bt += float(e.params.get("beta_t", 0.0))
-            out.append(ContactParams(Kfs, Kfd, Kts, Ktd, bf, bt))
+            out.append(Spring(Kfs, Kfd, Kts, Ktd, bf, bt))
         return out
 
     # ------------------------------------------------------------------------------------------
@@ -395,7 +597,8 @@ class Simulator:
             local: the robot's local-frame q, v, a at ``t``.
             rest: per contact, its rest placement (SE3) when in contact, else None.
             disturbance: (6,) ambient flexibility acceleration (dw rad/s^2, a m/s^2) to produce with an
-                external wrench on the base, or None.
+                external wrench on the base, or with ``Ambient.kind == "wrench"`` the wrench itself
+                (torque N m about the base origin, force N; world axes); None for none.
         """
         model, data = self.sim_model, self.sim_data
         ql, vl, al = local.q, local.v, local.a
@@ -424,17 +627,14 @@ class Simulator:
         local_wrenches = np.zeros((nc, 6))
         F_sum = np.zeros(3)
         M_sum = np.zeros(3)  # moment about the base origin
-        for ci, (fid, M0, par) in enumerate(zip(self.robot.contact_frame_ids, rest, self.contact_params)):
+        for ci, (fid, M0, spring) in enumerate(zip(self.robot.contact_frame_ids, rest, self.springs)):
             if M0 is None:
                 continue
             M = pin.updateFramePlacement(model, data, fid)
             vel = pin.getFrameVelocity(model, data, fid, pin.LOCAL_WORLD_ALIGNED)
             Rc = M.rotation
-            s = M.translation - M0.translation
-            Omega = so3.log(Rc @ M0.rotation.T)
-            Kfs, Kfd, Kts, Ktd = (Rc @ K @ Rc.T for K in (par.K_fs, par.K_fd, par.K_ts, par.K_td))
-            F = -Kfs @ (s * (1.0 + par.beta_f * (s @ s))) - Kfd @ vel.linear
-            tau = -Kts @ (Omega * (1.0 + par.beta_t * (Omega @ Omega))) - Ktd @ vel.angular
+            wr = spring.wrench(M, M0, vel)
+            F, tau = wr[:3], wr[3:]
             wrenches[ci, :3] = F
             wrenches[ci, 3:] = tau + _cross(M.translation, F)
             local_wrenches[ci, :3] = Rc.T @ F
@@ -459,7 +659,12 @@ class Simulator:
         Mfull = pin.crba(model, data, q_w)
         Mbb = np.triu(Mfull[:6, :6]) + np.triu(Mfull[:6, :6], 1).T
         f_b = np.concatenate([R_b.T @ F_sum, R_b.T @ M_sum])
-        if disturbance is not None:
+        if disturbance is not None and self.ambient_spec.kind == "wrench":
+            T_d, F_d = disturbance[:3], disturbance[3:]  # world axes, torque about the base origin
+            f_dist = np.concatenate([R_b.T @ F_d, R_b.T @ T_d])
+            ambient = np.concatenate([F_d, T_d + _cross(p_b, F_d)])
+            f_b = f_b + f_dist
+        elif disturbance is not None:
             # The base acceleration that moves the flexibility by the disturbance, and the wrench
             # on the base (pinocchio's inertia) that produces it.
             ddw = disturbance[:3]
@@ -481,7 +686,7 @@ class Simulator:
 
     def _equilibrium(self, local: LocalSample, rest) -> tuple[np.ndarray, np.ndarray]:
         """Static flexibility (R, t) at the start: zero velocity and zero acceleration."""
-        k_total = sum(float(np.trace(p.K_fs)) / 3.0 for p, M0 in zip(self.contact_params, rest) if M0 is not None)
+        k_total = sum(float(np.trace(p.K_fs)) / 3.0 for p, M0 in zip(self.springs, rest) if M0 is not None)
         if k_total <= 0:
             raise ConfigError("the scenario must start with at least one contact in force")
         R = np.eye(3)
@@ -501,12 +706,12 @@ class Simulator:
             for i in range(6):
                 d = np.zeros(6)
                 d[i] = h
-                Rp, tp = so3.exp(d[:3]) @ R, tr + d[3:]
+                Rp, tp = pin.exp3(d[:3]) @ R, tr + d[3:]
                 d[i] = -h
-                Rm, tm = so3.exp(d[:3]) @ R, tr + d[3:]
+                Rm, tm = pin.exp3(d[:3]) @ R, tr + d[3:]
                 J[:, i] = (acc(Rp, tp) - acc(Rm, tm)) / (2 * h)
             step = np.linalg.solve(J, -f0)
-            R = so3.exp(step[:3]) @ R
+            R = pin.exp3(step[:3]) @ R
             tr = tr + step[3:]
         else:
             raise ModelError("no static equilibrium found at the start of the scenario: "
@@ -544,18 +749,97 @@ class Simulator:
         rec_rest_R = np.tile(np.eye(3), (n, nc, 1, 1))
         active = np.zeros((n, nc), dtype=bool)
 
-        amb_rng = np.random.default_rng((sc.seed, 7))
-        amb = None
-        if self.ambient is not None:  # white at the samples, linear in between (continuous acceleration)
-            sa, sdw = self.ambient
-            amb = np.concatenate([sdw * amb_rng.standard_normal((n, 3)), sa * amb_rng.standard_normal((n, 3))], axis=1)
+        amb = self._ambient_table(n, sub)
         disturbance = None
+        # The world's rest placement of each contact in force (the spring's anchor), and the local
+        # placement the robot believes in (the recording's contact placement).
+        local_rest = [pin.SE3(M) if M is not None else None for M in rest]
+        episodes = [{"contact": robot.contact_names[ci], "start": 0.0, "end": None,
+                     "world_p": rest[ci].translation.tolist(), "world_R": rest[ci].rotation.tolist(),
+                     "local_p": rest[ci].translation.tolist()} if rest[ci] is not None else None
+                    for ci in range(nc)]
+        closed = []
+        scheduled = [bool(a) for a in samples[0].active]
+        swinging = [None] * nc
+        releasing = [False] * nc
+        floor_mode = self.touchdown == "floor"
+        # The floor: the plane of the contacts in force at the start (z = 0 for the built-in robots).
+        floor_z = float(np.mean([M.translation[2] for M in rest if M is not None]))
+        # Each sole's normal to the floor, in its own frame (from the standing posture).
+        floor_normal = [M.rotation.T @ E_Z for M in self.motion.placements0]
+
+        def land(ci, t, y, q_local):
+            """Start a contact episode at ``t``: the spring's rest placement and the recorded one."""
+            model, data = self.motion.model, self.motion.data
+            fid = robot.contact_frame_ids[ci]
+            sw = swinging[ci]
+            # What the robot believes: where its foot is planned to land, in the local frame.
+            local_rest[ci] = (self.motion.contact_targets(sw.land)[0][ci] if sw is not None else
+                              (pin.framesForwardKinematics(model, data, q_local), data.oMf[fid].copy())[1])
+            if self.touchdown == "deflected":  # where the robot believes it is: preloaded by the deflection
+                rest[ci] = pin.SE3(local_rest[ci])
+            else:  # where the foot is in the world: the spring starts unloaded
+                pin.framesForwardKinematics(model, data, q_local)
+                world_T_local = pin.SE3(_quat_to_R(y[:4] / np.linalg.norm(y[:4])), y[4:7].copy())
+                rest[ci] = world_T_local * data.oMf[fid]
+                if floor_mode:  # the sole lies flat on the floor, at its height, with the foot's heading
+                    n_w = rest[ci].rotation @ floor_normal[ci]
+                    axis = np.cross(n_w, E_Z)
+                    angle = math.atan2(np.linalg.norm(axis), float(n_w @ E_Z))
+                    if angle > 0.0:
+                        rest[ci].rotation = pin.exp3(axis / np.linalg.norm(axis) * angle) @ rest[ci].rotation
+                    if rest[ci].translation[2] < floor_z:
+                        rest[ci].translation = np.array([*rest[ci].translation[:2], floor_z])
+            swinging[ci] = None
+            episodes[ci] = {"contact": robot.contact_names[ci], "start": float(t), "end": None,
+                            "world_p": rest[ci].translation.tolist(), "world_R": rest[ci].rotation.tolist(),
+                            "local_p": local_rest[ci].translation.tolist(),
+                            "above_floor": float(rest[ci].translation[2] - floor_z)}
+
+        def release(ci, t):
+            """End contact ``ci``'s episode at ``t``."""
+            if episodes[ci] is not None:
+                episodes[ci]["end"] = float(t)
+                closed.append(episodes[ci])
+                episodes[ci] = None
+            rest[ci] = None
+            local_rest[ci] = None
+            releasing[ci] = False
 
         def deriv(t, y, local, rest):
             qw = y[:4] / np.linalg.norm(y[:4])
             Rm = _quat_to_R(qw)
             ev = self.world_dynamics(t, Rm, y[4:7], y[7:10], y[10:13], local, rest, disturbance)
             return np.concatenate([_quat_rate(qw, y[7:10]), y[10:13], ev.dw, ev.a]), ev
+
+        def deriv_with_events(t, y, local):
+            """``deriv`` at the start of an integration step, after the floor's contact events: a
+            descending foot that reached the floor touches it; a lifting foot whose spring no
+            longer pushes (normal force <= 0) leaves it."""
+            if floor_mode:
+                R_f = None
+                for ci in range(nc):
+                    sw = swinging[ci]
+                    if rest[ci] is not None or sw is None or t < 0.5 * (sw.lift + sw.land):
+                        continue
+                    if R_f is None:
+                        R_f = _quat_to_R(y[:4] / np.linalg.norm(y[:4]))
+                        pin.framesForwardKinematics(self.motion.model, self.motion.data, local.q)
+                    M = self.motion.data.oMf[robot.contact_frame_ids[ci]]
+                    if (R_f @ M.translation + y[4:7])[2] <= floor_z:
+                        land(ci, t, y, local.q)
+            out = deriv(t, y, local, rest)
+            if floor_mode:
+                # A foot still pushing a quarter into its swing is torn off the floor (a force step,
+                # kept in the episode): the floor cannot hold it, nor the robot drag it further.
+                gone = [ci for ci in range(nc) if releasing[ci] and (
+                    out[1].wrenches[ci, 2] <= 0.0 or t >= swinging[ci].lift + 0.25 * (swinging[ci].land - swinging[ci].lift))]
+                for ci in gone:
+                    episodes[ci]["release_force"] = [float(x) for x in out[1].wrenches[ci, :3]]
+                    release(ci, t)
+                if gone:
+                    out = deriv(t, y, local, rest)
+            return out
 
         def local_at(k, s):
             if s == 0.0:
@@ -589,15 +873,19 @@ class Simulator:
             tk = float(times[k])
             local = samples[k]
             if amb is not None:
-                disturbance = amb[k]
-            # contact set for the interval starting at t_k: rest placement taken when a contact lands
+                disturbance = amb[k * sub]
+            # contact set for the interval starting at t_k (see the module documentation, Touch-down)
             for ci in range(nc):
-                if local.active[ci] and rest[ci] is None:
-                    pin.framesForwardKinematics(self.motion.model, self.motion.data, local.q)
-                    rest[ci] = self.motion.data.oMf[robot.contact_frame_ids[ci]].copy()
-                elif not local.active[ci]:
-                    rest[ci] = None
-            _, ev = deriv(tk, y, local, rest)
+                if local.active[ci] and rest[ci] is None:  # scheduled landing, not touched yet
+                    land(ci, tk, y, local.q)
+                elif not local.active[ci] and scheduled[ci]:  # the foot starts to lift
+                    swinging[ci] = self.motion.swing_at(ci, tk)
+                    if floor_mode:  # it leaves the floor when its spring is unloaded
+                        releasing[ci] = True
+                    else:
+                        release(ci, tk)
+                scheduled[ci] = bool(local.active[ci])
+            k1_sample, ev = deriv_with_events(tk, y, local)
             qw = y[:4] / np.linalg.norm(y[:4])
             truth_R[k] = _quat_to_R(qw)
             truth["t"][k] = y[4:7]
@@ -609,11 +897,11 @@ class Simulator:
             truth_ext[k] = ev.external
             truth_amb[k] = ev.ambient
             ft_true[k] = ev.local_wrenches
-            active[k] = local.active
+            active[k] = [M is not None for M in rest]
             for ci in range(nc):
                 if rest[ci] is not None:
-                    rec_rest_p[k, ci] = rest[ci].translation
-                    rec_rest_R[k, ci] = rest[ci].rotation
+                    rec_rest_p[k, ci] = local_rest[ci].translation
+                    rec_rest_R[k, ci] = local_rest[ci].rotation
                 else:
                     # placement in the air: where the contact frame is in the local frame
                     pin.framesForwardKinematics(self.motion.model, self.motion.data, local.q)
@@ -641,14 +929,14 @@ class Simulator:
                     samples[k + 1].q, samples[k + 1].v, samples[k + 1].a, local.active)
                 t0 = tk + j * h
                 if amb is not None:
-                    disturbance = amb[k] + s0 * (amb[k + 1] - amb[k])
-                k1, _ = deriv(t0, y, l0, rest)
+                    disturbance = amb[k * sub + j]
+                k1 = k1_sample if j == 0 else deriv_with_events(t0, y, l0)[0]
                 if amb is not None:
-                    disturbance = amb[k] + (s0 + 0.5 / sub) * (amb[k + 1] - amb[k])
+                    disturbance = 0.5 * (amb[k * sub + j] + amb[k * sub + j + 1])
                 k2, _ = deriv(t0 + 0.5 * h, y + 0.5 * h * k1, lm, rest)
                 k3, _ = deriv(t0 + 0.5 * h, y + 0.5 * h * k2, lm, rest)
                 if amb is not None:
-                    disturbance = amb[k] + (s0 + 1.0 / sub) * (amb[k + 1] - amb[k])
+                    disturbance = amb[k * sub + j + 1]
                 k4, _ = deriv(t0 + h, y + h * k3, l1, rest)
                 y = y + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
                 y[:4] /= np.linalg.norm(y[:4])
@@ -659,6 +947,8 @@ class Simulator:
                 progress(k / (n - 1))
         if progress is not None:
             progress(1.0)
+        self.episodes = closed + [e for e in episodes if e is not None]
+        self.episodes.sort(key=lambda e: (e["start"], e["contact"]))
         return self._recording(times, samples, truth_R, truth, truth_wrench, truth_ext, truth_amb, links, ft_true,
                                gyro_true, accel_true, rec_rest_p, rec_rest_R, active)
 
@@ -710,7 +1000,15 @@ class Simulator:
                           for k, v in robot.config.stiffness.__dict__.items()},
             "hidden_effects": [{"type": e.type, **e.params} for e in self.effects],
             "ambient": (None if self.ambient is None else
-                        {"sigma_linear_m_s2": self.ambient[0], "sigma_angular_rad_s2": self.ambient[1]}),
+                        ({"sigma_linear_m_s2": self.ambient[0], "sigma_angular_rad_s2": self.ambient[1]}
+                         if self.ambient_spec.kind == "acceleration" else
+                         {"sigma_force_N": self.ambient[0], "sigma_torque_Nm": self.ambient[1]})
+                        | {"kind": self.ambient_spec.kind, "corner_hz": self.ambient_spec.corner,
+                           "scale": self.ambient_spec.scale}),
+            "touchdown": self.touchdown,
+            # Per contact episode: the spring's rest placement in the world (the true foothold)
+            # and the local placement the recording gives the estimators.
+            "contact_episodes": self.episodes,
         }
         return Recording(
             t_ns=np.arange(n, dtype=np.int64) * step_ns,

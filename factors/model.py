@@ -37,11 +37,12 @@ class ModelConfig:
 
     @classmethod
     def from_recording(cls, rec, robot=None, **overrides) -> "ModelConfig":
-        """Nominal model for a recording: the robot's configured stiffness and the noise model.
+        """Nominal model for a recording: the robot's configured stiffness and noise model.
 
-        The noise densities are taken from the recording's metadata when it carries them (the
-        simulator stores its noise model there), else from the robot configuration; the per-sample
-        sigma is ``density * sqrt(rate)``.
+        The noise densities come from the robot configuration only, the per-sample sigma being
+        ``density * sqrt(rate)``.  A simulated recording's metadata describes the sensors of its
+        world (``meta["imu_noise"]``), which may differ from what the robot's data sheet says: an
+        estimator never reads it, as it could not on a real robot.
         """
         from flexforce.datasets.robot import RobotConfig, RobotModel
 
@@ -52,8 +53,8 @@ class ModelConfig:
         elif not isinstance(robot, RobotConfig):
             robot = RobotConfig.load(robot)
         rate = 1.0 / rec.dt
-        noise = rec.meta.get("imu_noise") or robot.imu_noise.__dict__
-        ft = rec.meta.get("ft_noise") or robot.ft_noise.__dict__
+        noise = robot.imu_noise.__dict__
+        ft = robot.ft_noise.__dict__
         params = robot.stiffness.params()
         cfg = cls(
             contact_params=tuple(params for _ in rec.contact_names),
@@ -69,10 +70,10 @@ class ModelConfig:
 def unmodelled_acceleration(accel_sigma: float, imu_p: np.ndarray, contact_centroid: np.ndarray) -> tuple[float, float]:
     """The nominal model's unmodelled acceleration of the flexibility, per sample.
 
-    One assumption shared by the EKF (its process noise), the smoothers (their Newton-Euler noise)
-    and the simulator (its ambient disturbance, so that the nominal world is the nominal model):
-    what the model leaves out moves the flexibility by a white acceleration, constant over a
-    sample, at the level the accelerometer can resolve in one sample.
+    One assumption shared by the EKF (its process noise) and the smoothers (their Newton-Euler
+    noise): what the model leaves out moves the flexibility by a white acceleration, constant over
+    a sample, at the level the accelerometer can resolve in one sample.  (The simulated world has
+    its own ambient disturbance, a scenario parameter: :class:`flexforce.datasets.scenario.Ambient`.)
 
     Returns:
         ``(sigma_a, sigma_dw)``: linear acceleration ``accel_sigma`` (m/s^2) and angular
