@@ -159,11 +159,12 @@ def predicted_pose(x, dt):
 
 
 @njit
-def touch_down(k, x, U, dt, tilt_weight):
+def touch_down(k, x, U, dt, tilt_weight, height_weight, floor_z):
     """Footholds of the contacts that land at step ``k`` (active at k, not at k-1): the rest
     placement in the world is the contact's placement at the predicted pose, ``p_r = R p_l + t``,
     ``R_r = R R_l`` (the landing spring starts at zero deflection), with the fraction
-    ``tilt_weight`` of the tilt of the sole (its z axis against gravity's) removed, yaw kept.
+    ``tilt_weight`` of the tilt of the sole (its z axis against gravity's) removed, yaw kept,
+    and the fraction ``height_weight`` of its height above the floor ``z = floor_z`` removed.
     Written into the packed rows of the whole episode (k until the contact lifts)."""
     _, _, R1, t1 = predicted_pose(x, dt)
     for c in range((U.shape[1] - NU0) // NUC):
@@ -171,6 +172,7 @@ def touch_down(k, x, U, dt, tilt_weight):
         if U[k, o] == 0.0 or U[k - 1, o] != 0.0:
             continue
         p_r = vadd(mv(R1, ld3(U[k], o + 1)), t1)
+        p_r = (p_r[0], p_r[1], p_r[2] - height_weight * (p_r[2] - floor_z))
         R_r = mm(R1, ldm9(U[k], o + 4))
         if tilt_weight > 0.0:
             # n x e_z for the sole normal n = R_r e_z: the rotation that levels the sole.
@@ -507,7 +509,7 @@ def step(k, x, P, U, CP, C, WS, OUT, do_predict, want_outputs):
     Rn = C[_NQ:_NQ + _NR].reshape((6, 6))
     o = _NQ + _NR
     dt, m, g, z0, min_force = C[o], C[o + 1], C[o + 2], C[o + 3], C[o + 4]
-    touchdown, tilt_weight = C[o + 5], C[o + 6]
+    touchdown, tilt_weight, height_weight, floor_z = C[o + 5], C[o + 6], C[o + 7], C[o + 8]
     u = U[k]
     row = OUT[k]
     o_wc = _O_WR + 6 * n_c
@@ -519,7 +521,7 @@ def step(k, x, P, U, CP, C, WS, OUT, do_predict, want_outputs):
     o_nis = o_wh + 6
     if do_predict and k > 0:
         if touchdown != 0.0:
-            touch_down(k, x, U, dt, tilt_weight)
+            touch_down(k, x, U, dt, tilt_weight, height_weight, floor_z)
         st = predict(x, P, u, CP, Q, dt, m, g, WS)
         if st != 0:
             return st
@@ -575,9 +577,10 @@ def pack_params(params) -> np.ndarray:
     return np.ascontiguousarray(np.array(rows, dtype=float).reshape(len(rows), 39))
 
 
-def pack_constants(Q, Rn, dt, m, g, z0, min_force, touchdown: bool = False, tilt_weight: float = 0.0) -> np.ndarray:
+def pack_constants(Q, Rn, dt, m, g, z0, min_force, touchdown: bool = False, tilt_weight: float = 0.0,
+                   height_weight: float = 0.0, floor_z: float = 0.0) -> np.ndarray:
     return np.concatenate([np.asarray(Q, float).ravel(), np.asarray(Rn, float).ravel(),
-                           [dt, m, g, z0, min_force, float(touchdown), tilt_weight]])
+                           [dt, m, g, z0, min_force, float(touchdown), tilt_weight, height_weight, floor_z]])
 
 
 def workspace() -> np.ndarray:

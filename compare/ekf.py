@@ -130,6 +130,10 @@ class EKFConfig:
     """With ``touchdown='zero-deflection'``: fraction (0 to 1, dimensionless) of the landing sole's
     roll and pitch with respect to gravity removed from its rest orientation (1: the foothold is
     level, the yaw kept; 0: the sole's orientation as it lands)."""
+    ground_height_weight: float = 0.0
+    """With ``touchdown='zero-deflection'``: fraction (0 to 1) of the landing sole's height above the
+    floor (the plane z = 0 of the world, where the first step's contacts rest) removed from its rest
+    position (1: the foothold is on the floor; 0: where the foot lands by the estimate)."""
 
     def __post_init__(self):
         if self.jacobians not in ("analytic", "numeric"):
@@ -146,6 +150,9 @@ class EKFConfig:
         if not (math.isfinite(self.ground_tilt_weight) and 0.0 <= self.ground_tilt_weight <= 1.0):
             raise ConfigError("EKFConfig.ground_tilt_weight is the fraction of the sole's tilt removed at a "
                               f"touch-down, expected a number in [0, 1], got {self.ground_tilt_weight}")
+        if not (math.isfinite(self.ground_height_weight) and 0.0 <= self.ground_height_weight <= 1.0):
+            raise ConfigError("EKFConfig.ground_height_weight is the fraction of the sole's height above the "
+                              f"floor removed at a touch-down, expected a number in [0, 1], got {self.ground_height_weight}")
         if not (self.p0_scale > 0 and self.nis_limit > 0 and self.nis_steps >= 1):
             raise ConfigError("EKFConfig.p0_scale and nis_limit must be positive and nis_steps >= 1")
 
@@ -316,6 +323,13 @@ def _numeric_jacobian(f, x: np.ndarray, h: float = 1e-6) -> np.ndarray:
     return np.array(cols).T
 
 
+def _floor_height(rec, rest_p) -> float:
+    """Height (m) of the floor in the world: the mean rest height of the contacts in force at the
+    first step (0 when none is)."""
+    on = rec.contact_active[0]
+    return float(np.mean(rest_p[0, on, 2])) if on.any() else 0.0
+
+
 class EKF:
     r"""The paper's EKF over a recording: its model functions and pure ``predict`` and ``update``.
 
@@ -344,7 +358,8 @@ class EKF:
         self.U = K.pack_inputs(rec, rest_p, rest_R)
         self.CP = K.pack_params(model.contact_params)
         self.C = K.pack_constants(self.noise.Q, self.noise.R, self.dt, rec.mass, self.g, config.z0,
-                                  config.min_force, config.touchdown == "zero-deflection", config.ground_tilt_weight)
+                                  config.min_force, config.touchdown == "zero-deflection", config.ground_tilt_weight,
+                                  config.ground_height_weight, _floor_height(rec, rest_p))
         self.WS = K.workspace()
 
     # --- model functions ----------------------------------------------------------------------

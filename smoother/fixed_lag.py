@@ -201,7 +201,7 @@ class FixedLagSmoother:
     """Own fixed-lag smoother over a window (module docstring): :meth:`step` once per sample, then
     :meth:`finish`.  Memory: ring buffers of ``lag + relinearize + report_every + 2`` steps."""
 
-    def __init__(self, prob: Problem, lag: float = 1.0, relinearize: int = 3, covariance: bool = True,
+    def __init__(self, prob: Problem, lag: float = 1.0, relinearize: int = 6, covariance: bool = True,
                  report_every: int = 10):
         if not lag > 0:
             raise EstimatorError(f"fixed-lag smoother: lag must be positive (s), got {lag}")
@@ -355,7 +355,7 @@ class FixedLagSmoother:
 
 
 def run_fixed_lag(rec, model, progress: Callable[[float], None] | None = None, lag: float = 1.0,
-                  rule: NoiseRule | None = None, backend: str = "window", relinearize: int = 3,
+                  rule: NoiseRule | None = None, backend: str = "window", relinearize: int = 6,
                   report_every: int = 10, relinearize_threshold: float | None = None,
                   relinearize_skip: int = 10, covariance: bool = True, rest_p=None, rest_R=None, **options):
     """Fixed-lag smoothing of a Recording, one update per sample; returns an :class:`Estimate`.
@@ -366,7 +366,8 @@ def run_fixed_lag(rec, model, progress: Callable[[float], None] | None = None, l
         backend: ``window`` (own incremental square-root smoother, default) or ``gtsam``
             (IncrementalFixedLagSmoother; no effects).
         relinearize, report_every: window backend: steps relinearised per update (the newest
-            one included), and how often (updates) the window is read out.
+            one included; 6: a touch-down needs several Gauss-Newton passes, docs/smoother.md),
+            and how often (updates) the window is read out.
         relinearize_threshold, relinearize_skip: gtsam backend: iSAM2's relinearisation settings.
         covariance: extract the marginal covariances (timed apart from the updates).
         rest_p, rest_R: (N, C, 3), (N, C, 3, 3) the contacts' rest placements in the world per step
