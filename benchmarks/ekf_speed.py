@@ -7,7 +7,8 @@ the wall-clock time of one predict + update + outputs (covariances, wrenches, Co
 included, as stored in ``Estimate.time_per_step``; numba's compilation (or cache load) is done by
 a warm-up run first and reported apart.  ``cold_compile_s`` is the time a fresh process takes to
 import the kernel and run 10 steps with an empty numba cache (a temporary ``NUMBA_CACHE_DIR``, the
-first run on a new machine); ``cached_load_s`` the same in a second process once that cache exists.  Target: <= 100 us per step (the authors' C++ filter runs
+first run on a new machine); ``cached_load_s`` the same in a second process once that cache exists.
+Target: <= 100 us per step (the authors' C++ filter runs
 about 20 us per step on this kind of machine).
 """
 
@@ -30,7 +31,6 @@ from flexforce.compare.ekf import run_ekf
 from flexforce.datasets.scenario import Scenario
 from flexforce.datasets.simulator import simulate
 from flexforce.factors.model import ModelConfig
-
 
 _COMPILE_PROBE = """
 import time

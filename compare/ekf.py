@@ -44,8 +44,9 @@ from __future__ import annotations
 import math
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
@@ -257,7 +258,6 @@ def noise_model(rec: Recording, model: ModelConfig, config: EKFConfig = EKFConfi
       natural pulsations ``omega_n^2 = sum k_fs / m`` and ``sum k_ts / (m h^2)``; the
       accelerations' prior follows from the dynamics.
     """
-    dt = rec.dt
     g = model.gravity
     m = rec.mass
     kf, kt, centroid = _contact_totals(rec, model, 0)
@@ -610,7 +610,7 @@ _STATUS = {1: "the predicted state covariance", 2: "the innovation covariance", 
            4: "the state"}
 
 
-def _handle_failure(status: int, k: int, ekf: EKF, x, P, P_reset, out: "_Outputs"):
+def _handle_failure(status: int, k: int, ekf: EKF, x, P, P_reset, out: _Outputs):
     """Raise, or (``on_covariance_failure='reset'``) restart P from P0 and redo step k's update."""
     rec = ekf.rec
     where = f"at sample {k} (t = {rec.time[k]:.3f} s)"
@@ -631,7 +631,7 @@ def _handle_failure(status: int, k: int, ekf: EKF, x, P, P_reset, out: "_Outputs
     return x, P
 
 
-def _reference_step(ekf: EKF, k: int, x, P, out: "_Outputs", predict: bool = True):
+def _reference_step(ekf: EKF, k: int, x, P, out: _Outputs, predict: bool = True):
     """One predict (k > 0) + update with the numpy reference; fills ``out`` at k."""
     if k > 0 and predict:
         x, P = ekf.predict(x, P, k)

@@ -210,8 +210,8 @@ def summary_table_html(summary: dict) -> str:
             ("rotation_rad", "rotation RMSE [mrad]", 1e3), ("translation_m", "translation RMSE [mm]", 1e3),
             ("hand_m", "hand RMSE [mm]", 1e3)]
     head = "".join(f"<th>{html.escape(c[1])}</th>" for c in cols)
-    head += ("<th>NEES (18)</th><th>NIS (6)</th><th>median step [µs]</th><th>p99 step [µs]</th><th>amortized step [µs]</th>"
-             "<th>total [s]</th>")
+    head += ("<th>NEES (18)</th><th>NIS (6)</th><th>median step [µs]</th><th>p99 step [µs]</th>"
+             "<th>amortized step [µs]</th><th>total [s]</th>")
     head += "<th>peak memory [MB]</th>"
     rows = []
     for key, m in est.items():
@@ -259,14 +259,15 @@ def write_report(comp, rec, out_dir: str | Path, title: str | None = None) -> Pa
     if crb:
         bound = crb["rmse_bound"]
         cells = "".join(f"<td>{_fmt(bound.get(c))}</td>" for c in RMSE_KEYS)
-        rows = "".join(f"<tr><th>{html.escape(k)} / bound</th>" + "".join(f"<td>{_fmt(v.get(c))}</td>" for c in RMSE_KEYS)
-                       + "</tr>" for k, v in crb["rmse_relative_to_bound"].items())
+        rows = "".join(f"<tr><th>{html.escape(k)} / bound</th>"
+                       + "".join(f"<td>{_fmt(v.get(c))}</td>" for c in RMSE_KEYS) + "</tr>"
+                       for k, v in crb["rmse_relative_to_bound"].items())
         crb_html = (f"<h2>Cramér–Rao bound</h2><p>RMSE lower bounds of the batch problem's model (its information "
                     f"matrix at the ground truth), SI units, and each estimator's RMSE relative to them.</p>"
                     f"<table><tr><th></th>{''.join(f'<th>{c}</th>' for c in RMSE_KEYS)}</tr>"
                     f"<tr><th>bound</th>{cells}</tr>{rows}</table>")
     extra = []
-    for key, m in comp.metrics.items():
+    for m in comp.metrics.values():
         d = m.extra.get("hand_displacement_by_flexibility_max_m")
         if d is not None:
             extra.append(f"Uncompensated, the flexibility moves the hands by up to {d * 1000:.1f} mm.")

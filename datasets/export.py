@@ -228,7 +228,8 @@ def _write_estimate(writer, ts, est: Estimate) -> None:
     ]
     for i, name in enumerate(est.contact_names):
         streams.append((f"{base}/wrench/{_token(name)}", "geometry_msgs/msg/WrenchStamped",
-                        lambda k, h, i=i: T["geometry_msgs/msg/WrenchStamped"](header=h, wrench=M.wrench(est.wrench[k, i]))))
+                        lambda k, h, i=i: T["geometry_msgs/msg/WrenchStamped"](
+                            header=h, wrench=M.wrench(est.wrench[k, i]))))
     if est.cov is not None:
         # state order (theta, t, ...) -> ROS pose covariance order (x, y, z, rot x, rot y, rot z)
         idx = np.r_[3:6, 0:3]

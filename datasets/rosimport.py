@@ -327,7 +327,8 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
     index = {name: i for i, name in enumerate(model_names)}
     for jname in pmodel.names[2:]:
         if pmodel.joints[pmodel.getJointId(jname)].nq != 1:
-            raise ConfigError(f"joint '{jname}' of robot '{config.name}' has {pmodel.joints[pmodel.getJointId(jname)].nq} "
+            raise ConfigError(f"joint '{jname}' of robot '{config.name}' has "
+                              f"{pmodel.joints[pmodel.getJointId(jname)].nq} "
                               "position coordinates; only 1-dof joints are supported")
     nj = len(model_names)
     q_src = np.full((len(joints.msgs), nj), np.nan)

@@ -166,12 +166,13 @@ class Scenario:
     """Add sensor noise and the ambient disturbance; False gives an exact world and readings (tests)."""
     ambient: bool = True
     """Ambient unmodelled disturbance: a white acceleration of the flexibility at the samples, linear
-    in between (continuous), at the level the nominal model assumes (:func:`flexforce.factors.model.unmodelled_acceleration`),
+    in between (continuous), at the level the nominal model assumes
+    (:func:`flexforce.factors.model.unmodelled_acceleration`),
     applied as an external wrench on the base; so that the nominal world is the nominal model."""
     source: str = ""
 
     @classmethod
-    def load(cls, name_or_path: str | Path) -> "Scenario":
+    def load(cls, name_or_path: str | Path) -> Scenario:
         """A built-in scenario by name, or a scenario TOML file."""
         path = Path(name_or_path)
         if path.suffix != ".toml":
@@ -189,7 +190,7 @@ class Scenario:
         return cls.from_dict(raw, source=str(path))
 
     @classmethod
-    def from_dict(cls, raw: dict, source: str = "") -> "Scenario":
+    def from_dict(cls, raw: dict, source: str = "") -> Scenario:
         known = set(cls.__dataclass_fields__) - {"source"}
         unknown = set(raw) - known
         if unknown:

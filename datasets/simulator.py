@@ -21,22 +21,21 @@ polynomials, which match position, velocity and acceleration at every sample.
 
 from __future__ import annotations
 
-import copy
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 import pinocchio as pin
 
-from flexforce.errors import ConfigError, ModelError
-from flexforce.factors import so3
-from flexforce.factors.model import unmodelled_acceleration
-from flexforce.factors.physics import ContactParams, center_of_pressure
 from flexforce.datasets.effects import HiddenEffect, parse_effects
 from flexforce.datasets.recording import Recording, Truth
 from flexforce.datasets.robot import ROBOTS_DIR, FtNoise, ImuNoise, RobotConfig, RobotModel
 from flexforce.datasets.scenario import Scenario
+from flexforce.errors import ConfigError, ModelError
+from flexforce.factors import so3
+from flexforce.factors.model import unmodelled_acceleration
+from flexforce.factors.physics import ContactParams, center_of_pressure
 
 E_Z = np.array([0.0, 0.0, 1.0])
 
@@ -176,7 +175,8 @@ class LocalMotion:
                 J = pin.computeFrameJacobian(model, data, q, fid, pin.LOCAL)[:, lv]
                 q[lq] += np.linalg.solve(J, err)
             else:
-                raise ModelError(f"inverse kinematics of contact {ci} did not converge (residual {np.abs(err).max():.2e}); "
+                raise ModelError(f"inverse kinematics of contact {ci} did not converge "
+                                 f"(residual {np.abs(err).max():.2e}); "
                                  "the scenario asks for an unreachable placement")
         return q
 
@@ -714,7 +714,8 @@ class Simulator:
         }
         return Recording(
             t_ns=np.arange(n, dtype=np.int64) * step_ns,
-            robot=robot.name if robot.config.source.startswith(str(ROBOTS_DIR)) else (robot.config.source or robot.name),
+            robot=(robot.name if robot.config.source.startswith(str(ROBOTS_DIR))
+                   else (robot.config.source or robot.name)),
             contact_names=robot.contact_names,
             mass=robot.mass,
             com=np.array([i.c for i in inp]), com_vel=np.array([i.dc for i in inp]),

@@ -472,7 +472,6 @@ class ExternalWrench:
             axis = "x" if abs(fx) >= abs(fy) else "y"
             sign = "-" if (fx if axis == "x" else fy) < 0 else ""
             T = v[kp, 3:]
-            Ts = std[kp, 3:]
             fn = np.linalg.norm(F[seg], axis=1)
             kf = k0 + int(np.argmax(fn))
             ax = int(np.argmax(np.abs(F[kf])))

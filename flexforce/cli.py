@@ -71,7 +71,8 @@ def open_recording(path: Path, robot: str | None = None, contacts: str = "ft", q
     if not robot:
         raise ConfigError(f"{path} is a raw robot bag (no /flexforce/meta): give its robot configuration with "
                           "--robot NAME|CONFIG.toml (e.g. --robot icub)")
-    return import_bag(path, robot, contacts=contacts, progress=Progress(f"import {path.name}", enabled=not quiet and None))
+    return import_bag(path, robot, contacts=contacts,
+                      progress=Progress(f"import {path.name}", enabled=not quiet and None))
 
 
 def _cmd_run(args) -> int:
@@ -83,8 +84,8 @@ def _cmd_run(args) -> int:
     options = {}
     if args.lag is not None:
         options["lag"] = args.lag
-    est = run_estimator(args.estimator, rec, model, progress=Progress(f"{args.estimator}", enabled=not args.quiet and None),
-                        **options)
+    est = run_estimator(args.estimator, rec, model,
+                        progress=Progress(f"{args.estimator}", enabled=not args.quiet and None), **options)
     out = Path(args.output)
     if out.suffix == ".csv":
         from flexforce.datasets.export import export_csv
@@ -295,7 +296,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_cmd_demo)
 
-    p = sub.add_parser("diagnose", help="where the nominal model fails, which effect is missing, before/after adding it")
+    p = sub.add_parser("diagnose",
+                       help="where the nominal model fails, which effect is missing, before/after adding it")
     p.add_argument("recording", help="bag, or a built-in scenario name / scenario file to simulate")
     p.add_argument("-o", "--output", required=True, type=Path, help="report folder (index.html, diagnosis.json)")
     p.add_argument("--add", action="append", default=[], metavar="NAME",

@@ -39,7 +39,7 @@ gtsam's body-frame tangent to world-frame increments (``blkdiag(R, R) Sigma blkd
 from __future__ import annotations
 
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import gtsam
 import numpy as np
@@ -144,7 +144,8 @@ class GtsamFixedLagSmoother:
         self.traj.q[j, 9:15] = acc
         for i in self.builder.contacts(j):
             key = gf.W(j, i)
-            self.traj.W[j, i] = full_values.atVector(key) if full_values is not None else sm.calculateEstimateVector(key)
+            self.traj.W[j, i] = (full_values.atVector(key) if full_values is not None
+                                 else sm.calculateEstimateVector(key))
         if self.covariance:
             t0 = time.perf_counter()
             P = self.P[j]
@@ -266,7 +267,7 @@ class FixedLagSmoother:
         """Add the next sample and update: relinearise the newest steps, eliminate, back-substitute."""
         k = self.k
         prob = self.prob
-        cap, M, D, nc = self.cap, self.M, prob.state_dim, prob.nc
+        cap, M, D = self.cap, self.M, prob.state_dim
         t0 = time.perf_counter()
         frozen_first = k - M >= 0
         f = max(k - M, 0)
@@ -393,7 +394,8 @@ def run_fixed_lag(rec, model, progress: Callable[[float], None] | None = None, l
     est = make_estimate(prob, "fixed_lag", fls.traj, fls.P, time_per_step=fls.update_time,
                         meta={"lag_s": fls.lag_steps * prob.dt, "use_ft": prob.use_ft, "backend": backend,
                               "cov_time_median_s": cov_stat if covariance else None,
-                              "covariance": ("per-key marginals (no cross-covariance between keys)" if backend == "gtsam"
+                              "covariance": ("per-key marginals (no cross-covariance between keys)"
+                                             if backend == "gtsam"
                                              else "per-step marginals of the window (joint within a step)")})
     est.total_time = time.perf_counter() - t0
     if progress is not None:

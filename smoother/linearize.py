@@ -31,10 +31,10 @@ class Trajectory:
     W: np.ndarray
     e: np.ndarray
 
-    def copy(self) -> "Trajectory":
+    def copy(self) -> Trajectory:
         return Trajectory(self.R.copy(), self.q.copy(), self.W.copy(), self.e.copy())
 
-    def retract(self, dx: np.ndarray) -> "Trajectory":
+    def retract(self, dx: np.ndarray) -> Trajectory:
         """A new trajectory moved by ``dx`` (N, D) in world-frame increments."""
         out = self.copy()
         kernels.retract_all(out.R, out.q, np.ascontiguousarray(dx[:, :S]))

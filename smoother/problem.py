@@ -72,13 +72,13 @@ class Effect(Protocol):
     labels: tuple[str, ...]
     """One label per unknown, with its unit, e.g. ``("F_x [N]", ...)``."""
 
-    def prior(self, problem: "Problem") -> tuple[np.ndarray, np.ndarray]:
+    def prior(self, problem: Problem) -> tuple[np.ndarray, np.ndarray]:
         """Mean and sigma (both ``(dim,)``) of the effect's value at the first step."""
 
-    def random_walk_sigma(self, problem: "Problem") -> np.ndarray:
+    def random_walk_sigma(self, problem: Problem) -> np.ndarray:
         """Per-step sigma ``(dim,)`` of ``e_k+1 - e_k`` (tiny for a constant parameter)."""
 
-    def residual_terms(self, family: str, problem: "Problem", steps: np.ndarray, R: np.ndarray,
+    def residual_terms(self, family: str, problem: Problem, steps: np.ndarray, R: np.ndarray,
                        q: np.ndarray, W: np.ndarray, e: np.ndarray):
         """The effect's additive term in ``family``'s (unwhitened) residual, or None.
 
@@ -318,7 +318,7 @@ class Problem:
     use_ft: bool
 
     @classmethod
-    def build(cls, rec, model, rule: NoiseRule = NoiseRule()) -> "Problem":
+    def build(cls, rec, model, rule: NoiseRule = NoiseRule()) -> Problem:
         rec.validate()
         nc = len(rec.contact_names)
         if len(model.contact_params) != nc:

@@ -288,7 +288,8 @@ def test_anisotropic_stiffness(null):
     fb, cb, tb = errors(base, rec)
     fe, ce, te = errors(est, rec)
     assert fe < fb and ce < cb and te < tb
-    nv, ns = np.array(nfit.effects["anisotropic-stiffness"]["value"]), np.array(nfit.effects["anisotropic-stiffness"]["std"])
+    aniso = nfit.effects["anisotropic-stiffness"]
+    nv, ns = np.array(aniso["value"]), np.array(aniso["std"])
     assert np.all(np.abs(nv - 1) < 4 * ns)
     assert g0 < 10 + 2 * dof0
 
@@ -302,6 +303,7 @@ def test_nonlinear_stiffness(null):
     fb, cb, tb = errors(base, rec)
     fe, ce, te = errors(est, rec)
     assert fe < fb and ce < cb and te < tb
-    nv, ns = np.array(nfit.effects["nonlinear-stiffness"]["value"]), np.array(nfit.effects["nonlinear-stiffness"]["std"])
+    cubic = nfit.effects["nonlinear-stiffness"]
+    nv, ns = np.array(cubic["value"]), np.array(cubic["std"])
     assert np.all(np.abs(nv) < 4 * ns)
     assert g0 < 10 + 2 * dof0

@@ -12,7 +12,6 @@ import json
 
 import numpy as np
 import pytest
-
 from conftest import ICUB_DIR
 
 from flexforce.cli import main

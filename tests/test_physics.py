@@ -212,7 +212,8 @@ def test_contact_wrench_jacobian_larger_deflection_cubic():
     for params in (ISO_CUBIC, ANISO_CUBIC, FULL):
         p_l, R_cl = np.array([0.1, -0.08, 0.0]), so3.exp(np.array([0.0, 0.0, 0.7]))
         _, J = ph.contact_wrench(R, t, w, v, p_l, R_cl, params, jacobian=True)
-        Jn = numerical_jacobian(lambda *x: ph.contact_wrench(*x, p_l, R_cl, params), [R, t, w, v])
+        Jn = numerical_jacobian(lambda *x, p_l=p_l, R_cl=R_cl, params=params: ph.contact_wrench(*x, p_l, R_cl, params),
+                                [R, t, w, v])
         assert_jacobian(J, Jn)
 
 

@@ -23,7 +23,7 @@ def make_estimate(residuals: dict, sigma: dict | None = None, rate: float = 200.
 def test_white_noise_raises_no_flag():
     rng = np.random.default_rng(1)
     false_alarms = 0
-    for seed in range(20):
+    for _ in range(20):
         est = make_estimate({"newton_euler": rng.standard_normal((2000, 3))})
         false_alarms += bool(flag_windows(est, alpha=0.01))
     assert false_alarms <= 2  # about alpha per run

@@ -24,7 +24,6 @@ from flexforce.factors.model import ModelConfig
 from flexforce.smoother import Effect, Problem, run_batch, run_fixed_lag
 from flexforce.smoother.batch import optimize
 from flexforce.smoother.graph import GraphBuilder
-from flexforce.smoother.linearize import Trajectory
 
 
 @pytest.fixture(scope="module")
@@ -186,7 +185,8 @@ def test_window_fixed_lag_with_full_relinearisation_matches_batch_on_a_short_win
     traj, _, _ = optimize(prob, want_cov=False)
     est = run_fixed_lag(short, model, lag=1.0, relinearize=80, covariance=False)
     np.testing.assert_allclose(est.t, traj.q[:, :3], atol=2e-6)
-    np.testing.assert_allclose(est.total_wrench[:, :3], (traj.W * prob.active[:, :, None]).sum(axis=1)[:, :3], atol=0.05)
+    np.testing.assert_allclose(est.total_wrench[:, :3], (traj.W * prob.active[:, :, None]).sum(axis=1)[:, :3],
+                               atol=0.05)
 
 
 def test_ft_fusion_improves_the_estimate(rec, model, batch):
