@@ -52,7 +52,8 @@ def test_a_push_is_flagged_where_and_how_big_it_is():
     # the window's mean force: 38 N along +x (pushed forward), diluted by the window's quiet part
     # as measured; 2 % for the seeded noise's summation order and nothing else
     assert f.mean > 0
-    assert lower("residuals.push.mean_N", f.mean, rel=0.02) <= f.mean <= upper("residuals.push.mean_N", f.mean, rel=0.02)
+    key = "residuals.push.mean_N"
+    assert lower(key, f.mean, rel=0.02) <= f.mean <= upper(key, f.mean, rel=0.02), f.mean
     assert "F_x [N]" in f.describe()
 
 
