@@ -338,11 +338,23 @@ def test_estimate_fields_and_roundtrip(recs, tmp_path):
     assert np.all(est.time_per_step > 0) and est.total_time >= est.time_per_step.sum() * 0.5
     for P in est.cov[::10]:
         np.linalg.cholesky(P)
-    # cov is over world increments (theta, t, ...): its t block equals the filter's t block
+    # cov is over world increments (theta, t, w, v, dw, a): the filter's covariance over its own
+    # (t, Omega, v, w, a, dw) mapped by the derivative of the world increments with respect to the
+    # filter's, taken here by central differences (theta = log(exp(Omega + d) exp(Omega)^T))
     ekf = E.EKF(rec, ModelConfig.from_recording(rec))
     x = np.concatenate([est.t[-1], so3.log(est.R[-1]), est.v[-1], est.w[-1], est.a[-1], est.dw[-1]])
-    P_paper = E.world_to_paper_cov(x[3:6], est.cov[-1])
-    np.testing.assert_allclose(ekf.outputs(x, P_paper, n - 1)["cov"], est.cov[-1], rtol=1e-9, atol=1e-18)
+
+    def world(xp):
+        return np.concatenate([so3.log(so3.exp(xp[3:6]) @ so3.exp(x[3:6]).T), xp[0:3], xp[9:12], xp[6:9],
+                               xp[15:18], xp[12:15]])
+
+    h = 1e-6
+    M = np.column_stack([(world(x + h * e) - world(x - h * e)) / (2 * h) for e in np.eye(18)])
+    L = np.random.default_rng(5).normal(size=(18, 18))
+    P_paper = L @ L.T
+    # central differences of a smooth map: error ~h^2 plus roundoff ~1e-16 / h = 1e-10 per entry
+    np.testing.assert_allclose(ekf.outputs(x, P_paper, n - 1)["cov"], M @ P_paper @ M.T,
+                               atol=1e-8 * np.abs(P_paper).max())
     back = Estimate.load(est.save(tmp_path / "ekf.npz"))
     np.testing.assert_array_equal(back.cov, est.cov)
     assert back.residual_labels["imu"] == est.residual_labels["imu"]
