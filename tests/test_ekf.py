@@ -316,8 +316,12 @@ def test_standing_vertical_force_is_mg(recs):
     assert bias <= upper("ekf.stand.vertical_force_bias_N", bias, add=0.01), bias
     # every step within 5 sigma of its own covariance (false alarm 6e-7 per step)
     assert np.all(np.abs(fz - mg) < 5 * sd)
-    # both feet carry it, each per-contact wrench zero when inactive is covered in the run test
-    np.testing.assert_allclose(est.wrench[steps, :, 2].sum(axis=1), fz)
+    # both feet carry it: each foot's vertical force against the simulator's, as measured
+    # (each per-contact wrench being zero when inactive is test_estimate_fields_and_roundtrip's)
+    for i in range(2):
+        err = np.sqrt(np.mean((est.wrench[steps, i, 2] - rec.truth.wrench[steps, i, 2]) ** 2))
+        assert err <= upper(f"ekf.stand.contact_{i}_vertical_force_rmse_N", err, rel=EKF), (i, err)
+        assert est.wrench[steps, i, 2].min() > 0
 
 
 # ----------------------------------------------------------------------------------------------
