@@ -40,9 +40,9 @@ try:  # numba is optional: without it the EKF runs the numpy reference path.
     void = types.void
 except ImportError:  # pragma: no cover - exercised only without numba
     AVAILABLE = False
-    A1 = A2 = MB = f8 = i8 = void = None
+    A1 = A2 = MB = f8 = i8 = void = None  # type: ignore[assignment]
 
-    def njit(*args, **kwargs):
+    def njit(*args, **kwargs):  # type: ignore[no-redef]
         if args and callable(args[0]):
             return args[0]
         return lambda f: f

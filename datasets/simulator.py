@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -526,7 +527,7 @@ class Simulator:
         times = np.arange(n) * dt
         # Local motion at the samples (exact), then quintic Hermite in between.
         samples = [self.motion.sample(float(tk)) for tk in times]
-        rest = [pin.SE3(M) if act else None for M, act in zip(self.motion.placements0, samples[0].active)]
+        rest: list[Any] = [pin.SE3(M) if act else None for M, act in zip(self.motion.placements0, samples[0].active)]
         R, tr = self._equilibrium(samples[0], rest)
         quat = pin.Quaternion(R)
         y = np.concatenate([[quat.w, quat.x, quat.y, quat.z], tr, np.zeros(6)])

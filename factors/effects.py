@@ -455,7 +455,7 @@ class ExternalWrench:
                 k = j + 1
             else:
                 k += 1
-        merged = []
+        merged: list[list[int]] = []
         for s_ in spans:
             if merged and (t[s_[0]] - t[merged[-1][1]]) < 0.05:
                 merged[-1][1] = s_[1]

@@ -164,7 +164,7 @@ def _cmd_compare(args) -> int:
     from flexforce.compare.runner import aggregate
 
     args.estimators = [e.strip() for e in args.estimators.split(",") if e.strip()]
-    sources = []
+    sources: list[tuple[str, str, int | None]] = []
     for src in args.recordings:
         if args.seeds and args.seeds > 1:
             sources += [(f"{Path(src).stem}-seed{s}", src, s) for s in range(args.seeds)]

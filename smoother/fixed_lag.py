@@ -114,7 +114,7 @@ class GtsamFixedLagSmoother:
         self.update_time = np.zeros(n)
         self.cov_time = np.zeros(n)
         self.k = 0
-        self._last = None
+        self._last: tuple[np.ndarray, np.ndarray] | None = None
 
     # ------------------------------------------------------------------------------------------
     def _predict(self, k: int):
@@ -123,7 +123,7 @@ class GtsamFixedLagSmoother:
             R, q = p.prior_mean
             R, q = R.copy(), q.copy()
         else:
-            R, q = predict_step(*self._last, p.dt)
+            R, q = predict_step(*self._last, p.dt)  # type: ignore[misc,call-arg]  # set by the previous step
         W = p.contact_wrenches(k, R, q)
         return R, q, W
 
@@ -148,7 +148,7 @@ class GtsamFixedLagSmoother:
                                  else sm.calculateEstimateVector(key))
         if self.covariance:
             t0 = time.perf_counter()
-            P = self.P[j]
+            P = self.P[j]  # type: ignore[index]  # allocated when covariance is set
             Cx = sm.marginalCovariance(gf.X(j))
             Ad = np.zeros((6, 6))
             Ad[:3, :3] = R
@@ -339,7 +339,7 @@ class FixedLagSmoother:
         R, q, W, e = self._state(j)
         self.traj.R[j], self.traj.q[j], self.traj.W[j], self.traj.e[j] = R, q, W, e
         if self.covariance:
-            self.P[j] = self.Pw[j % self.cap]
+            self.P[j] = self.Pw[j % self.cap]  # type: ignore[index]  # allocated when covariance is set
 
     def finish(self) -> None:
         """Report the steps still in the window (and any not yet read out) from the final estimate."""
@@ -381,6 +381,7 @@ def run_fixed_lag(rec, model, progress: Callable[[float], None] | None = None, l
         raise EstimatorError(f"fixed-lag smoother: backend must be 'window' or 'gtsam', got {backend!r}")
     t0 = time.perf_counter()
     prob = Problem.build(rec, model, rule or NoiseRule())
+    fls: FixedLagSmoother | GtsamFixedLagSmoother
     if backend == "window":
         fls = FixedLagSmoother(prob, lag, relinearize=relinearize, covariance=covariance, report_every=report_every)
     else:

@@ -377,7 +377,7 @@ def is_global(eff, prob=None) -> bool:
 
 def global_columns(prob) -> np.ndarray:
     """Indices, in the per-step state of width ``D``, of the global (constant) effects' unknowns."""
-    idx = []
+    idx: list[int] = []
     off = S + 6 * prob.nc
     for eff in prob.effects:
         if is_global(eff, prob):

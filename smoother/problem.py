@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -44,6 +44,10 @@ from flexforce.errors import ConfigError, DataError, ModelError
 from flexforce.factors import kernels
 from flexforce.factors.model import unmodelled_acceleration
 from flexforce.factors.physics import ContactParams
+
+if TYPE_CHECKING:
+    from flexforce.datasets.recording import Recording
+    from flexforce.factors.model import ModelConfig
 
 FAMILIES = ("integration", "newton_euler", "contact", "imu", "ft")
 """Names of the factor families, the keys of :attr:`Estimate.residuals`."""
@@ -307,8 +311,8 @@ def _contact_arrays(params: tuple[ContactParams, ...]):
 class Problem:
     """A Recording and a ModelConfig turned into what the factors read (contiguous arrays)."""
 
-    rec: object
-    model: object
+    rec: Recording
+    model: ModelConfig
     sigmas: Sigmas
     effects: tuple
     n: int
@@ -316,6 +320,37 @@ class Problem:
     dt: float
     g: float
     use_ft: bool
+    if TYPE_CHECKING:
+        # Arrays attached by build(), declared for the type checker only: the dataclass's fields
+        # stay the constructor's.  Shapes: (N, ...) per step, (C, ...) per contact.
+        com: np.ndarray = field(init=False)
+        com_vel: np.ndarray = field(init=False)
+        com_acc: np.ndarray = field(init=False)
+        inertia: np.ndarray = field(init=False)
+        inertia_dot: np.ndarray = field(init=False)
+        sigma_l: np.ndarray = field(init=False)
+        sigma_dot: np.ndarray = field(init=False)
+        imu_R: np.ndarray = field(init=False)
+        imu_p: np.ndarray = field(init=False)
+        imu_v: np.ndarray = field(init=False)
+        imu_a: np.ndarray = field(init=False)
+        imu_w: np.ndarray = field(init=False)
+        y_imu: np.ndarray = field(init=False)
+        active: np.ndarray = field(init=False)
+        contact_p: np.ndarray = field(init=False)
+        contact_R: np.ndarray = field(init=False)
+        y_ft: np.ndarray | None = field(init=False)
+        K_fs: np.ndarray = field(init=False)
+        K_fd: np.ndarray = field(init=False)
+        K_ts: np.ndarray = field(init=False)
+        K_td: np.ndarray = field(init=False)
+        beta: np.ndarray = field(init=False)
+        iso: np.ndarray = field(init=False)
+        effect_dims: tuple[int, ...] = field(init=False)
+        prior_mean: np.ndarray = field(init=False)
+        integration_whitener: np.ndarray = field(init=False)
+        ne_whitener: np.ndarray = field(init=False)
+        contact_whitener: np.ndarray = field(init=False)
 
     @classmethod
     def build(cls, rec, model, rule: NoiseRule = NoiseRule()) -> Problem:
@@ -349,8 +384,9 @@ class Problem:
         prob.effect_dims = tuple(int(e.dim) for e in prob.effects)
         prob.prior_mean = prob.equilibrium(0)
         prob.integration_whitener = whitener(prob.sigmas.integration_cov)
-        prob.ne_whitener = whitener(prob.sigmas.newton_euler_cov)
-        prob.contact_whitener = whitener(prob.sigmas.contact_cov)
+        # derive_sigmas fills both covariances (None only as a dataclass default)
+        prob.ne_whitener = whitener(prob.sigmas.newton_euler_cov)  # type: ignore[arg-type]
+        prob.contact_whitener = whitener(prob.sigmas.contact_cov)  # type: ignore[arg-type]
         return prob
 
     # ------------------------------------------------------------------------------------------

@@ -13,6 +13,7 @@ magnitudes and two seeds, ranked among all the others): ``benchmarks/results/dia
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 import pytest
@@ -31,7 +32,7 @@ from flexforce.smoother import Effect, Problem, fit, run_fixed_lag
 FIT = 0.10
 
 DURATION = 3.0
-TRUTH = {
+TRUTH: dict[str, dict[str, Any]] = {
     "external-wrench": {"type": "external-wrench", "link": "@base", "force": [40.0, 0.0, 0.0], "start": 1.5,
                         "duration": 0.4},
     "gyro-bias": {"type": "gyro-bias", "value": [0.0, 0.01, 0.0]},

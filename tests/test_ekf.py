@@ -63,6 +63,7 @@ def _errors(est: Estimate, truth) -> np.ndarray:
 
 
 def _nees(est: Estimate, truth) -> np.ndarray:
+    assert est.cov is not None
     e = _errors(est, truth)
     return np.einsum("ki,ki->k", e, np.linalg.solve(est.cov, e[..., None])[..., 0])
 

@@ -75,7 +75,7 @@ def assert_jacobian(J, J_num, rtol: float = RTOL, what: str = ""):
     assert J.shape == J_num.shape, (J.shape, J_num.shape)
     for r0 in range(0, J.shape[0], 3):
         band = J_num[r0:r0 + 3]
-        atol = rtol * max(np.linalg.norm(band), 1e-9)
+        atol = rtol * max(float(np.linalg.norm(band)), 1e-9)
         np.testing.assert_allclose(J[r0:r0 + 3], band, rtol=rtol, atol=atol,
                                    err_msg=f"{what} rows {r0}:{r0 + 3}")
 
