@@ -7,11 +7,15 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from flexforce.compare.metrics import RMSE_KEYS, Metrics, evaluate
 from flexforce.errors import FlexforceError
+
+if TYPE_CHECKING:
+    from flexforce.compare.crb import CramerRao
 
 DEFAULT_ESTIMATORS = ("ekf", "fixed-lag", "batch")
 
@@ -76,13 +80,13 @@ class Comparison:
     metrics: dict[str, Metrics] = field(default_factory=dict)
     failures: dict[str, str] = field(default_factory=dict)
     """summary key -> error message of an estimator that failed."""
-    crb: object | None = None
+    crb: CramerRao | None = None
     """:class:`flexforce.compare.crb.CramerRao` of the recording (simulated data only)."""
 
     def summary(self) -> dict:
         """The numbers of the report's table (summary.json)."""
-        out = {"recording": self.recording,
-               "estimators": {k: m.to_dict() for k, m in self.metrics.items()}}
+        out: dict[str, Any] = {"recording": self.recording,
+                               "estimators": {k: m.to_dict() for k, m in self.metrics.items()}}
         if self.failures:
             out["failures"] = self.failures
         ekf = self.metrics.get("ekf")
@@ -91,7 +95,9 @@ class Comparison:
             for key, m in self.metrics.items():
                 if key == "ekf":
                     continue
-                rel[key] = {k: (m.rmse[k] / ekf.rmse[k] if m.rmse.get(k) is not None and ekf.rmse.get(k) else None)
+                # both checked not None (the checker does not narrow dict items)
+                rel[key] = {k: (m.rmse[k] / ekf.rmse[k]  # type: ignore[operator]
+                                if m.rmse.get(k) is not None and ekf.rmse.get(k) else None)
                             for k in RMSE_KEYS}
             out["rmse_relative_to_ekf"] = rel
         if self.crb is not None:
@@ -163,10 +169,10 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
 def aggregate(comparisons: list[Comparison]) -> dict:
     """Mean and spread (standard deviation, min, max) of every number over several recordings."""
     keys = sorted({k for c in comparisons for k in c.metrics})
-    out = {"recordings": [c.recording for c in comparisons], "estimators": {}}
+    out: dict[str, Any] = {"recordings": [c.recording for c in comparisons], "estimators": {}}
     for key in keys:
         ms = [c.metrics[key] for c in comparisons if key in c.metrics]
-        entry = {"count": len(ms), "rmse": {}, "rmse_std": {}, "rmse_min": {}, "rmse_max": {}}
+        entry: dict[str, Any] = {"count": len(ms), "rmse": {}, "rmse_std": {}, "rmse_min": {}, "rmse_max": {}}
         for k in RMSE_KEYS:
             vals = np.array([m.rmse.get(k) for m in ms if m.rmse.get(k) is not None], dtype=float)
             if vals.size:
@@ -178,8 +184,8 @@ def aggregate(comparisons: list[Comparison]) -> dict:
                 entry["rmse"][k] = entry["rmse_std"][k] = entry["rmse_min"][k] = entry["rmse_max"][k] = None
         entry["time_per_step_s"] = {}
         for stat, how in (("median", np.median), ("p99", np.max), ("amortized", np.median)):
-            vals = [m.time_per_step.get(stat) for m in ms if m.time_per_step.get(stat) is not None]
-            entry["time_per_step_s"][stat] = float(how(vals)) if vals else None
+            times = [float(t) for m in ms if (t := m.time_per_step.get(stat)) is not None]
+            entry["time_per_step_s"][stat] = float(how(times)) if times else None
         nees = [m.nees for m in ms if m.nees is not None]
         entry["nees"] = float(np.mean(nees)) if nees else None
         entry["nees_std"] = float(np.std(nees)) if nees else None

@@ -49,6 +49,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -268,12 +269,13 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
     required = [ros.imu_topic, ros.joint_states_topic]
     if contacts == "ft":
         required += [ros.ft_topics[c] for c in config.contact_names]
-    for topic in required:
-        if topic not in topics:
+    for topic_name in required:
+        if topic_name not in topics:
             have = ", ".join(f"{t} ({m})" for t, m in sorted(all_types.items())) or "none"
-            raise BagError(f"bag {path} lacks topic {topic} ({wanted[topic]}) named by robot config "
+            raise BagError(f"bag {path} lacks topic {topic_name} ({wanted[topic_name]}) named by robot config "
                            f"'{config.name}'; the bag has: {have}")
     imu, joints = topics[ros.imu_topic], topics[ros.joint_states_topic]
+    topic: _Topic | None
     for topic in (imu, joints):
         if len(topic.t_ns) < 2:
             raise BagError(f"topic {topic.name} has {len(topic.t_ns)} message(s); expected at least 2")
@@ -382,8 +384,8 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
         if has_vel and ros.joint_velocity == "message":
             v_grid[:, j] = _interp(joints.t_ns[ok], v_src[ok, j], grid)
     if np.isnan(q_grid).any():
-        j = int(np.flatnonzero(np.isnan(q_grid).any(axis=0))[0])
-        raise DataError(f"joint '{model_names[j]}' is not measured over the whole grid on topic {joints.name}; "
+        j_bad = int(np.flatnonzero(np.isnan(q_grid).any(axis=0))[0])
+        raise DataError(f"joint '{model_names[j_bad]}' is not measured over the whole grid on topic {joints.name}; "
                         "expected every joint in every message span")
     velocity_source = "message" if has_vel and ros.joint_velocity == "message" else "savgol"
     if velocity_source == "message":
@@ -426,7 +428,8 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
         mg = model.mass * config.gravity
         on = ros.contact_on if ros.contact_on is not None else 0.25 * mg
         off = ros.contact_off if ros.contact_off is not None else 0.15 * mg
-        active = np.stack([schmitt_trigger(ft[:, i, 2], on, off) for i in range(c)], axis=1)
+        # ft is read whenever contacts == "ft" (its topics are required above)
+        active = np.stack([schmitt_trigger(ft[:, i, 2], on, off) for i in range(c)], axis=1)  # type: ignore[index]
         method = {"method": "schmitt", "on_N": on, "off_N": off}
     else:
         active = fixed_contacts(n, names_c, ros.fixed_contacts)
@@ -442,8 +445,9 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
     # ---- local frame and kinematics ----
     lf = anchored_local_frame(model, q_grid, v_grid, a_grid, active, load, anchor,
                               progress=lambda f: report(0.3 + 0.3 * f))
-    fields = {k: [] for k in ("com", "com_vel", "com_acc", "inertia", "inertia_dot", "sigma", "sigma_dot",
-                              "imu_R", "imu_p", "imu_v", "imu_a", "imu_w")}
+    fields: dict[str, list[np.ndarray]] = {
+        k: [] for k in ("com", "com_vel", "com_acc", "inertia", "inertia_dot", "sigma", "sigma_dot",
+                        "imu_R", "imu_p", "imu_v", "imu_a", "imu_w")}
     for k in range(n):
         kin = model.kinematics(lf.q[k], lf.v[k], lf.a[k])
         inp, im = kin.inputs, kin.imu
@@ -453,7 +457,7 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
             fields[key].append(value)
         if k % 50 == 0:
             report(0.6 + 0.35 * k / n)
-    arrays = {k: np.array(v) for k, v in fields.items()}
+    arrays: dict[str, Any] = {k: np.array(v) for k, v in fields.items()}
 
     # ---- motion capture ----
     mocap = {}

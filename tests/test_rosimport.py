@@ -13,6 +13,8 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 import pytest
+import rosbags.rosbag1
+import rosbags.rosbag2
 from conftest import ICUB_DIR as ICUB  # noqa: E402
 
 from flexforce.datasets.bagio import load_recording, save_recording
@@ -91,14 +93,14 @@ def write_bag(path: Path, kind: str, topics: dict):
     ros1 = kind == "ros1"
     ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
     T = ts.types
+    writer: rosbags.rosbag1.Writer | rosbags.rosbag2.Writer
     if ros1:
-        from rosbags.rosbag1 import Writer
-
-        writer = Writer(path)
+        writer = rosbags.rosbag1.Writer(path)
     else:
-        from rosbags.rosbag2 import StoragePlugin, Writer
+        from rosbags.rosbag2 import StoragePlugin
 
-        writer = Writer(path, version=8, storage_plugin=StoragePlugin.MCAP if kind == "mcap" else StoragePlugin.SQLITE3)
+        plugin = StoragePlugin.MCAP if kind == "mcap" else StoragePlugin.SQLITE3
+        writer = rosbags.rosbag2.Writer(path, version=8, storage_plugin=plugin)
 
     def header(t, frame, seq):
         sec, nsec = divmod(int(t), 1_000_000_000)
