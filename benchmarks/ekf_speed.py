@@ -50,7 +50,8 @@ print(time.perf_counter() - t1)
 
 def compile_times(repeat: int = 1) -> dict:
     """Kernel import + compile + 10 steps in a fresh process, with an empty then a filled cache (s)."""
-    cold, warm = [], []
+    cold: list[float] = []
+    warm: list[float] = []
     for _ in range(repeat):
         with tempfile.TemporaryDirectory() as cache:
             env = dict(os.environ, NUMBA_CACHE_DIR=cache)
@@ -95,7 +96,8 @@ def main() -> None:
         run_ekf(rec.slice(0, 10), model, fast=True)  # compile or load numba's cache
         record["warmup_compile_s"] = round(time.perf_counter() - t0, 2)
         est = run_ekf(rec, model, fast=True)
-        tps = est.time_per_step * 1e6
+        assert est.time_per_step is not None
+        tps = np.asarray(est.time_per_step) * 1e6
         record["fast"] = {"us_per_step_mean": round(float(tps.mean()), 2),
                           "us_per_step_median": round(float(np.median(tps)), 2),
                           "us_per_step_p99": round(float(np.percentile(tps, 99)), 2),
@@ -103,7 +105,8 @@ def main() -> None:
                           "total_s": round(est.total_time, 3)}
     if args.reference_steps > 0:
         est = run_ekf(rec.slice(0, min(args.reference_steps, rec.n)), model, fast=False)
-        tps = est.time_per_step * 1e6
+        assert est.time_per_step is not None
+        tps = np.asarray(est.time_per_step) * 1e6
         record["reference"] = {"steps": est.n, "us_per_step_mean": round(float(tps.mean()), 1),
                                "us_per_step_median": round(float(np.median(tps)), 1)}
     text = json.dumps(record, indent=2)

@@ -43,6 +43,7 @@ import re
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.signal import savgol_filter
@@ -112,14 +113,14 @@ def identify(rec, robot: RobotConfig, max_iterations: int) -> dict:
         "effective_dof": est.meta["fit"]["effective_dof"].get("stiffness"),
         "wall_s": wall,
         "fit_with_ft_vertical_force_rmse_N": _f(m.rmse.get("vertical_force_N")),
-        "fit_with_ft_tilt_rmse_deg": (_f(np.degrees(m.rmse["rotation_rad"]))
+        "fit_with_ft_tilt_rmse_deg": (_f(np.degrees(m.rmse["rotation_rad"]))  # type: ignore[arg-type]
                                       if m.rmse.get("rotation_rad") is not None else None),
     }
 
 
 def test_imu_only(rec, robot: RobotConfig) -> dict:
     model = ModelConfig.from_recording(rec, robot=robot, use_ft=False)
-    out = {}
+    out: dict[str, Any] = {}
     for name in ESTIMATORS:
         t0 = time.perf_counter()
         try:
@@ -143,7 +144,8 @@ def test_imu_only(rec, robot: RobotConfig) -> dict:
             "vertical_force_mean_error_per_foot_N": dict(zip(rec.contact_names, map(float, bias))),
             "vertical_force_rmse_bias_removed_N": float(np.sqrt(np.nanmean((e - bias) ** 2))),
             "tilt_rmse_deg": _f(np.degrees(rot)) if rot is not None else None,
-            "tilt_max_deg": _f(np.degrees(m.max["rotation_rad"])) if m.max.get("rotation_rad") is not None else None,
+            "tilt_max_deg": (_f(np.degrees(m.max["rotation_rad"]))  # type: ignore[arg-type]
+                             if m.max.get("rotation_rad") is not None else None),
             "wall_s": wall,
         }
     return out
@@ -177,7 +179,8 @@ def leg_odometry_tilt(rec) -> float | None:
 
 
 def scaled(robot: RobotConfig, s: float, d: float = 1.0) -> RobotConfig:
-    k = robot.stiffness
+    """The robot with its (isotropic: scalar) stiffness scaled by ``s`` and damping by ``d``."""
+    k: Any = robot.stiffness
     return dataclasses.replace(robot, stiffness=dataclasses.replace(
         k, k_fs=k.k_fs * s, k_ts=k.k_ts * s, k_fd=k.k_fd * d, k_td=k.k_td * d))
 
@@ -207,7 +210,7 @@ def force_error_by_phase(rec, robot: RobotConfig) -> dict:
     ds = np.broadcast_to(act.all(axis=1)[:, None], e.shape)
     ss = np.broadcast_to((act.sum(axis=1) == 1)[:, None], e.shape) & act
     total = float(np.nansum(e * e))
-    out = {}
+    out: dict[str, Any] = {}
     for label, mask in (("double_support", ds), ("single_support_stance_foot", ss), ("foot_off_by_trigger", ~act)):
         v = e[mask]
         v = v[np.isfinite(v)]
@@ -348,7 +351,7 @@ def main(argv=None) -> int:
 
     # 5. Diagnostics.
     if not args.no_diagnostics:
-        diag = {"vertical_agreement": {k: vertical_agreement(r) for k, r in recs.items()},
+        diag: dict[str, Any] = {"vertical_agreement": {k: vertical_agreement(r) for k, r in recs.items()},
                 "walk_force_error_by_phase_batch_nominal": force_error_by_phase(recs["walk"], nominal)}
         diag["profile_sway_ft"] = profile(recs["sway"], nominal, args.max_iterations)
         log("sway profile: " + ", ".join(f"s={r['stiffness_scale']:g} {r['cost_data']:.0f}"
