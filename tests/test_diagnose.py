@@ -143,6 +143,7 @@ def test_a_push_and_a_com_offset_are_both_found():
     assert_errors_fall("push_com", d, ("cop_m", "rotation_rad"))
 
 
+@pytest.mark.slow
 def test_user_written_effect_is_ranked_like_a_built_in(gyro_rec):
     """The docs' example (a drifting gyro bias, 6 unknowns) explains the constant bias as well as the
     built-in gyro-bias, so the same criterion ranks it second (its extra unknowns cost ln n each)

@@ -239,6 +239,7 @@ def test_gyro_bias(null):
     assert abs(dof0 - 3) < 0.01
 
 
+@pytest.mark.slow
 def test_accel_bias(null):
     rec, base, est, nfit, g0, dof0 = check_common("accel-bias", null)
     rep = est.effects["accel-bias"]
@@ -254,6 +255,7 @@ def test_accel_bias(null):
     assert np.all(np.abs(nv) < 4 * ns)
 
 
+@pytest.mark.slow
 def test_external_wrench(null):
     rec, base, est, nfit, g0, dof0 = check_common("external-wrench", null)
     rep = est.effects["external-wrench"]
@@ -282,6 +284,7 @@ def test_external_wrench(null):
     assert lower(key, dof0, rel=0.25) <= dof0 <= upper(key, dof0, rel=0.25), dof0
 
 
+@pytest.mark.slow
 def test_com_offset(null):
     rec, base, est, nfit, g0, dof0 = check_common("com-offset", null)
     rep = est.effects["com-offset"]
@@ -295,6 +298,7 @@ def test_com_offset(null):
     assert np.all(np.abs(nv[:2]) < 4 * ns[:2])
 
 
+@pytest.mark.slow
 def test_stiffness(null):
     rec, base, est, nfit, g0, dof0 = check_common("stiffness", null)
     rep = est.effects["stiffness"]
@@ -310,6 +314,7 @@ def test_stiffness(null):
     assert abs(nv[0] - 1) < 4 * ns[0] and abs(nv[1] - 1) < 4 * ns[1]
 
 
+@pytest.mark.slow
 def test_stiffness_recovered_within_its_std(null):
     rec, base, est, nfit = fits("stiffness", null)
     rep = est.effects["stiffness"]

@@ -265,6 +265,7 @@ def test_converges_from_wrong_state_and_is_consistent(recs, name):
     assert lower(key, nis.mean(), rel=EKF) <= nis.mean() <= upper(key, nis.mean(), rel=EKF), nis.mean()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["stand", "push-pitch"])
 def test_nees_is_consistent(name):
     """Monte Carlo NEES (Bar-Shalom): initial error drawn from P0, noise and ambient disturbance

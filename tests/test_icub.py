@@ -56,6 +56,7 @@ def _compare(bag, tmp_path):
     return {k: v["rmse"] for k, v in summary["estimators"].items()}
 
 
+@pytest.mark.slow
 def test_icub_sway_imu_only(tmp_path, capsys):
     """CoM sway (double support): every estimator's per-foot vertical force is below the equal
     split and its tilt error against Vicon as measured -- not better than leg odometry's (the
