@@ -265,6 +265,18 @@ def test_converges_from_wrong_state_and_is_consistent(recs, name):
     assert lower(key, nis.mean(), rel=EKF) <= nis.mean() <= upper(key, nis.mean(), rel=EKF), nis.mean()
 
 
+@pytest.mark.parametrize("name", ["stand", "com-step", "push-pitch"])
+def test_mean_nis_is_the_dof(recs, name):
+    """The innovations of a consistent filter are white with covariance S: the NIS of the quiet
+    steps are independent chi-square(6) draws, their mean within the two-sided 99 % band of
+    chi-square(6 N) / N."""
+    rec = recs[name]
+    est = E.run_ekf(rec, ModelConfig.from_recording(rec), x0=_wrong_x0(rec), fast=False)
+    nis = (est.residuals["imu"][_quiet_steps(rec)] ** 2).sum(axis=1)
+    lo, hi = stats.chi2.ppf([0.005, 0.995], 6 * nis.size) / nis.size
+    assert lo < nis.mean() < hi, (nis.mean(), nis.size, lo, hi)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["stand", "push-pitch"])
 def test_nees_is_consistent(name):

@@ -86,7 +86,7 @@ def test_batch_nees_within_chi2_bounds(batch, rec):
     hidden push): the mean NEES as measured, and most steps inside the 99.9 % chi-square bound.
     Errors are correlated over hundreds of steps, so the mean is not a chi-square(6 N) draw; a
     consistent covariance has a mean NEES near the dof (6), which test_batch_nees_mean_is_the_dof
-    holds separately."""
+    holds to its sampling spread."""
     tr = rec.truth
     we = batch.total_wrench - tr.total_wrench
     theta = np.array([so3.log(batch.R[k] @ tr.R[k].T) for k in range(rec.n)])
@@ -101,6 +101,43 @@ def test_batch_nees_within_chi2_bounds(batch, rec):
         inside = np.mean(value < chi2.ppf(0.999, 6))
         # 0.02 absolute: a fraction of ~1000 correlated steps; 2 % is about 20 of them.
         assert inside >= lower(f"smoother.batch.nees_inside_999_{what}", inside, add=0.02), inside
+
+
+def effective_samples(x: np.ndarray) -> float:
+    """``N / tau`` with ``tau = 1 + 2 sum_k rho_k`` the integrated autocorrelation time of ``x``,
+    the sum stopped at the first non-positive autocorrelation (Geyer's initial positive sequence,
+    simplified): how many independent draws a time average of ``x`` is worth."""
+    x = np.asarray(x, dtype=float) - np.mean(x)
+    n = x.size
+    acf = np.correlate(x, x, "full")[n - 1:] / (np.arange(n, 0, -1) * np.var(x))
+    tau = 1.0
+    for rho in acf[1:n // 2]:
+        if rho <= 0:
+            break
+        tau += 2.0 * rho
+    return n / tau
+
+
+@pytest.mark.parametrize("what", [
+    "wrench",
+    pytest.param("pose", marks=pytest.mark.xfail(
+        strict=True, reason="the pose covariance is optimistic: mean NEES 10.7 for 6 dof, above the 99 % band "
+        "(3.6, 9.2) of its ~10 effective samples")),
+])
+def test_batch_nees_mean_is_the_dof(batch, rec, what):
+    """A consistent covariance makes the NEES a chi-square(6) variable: mean 6.  The steps' NEES are
+    correlated, so their mean is worth ``N_eff`` independent draws (integrated autocorrelation
+    time); the test is the two-sided 99 % band of chi-square(6 N_eff) / N_eff."""
+    tr = rec.truth
+    if what == "wrench":
+        e, cov = batch.total_wrench - tr.total_wrench, batch.wrench_cov
+    else:
+        theta = np.array([so3.log(batch.R[k] @ tr.R[k].T) for k in range(rec.n)])
+        e, cov = np.concatenate([theta, batch.t - tr.t], axis=1), batch.cov[:, :6, :6]
+    value = nees(e, cov)[away_from_pushes(rec)]
+    n_eff = effective_samples(value)
+    lo, hi = chi2.ppf([0.005, 0.995], 6 * n_eff) / n_eff
+    assert lo < value.mean() < hi, (value.mean(), n_eff, lo, hi)
 
 
 def test_batch_estimate_contents(batch, rec, tmp_path):
@@ -131,12 +168,12 @@ def test_noise_free_standing_is_recovered_exactly():
     rec = Simulator(sc, noise=False).run()
     est = run_batch(rec, ModelConfig.from_recording(rec))
     force, cop, theta = errors(est, rec)
-    # Noise-free: the errors are the discretisation's (the simulator integrates the multibody
-    # dynamics at a finer step than the model's integration factor); a factor 2 on each, since they
-    # are near the solver's own precision, where the stopping point matters most.
-    assert force <= upper("smoother.noise_free.force_rmse_N", force, rel=1.0), force
-    assert cop <= upper("smoother.noise_free.cop_rmse_m", cop, rel=1.0), cop
-    assert theta <= upper("smoother.noise_free.tilt_rmse_rad", theta, rel=1.0), theta
+    # Noise-free, standing: the model is exact and the errors are roundoff (measured 5e-11 N,
+    # 1e-13 m, 4e-14 rad).  Roundoff moves with the BLAS and the operation order by orders of
+    # magnitude, so the margin is absolute: 2.5e-11 of the weight (1e-8 N of 400 N), 1e-11 m, 1e-11 rad.
+    assert force <= upper("smoother.noise_free.force_rmse_N", force, add=1e-8), force
+    assert cop <= upper("smoother.noise_free.cop_rmse_m", cop, add=1e-11), cop
+    assert theta <= upper("smoother.noise_free.tilt_rmse_rad", theta, add=1e-11), theta
 
 
 def test_batch_solver_equals_gtsam_levenberg_marquardt(rec, model):
