@@ -61,13 +61,22 @@ def lower(key: str, value: float, *, rel: float = 0.0, add: float = 0.0) -> floa
 
 
 def _merge(jsonl: Path) -> None:
+    import platform
+
+    import numpy as np
+
     data = json.loads(BASELINE_FILE.read_text()) if BASELINE_FILE.exists() else {"values": {}}
+    data["about"] = ("Measured values behind the tests' thresholds (tests/baseline.py); the margin of each is "
+                     "stated, with its reason, where the test uses it.")
+    data["measured_with"] = {"python": platform.python_version(), "numpy": np.__version__,
+                             "machine": platform.machine()}
     for line in jsonl.read_text().splitlines():
         item = json.loads(line)
         if not math.isfinite(item["value"]):
             raise ValueError(f"{item['key']}: measured {item['value']}")
         data["values"][item["key"]] = float(f"{item['value']:.6g}")
     data["values"] = dict(sorted(data["values"].items()))
+    data = {k: data[k] for k in ("about", "measured_with", "values")}
     BASELINE_FILE.write_text(json.dumps(data, indent=1) + "\n")
 
 
