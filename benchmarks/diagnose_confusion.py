@@ -143,7 +143,8 @@ def main():
         "benchmark": "diagnose_confusion", "scenario": "sway", "duration_s": args.duration, "seeds": seeds,
         "cases": CASES, "matrix": matrix,
         "correct_first": sum(r["first"] == r["truth"] for r in runs), "runs": len(runs),
-        "tie": TIE, "ambiguous_first": [[r["truth"], r["level"], r["seed"], r["first"], r["rivals"]] for r in runs if r["rivals"]],
+        "tie": TIE, "ambiguous_first": [[r["truth"], r["level"], r["seed"], r["first"], r["rivals"]]
+                                          for r in runs if r["rivals"]],
         "selected": {f'{r["truth"]}/{r["level"]}/{r["seed"]}': r["selected"] for r in runs},
         "error_ratio_after_before": {t: {k: [float(np.min(v)), float(np.max(v))] for k, v in d.items()}
                                      for t, d in falls.items()},

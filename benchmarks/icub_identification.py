@@ -43,8 +43,11 @@ import re
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from scipy.signal import savgol_filter
+from scipy.spatial.transform import Rotation
 
 from flexforce.compare.metrics import evaluate
 from flexforce.datasets.robot import ROBOTS_DIR, RobotConfig
@@ -53,8 +56,6 @@ from flexforce.estimators import run_estimator
 from flexforce.factors.effects import make_effect
 from flexforce.factors.model import ModelConfig
 from flexforce.smoother import fit
-from scipy.signal import savgol_filter
-from scipy.spatial.transform import Rotation
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
@@ -112,13 +113,14 @@ def identify(rec, robot: RobotConfig, max_iterations: int) -> dict:
         "effective_dof": est.meta["fit"]["effective_dof"].get("stiffness"),
         "wall_s": wall,
         "fit_with_ft_vertical_force_rmse_N": _f(m.rmse.get("vertical_force_N")),
-        "fit_with_ft_tilt_rmse_deg": _f(np.degrees(m.rmse["rotation_rad"])) if m.rmse.get("rotation_rad") is not None else None,
+        "fit_with_ft_tilt_rmse_deg": (_f(np.degrees(m.rmse["rotation_rad"]))  # type: ignore[arg-type]
+                                      if m.rmse.get("rotation_rad") is not None else None),
     }
 
 
 def test_imu_only(rec, robot: RobotConfig) -> dict:
     model = ModelConfig.from_recording(rec, robot=robot, use_ft=False)
-    out = {}
+    out: dict[str, Any] = {}
     for name in ESTIMATORS:
         t0 = time.perf_counter()
         try:
@@ -128,7 +130,6 @@ def test_imu_only(rec, robot: RobotConfig) -> dict:
             continue
         wall = time.perf_counter() - t0
         m = evaluate(est, rec, skip=SKIP)
-        fz = m.errors.get("vertical_force_N")
         rot = m.rmse.get("rotation_rad")
         # Per-foot vertical force RMSE, and the same with the mean error (the F/T offset) removed.
         local = _foot_fz(est, rec)
@@ -143,7 +144,8 @@ def test_imu_only(rec, robot: RobotConfig) -> dict:
             "vertical_force_mean_error_per_foot_N": dict(zip(rec.contact_names, map(float, bias))),
             "vertical_force_rmse_bias_removed_N": float(np.sqrt(np.nanmean((e - bias) ** 2))),
             "tilt_rmse_deg": _f(np.degrees(rot)) if rot is not None else None,
-            "tilt_max_deg": _f(np.degrees(m.max["rotation_rad"])) if m.max.get("rotation_rad") is not None else None,
+            "tilt_max_deg": (_f(np.degrees(m.max["rotation_rad"]))  # type: ignore[arg-type]
+                             if m.max.get("rotation_rad") is not None else None),
             "wall_s": wall,
         }
     return out
@@ -177,7 +179,8 @@ def leg_odometry_tilt(rec) -> float | None:
 
 
 def scaled(robot: RobotConfig, s: float, d: float = 1.0) -> RobotConfig:
-    k = robot.stiffness
+    """The robot with its (isotropic: scalar) stiffness scaled by ``s`` and damping by ``d``."""
+    k: Any = robot.stiffness
     return dataclasses.replace(robot, stiffness=dataclasses.replace(
         k, k_fs=k.k_fs * s, k_ts=k.k_ts * s, k_fd=k.k_fd * d, k_td=k.k_td * d))
 
@@ -189,7 +192,8 @@ def profile(rec, robot: RobotConfig, max_iterations: int) -> list[dict]:
     """Data cost (F/T fused) of the batch smoother with the stiffness scaled by s, per family."""
     rows = []
     for s in GRID:
-        est = fit(rec, ModelConfig.from_recording(rec, robot=scaled(robot, s), use_ft=True), max_iterations=max_iterations)
+        est = fit(rec, ModelConfig.from_recording(rec, robot=scaled(robot, s), use_ft=True),
+                  max_iterations=max_iterations)
         fams = {f: 0.5 * float(np.nansum(np.asarray(v) ** 2)) for f, v in est.residuals.items() if v is not None}
         rows.append({"stiffness_scale": s, "cost_data": est.meta["fit"]["cost_data"],
                      "n_residuals": est.meta["fit"]["n_residuals"], "iterations": est.meta.get("iterations"),
@@ -206,7 +210,7 @@ def force_error_by_phase(rec, robot: RobotConfig) -> dict:
     ds = np.broadcast_to(act.all(axis=1)[:, None], e.shape)
     ss = np.broadcast_to((act.sum(axis=1) == 1)[:, None], e.shape) & act
     total = float(np.nansum(e * e))
-    out = {}
+    out: dict[str, Any] = {}
     for label, mask in (("double_support", ds), ("single_support_stance_foot", ss), ("foot_off_by_trigger", ~act)):
         v = e[mask]
         v = v[np.isfinite(v)]
@@ -312,10 +316,12 @@ def main(argv=None) -> int:
     log(f"sway identification, offset removed: {ident_c['summary']}")
     result["identify_on_sway"] = {"raw_ft": ident, "ft_offset_removed": ident_c}
     if not args.no_write_config:
-        result["identified_config"] = str(write_identified(ident, args.data / SWAY, command, offsets["sway"]).relative_to(ROOT))
+        written = write_identified(ident, args.data / SWAY, command, offsets["sway"])
+        result["identified_config"] = str(written.relative_to(ROOT))
     identified = RobotConfig.load(IDENTIFIED) if IDENTIFIED.exists() else dataclasses.replace(
-        nominal, stiffness=dataclasses.replace(nominal.stiffness, k_fs=ident["k_fs_N_per_m"], k_ts=ident["k_ts_Nm_per_rad"],
-                                               k_fd=ident["k_fd_Ns_per_m"], k_td=ident["k_td_Nms_per_rad"]))
+        nominal, stiffness=dataclasses.replace(nominal.stiffness, k_fs=ident["k_fs_N_per_m"],
+                                               k_ts=ident["k_ts_Nm_per_rad"], k_fd=ident["k_fd_Ns_per_m"],
+                                               k_td=ident["k_td_Nms_per_rad"]))
 
     # 3. Test IMU-only on the walk.
     result["leg_odometry_tilt_rmse_deg"] = {k: leg_odometry_tilt(r) for k, r in recs.items()}
@@ -323,7 +329,8 @@ def main(argv=None) -> int:
     for label, robot in (("nominal", nominal), ("identified_on_sway", identified)):
         test[label] = test_imu_only(recs["walk"], robot)
         log(f"walk, {label}: " + ", ".join(f"{e} Fz {v.get('vertical_force_rmse_N', float('nan')):.1f} N tilt "
-                                           f"{v.get('tilt_rmse_deg', float('nan')):.2f} deg" for e, v in test[label].items()))
+                                           f"{v.get('tilt_rmse_deg', float('nan')):.2f} deg"
+                                           for e, v in test[label].items()))
     result["test_on_walk"] = test
 
     # 4. Reverse split.
@@ -338,15 +345,17 @@ def main(argv=None) -> int:
         for label, robot in (("nominal", nominal), ("identified_on_walk", walk_robot)):
             test[label] = test_imu_only(recs["sway"], robot)
             log(f"sway, {label}: " + ", ".join(f"{e} Fz {v.get('vertical_force_rmse_N', float('nan')):.1f} N tilt "
-                                               f"{v.get('tilt_rmse_deg', float('nan')):.2f} deg" for e, v in test[label].items()))
+                                               f"{v.get('tilt_rmse_deg', float('nan')):.2f} deg"
+                                               for e, v in test[label].items()))
         result["test_on_sway"] = test
 
     # 5. Diagnostics.
     if not args.no_diagnostics:
-        diag = {"vertical_agreement": {k: vertical_agreement(r) for k, r in recs.items()},
+        diag: dict[str, Any] = {"vertical_agreement": {k: vertical_agreement(r) for k, r in recs.items()},
                 "walk_force_error_by_phase_batch_nominal": force_error_by_phase(recs["walk"], nominal)}
         diag["profile_sway_ft"] = profile(recs["sway"], nominal, args.max_iterations)
-        log("sway profile: " + ", ".join(f"s={r['stiffness_scale']:g} {r['cost_data']:.0f}" for r in diag["profile_sway_ft"]))
+        log("sway profile: " + ", ".join(f"s={r['stiffness_scale']:g} {r['cost_data']:.0f}"
+                                         for r in diag["profile_sway_ft"]))
         sweep = {}
         for s in GRID[2:]:
             for key in ("sway", "walk"):

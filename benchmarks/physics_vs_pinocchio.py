@@ -31,6 +31,7 @@ def check(robot: str, name: str) -> dict:
     rec = sim.run()
     elapsed = time.perf_counter() - t0
     tr = rec.truth
+    assert tr is not None  # simulated
     m, g, h = rec.mass, rec.gravity, rec.com[0, 2]
     ne, cw, gy, ac = [], [], [], []
     for k in range(rec.n):

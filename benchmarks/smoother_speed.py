@@ -21,6 +21,7 @@ import os
 import platform
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -36,7 +37,7 @@ def static_recording(seconds: float, seed: int = 0):
     sc.duration = 0.05
     base = Simulator(sc, noise=False).run().slice(0, 1)
     n = int(round(seconds * 200)) + 1
-    fields = {}
+    fields: dict[str, Any] = {}
     for f in dataclasses.fields(base):
         value = getattr(base, f.name)
         if isinstance(value, np.ndarray) and value.ndim >= 1 and value.shape[0] == 1 and f.name != "t_ns":
@@ -65,8 +66,9 @@ def main(argv=None) -> dict:
     if args.quick:
         args.long_seconds, args.batch_seconds = 5.0, 5.0
 
-    out = {"machine": {"python": platform.python_version(), "cpus": os.cpu_count(), "platform": platform.platform()},
-           "targets": {"fixed_lag_median_ms": 1.0, "fixed_lag_p99_ms": 5.0, "batch_60s_s": 20.0}}
+    out: dict[str, Any] = {
+        "machine": {"python": platform.python_version(), "cpus": os.cpu_count(), "platform": platform.platform()},
+        "targets": {"fixed_lag_median_ms": 1.0, "fixed_lag_p99_ms": 5.0, "batch_60s_s": 20.0}}
     # warm-up: compile the kernels (numba caches them on disk)
     warm = static_recording(0.5)
     run_batch(warm, ModelConfig.from_recording(warm))

@@ -51,15 +51,19 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Callable, Iterable
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy import stats
 
-from flexforce.compare.metrics import RMSE_KEYS, evaluate
+from flexforce.compare.metrics import RMSE_KEYS, Metrics, evaluate
 from flexforce.compare.residuals import FlaggedWindow, consistency, flag_windows, residual_rms
 from flexforce.errors import ConfigError, FlexforceError
+
+if TYPE_CHECKING:
+    from flexforce.datasets.estimate import Estimate
 
 ALPHA = 0.01
 """Level of the likelihood-ratio test of an effect (and of the windowed residual tests)."""
@@ -107,8 +111,8 @@ def effect_factory(spec) -> tuple[str, Callable[[], object]]:
         try:
             from flexforce.factors.effects import make_effect
         except ImportError:  # a registry without the factory
-            make_effect = None
-        make = (lambda: make_effect(spec)) if make_effect else reg[spec]
+            make_effect = None  # type: ignore[assignment]
+        make = (lambda: make_effect(spec)) if make_effect else reg[spec]  # type: ignore[truthy-function]
         eff = make()
         return eff.name, make
     if isinstance(spec, type):
@@ -142,7 +146,7 @@ class Fit:
     """One fitted model: its estimate and the numbers the information criterion needs."""
 
     effects: tuple[str, ...]
-    estimate: object
+    estimate: Estimate
     cost_data: float
     """Half the sum of squared whitened data residuals (negative log-likelihood + const)."""
     n_residuals: int
@@ -212,8 +216,8 @@ class Snapshot:
     """One fitted model seen through the diagnostics: residuals, flags and, with truth, errors."""
 
     effects: tuple[str, ...]
-    estimate: object
-    metrics: object
+    estimate: Estimate
+    metrics: Metrics
     flags: list[FlaggedWindow]
     consistency: list
     residual_rms: dict[str, dict[str, float]]
@@ -223,7 +227,7 @@ class Snapshot:
     @property
     def rmse(self) -> dict[str, float | None]:
         """The comparison's headline errors; on real logs also the errors against the F/T sensors."""
-        keys = RMSE_KEYS
+        keys: tuple[str, ...] = RMSE_KEYS
         if getattr(self.metrics, "reference", None) == "sensors":
             keys = keys + ("vertical_force_N", "contact_force_N")
         return {k: _clean(self.metrics.rmse.get(k)) for k in keys}
@@ -353,8 +357,8 @@ def score(base: Fit, fit: Fit, effect: str, alpha: float = ALPHA) -> tuple[float
     penalised.  ``p``: ``lr`` against chi-square(``nu``), ``nu`` the effective dof.
     """
     use_evidence = base.cost_evidence is not None and fit.cost_evidence is not None
-    if use_evidence:
-        lr = 2.0 * (base.cost_evidence - fit.cost_evidence)
+    if use_evidence:  # both evidences checked not None just above
+        lr = 2.0 * (base.cost_evidence - fit.cost_evidence)  # type: ignore[operator]
     else:
         lr = 2.0 * (base.cost_data - fit.cost_data)
     nu = float(fit.effective_dof.get(effect, 0.0))
@@ -531,9 +535,10 @@ def load_plugin(path) -> list:
     if not path.is_file():
         raise ConfigError(f"effect plugin {path} does not exist; expected a Python file defining Effect classes")
     spec = importlib.util.spec_from_file_location(f"flexforce_plugin_{path.stem.replace('-', '_')}", path)
-    module = importlib.util.module_from_spec(spec)
+    # spec is None only for a file whose suffix is not a Python one
+    module = importlib.util.module_from_spec(spec)  # type: ignore[arg-type]
     try:
-        spec.loader.exec_module(module)
+        spec.loader.exec_module(module)  # type: ignore[union-attr]
     except Exception as err:  # a user's file: any error is a configuration error
         raise ConfigError(f"cannot load effect plugin {path}: {type(err).__name__}: {err}") from err
     declared = getattr(module, "EFFECTS", None)

@@ -158,7 +158,8 @@ def flags_html(flags) -> str:
         f"<tr><td style='text-align:left'>{html.escape(f.estimator)}</td><td style='text-align:left'>"
         f"{html.escape(f.family)}</td><td style='text-align:left'>{html.escape(f.axis)}</td>"
         f"<td>{f.start_s:.2f}–{f.end_s:.2f}</td><td>{_fmt(f.size)} {html.escape(f.unit)}</td>"
-        f"<td>{_fmt(f.mean)} {html.escape(f.unit)}</td><td>{f.rms_sigma:.1f}</td><td>{f.chi2:.0f} &gt; {f.bound:.0f}</td></tr>"
+        f"<td>{_fmt(f.mean)} {html.escape(f.unit)}</td><td>{f.rms_sigma:.1f}</td>"
+        f"<td>{f.chi2:.0f} &gt; {f.bound:.0f}</td></tr>"
         for f in flags)
     return ("<table><tr><th>estimator</th><th>family</th><th>axis</th><th>time [s]</th><th>RMS size</th><th>mean</th>"
             "<th>RMS [σ]</th><th>χ² &gt; bound</th></tr>" + rows + "</table>")

@@ -255,7 +255,7 @@ def _against_truth(m: Metrics, est, rec, keep):
     if tr.links:
         hand = []
         moved = []
-        for name, p_w in tr.links.items():
+        for p_w in tr.links.values():
             p_l = np.einsum("nji,nj->ni", tr.R, p_w - tr.t)  # local position: R^T (p - t)
             p_est = np.einsum("nij,nj->ni", est.R, p_l) + est.t
             hand.append(np.linalg.norm(p_est - p_w, axis=1))

@@ -131,7 +131,8 @@ def _merge(flags: list[FlaggedWindow], est, level: float) -> list[FlaggedWindow]
             size = mean = None
             if prev.size is not None and f.size is not None:
                 size = math.sqrt((prev.size**2 * prev.dof + f.size**2 * f.dof) / dof)
-                mean = (prev.mean * prev.dof + f.mean * f.dof) / dof
+                # a window's mean is set whenever its size is
+                mean = (prev.mean * prev.dof + f.mean * f.dof) / dof  # type: ignore[operator]
             out[-1] = FlaggedWindow(f.estimator, f.family, f.axis, prev.start_s, f.end_s, chi2, dof,
                                     float(stats.chi2.isf(level, dof)), math.sqrt(chi2 / dof), size, f.unit, mean)
         else:

@@ -374,9 +374,9 @@ def _write(writer, ts, rec: Recording, meta: str) -> None:
             rows = np.asarray(values, dtype=np.float64).tolist()
             add(topic, T_POINT, "world", lambda k, h, rows=rows: T[T_POINT](
                 header=h, point=Point(x=rows[k][0], y=rows[k][1], z=rows[k][2])))
-        for topic, values in (("/truth/gyro_bias", truth.gyro_bias), ("/truth/accel_bias", truth.accel_bias)):
-            if values is not None:
-                rows = np.asarray(values, dtype=np.float64).tolist()
+        for topic, bias in (("/truth/gyro_bias", truth.gyro_bias), ("/truth/accel_bias", truth.accel_bias)):
+            if bias is not None:
+                rows = np.asarray(bias, dtype=np.float64).tolist()
                 add(topic, T_VECTOR, "imu",
                     lambda k, h, rows=rows: T[T_VECTOR](header=h, vector=vec(rows[k])))
 

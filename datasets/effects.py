@@ -33,8 +33,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from flexforce.errors import ConfigError
 from flexforce.datasets.scenario import minjerk
+from flexforce.errors import ConfigError
 
 EFFECT_TYPES = ("external-wrench", "gyro-bias", "accel-bias", "stiffness", "anisotropic-stiffness",
                 "nonlinear-stiffness", "com-offset")
@@ -58,7 +58,7 @@ class HiddenEffect:
     params: dict = field(default_factory=dict)
 
     @classmethod
-    def parse(cls, raw: dict) -> "HiddenEffect":
+    def parse(cls, raw: dict) -> HiddenEffect:
         raw = dict(raw)
         kind = raw.pop("type", None)
         if kind not in EFFECT_TYPES:

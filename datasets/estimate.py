@@ -115,7 +115,7 @@ class Estimate:
         return path
 
     @classmethod
-    def load(cls, path: str | Path) -> "Estimate":
+    def load(cls, path: str | Path) -> Estimate:
         """Read a file written by :meth:`save`."""
         path = Path(path)
         try:

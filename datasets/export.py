@@ -39,7 +39,9 @@ from __future__ import annotations
 
 import re
 import shutil
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -212,7 +214,7 @@ def _write_estimate(writer, ts, est: Estimate) -> None:
     base = f"/estimate/{_token(est.estimator)}"
     quat = Rotation.from_matrix(est.R).as_quat()
     pose = np.concatenate([est.t, quat], axis=1)
-    streams = [
+    streams: list[tuple[str, str, Callable[..., Any]]] = [
         (f"{base}/flexibility", "geometry_msgs/msg/PoseStamped",
          lambda k, h: T["geometry_msgs/msg/PoseStamped"](header=h, pose=M.pose(pose[k]))),
         (f"{base}/velocity", "geometry_msgs/msg/TwistStamped",
@@ -228,7 +230,8 @@ def _write_estimate(writer, ts, est: Estimate) -> None:
     ]
     for i, name in enumerate(est.contact_names):
         streams.append((f"{base}/wrench/{_token(name)}", "geometry_msgs/msg/WrenchStamped",
-                        lambda k, h, i=i: T["geometry_msgs/msg/WrenchStamped"](header=h, wrench=M.wrench(est.wrench[k, i]))))
+                        lambda k, h, i=i: T["geometry_msgs/msg/WrenchStamped"](
+                            header=h, wrench=M.wrench(est.wrench[k, i]))))
     if est.cov is not None:
         # state order (theta, t, ...) -> ROS pose covariance order (x, y, z, rot x, rot y, rot z)
         idx = np.r_[3:6, 0:3]
@@ -255,7 +258,8 @@ def _write_recording(writer, ts, rec: Recording) -> None:
     zero9 = np.zeros(9)
     no_orientation = np.zeros(9)
     no_orientation[0] = -1.0
-    streams = [("/imu", "sensor_msgs/msg/Imu", lambda k, h: T["sensor_msgs/msg/Imu"](
+    streams: list[tuple[str, str, Callable[..., Any]]] = [("/imu", "sensor_msgs/msg/Imu", lambda k, h: T[
+        "sensor_msgs/msg/Imu"](
         header=h, orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
         orientation_covariance=no_orientation, angular_velocity=M.vec(rec.gyro[k]),
         angular_velocity_covariance=zero9, linear_acceleration=M.vec(rec.accel[k]),
@@ -265,7 +269,8 @@ def _write_recording(writer, ts, rec: Recording) -> None:
         names = list(rec.joint_names)
         empty = np.zeros(0)
         streams.append(("/joint_states", "sensor_msgs/msg/JointState", lambda k, h: T["sensor_msgs/msg/JointState"](
-            header=h, name=names, position=np.ascontiguousarray(rec.joint_q[k], dtype=float),
+            # joint_q checked above; mypy does not carry the check into the lambda
+            header=h, name=names, position=np.ascontiguousarray(rec.joint_q[k], dtype=float),  # type: ignore[index]
             velocity=np.ascontiguousarray(rec.joint_v[k], dtype=float) if rec.joint_v is not None else empty,
             effort=empty)))
         frames["/joint_states"] = ""
@@ -273,7 +278,7 @@ def _write_recording(writer, ts, rec: Recording) -> None:
         for i, name in enumerate(rec.contact_names):
             topic = f"/ft/{_token(name)}"
             streams.append((topic, "geometry_msgs/msg/WrenchStamped", lambda k, h, i=i: T[
-                "geometry_msgs/msg/WrenchStamped"](header=h, wrench=M.wrench(rec.ft[k, i]))))
+                "geometry_msgs/msg/WrenchStamped"](header=h, wrench=M.wrench(rec.ft[k, i]))))  # type: ignore[index]
             frames[topic] = name
     for name, poses in rec.mocap.items():
         topic = f"/mocap/{_token(name)}"

@@ -41,6 +41,7 @@ Given the joint trajectory and which contacts are in force, this module places t
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -142,7 +143,7 @@ def anchored_local_frame(model, q_joints: np.ndarray, v_joints: np.ndarray, a_jo
     anchors = np.zeros(n, dtype=int)
     cp = np.zeros((n, c, 3))
     cR = np.zeros((n, c, 3, 3))
-    rest: list[pin.SE3 | None] = [None] * c
+    rest: list[Any] = [None] * c  # pin.SE3 or None (pinocchio ships no type information)
     switches = []
     landed = []
     drift = 0.0

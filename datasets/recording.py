@@ -169,7 +169,7 @@ class Recording:
         """(6,) gyro then accelerometer readings at step ``k``."""
         return np.concatenate([self.gyro[k], self.accel[k]])
 
-    def slice(self, start: int, stop: int) -> "Recording":
+    def slice(self, start: int, stop: int) -> Recording:
         """The steps ``start:stop`` as a new Recording (arrays are copied)."""
         sl = slice(start, stop)
 
@@ -252,7 +252,7 @@ class Recording:
         return out
 
     # ------------------------------------------------------------------------------------------
-    def validate(self) -> "Recording":
+    def validate(self) -> Recording:
         """Check shapes, finiteness and time order; raise :class:`DataError` naming the problem.
 
         Returns the recording itself so that calls can be chained.

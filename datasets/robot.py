@@ -296,7 +296,7 @@ class RobotConfig:
     """Where the configuration was read from."""
 
     @classmethod
-    def load(cls, name_or_path: str | Path) -> "RobotConfig":
+    def load(cls, name_or_path: str | Path) -> RobotConfig:
         """Read a built-in configuration by name (``romeo``, ``talos``, ``icub``) or a TOML file."""
         path = Path(name_or_path)
         if not path.suffix:
@@ -313,7 +313,7 @@ class RobotConfig:
         return cls.from_dict(raw, base=path.parent, source=str(path))
 
     @classmethod
-    def from_dict(cls, raw: dict, base: Path | None = None, source: str = "") -> "RobotConfig":
+    def from_dict(cls, raw: dict, base: Path | None = None, source: str = "") -> RobotConfig:
         """Build from the dictionary of a TOML file; unknown keys are refused."""
         raw = dict(raw)
         known = {f for f in cls.__dataclass_fields__}

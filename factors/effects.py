@@ -455,7 +455,7 @@ class ExternalWrench:
                 k = j + 1
             else:
                 k += 1
-        merged = []
+        merged: list[list[int]] = []
         for s_ in spans:
             if merged and (t[s_[0]] - t[merged[-1][1]]) < 0.05:
                 merged[-1][1] = s_[1]
@@ -472,7 +472,6 @@ class ExternalWrench:
             axis = "x" if abs(fx) >= abs(fy) else "y"
             sign = "-" if (fx if axis == "x" else fy) < 0 else ""
             T = v[kp, 3:]
-            Ts = std[kp, 3:]
             fn = np.linalg.norm(F[seg], axis=1)
             kf = k0 + int(np.argmax(fn))
             ax = int(np.argmax(np.abs(F[kf])))

@@ -92,7 +92,7 @@ class ContactParams:
         ))
 
     @classmethod
-    def make(cls, k_fs, k_fd, k_ts, k_td, beta_f: float = 0.0, beta_t: float = 0.0) -> "ContactParams":
+    def make(cls, k_fs, k_fd, k_ts, k_td, beta_f: float = 0.0, beta_t: float = 0.0) -> ContactParams:
         """Build from scalars (isotropic), 3-vectors (diagonal in the contact frame) or 3x3 matrices."""
         return cls(
             _as_matrix(k_fs, "k_fs"),
@@ -108,7 +108,7 @@ class ContactParams:
         """True when every matrix is a multiple of the identity (orientation does not matter)."""
         return self._isotropic
 
-    def scaled(self, stiffness: float = 1.0, damping: float = 1.0) -> "ContactParams":
+    def scaled(self, stiffness: float = 1.0, damping: float = 1.0) -> ContactParams:
         """A copy with stiffnesses multiplied by ``stiffness`` and dampings by ``damping``."""
         return ContactParams(
             self.K_fs * stiffness, self.K_fd * damping, self.K_ts * stiffness, self.K_td * damping,

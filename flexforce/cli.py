@@ -71,7 +71,8 @@ def open_recording(path: Path, robot: str | None = None, contacts: str = "ft", q
     if not robot:
         raise ConfigError(f"{path} is a raw robot bag (no /flexforce/meta): give its robot configuration with "
                           "--robot NAME|CONFIG.toml (e.g. --robot icub)")
-    return import_bag(path, robot, contacts=contacts, progress=Progress(f"import {path.name}", enabled=not quiet and None))
+    return import_bag(path, robot, contacts=contacts,
+                      progress=Progress(f"import {path.name}", enabled=not quiet and None))
 
 
 def _window(rec, args):
@@ -91,8 +92,8 @@ def _cmd_run(args) -> int:
     options = {}
     if args.lag is not None:
         options["lag"] = args.lag
-    est = run_estimator(args.estimator, rec, model, progress=Progress(f"{args.estimator}", enabled=not args.quiet and None),
-                        **options)
+    est = run_estimator(args.estimator, rec, model,
+                        progress=Progress(f"{args.estimator}", enabled=not args.quiet and None), **options)
     out = Path(args.output)
     if out.suffix == ".csv":
         from flexforce.datasets.export import export_csv
@@ -185,7 +186,7 @@ def _cmd_compare(args) -> int:
     from flexforce.compare.runner import aggregate
 
     args.estimators = [e.strip() for e in args.estimators.split(",") if e.strip()]
-    sources = []
+    sources: list[tuple[str, str, int | None]] = []
     for src in args.recordings:
         if args.seeds and args.seeds > 1:
             sources += [(f"{Path(src).stem}-seed{s}", src, s) for s in range(args.seeds)]
@@ -322,7 +323,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_cmd_demo)
 
-    p = sub.add_parser("diagnose", help="where the nominal model fails, which effect is missing, before/after adding it")
+    p = sub.add_parser("diagnose",
+                       help="where the nominal model fails, which effect is missing, before/after adding it")
     p.add_argument("recording", help="bag, or a built-in scenario name / scenario file to simulate")
     p.add_argument("-o", "--output", required=True, type=Path, help="report folder (index.html, diagnosis.json)")
     p.add_argument("--add", action="append", default=[], metavar="NAME",

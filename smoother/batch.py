@@ -13,15 +13,21 @@ Levenberg-Marquardt on a short recording.
 from __future__ import annotations
 
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
 from flexforce.errors import EstimatorError
-from flexforce.smoother.linearize import (Trajectory, assemble, drop_global_walks, global_columns, is_global,
-                                          linearize,
-                                          solve_arrow)
 from flexforce.smoother import evidence
+from flexforce.smoother.linearize import (
+    Trajectory,
+    assemble,
+    drop_global_walks,
+    global_columns,
+    is_global,
+    linearize,
+    solve_arrow,
+)
 from flexforce.smoother.problem import NoiseRule, Problem
 from flexforce.smoother.result import make_estimate
 
@@ -54,7 +60,6 @@ def initial_trajectory(prob: Problem) -> Trajectory:
 def _levenberg_marquardt(prob, traj, lin, cidx, freeze, max_iterations, rel_tol, lam=1e-6, progress=None):
     """Levenberg-Marquardt on the arrow system (``freeze``: the global block held, the per-step part
     alone).  Returns ``(traj, lin, costs)``, ``costs`` the cost after each accepted step."""
-    n, D = prob.n, prob.state_dim
     cost = lin.cost
     log = []
     for it in range(max_iterations):
@@ -108,7 +113,8 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
     """Levenberg-Marquardt on the whole trajectory.
 
     With ``global_constants`` (default :data:`GLOBAL_CONSTANTS`; otherwise constant effects are
-    per-step copies tied by their random walk, as in the fixed-lag smoother), constant effects (``constant = True``) are one global block (:func:`~flexforce.smoother.linearize.solve_arrow`).
+    per-step copies tied by their random walk, as in the fixed-lag smoother), constant effects
+    (``constant = True``) are one global block (:func:`~flexforce.smoother.linearize.solve_arrow`).
     The joint Gauss-Newton step is then a poor guide for the per-step states (the contact effects
     are bilinear in state and parameter: the linearised response of the trajectory to a change of
     stiffness overshoots by orders of magnitude, measured), so the global block is optimised by

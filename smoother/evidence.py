@@ -102,7 +102,7 @@ def occam_gradient(prob, traj, cidx: np.ndarray, rel_step: float = 1e-3) -> np.n
 
 def global_prior_sigma(prob) -> np.ndarray:
     """Prior sigma of every global parameter, in the order of the global columns."""
-    out = []
+    out: list[float] = []
     for eff in prob.effects:
         if is_global(eff, prob):
             _, s0 = eff.prior(prob)

@@ -33,10 +33,10 @@ class Trajectory:
     W: np.ndarray
     e: np.ndarray
 
-    def copy(self) -> "Trajectory":
+    def copy(self) -> Trajectory:
         return Trajectory(self.R.copy(), self.q.copy(), self.W.copy(), self.e.copy())
 
-    def retract(self, dx: np.ndarray) -> "Trajectory":
+    def retract(self, dx: np.ndarray) -> Trajectory:
         """A new trajectory moved by ``dx`` (N, D) in world-frame increments."""
         out = self.copy()
         core.retract_all(out.R, out.q, np.ascontiguousarray(dx[:, :S]))
@@ -379,7 +379,7 @@ def is_global(eff, prob=None) -> bool:
 
 def global_columns(prob) -> np.ndarray:
     """Indices, in the per-step state of width ``D``, of the global (constant) effects' unknowns."""
-    idx = []
+    idx: list[int] = []
     off = S + 6 * prob.nc
     for eff in prob.effects:
         if is_global(eff, prob):

@@ -31,6 +31,7 @@ def scenario(tmp_path):
     return path
 
 
+@pytest.mark.slow
 def test_demo_writes_a_report_whose_json_holds_the_table(tmp_path, scenario, capsys):
     out = tmp_path / "demo"
     assert main(["demo", "-o", str(out), "--scenario", str(scenario), "-q"]) == 0

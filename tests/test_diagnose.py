@@ -17,14 +17,27 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from baseline import lower, upper
 
 from flexforce.cli import main
-from flexforce.compare.diagnose import diagnose, load_plugin, resolve_candidates, score, Fit
+from flexforce.compare.diagnose import Fit, diagnose, load_plugin, resolve_candidates, score
 from flexforce.compare.diagnose_report import write_diagnosis
 from flexforce.datasets.bagio import save_recording
 from flexforce.datasets.scenario import Scenario
 from flexforce.datasets.simulator import Simulator
 from flexforce.errors import ConfigError
+
+# FIT: margin on an error ratio (after / before adding the effect) of two seeded fits, each
+# deterministic up to where the fit's stopping rule lands (relative cost decrease 1e-7).
+FIT = 0.10
+
+
+def assert_errors_fall(name, d, keys):
+    """Each RMSE after adding the selected effects, relative to before: below one and as measured."""
+    for key in keys:
+        ratio = d.after.rmse[key] / d.before.rmse[key]
+        assert ratio < 1.0, (key, d.after.rmse[key], d.before.rmse[key])
+        assert ratio <= upper(f"diagnose.{name}.{key}_after_over_before", ratio, rel=FIT), (key, ratio)
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "docs" / "example_effect.py"
 GYRO = {"type": "gyro-bias", "value": [0.0, 0.011, 0.0]}
@@ -62,7 +75,8 @@ def test_hidden_gyro_bias_ranks_first_and_is_significant(gyro_diag):
     d = gyro_diag
     assert [c.effect for c in d.ranking] == ["gyro-bias", "accel-bias"]
     first, second = d.ranking
-    assert first.significant and first.score > 100 and first.p_value < 1e-10
+    assert first.significant and first.p_value < 1e-10
+    assert first.score >= lower("diagnose.gyro.first_score", first.score, rel=FIT), first.score
     assert not second.significant
     assert d.selected == ["gyro-bias"]
     # the estimated effect, with its uncertainty, in physical units
@@ -84,9 +98,9 @@ def test_adding_the_effect_makes_residuals_consistent_and_errors_fall(gyro_diag)
     b, a = gyro_diag.before, gyro_diag.after
     assert gyro_diag.added == ["gyro-bias"]
     assert not a.flags, [f.describe() for f in a.flags]
+    # whitened RMS: one for a consistent residual; 5 % over one is the family's flag level
     assert a.residual_rms["imu"]["gyro_y [rad/s]"] < 1.05 < b.residual_rms["imu"]["gyro_y [rad/s]"]
-    for key in ("force_N", "cop_m", "rotation_rad"):
-        assert a.rmse[key] < 0.9 * b.rmse[key], (key, a.rmse[key], b.rmse[key])
+    assert_errors_fall("gyro", gyro_diag, ("force_N", "cop_m", "rotation_rad"))
 
 
 def test_no_hidden_effect_raises_no_significant_effect():
@@ -102,8 +116,7 @@ def test_two_hidden_effects_are_both_found():
     assert len(d.rounds) == 2 and all(c.significant for c in d.ranking[:2])
     assert d.ranking[1].base == (d.ranking[0].effect,)  # rescored on top of the first
     assert not d.after.flags
-    for key in ("force_N", "cop_m", "rotation_rad"):
-        assert d.after.rmse[key] < 0.8 * d.before.rmse[key], key
+    assert_errors_fall("gyro_accel", d, ("force_N", "cop_m", "rotation_rad"))
 
 
 @pytest.mark.slow
@@ -120,13 +133,17 @@ def test_a_push_and_a_com_offset_are_both_found():
     assert set(d.selected) <= {"external-wrench", "com-offset", "stiffness"}, d.ranking_table()
     com = next(c for c in d.ranking if c.effect == "com-offset")
     v, sd = np.array(com.parameters["value"]), np.array(com.parameters["std"])
-    assert abs(v[0] - 0.02) < max(4 * sd[0], 2e-3) and abs(v[1]) < max(4 * sd[1], 2e-3), (v, sd)
+    # 4 sigma (the push takes part of the offset, see above: the offset's own estimate is
+    # biased by as much as measured, 1 mm over it)
+    for i, truth in enumerate((0.02, 0.0)):
+        err = abs(v[i] - truth)
+        assert err < 4 * sd[i] or err <= upper(f"diagnose.push_com.com_offset_error_{i}_m", err, add=1e-3), (v, sd)
     push = next(c for c in d.ranking if c.effect == "external-wrench")
     assert any(w["start_s"] < 2.6 < w["end_s"] for w in push.parameters["windows"]), push.summary
-    for key in ("cop_m", "rotation_rad"):
-        assert d.after.rmse[key] < 0.5 * d.before.rmse[key], (key, d.after.rmse[key], d.before.rmse[key])
+    assert_errors_fall("push_com", d, ("cop_m", "rotation_rad"))
 
 
+@pytest.mark.slow
 def test_user_written_effect_is_ranked_like_a_built_in(gyro_rec):
     """The docs' example (a drifting gyro bias, 6 unknowns) explains the constant bias as well as the
     built-in gyro-bias, so the same criterion ranks it second (its extra unknowns cost ln n each)
@@ -190,7 +207,8 @@ def test_report_and_json(gyro_diag, gyro_rec, tmp_path):
     assert set(data["ranking"][0]) >= {"effect", "score", "significant", "parameters"}
     assert data["added"] == ["gyro-bias"]
     assert set(data["before"]["rmse"]) == {"force_N", "moment_Nm", "cop_m", "rotation_rad", "translation_m", "hand_m"}
-    assert data["after"]["residual_rms"]["imu"]["gyro_y [rad/s]"] < data["before"]["residual_rms"]["imu"]["gyro_y [rad/s]"]
+    gyro_rms = {when: data[when]["residual_rms"]["imu"]["gyro_y [rad/s]"] for when in ("before", "after")}
+    assert gyro_rms["after"] < gyro_rms["before"]
     page = (out / "index.html").read_text()
     for text in ("Which effect is missing", "gyro-bias", "gyro_y [rad/s]", "rad/s", "residuals_before.png",
                  "before_after.png", "residuals_after.png", "EKF mean NIS"):
@@ -227,9 +245,9 @@ def test_cli_diagnose_bad_input_is_one_line(tmp_path, capsys):
 @pytest.mark.slow
 def test_hidden_push_ranks_the_external_wrench_first():
     """A short push on the torso (30 N half-sine, 0.15 s), among every registered effect: the
-    external wrench alone is selected; the CoP and tilt errors fall by more than a third.  The
-    force error does not fall (measured 1.19 -> 1.58 N): the wrench's vertical component trades
-    with the contacts' vertical force, which only the feet's micrometre sinking tells apart."""
+    external wrench alone is selected; the CoP, tilt and moment errors fall.  The force error does
+    not fall (its ratio is held as measured): the wrench's vertical component trades with the
+    contacts' vertical force, which only the feet's micrometre sinking tells apart."""
     sc = Scenario.load("push-pitch")
     sc.duration = 3.0
     sc.imu_noise = {"gyro_bias_rw": 0.0, "accel_bias_rw": 0.0}
@@ -239,6 +257,6 @@ def test_hidden_push_ranks_the_external_wrench_first():
     assert d.selected == ["external-wrench"], d.ranking_table()
     windows = d.ranking[0].parameters["windows"]
     assert windows and windows[0]["start_s"] < 1.1 < windows[0]["end_s"], windows
-    for key in ("cop_m", "rotation_rad", "moment_Nm"):
-        assert d.after.rmse[key] < 0.67 * d.before.rmse[key], (key, d.after.rmse[key], d.before.rmse[key])
-    assert d.after.rmse["force_N"] < 1.5 * d.before.rmse["force_N"]
+    assert_errors_fall("push", d, ("cop_m", "rotation_rad", "moment_Nm"))
+    ratio = d.after.rmse["force_N"] / d.before.rmse["force_N"]
+    assert ratio <= upper("diagnose.push.force_N_after_over_before", ratio, rel=FIT), ratio

@@ -13,9 +13,11 @@ magnitudes and two seeds, ranked among all the others): ``benchmarks/results/dia
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 import pytest
+from baseline import lower, upper
 
 from flexforce.datasets.scenario import Scenario
 from flexforce.datasets.simulator import Simulator
@@ -24,8 +26,13 @@ from flexforce.factors.effects import EFFECTS, make_effect
 from flexforce.factors.model import ModelConfig
 from flexforce.smoother import Effect, Problem, fit, run_fixed_lag
 
+# Margins.  The recordings are seeded, so each number below is deterministic; the fit stops at a
+# relative cost decrease of 1e-7 or after its iteration budget, which is what moves them.
+# FIT: 10 % on an error ratio or an estimated value's error of a converged fit.
+FIT = 0.10
+
 DURATION = 3.0
-TRUTH = {
+TRUTH: dict[str, dict[str, Any]] = {
     "external-wrench": {"type": "external-wrench", "link": "@base", "force": [40.0, 0.0, 0.0], "start": 1.5,
                         "duration": 0.4},
     "gyro-bias": {"type": "gyro-bias", "value": [0.0, 0.01, 0.0]},
@@ -157,8 +164,9 @@ def test_contact_effect_in_the_window_fixed_lag_smoother():
     cfg = dataclasses.replace(ModelConfig.from_recording(rec), effects=(make_effect("stiffness"),))
     est = run_fixed_lag(rec, cfg, lag=0.5)
     rep = est.effects["stiffness"]
-    # measured 0.724 (truth 0.7); the batch fit stops short at 0.867 after its 30 iterations
-    assert abs(rep["value"][0] - 0.7) < 0.06, rep["summary"]
+    err = abs(rep["value"][0] - 0.7)
+    # 0.01 absolute on the scale's error (the scale is learnt online: where the window stops matters)
+    assert err <= upper("effects.fixed_lag_stiffness.scale_error", err, add=0.01), rep["summary"]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -171,8 +179,12 @@ def test_fit_meta(null):
     info = est.meta["fit"]
     assert set(info) >= {"cost_data", "cost_total", "n_residuals", "effective_dof"}
     assert info["effective_dof"] == {}
-    # nominal world = nominal model: the data cost is about half the number of residuals
-    assert 0.02 * info["n_residuals"] < info["cost_data"] < 0.6 * info["n_residuals"]
+    # nominal world = nominal model: the data cost is below half the number of residuals (the
+    # fit absorbs part of the noise), at the fraction measured
+    frac = info["cost_data"] / info["n_residuals"]
+    assert frac < 0.5
+    key = "effects.null_fit.cost_data_per_residual"
+    assert lower(key, frac, rel=FIT) <= frac <= upper(key, frac, rel=FIT), frac
     r = np.concatenate([np.ravel(est.residuals[f]) for f in ("imu", "newton_euler", "contact", "integration")])
     r = r[np.isfinite(r)]
     assert info["n_residuals"] == r.size
@@ -184,14 +196,28 @@ def test_fit_meta(null):
 # ----------------------------------------------------------------------------------------------
 
 
-def check_common(name, null, min_gain_ratio=10.0):
+def check_common(name, null):
+    """The cost gain of the effect where it is present, per effective degree of freedom, as
+    measured (FIT; the gains are tens to thousands of dof, far above a BIC penalty of ~ln N per
+    dof); and, where it is absent, a gain within chance: below 10 + 2 dof (chi-square(dof)/2 has
+    mean dof/2 and standard deviation sqrt(dof/2))."""
     rec, base, with_e, null_fit = fits(name, null)
     dof = with_e.meta["fit"]["effective_dof"][name]
     g = gain(base, with_e)
-    assert g > min_gain_ratio * dof, (g, dof)
+    assert g / dof >= lower(f"effects.{name}.gain_per_dof", g / dof, rel=FIT), (g, dof)
     g0 = gain(null[2], null_fit)
     dof0 = null_fit.meta["fit"]["effective_dof"][name]
+    assert g0 < 10 + 2 * dof0, (g0, dof0)
     return rec, base, with_e, null_fit, g0, dof0
+
+
+def check_errors(name, base_errors, effect_errors):
+    """Each error (force, CoP, tilt) with the effect, relative to the nominal fit: as measured (FIT)."""
+    ratios = {}
+    for what, e, b in zip(("force", "cop", "tilt"), effect_errors, base_errors):
+        ratios[what] = e / b
+        assert e / b <= upper(f"effects.{name}.{what}_over_nominal", e / b, rel=FIT), (what, e, b)
+    return ratios
 
 
 def test_gyro_bias(null):
@@ -199,36 +225,47 @@ def test_gyro_bias(null):
     rep = est.effects["gyro-bias"]
     v, s = np.array(rep["value"]), np.array(rep["std"])
     truth = np.array(TRUTH["gyro-bias"]["value"])
-    assert np.all(np.abs(v - truth) < 4 * s) and np.all(np.abs(v - truth) < 1.5e-3), (v, s)
+    # 4 sigma: the estimate against the truth in its own uncertainty (false alarm 6e-5 per axis)
+    assert np.all(np.abs(v - truth) < 4 * s), (v, s)
+    err = np.abs(v - truth).max()
+    # 1e-4 rad/s absolute: a tenth of the estimate's standard deviation
+    assert err <= upper("effects.gyro-bias.value_error_rad_s", err, add=1e-4), (v, s)
     assert "gyro bias y" in rep["summary"] and rep["unit"] == "rad/s"
-    fb, cb, tb = errors(base, rec)
-    fe, ce, te = errors(est, rec)
-    assert te < 0.6 * tb and ce < 0.8 * cb and fe <= fb
+    ratios = check_errors("gyro-bias", errors(base, rec), errors(est, rec))
+    assert ratios["tilt"] < 1 and ratios["cop"] < 1 and ratios["force"] <= 1, ratios
     nv, ns = np.array(nfit.effects["gyro-bias"]["value"]), np.array(nfit.effects["gyro-bias"]["std"])
     assert np.all(np.abs(nv) < 4 * ns)
-    assert abs(dof0 - 3) < 0.01 and g0 < 10 + 2 * dof0
+    # a constant 3-vector with a weak prior: 3 effective dof, to the prior's share (< 1e-2)
+    assert abs(dof0 - 3) < 0.01
 
 
+@pytest.mark.slow
 def test_accel_bias(null):
     rec, base, est, nfit, g0, dof0 = check_common("accel-bias", null)
     rep = est.effects["accel-bias"]
     v, s = np.array(rep["value"]), np.array(rep["std"])
     truth = np.array(TRUTH["accel-bias"]["value"])
-    assert np.all(np.abs(v - truth) < 4 * s) and np.all(np.abs(v - truth) < 0.01), (v, s)
-    fb, cb, tb = errors(base, rec)
-    fe, ce, te = errors(est, rec)
-    assert te < 0.5 * tb and ce < 0.5 * cb and fe < fb
+    assert np.all(np.abs(v - truth) < 4 * s), (v, s)
+    err = np.abs(v - truth).max()
+    # 1e-3 m/s^2 absolute: about a tenth of the estimate's standard deviation
+    assert err <= upper("effects.accel-bias.value_error_m_s2", err, add=1e-3), (v, s)
+    ratios = check_errors("accel-bias", errors(base, rec), errors(est, rec))
+    assert all(r < 1 for r in ratios.values()), ratios
     nv, ns = np.array(nfit.effects["accel-bias"]["value"]), np.array(nfit.effects["accel-bias"]["std"])
     assert np.all(np.abs(nv) < 4 * ns)
-    assert g0 < 10 + 2 * dof0
 
 
+@pytest.mark.slow
 def test_external_wrench(null):
     rec, base, est, nfit, g0, dof0 = check_common("external-wrench", null)
     rep = est.effects["external-wrench"]
     assert len(rep["windows"]) == 1, rep["summary"]
     w = rep["windows"][0]
-    assert 1.35 < w["start_s"] < 1.6 and 1.8 < w["end_s"] < 2.05, w
+    # the push acts from 1.5 s to 1.9 s; the window's ends as measured, to 20 ms (4 samples)
+    for end in ("start_s", "end_s"):
+        key = f"effects.external-wrench.window_{end}"
+        assert lower(key, w[end], add=0.02) <= w[end] <= upper(key, w[end], add=0.02), w
+    assert w["start_s"] < 1.5 + 0.1 and w["end_s"] > 1.9 - 0.1, w
     # truth at the estimated peak (about the world origin)
     k = int(round(w["peak_s"] / rec.dt))
     truth = rec.truth.external_wrench[k]
@@ -236,15 +273,18 @@ def test_external_wrench(null):
     assert abs(est_w[0] - truth[0]) < max(4 * std[0], 0.15 * abs(truth[0])), (est_w, truth, std)
     assert abs(est_w[4] - truth[4]) < max(4 * std[4], 0.15 * abs(truth[4])), (est_w, truth, std)
     assert "external force" in rep["summary"] and "along x" in rep["summary"]
-    fb, cb, tb = errors(base, rec)
-    fe, ce, te = errors(est, rec)
     # the tilt and CoP errors fall; the horizontal force (only seen through the contacts'
-    # dynamics) does not: measured 1.8 -> 2.2 N
-    assert te < 0.8 * tb and ce < cb and fe < 1.5 * fb
+    # dynamics) does not, by as much as measured
+    ratios = check_errors("external-wrench", errors(base, rec), errors(est, rec))
+    assert ratios["tilt"] < 1 and ratios["cop"] < 1, ratios
     assert nfit.effects["external-wrench"]["windows"] == []
-    assert 20 < dof0 < 200 and g0 < 10 + 2 * dof0
+    # a random walk of 6-vectors with a tight prior: its effective dof on the null recording as
+    # measured, to 25 % (it counts how much of the noise the walk can absorb: sensitive to the fit)
+    key = "effects.external-wrench.null_effective_dof"
+    assert lower(key, dof0, rel=0.25) <= dof0 <= upper(key, dof0, rel=0.25), dof0
 
 
+@pytest.mark.slow
 def test_com_offset(null):
     rec, base, est, nfit, g0, dof0 = check_common("com-offset", null)
     rep = est.effects["com-offset"]
@@ -252,26 +292,29 @@ def test_com_offset(null):
     truth = np.array(TRUTH["com-offset"]["offset"])
     # x, y (the z component is confounded with the rotational stiffness: not estimated by default)
     assert v.shape == (2,) and np.all(np.abs(v - truth[:2]) < 4 * s), (v, s)
-    fb, cb, tb = errors(base, rec)
-    fe, ce, te = errors(est, rec)
-    assert ce < 0.2 * cb and te < 0.2 * tb and fe < fb
+    ratios = check_errors("com-offset", errors(base, rec), errors(est, rec))
+    assert all(r < 1 for r in ratios.values()), ratios
     nv, ns = np.array(nfit.effects["com-offset"]["value"]), np.array(nfit.effects["com-offset"]["std"])
     assert np.all(np.abs(nv[:2]) < 4 * ns[:2])
 
 
+@pytest.mark.slow
 def test_stiffness(null):
     rec, base, est, nfit, g0, dof0 = check_common("stiffness", null)
     rep = est.effects["stiffness"]
     v, s = np.array(rep["value"]), np.array(rep["std"])
-    assert v[0] < 0.9 and abs(v[1] - 1.0) < 4 * s[1], (v, s)  # towards the truth 0.7, damping 1
-    fb, cb, tb = errors(base, rec)
-    fe, ce, te = errors(est, rec)
-    assert fe < 0.8 * fb and ce < 0.8 * cb and te < 0.8 * tb
+    # truth: stiffness scale 0.7, damping scale 1
+    assert abs(v[1] - 1.0) < 4 * s[1], (v, s)
+    err = abs(v[0] - 0.7)
+    # 0.01 absolute on the scale's error (a fit that stops after its iteration budget)
+    assert err <= upper("effects.stiffness.scale_error", err, add=0.01), (v, s)
+    ratios = check_errors("stiffness", errors(base, rec), errors(est, rec))
+    assert all(r < 1 for r in ratios.values()), ratios
     nv, ns = np.array(nfit.effects["stiffness"]["value"]), np.array(nfit.effects["stiffness"]["std"])
     assert abs(nv[0] - 1) < 4 * ns[0] and abs(nv[1] - 1) < 4 * ns[1]
-    assert g0 < 10 + 2 * dof0
 
 
+@pytest.mark.slow
 def test_stiffness_recovered_within_its_std(null):
     rec, base, est, nfit = fits("stiffness", null)
     rep = est.effects["stiffness"]
@@ -280,17 +323,16 @@ def test_stiffness_recovered_within_its_std(null):
 
 @pytest.mark.slow
 def test_anisotropic_stiffness(null):
-    rec, base, est, nfit, g0, dof0 = check_common("anisotropic-stiffness", null, min_gain_ratio=20.0)
+    rec, base, est, nfit, g0, dof0 = check_common("anisotropic-stiffness", null)
     rep = est.effects["anisotropic-stiffness"]
     v, s = np.array(rep["value"]), np.array(rep["std"])
     truth = np.r_[TRUTH["anisotropic-stiffness"]["k_fs"], TRUTH["anisotropic-stiffness"]["k_ts"]]
     assert np.all(np.abs(v - truth) < 4 * s), (v, s)
-    fb, cb, tb = errors(base, rec)
-    fe, ce, te = errors(est, rec)
-    assert fe < fb and ce < cb and te < tb
-    nv, ns = np.array(nfit.effects["anisotropic-stiffness"]["value"]), np.array(nfit.effects["anisotropic-stiffness"]["std"])
+    ratios = check_errors("anisotropic-stiffness", errors(base, rec), errors(est, rec))
+    assert all(r < 1 for r in ratios.values()), ratios
+    aniso = nfit.effects["anisotropic-stiffness"]
+    nv, ns = np.array(aniso["value"]), np.array(aniso["std"])
     assert np.all(np.abs(nv - 1) < 4 * ns)
-    assert g0 < 10 + 2 * dof0
 
 
 @pytest.mark.slow
@@ -298,10 +340,22 @@ def test_nonlinear_stiffness(null):
     rec, base, est, nfit, g0, dof0 = check_common("nonlinear-stiffness", null)
     rep = est.effects["nonlinear-stiffness"]
     v, s = np.array(rep["value"]), np.array(rep["std"])
-    assert v[0] > 2 * s[0] and abs(v[1]) < 4 * s[1], (v, s)  # stiffening found (truth 4000, measured ~1400)
-    fb, cb, tb = errors(base, rec)
-    fe, ce, te = errors(est, rec)
-    assert fe < fb and ce < cb and te < tb
-    nv, ns = np.array(nfit.effects["nonlinear-stiffness"]["value"]), np.array(nfit.effects["nonlinear-stiffness"]["std"])
+    # stiffening found (beta_t: truth 0), with the relative bias on beta_f (truth 4000) as measured
+    # (7 %); test_nonlinear_stiffness_is_recovered holds the estimate to the truth in its own sigma
+    assert v[0] > 2 * s[0] and abs(v[1]) < 4 * s[1], (v, s)
+    bias = abs(v[0] - 4000.0) / 4000.0
+    # 0.05 absolute on the relative bias (a fit that stops after its iteration budget)
+    assert bias <= upper("effects.nonlinear-stiffness.beta_f_relative_bias", bias, add=0.05), (v, s)
+    ratios = check_errors("nonlinear-stiffness", errors(base, rec), errors(est, rec))
+    assert all(r < 1 for r in ratios.values()), ratios
+    cubic = nfit.effects["nonlinear-stiffness"]
+    nv, ns = np.array(cubic["value"]), np.array(cubic["std"])
     assert np.all(np.abs(nv) < 4 * ns)
-    assert g0 < 10 + 2 * dof0
+
+
+@pytest.mark.slow
+def test_nonlinear_stiffness_is_recovered(null):
+    rec, base, est, nfit = fits("nonlinear-stiffness", null)
+    rep = est.effects["nonlinear-stiffness"]
+    v, s = np.array(rep["value"]), np.array(rep["std"])
+    assert abs(v[0] - 4000.0) < 4 * s[0], (v, s)

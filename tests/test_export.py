@@ -107,7 +107,8 @@ def test_mcap_from_a_recording(tmp_path):
     rec = make_recording(12)
     est = make_estimate(rec.t_ns, contacts=rec.contact_names, cov=False, name="ekf")
     got = read_bag(export_mcap(est, rec, tmp_path / "out"))
-    assert {"/imu", "/joint_states", "/ft/left_foot", "/ft/right_foot", "/mocap/torso", "/estimate/ekf/flexibility"} <= set(got)
+    assert {"/imu", "/joint_states", "/ft/left_foot", "/ft/right_foot", "/mocap/torso",
+            "/estimate/ekf/flexibility"} <= set(got)
     assert "/estimate/ekf/flexibility_cov" not in got
     np.testing.assert_allclose([m.linear_acceleration.z for _, m in got["/imu"]], rec.accel[:, 2])
     assert list(got["/joint_states"][0][1].name) == list(rec.joint_names)

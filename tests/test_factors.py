@@ -15,10 +15,9 @@ import numpy as np
 import pytest
 
 from flexforce.factors import gtsam_factors as gf
-from flexforce.factors import core
+from flexforce.factors import core, so3
 from flexforce.smoother import solvers
 from flexforce.factors import physics as ph
-from flexforce.factors import so3
 
 G = ph.GRAVITY
 
@@ -318,7 +317,7 @@ def test_integration_factor_jacobians():
 
 def test_ft_factor_jacobians():
     rng = np.random.default_rng(15)
-    for label, R, q in _states(rng):
+    for _label, R, q in _states(rng):
         for i, (p_l, R_l) in enumerate(CONTACTS):
             Wv = rng.normal(size=6) * 100
             y = rng.normal(size=6) * 10

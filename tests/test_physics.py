@@ -75,7 +75,7 @@ def assert_jacobian(J, J_num, rtol: float = RTOL, what: str = ""):
     assert J.shape == J_num.shape, (J.shape, J_num.shape)
     for r0 in range(0, J.shape[0], 3):
         band = J_num[r0:r0 + 3]
-        atol = rtol * max(np.linalg.norm(band), 1e-9)
+        atol = rtol * max(float(np.linalg.norm(band)), 1e-9)
         np.testing.assert_allclose(J[r0:r0 + 3], band, rtol=rtol, atol=atol,
                                    err_msg=f"{what} rows {r0}:{r0 + 3}")
 
@@ -212,7 +212,8 @@ def test_contact_wrench_jacobian_larger_deflection_cubic():
     for params in (ISO_CUBIC, ANISO_CUBIC, FULL):
         p_l, R_cl = np.array([0.1, -0.08, 0.0]), so3.exp(np.array([0.0, 0.0, 0.7]))
         _, J = ph.contact_wrench(R, t, w, v, p_l, R_cl, params, jacobian=True)
-        Jn = numerical_jacobian(lambda *x: ph.contact_wrench(*x, p_l, R_cl, params), [R, t, w, v])
+        Jn = numerical_jacobian(lambda *x, p_l=p_l, R_cl=R_cl, params=params: ph.contact_wrench(*x, p_l, R_cl, params),
+                                [R, t, w, v])
         assert_jacobian(J, Jn)
 
 

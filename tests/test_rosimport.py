@@ -13,6 +13,9 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 import pytest
+import rosbags.rosbag1
+import rosbags.rosbag2
+from conftest import ICUB_DIR as ICUB  # noqa: E402
 
 from flexforce.datasets.bagio import load_recording, save_recording
 from flexforce.datasets.contacts import fixed_contacts, phases, schmitt_trigger
@@ -20,7 +23,6 @@ from flexforce.datasets.robot import RobotConfig, RobotModel, RosConfig
 from flexforce.datasets.rosimport import import_bag, is_flexforce_bag
 from flexforce.errors import BagError, ConfigError, DataError
 
-from conftest import ICUB_DIR as ICUB  # noqa: E402
 T0 = 1_700_000_000_000_000_000  # an epoch time: stamps use both sec and nanosec
 ROS = RosConfig(ft_topics={"left_foot": "/lf/wrench", "right_foot": "/rf/wrench"},
                 mocap_topics={"torso": "/mocap/torso"}, contact_on=150.0, contact_off=100.0,
@@ -91,14 +93,14 @@ def write_bag(path: Path, kind: str, topics: dict):
     ros1 = kind == "ros1"
     ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
     T = ts.types
+    writer: rosbags.rosbag1.Writer | rosbags.rosbag2.Writer
     if ros1:
-        from rosbags.rosbag1 import Writer
-
-        writer = Writer(path)
+        writer = rosbags.rosbag1.Writer(path)
     else:
-        from rosbags.rosbag2 import StoragePlugin, Writer
+        from rosbags.rosbag2 import StoragePlugin
 
-        writer = Writer(path, version=8, storage_plugin=StoragePlugin.MCAP if kind == "mcap" else StoragePlugin.SQLITE3)
+        plugin = StoragePlugin.MCAP if kind == "mcap" else StoragePlugin.SQLITE3
+        writer = rosbags.rosbag2.Writer(path, version=8, storage_plugin=plugin)
 
     def header(t, frame, seq):
         sec, nsec = divmod(int(t), 1_000_000_000)
@@ -123,7 +125,8 @@ def write_bag(path: Path, kind: str, topics: dict):
             return T[msgtype](header=h, name=list(f["name"]), position=np.asarray(f["position"], float),
                               velocity=np.asarray(f.get("velocity", []), float), effort=np.zeros(0))
         if msgtype == "geometry_msgs/msg/WrenchStamped":
-            return T[msgtype](header=h, wrench=T["geometry_msgs/msg/Wrench"](force=vec(f["w"][:3]), torque=vec(f["w"][3:])))
+            return T[msgtype](header=h,
+                              wrench=T["geometry_msgs/msg/Wrench"](force=vec(f["w"][:3]), torque=vec(f["w"][3:])))
         if msgtype == "geometry_msgs/msg/PoseStamped":
             p = f["p"]
             return T[msgtype](header=h, pose=T["geometry_msgs/msg/Pose"](
@@ -367,7 +370,8 @@ def test_truncated_bag(romeo, tmp_path, good_topics, kind):
 def test_missing_topic(romeo, tmp_path, good_topics):
     del good_topics["/rf/wrench"]
     path = write_bag(tmp_path / "m", "mcap", good_topics)
-    with pytest.raises(BagError, match=r"lacks topic /rf/wrench \(geometry_msgs/msg/WrenchStamped\).*the bag has: /imu"):
+    with pytest.raises(BagError,
+                       match=r"lacks topic /rf/wrench \(geometry_msgs/msg/WrenchStamped\).*the bag has: /imu"):
         import_bag(path, romeo)
     rec = import_bag(path, romeo, contacts="fixed")  # without the F/T contact detection it is optional
     assert rec.contact_active.all() and np.isnan(rec.ft[:, 1]).all()
@@ -401,7 +405,8 @@ def test_imu_in_another_frame(romeo, tmp_path, good_topics):
 
 def test_nan_in_a_message(romeo, tmp_path, good_topics):
     good_topics["/imu"][1][42][1]["accel"] = np.array([0.0, np.nan, 9.8])
-    with pytest.raises(DataError, match=r"topic /imu message 42 \(t = 0\.\d+ s\) has NaN or inf in linear_acceleration \(y\)"):
+    with pytest.raises(DataError,
+                       match=r"topic /imu message 42 \(t = 0\.\d+ s\) has NaN or inf in linear_acceleration \(y\)"):
         import_bag(write_bag(tmp_path / "n", "mcap", good_topics), romeo)
 
 

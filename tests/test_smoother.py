@@ -14,6 +14,7 @@ import dataclasses
 import gtsam
 import numpy as np
 import pytest
+from baseline import lower, upper
 from scipy.stats import chi2
 
 from flexforce.datasets.estimate import Estimate
@@ -25,7 +26,12 @@ from flexforce.factors.model import ModelConfig
 from flexforce.smoother import Effect, Problem, run_batch, run_fixed_lag
 from flexforce.smoother.batch import optimize
 from flexforce.smoother.graph import GraphBuilder
-from flexforce.smoother.linearize import Trajectory
+
+# Margins.  The recordings are seeded: each error below is one deterministic number, and a margin
+# only absorbs floating-point reordering and where the solver's stopping rule lands; the
+# smoothers stop at a relative cost decrease of 1e-7, which moves an RMSE by well under 5 %.
+# SOLVER: 10 % on an error of the batch or fixed-lag smoother.
+SOLVER = 0.10
 
 
 @pytest.fixture(scope="module")
@@ -71,25 +77,68 @@ def nees(err, cov):
 def test_batch_accuracy_against_ground_truth(batch, rec):
     force, cop, theta = errors(batch, rec)
     # Truth scale: ~400 N of weight, CoP excursions of ~2 cm, tilt of ~10 mrad.
-    assert force < 8.0, force
-    assert cop < 0.003, cop
-    assert theta < 1.5e-3, theta
+    assert force <= upper("smoother.batch.force_rmse_N", force, rel=SOLVER), force
+    assert cop <= upper("smoother.batch.cop_rmse_m", cop, rel=SOLVER), cop
+    assert theta <= upper("smoother.batch.tilt_rmse_rad", theta, rel=SOLVER), theta
 
 
 def test_batch_nees_within_chi2_bounds(batch, rec):
     """Per-step NEES of the total wrench and of the pose, where the model is right (away from the
-    hidden push): mean near the dof and most steps inside the 99.9 % chi-square bound (errors
-    are correlated in time, so no tighter bound on the mean)."""
+    hidden push): the mean NEES as measured, and most steps inside the 99.9 % chi-square bound.
+    Errors are correlated over hundreds of steps, so the mean is not a chi-square(6 N) draw; a
+    consistent covariance has a mean NEES near the dof (6), which test_batch_nees_mean_is_the_dof
+    holds to its sampling spread."""
     tr = rec.truth
     we = batch.total_wrench - tr.total_wrench
     theta = np.array([so3.log(batch.R[k] @ tr.R[k].T) for k in range(rec.n)])
     pe = np.concatenate([theta, batch.t - tr.t], axis=1)
     keep = away_from_pushes(rec)
     assert keep.sum() > 0.2 * rec.n
-    for e, cov in ((we, batch.wrench_cov), (pe, batch.cov[:, :6, :6])):
+    for what, e, cov in (("wrench", we, batch.wrench_cov), ("pose", pe, batch.cov[:, :6, :6])):
         value = nees(e, cov)[keep]
-        assert 6.0 / 4.0 < value.mean() < 6.0 * 2.0, value.mean()
-        assert np.mean(value < chi2.ppf(0.999, 6)) > 0.9
+        key = f"smoother.batch.nees_mean_{what}"
+        # 15 %: the NEES is a ratio of two solver outputs (error and covariance), each within SOLVER.
+        assert lower(key, value.mean(), rel=0.15) <= value.mean() <= upper(key, value.mean(), rel=0.15), value.mean()
+        inside = np.mean(value < chi2.ppf(0.999, 6))
+        # 0.02 absolute: a fraction of ~1000 correlated steps; 2 % is about 20 of them.
+        assert inside >= lower(f"smoother.batch.nees_inside_999_{what}", inside, add=0.02), inside
+
+
+def effective_samples(x: np.ndarray) -> float:
+    """``N / tau`` with ``tau = 1 + 2 sum_k rho_k`` the integrated autocorrelation time of ``x``,
+    the sum stopped at the first non-positive autocorrelation (Geyer's initial positive sequence,
+    simplified): how many independent draws a time average of ``x`` is worth."""
+    x = np.asarray(x, dtype=float) - np.mean(x)
+    n = x.size
+    acf = np.correlate(x, x, "full")[n - 1:] / (np.arange(n, 0, -1) * np.var(x))
+    tau = 1.0
+    for rho in acf[1:n // 2]:
+        if rho <= 0:
+            break
+        tau += 2.0 * rho
+    return n / tau
+
+
+@pytest.mark.parametrize("what", [
+    "wrench",
+    pytest.param("pose", marks=pytest.mark.xfail(
+        strict=True, reason="the pose covariance is optimistic: mean NEES 10.7 for 6 dof, above the 99 % band "
+        "(3.6, 9.2) of its ~10 effective samples")),
+])
+def test_batch_nees_mean_is_the_dof(batch, rec, what):
+    """A consistent covariance makes the NEES a chi-square(6) variable: mean 6.  The steps' NEES are
+    correlated, so their mean is worth ``N_eff`` independent draws (integrated autocorrelation
+    time); the test is the two-sided 99 % band of chi-square(6 N_eff) / N_eff."""
+    tr = rec.truth
+    if what == "wrench":
+        e, cov = batch.total_wrench - tr.total_wrench, batch.wrench_cov
+    else:
+        theta = np.array([so3.log(batch.R[k] @ tr.R[k].T) for k in range(rec.n)])
+        e, cov = np.concatenate([theta, batch.t - tr.t], axis=1), batch.cov[:, :6, :6]
+    value = nees(e, cov)[away_from_pushes(rec)]
+    n_eff = effective_samples(value)
+    lo, hi = chi2.ppf([0.005, 0.995], 6 * n_eff) / n_eff
+    assert lo < value.mean() < hi, (value.mean(), n_eff, lo, hi)
 
 
 def test_batch_estimate_contents(batch, rec, tmp_path):
@@ -103,8 +152,13 @@ def test_batch_estimate_contents(batch, rec, tmp_path):
         assert len(batch.residual_labels[fam]) == k
     assert np.all(np.isnan(batch.residuals["integration"][-1]))
     assert "F_x [N]" in batch.residual_labels["newton_euler"]
-    # Whitened residuals of a consistent fit: mean square below one, and the IMU's near it.
-    assert 0.2 < np.nanmean(batch.residuals["imu"] ** 2) < 1.5
+    # Whitened residuals of a consistent fit: the IMU's mean square near one (smoothed residuals
+    # are smaller than the noise by the fraction of the data's degrees of freedom the fit absorbs).
+    ms = np.nanmean(batch.residuals["imu"] ** 2)
+    assert ms < 1.0
+    # SOLVER on both sides: a fixed fraction of 6 x 600 squared residuals.
+    key = "smoother.batch.imu_residual_mean_square"
+    assert lower(key, ms, rel=SOLVER) <= ms <= upper(key, ms, rel=SOLVER), ms
     loaded = Estimate.load(batch.save(tmp_path / "est.npz"))
     np.testing.assert_array_equal(loaded.residuals["contact"], batch.residuals["contact"])
 
@@ -115,7 +169,12 @@ def test_noise_free_standing_is_recovered_exactly():
     rec = Simulator(sc, noise=False).run()
     est = run_batch(rec, ModelConfig.from_recording(rec))
     force, cop, theta = errors(est, rec)
-    assert force < 0.05 and cop < 1e-5 and theta < 1e-6, (force, cop, theta)
+    # Noise-free, standing: the model is exact and the errors are roundoff (measured 5e-11 N,
+    # 1e-13 m, 4e-14 rad).  Roundoff moves with the BLAS and the operation order by orders of
+    # magnitude, so the margin is absolute: 2.5e-11 of the weight (1e-8 N of 400 N), 1e-11 m, 1e-11 rad.
+    assert force <= upper("smoother.noise_free.force_rmse_N", force, add=1e-8), force
+    assert cop <= upper("smoother.noise_free.cop_rmse_m", cop, add=1e-11), cop
+    assert theta <= upper("smoother.noise_free.tilt_rmse_rad", theta, add=1e-11), theta
 
 
 def test_world_rest_placements_move_the_equilibrium_with_them():
@@ -191,7 +250,10 @@ def test_fixed_lag_close_to_batch(rec, model, batch, backend):
     assert est.meta["backend"] == backend
     fb, cb, tb = errors(batch, rec)
     ff, cf, tf = errors(est, rec)
-    assert ff < 1.3 * fb + 0.5 and cf < 1.5 * cb + 2e-4 and tf < 1.5 * tb + 1e-4, ((ff, cf, tf), (fb, cb, tb))
+    # Ratios to the batch smoother, with SOLVER on each (a ratio of two solver outputs).
+    for what, mine, ref in (("force", ff, fb), ("cop", cf, cb), ("tilt", tf, tb)):
+        ratio = mine / ref
+        assert ratio <= upper(f"smoother.fixed_lag_{backend}.{what}_over_batch", ratio, rel=SOLVER), (what, mine, ref)
     assert np.all(np.isfinite(est.cov)) and np.all(np.diagonal(est.cov, axis1=1, axis2=2) > 0)
 
 
@@ -228,7 +290,8 @@ def test_window_fixed_lag_with_full_relinearisation_matches_batch_on_a_short_win
     traj, _, _ = optimize(prob, want_cov=False)
     est = run_fixed_lag(short, model, lag=1.0, relinearize=80, covariance=False)
     np.testing.assert_allclose(est.t, traj.q[:, :3], atol=2e-6)
-    np.testing.assert_allclose(est.total_wrench[:, :3], (traj.W * prob.active[:, :, None]).sum(axis=1)[:, :3], atol=0.05)
+    np.testing.assert_allclose(est.total_wrench[:, :3], (traj.W * prob.active[:, :, None]).sum(axis=1)[:, :3],
+                               atol=0.05)
 
 
 def test_ft_fusion_improves_the_estimate(rec, model, batch):
@@ -236,9 +299,12 @@ def test_ft_fusion_improves_the_estimate(rec, model, batch):
     assert "ft" in fused.residuals and fused.residuals["ft"].shape == (rec.n, 12)
     fb, cb, tb = errors(batch, rec)
     ff, cf, tf = errors(fused, rec)
-    # The nominal force is already known to ~0.8 N, better than one F/T sample (2 N): the F/T
-    # readings mostly sharpen the moments, hence the CoP and the tilt.
-    assert ff < 1.1 * fb and cf < 0.85 * cb and tf < 0.5 * tb, ((ff, cf, tf), (fb, cb, tb))
+    # The F/T readings add information on every wrench component: no error may grow, and each
+    # ratio stays as measured (SOLVER: ratios of two solver outputs).
+    for what, mine, ref in (("force", ff, fb), ("cop", cf, cb), ("tilt", tf, tb)):
+        ratio = mine / ref
+        assert ratio <= upper(f"smoother.ft_fusion.{what}_over_nominal", ratio, rel=SOLVER), (what, mine, ref)
+        assert ratio < 1.0, (what, mine, ref)
     assert np.mean(np.trace(fused.wrench_cov, axis1=1, axis2=2)) < np.mean(np.trace(batch.wrench_cov, axis1=1, axis2=2))
 
 
@@ -280,7 +346,8 @@ def test_effect_protocol_plugs_in_a_gyro_bias(rec, model):
     value = np.array(est.effects["gyro-bias"]["value"])
     np.testing.assert_allclose(value, bias, atol=1e-3)
     nominal = run_batch(biased, model)
-    assert errors(est, rec)[2] < 0.5 * errors(nominal, rec)[2]
+    ratio = errors(est, rec)[2] / errors(nominal, rec)[2]
+    assert ratio <= upper("smoother.gyro_bias_effect.batch_tilt_over_nominal", ratio, rel=SOLVER)
 
 
 def test_effect_protocol_in_the_fixed_lag_smoother(rec, model):
@@ -297,8 +364,9 @@ def test_effect_protocol_in_the_fixed_lag_smoother(rec, model):
     np.testing.assert_allclose(report["value"], bias, atol=2e-3)  # averaged over the run, start included
     assert np.all(np.array(report["std"]) < 1e-3)
     nominal = run_fixed_lag(biased, model, lag=0.5, covariance=False)
-    # once the bias is learnt online (the first second), the tilt error falls by half
-    assert errors(est, rec, skip=1.0)[2] < 0.5 * errors(nominal, rec, skip=1.0)[2]
+    # once the bias is learnt online (the first second), the tilt error falls
+    ratio = errors(est, rec, skip=1.0)[2] / errors(nominal, rec, skip=1.0)[2]
+    assert ratio <= upper("smoother.gyro_bias_effect.fixed_lag_tilt_over_nominal", ratio, rel=SOLVER)
     from flexforce.errors import ConfigError
 
     with pytest.raises(ConfigError):
@@ -316,5 +384,8 @@ def test_smoothers_beat_the_ekf(scenario):
     ekf = errors(ekf_mod.run_ekf(rec, model), rec)
     for est in (run_batch(rec, model), run_fixed_lag(rec, model)):
         mine = errors(est, rec)
-        # The target on total force, CoP and flexibility orientation: at most 0.7x the EKF (measured 0.4-0.69x).
-        assert all(m <= 0.7 * e for m, e in zip(mine, ekf)), (scenario, est.estimator, mine, ekf)
+        # The target on total force, CoP and flexibility orientation: at most 0.7x the EKF, and each
+        # ratio as measured (SOLVER: the EKF is deterministic, the smoother within its stopping rule).
+        for what, m, e in zip(("force", "cop", "tilt"), mine, ekf):
+            key = f"smoother.vs_ekf.{scenario}.{est.estimator}.{what}_over_ekf"
+            assert m / e <= min(0.7, upper(key, m / e, rel=SOLVER)), (scenario, est.estimator, what, m, e)

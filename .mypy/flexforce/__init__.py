@@ -1,0 +1,1 @@
+../../flexforce/__init__.py

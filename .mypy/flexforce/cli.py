@@ -1,0 +1,1 @@
+../../flexforce/cli.py
