@@ -34,7 +34,6 @@ from flexforce.datasets.scenario import Scenario
 from flexforce.datasets.simulator import simulate
 from flexforce.factors.model import ModelConfig
 
-
 _COMPILE_PROBE = """
 import time
 t0 = time.perf_counter()
@@ -52,7 +51,8 @@ print(time.perf_counter() - t1)
 
 def compile_times(repeat: int = 1) -> dict:
     """Kernel import + compile + 10 steps in a fresh process, with an empty then a filled cache (s)."""
-    cold, warm = [], []
+    cold: list[float] = []
+    warm: list[float] = []
     for _ in range(repeat):
         with tempfile.TemporaryDirectory() as cache:
             env = dict(os.environ, NUMBA_CACHE_DIR=cache)
@@ -97,6 +97,7 @@ def main() -> None:
         record["warmup_compile_s"] = round(time.perf_counter() - t0, 2)
         for key, outputs in (("fast", True), ("fast_no_outputs", False)):
             est = run_ekf(rec, model, outputs=outputs)
+            assert est.time_per_step is not None  # the EKF times every step
             tps = est.time_per_step * 1e6
             record[key] = {"us_per_step_mean": round(float(tps.mean()), 2),
                            "us_per_step_median": round(float(np.median(tps)), 2),

@@ -39,8 +39,10 @@ def check(robot: str, name: str) -> dict:
                                      tr.total_wrench[k] + tr.disturbance_wrench[k], rec.inputs(k), g)
         ne.append(r)
         for i in rec.active_contacts(k):
+            # The simulator's true spring of contact i (Simulator.contact_params became Simulator.springs).
+            sp = sim.springs[i]
             wr = ph.contact_wrench(tr.R[k], tr.t[k], tr.w[k], tr.v[k], rec.contact_p[k, i], rec.contact_R[k, i],
-                                   sim.contact_params[i])
+                                   ph.ContactParams(sp.K_fs, sp.K_fd, sp.K_ts, sp.K_td, sp.beta_f, sp.beta_t))
             cw.append(np.abs(wr - tr.wrench[k, i]).max())
         y = ph.imu_readings(tr.R[k], tr.t[k], tr.w[k], tr.v[k], tr.dw[k], tr.a[k], rec.imu(k), g)
         gy.append(np.abs(y[:3] - rec.gyro[k]).max())

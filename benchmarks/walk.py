@@ -39,10 +39,10 @@ from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
+
 from flexforce.compare.metrics import chi2_mean_bounds, nees_series, state_error
 from flexforce.datasets.scenario import Scenario
 from flexforce.datasets.simulator import Simulator
-
 from flexforce.estimators import run_estimator
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -73,8 +73,8 @@ def window_errors(est, rec, keep: np.ndarray) -> dict:
         "force_rmse_N": _rms(force[keep]),
         "vertical_force_rmse_N": _rms(fz[keep]),
         "contact_force_rmse_N": _rms(cf[keep].ravel()),
-        "cop_rmse_mm": None if _rms(cop[keep]) is None else 1e3 * _rms(cop[keep]),
-        "hand_rmse_mm": None if _rms(hand[keep]) is None else 1e3 * _rms(hand[keep]),
+        "cop_rmse_mm": None if (cop_rms := _rms(cop[keep])) is None else 1e3 * cop_rms,
+        "hand_rmse_mm": None if (hand_rms := _rms(hand[keep])) is None else 1e3 * hand_rms,
     }
 
 
@@ -133,6 +133,7 @@ def main(argv=None) -> dict:
     rec = sim.run()
     sim_time = time.perf_counter() - t0
     tr = rec.truth
+    assert tr is not None  # simulated
     mg = rec.mass * rec.gravity
     k_total = 2.0 * float(np.trace(sim.springs[0].K_fs)) / 3.0
     static = mg / k_total
@@ -141,7 +142,7 @@ def main(argv=None) -> dict:
     last = time_s >= time_s[-1] - args.window
     allk = time_s >= 0.5
     active = rec.contact_active
-    out = {
+    out: dict = {
         "benchmark": "walk",
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
         "recording": {

@@ -39,8 +39,31 @@ import numpy as np
 
 from flexforce.factors import core
 from flexforce.factors.core import (
-    accel_solve_t, contact_t, eye, exp_t, jl_inv_t, jl_t, ld3, ldm, ldm9, log_t, madd, maxpy, mm, msub, mscl, mv,
-    njit, required_t, st3, stm, vadd, vaxpy, vscl, vsub, imu_t,
+    accel_solve_t,
+    contact_t,
+    exp_t,
+    eye,
+    imu_t,
+    jl_inv_t,
+    jl_t,
+    ld3,
+    ldm,
+    ldm9,
+    log_t,
+    madd,
+    maxpy,
+    mm,
+    mscl,
+    msub,
+    mv,
+    njit,
+    required_t,
+    st3,
+    stm,
+    vadd,
+    vaxpy,
+    vscl,
+    vsub,
 )
 
 AVAILABLE = core.HAVE_NUMBA
@@ -193,7 +216,7 @@ def touch_down(k, x, U, dt, tilt_weight, height_weight, floor_z):
 def transition(x, u, CP, dt, m, g, x1, F):
     """``x1 = f(x)`` (the state predicted at the step of ``u``) and its Jacobian ``F`` (18x18),
     filter order ``(t, Omega, v, w, a, dw)`` (see :mod:`flexforce.compare.ekf`).  Returns ok."""
-    t, Om, v, w, a, dw = ld3(x, 0), ld3(x, 3), ld3(x, 6), ld3(x, 9), ld3(x, 12), ld3(x, 15)
+    Om, v, w, a, dw = ld3(x, 3), ld3(x, 6), ld3(x, 9), ld3(x, 12), ld3(x, 15)
     h = 0.5 * dt * dt
     phi, E, R1, t1 = predicted_pose(x, dt)
     v1 = vaxpy(v, dt, a)

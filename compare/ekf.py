@@ -46,15 +46,16 @@ from __future__ import annotations
 import math
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
+from flexforce.compare import _ekf_kernel as K
 from flexforce.datasets.estimate import Estimate
 from flexforce.datasets.recording import Recording
 from flexforce.errors import ConfigError, DataError, EstimatorError, ModelError
-from flexforce.compare import _ekf_kernel as K
 from flexforce.factors import so3
 from flexforce.factors.model import ModelConfig, unmodelled_acceleration
 from flexforce.smoother.problem import rest_placements
@@ -152,7 +153,8 @@ class EKFConfig:
                               f"touch-down, expected a number in [0, 1], got {self.ground_tilt_weight}")
         if not (math.isfinite(self.ground_height_weight) and 0.0 <= self.ground_height_weight <= 1.0):
             raise ConfigError("EKFConfig.ground_height_weight is the fraction of the sole's height above the "
-                              f"floor removed at a touch-down, expected a number in [0, 1], got {self.ground_height_weight}")
+                              "floor removed at a touch-down, expected a number in [0, 1], "
+                              f"got {self.ground_height_weight}")
         if not (self.p0_scale > 0 and self.nis_limit > 0 and self.nis_steps >= 1):
             raise ConfigError("EKFConfig.p0_scale and nis_limit must be positive and nis_steps >= 1")
 
@@ -284,7 +286,6 @@ def noise_model(rec: Recording, model: ModelConfig, config: EKFConfig = EKFConfi
       natural pulsations ``omega_n^2 = sum k_fs / m`` and ``sum k_ts / (m h^2)``; the
       accelerations' prior follows from the dynamics.
     """
-    dt = rec.dt
     g = model.gravity
     m = rec.mass
     kf, kt, centroid = _contact_totals(rec, model, 0)
@@ -472,7 +473,7 @@ class EKF:
         o["R"] = so3.exp(x[OM])
         return o
 
-    def step(self, k: int, x: np.ndarray, P: np.ndarray, out: "_Outputs", predict: bool = True) -> int:
+    def step(self, k: int, x: np.ndarray, P: np.ndarray, out: _Outputs, predict: bool = True) -> int:
         """The compiled step: predict (k > 0) and update in place, outputs into ``out`` at k."""
         return K.step(k, x, P, self.U, self.CP, self.C, self.WS, out.row, predict, out.want)
 
@@ -600,7 +601,7 @@ _STATUS = {1: "the predicted state covariance", 2: "the innovation covariance", 
            4: "the state"}
 
 
-def _handle_failure(status: int, k: int, ekf: EKF, x, P, P_reset, out: "_Outputs") -> None:
+def _handle_failure(status: int, k: int, ekf: EKF, x, P, P_reset, out: _Outputs) -> None:
     """Raise, or (``on_covariance_failure='reset'``) restart P from P0 and redo step k's update."""
     rec = ekf.rec
     where = f"at sample {k} (t = {rec.time[k]:.3f} s)"
@@ -622,6 +623,18 @@ def _handle_failure(status: int, k: int, ekf: EKF, x, P, P_reset, out: "_Outputs
 class _Outputs:
     """Preallocated per-step outputs: one row per step, filled in place by the compiled step;
     the named fields are views into it."""
+
+    # Views into ``row``, set in __init__ from the kernel's out_layout.
+    x: np.ndarray
+    cov: np.ndarray
+    wrench: np.ndarray
+    wrench_cov: np.ndarray
+    cop: np.ndarray
+    cop_cov: np.ndarray
+    innovation: np.ndarray
+    S: np.ndarray
+    white: np.ndarray
+    nis: np.ndarray
 
     def __init__(self, n: int, n_c: int, want: bool = True):
         layout = K.out_layout(n_c)

@@ -125,7 +125,7 @@ def contact_frame_wrench(R: np.ndarray, t: np.ndarray, wrench: np.ndarray, rec) 
     return out
 
 
-def _per_contact(m: "Metrics", est_local: np.ndarray, ref: np.ndarray, rec, keep: np.ndarray) -> None:
+def _per_contact(m: Metrics, est_local: np.ndarray, ref: np.ndarray, rec, keep: np.ndarray) -> None:
     """Per-contact errors of ``est_local`` against ``ref`` (both (N, C, 6), contact frame)."""
     weight = rec.mass * rec.gravity
     diff = est_local - ref

@@ -88,8 +88,8 @@ def intervals(mask: np.ndarray, time: np.ndarray) -> list[tuple[float, float]]:
     if m.size == 0:
         return []
     edges = np.flatnonzero(np.diff(m.astype(np.int8)))
-    starts = [0] if m[0] else []
-    ends = []
+    starts: list[int | np.integer] = [0] if m[0] else []
+    ends: list[int | np.integer] = []
     for e in edges:
         if m[e + 1]:
             starts.append(e + 1)
@@ -281,8 +281,8 @@ def figure_foot_wrench(comp, rec):
 
     for r, i in enumerate(idx):
         name = rec.contact_names[i]
-        series = [("T_x [N m]", lambda w: w[:, i, 3]), ("T_y [N m]", lambda w: w[:, i, 4]),
-                  ("CoP x [mm]", lambda w: cop(w, i)[:, 0]), ("CoP y [mm]", lambda w: cop(w, i)[:, 1])]
+        series = [("T_x [N m]", lambda w, i=i: w[:, i, 3]), ("T_y [N m]", lambda w, i=i: w[:, i, 4]),
+                  ("CoP x [mm]", lambda w, i=i: cop(w, i)[:, 0]), ("CoP y [mm]", lambda w, i=i: cop(w, i)[:, 1])]
         for c, (label, f) in enumerate(series):
             ax = axes[r, c]
             _shade_contact(ax, rec, i)
@@ -312,7 +312,7 @@ def figure_contacts(comp, rec):
     anchor = rec.meta.get("anchor") if isinstance(rec.meta.get("anchor"), dict) else {}
     switches = [s for s in anchor.get("switches", []) or [] if isinstance(s, dict) and "t" in s]
     fig, ax = plt.subplots(1, 1, figsize=(10, 0.6 * len(names) + 1.6))
-    for i, name in enumerate(names):
+    for i, _name in enumerate(names):
         spans = [(a, max(b - a, rec.dt)) for a, b in intervals(rec.contact_active[:, i], rec.time)]
         ax.broken_barh(spans, (i - 0.35, 0.7), color="tab:olive", alpha=0.8)
     if anchor.get("first") in names or switches:
@@ -432,7 +432,7 @@ def _table_rows(summary: dict):
 
 
 def _references(summary: dict) -> dict:
-    refs = {}
+    refs: dict = {}
     for _, m, _ in _table_rows(summary):
         for k, v in (m.get("references") or {}).items():
             refs.setdefault(k, v)
@@ -450,14 +450,15 @@ def summary_table_html(summary: dict) -> str:
         return f"<th>{html.escape(c[1])}" + (f"<br><small>{html.escape(ref)}</small>" if ref else "") + "</th>"
 
     head = "".join(th(c) for c in cols)
-    head += ("<th>NEES (18)</th><th>NIS (6)</th><th>median step [µs]</th><th>p99 step [µs]</th><th>amortized step [µs]</th>"
-             "<th>total [s]</th>")
+    head += ("<th>NEES (18)</th><th>NIS (6)</th><th>median step [µs]</th><th>p99 step [µs]</th>"
+             "<th>amortized step [µs]</th><th>total [s]</th>")
     head += "<th>peak memory [MB]</th>"
     rows = []
     for key, m, baseline in _table_rows(summary):
         cells = "".join(f"<td>{_fmt(m['rmse'].get(c[0]), c[2])}</td>" for c in cols)
         if baseline:
-            cells += '<td colspan="7" style="text-align:center"><i>baseline: no estimation (no NEES, no timing)</i></td>'
+            cells += ('<td colspan="7" style="text-align:center">'
+                      '<i>baseline: no estimation (no NEES, no timing)</i></td>')
             label = f"{html.escape(key)} <small>(baseline)</small>"
         else:
             nb = m.get("nees_bounds")
@@ -485,7 +486,8 @@ def per_contact_table_html(summary: dict) -> str:
     groups = []
     for c in contacts:
         keys = [col for col in PER_CONTACT_COLUMNS
-                if any((m.get("per_contact") or {}).get(c, {}).get(col[0]) is not None for _, m, _ in _table_rows(summary))]
+                if any((m.get("per_contact") or {}).get(c, {}).get(col[0]) is not None
+                       for _, m, _ in _table_rows(summary))]
         if keys:
             groups.append((c, keys))
     if not groups:
@@ -533,14 +535,15 @@ def write_report(comp, rec, out_dir: str | Path, title: str | None = None) -> Pa
     if crb:
         bound = crb["rmse_bound"]
         cells = "".join(f"<td>{_fmt(bound.get(c))}</td>" for c in RMSE_KEYS)
-        rows = "".join(f"<tr><th>{html.escape(k)} / bound</th>" + "".join(f"<td>{_fmt(v.get(c))}</td>" for c in RMSE_KEYS)
+        rows = "".join(f"<tr><th>{html.escape(k)} / bound</th>"
+                       + "".join(f"<td>{_fmt(v.get(c))}</td>" for c in RMSE_KEYS)
                        + "</tr>" for k, v in crb["rmse_relative_to_bound"].items())
         crb_html = (f"<h2>Cramér–Rao bound</h2><p>RMSE lower bounds of the batch problem's model (its information "
                     f"matrix at the ground truth), SI units, and each estimator's RMSE relative to them.</p>"
                     f"<table><tr><th></th>{''.join(f'<th>{c}</th>' for c in RMSE_KEYS)}</tr>"
                     f"<tr><th>bound</th>{cells}</tr>{rows}</table>")
     extra = []
-    for key, m in comp.metrics.items():
+    for _key, m in comp.metrics.items():
         d = m.extra.get("hand_displacement_by_flexibility_max_m")
         if d is not None:
             extra.append(f"Uncompensated, the flexibility moves the hands by up to {d * 1000:.1f} mm.")

@@ -5,13 +5,17 @@ from __future__ import annotations
 import os
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from flexforce.compare.metrics import RMSE_KEYS, Metrics, evaluate
 from flexforce.errors import FlexforceError
+
+if TYPE_CHECKING:
+    from flexforce.compare.crb import CramerRao
 
 DEFAULT_ESTIMATORS = ("ekf", "fixed-lag", "batch")
 
@@ -76,7 +80,7 @@ class Comparison:
     metrics: dict[str, Metrics] = field(default_factory=dict)
     failures: dict[str, str] = field(default_factory=dict)
     """summary key -> error message of an estimator that failed."""
-    crb: object | None = None
+    crb: CramerRao | None = None
     """:class:`flexforce.compare.crb.CramerRao` of the recording (simulated data only)."""
     baselines: dict[str, Metrics] = field(default_factory=dict)
     """summary key -> metrics of a row without estimation (``leg_odometry``), kept apart from the
@@ -86,8 +90,8 @@ class Comparison:
 
     def summary(self) -> dict:
         """The numbers of the report's table (summary.json)."""
-        out = {"recording": self.recording,
-               "estimators": {k: m.to_dict() for k, m in self.metrics.items()}}
+        out: dict[str, Any] = {"recording": self.recording,
+                               "estimators": {k: m.to_dict() for k, m in self.metrics.items()}}
         if self.baselines:
             out["baselines"] = {k: m.to_dict() for k, m in self.baselines.items()}
         if self.failures:
@@ -98,7 +102,8 @@ class Comparison:
             for key, m in self.metrics.items():
                 if key == "ekf":
                     continue
-                rel[key] = {k: (m.rmse[k] / ekf.rmse[k] if m.rmse.get(k) is not None and ekf.rmse.get(k) else None)
+                rel[key] = {k: (num / den if (num := m.rmse.get(k)) is not None and (den := ekf.rmse.get(k))
+                                else None)
                             for k in RMSE_KEYS}
             out["rmse_relative_to_ekf"] = rel
         if self.crb is not None:
@@ -182,7 +187,7 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
 
 def aggregate(comparisons: list[Comparison]) -> dict:
     """Mean and spread (standard deviation, min, max) of every number over several recordings."""
-    out = {"recordings": [c.recording for c in comparisons], "estimators": {}}
+    out: dict[str, Any] = {"recordings": [c.recording for c in comparisons], "estimators": {}}
     groups = [("estimators", lambda c: c.metrics)]
     if any(c.baselines for c in comparisons):
         out["baselines"] = {}
@@ -195,7 +200,7 @@ def aggregate(comparisons: list[Comparison]) -> dict:
 
 def _aggregate_rows(ms: list[Metrics]) -> dict:
     """Mean and spread of one row's numbers over several recordings."""
-    entry = {"count": len(ms), "rmse": {}, "rmse_std": {}, "rmse_min": {}, "rmse_max": {}}
+    entry: dict[str, Any] = {"count": len(ms), "rmse": {}, "rmse_std": {}, "rmse_min": {}, "rmse_max": {}}
     for k in RMSE_KEYS:
         vals = np.array([m.rmse.get(k) for m in ms if m.rmse.get(k) is not None], dtype=float)
         if vals.size:
@@ -207,8 +212,8 @@ def _aggregate_rows(ms: list[Metrics]) -> dict:
             entry["rmse"][k] = entry["rmse_std"][k] = entry["rmse_min"][k] = entry["rmse_max"][k] = None
     entry["time_per_step_s"] = {}
     for stat, how in (("median", np.median), ("p99", np.max), ("amortized", np.median)):
-        vals = [m.time_per_step.get(stat) for m in ms if m.time_per_step.get(stat) is not None]
-        entry["time_per_step_s"][stat] = float(how(vals)) if vals else None
+        times = [t for m in ms if (t := m.time_per_step.get(stat)) is not None]
+        entry["time_per_step_s"][stat] = float(how(times)) if times else None
     nees = [m.nees for m in ms if m.nees is not None]
     entry["nees"] = float(np.mean(nees)) if nees else None
     entry["nees_std"] = float(np.std(nees)) if nees else None

@@ -22,7 +22,8 @@ Given the joint trajectory and which contacts are in force, this module places t
    odometry does, but its tilt stays that of the floor.  While a contact is not in force its
    reported placement is its kinematic one (meaningless to the model).
 4. **Switch.** When another contact in force carries ``switch_ratio`` times the anchor's load,
-   or when the anchor leaves contact, the anchor passes to the most loaded contact in force and its *held* rest placement becomes the new anchor placement, so every
+   or when the anchor leaves contact, the anchor passes to the most loaded contact in force and its
+   *held* rest placement becomes the new anchor placement, so every
    contact's rest placement stays fixed while it is in contact.  If the kinematics disagrees
    slightly with the held placement (the flexibility, encoder errors), the base placement jumps
    by that amount at the switch; ``LocalFrame.drift`` reports the largest disagreement.
@@ -145,7 +146,7 @@ def anchored_local_frame(model, q_joints: np.ndarray, v_joints: np.ndarray, a_jo
     cR = np.zeros((n, c, 3, 3))
     rest: list[Any] = [None] * c  # pin.SE3 or None (pinocchio ships no type information)
     switches = []
-    landed = []
+    landed: list[tuple[int, int, float, float]] = []
     drift = 0.0
 
     def _more_loaded(k: int, i: int) -> bool:

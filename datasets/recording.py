@@ -189,7 +189,7 @@ class Recording:
     MIN_WINDOW_SAMPLES = 10
     """Fewest samples :meth:`window` accepts: below this no estimator has anything to converge on."""
 
-    def window(self, start: float | None = None, end: float | None = None) -> "Recording":
+    def window(self, start: float | None = None, end: float | None = None) -> Recording:
         """The samples with ``start <= time <= end`` (seconds from the first sample) as a new Recording.
 
         Every per-step array is cut (inputs, readings, F/T, motion capture, base pose, truth).  The

@@ -49,6 +49,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -271,15 +272,15 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
     required = [ros.imu_topic, ros.joint_states_topic]
     if contacts == "ft":
         required += [ros.ft_topics[c] for c in config.contact_names]
-    for topic in required:
-        if topic not in topics:
+    for required_topic in required:
+        if required_topic not in topics:
             have = ", ".join(f"{t} ({m})" for t, m in sorted(all_types.items())) or "none"
-            raise BagError(f"bag {path} lacks topic {topic} ({wanted[topic]}) named by robot config "
+            raise BagError(f"bag {path} lacks topic {required_topic} ({wanted[required_topic]}) named by robot config "
                            f"'{config.name}'; the bag has: {have}")
     imu, joints = topics[ros.imu_topic], topics[ros.joint_states_topic]
-    for topic in (imu, joints):
-        if len(topic.t_ns) < 2:
-            raise BagError(f"topic {topic.name} has {len(topic.t_ns)} message(s); expected at least 2")
+    for tp in (imu, joints):
+        if len(tp.t_ns) < 2:
+            raise BagError(f"topic {tp.name} has {len(tp.t_ns)} message(s); expected at least 2")
     t_first = int(min(t.t_ns[0] for t in topics.values()))
 
     # ---- grid ----
@@ -330,7 +331,8 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
     index = {name: i for i, name in enumerate(model_names)}
     for jname in pmodel.names[2:]:
         if pmodel.joints[pmodel.getJointId(jname)].nq != 1:
-            raise ConfigError(f"joint '{jname}' of robot '{config.name}' has {pmodel.joints[pmodel.getJointId(jname)].nq} "
+            raise ConfigError(f"joint '{jname}' of robot '{config.name}' has "
+                              f"{pmodel.joints[pmodel.getJointId(jname)].nq} "
                               "position coordinates; only 1-dof joints are supported")
     nj = len(model_names)
     q_src = np.full((len(joints.msgs), nj), np.nan)
@@ -384,8 +386,8 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
         if has_vel and ros.joint_velocity == "message":
             v_grid[:, j] = _interp(joints.t_ns[ok], v_src[ok, j], grid)
     if np.isnan(q_grid).any():
-        j = int(np.flatnonzero(np.isnan(q_grid).any(axis=0))[0])
-        raise DataError(f"joint '{model_names[j]}' is not measured over the whole grid on topic {joints.name}; "
+        bad = int(np.flatnonzero(np.isnan(q_grid).any(axis=0))[0])
+        raise DataError(f"joint '{model_names[bad]}' is not measured over the whole grid on topic {joints.name}; "
                         "expected every joint in every message span")
     velocity_source = "message" if has_vel and ros.joint_velocity == "message" else "savgol"
     if velocity_source == "message":
@@ -428,6 +430,7 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
         mg = model.mass * config.gravity
         on = ros.contact_on if ros.contact_on is not None else ros.contact_on_weight * mg
         off = ros.contact_off if ros.contact_off is not None else ros.contact_off_weight * mg
+        assert ft is not None  # the F/T topics are required with contacts='ft'
         if not off < on:
             raise ConfigError(f"contact thresholds: off = {off:.1f} N is not below on = {on:.1f} N "
                               f"(m g = {mg:.1f} N); set ros.contact_on / ros.contact_off (N) or the "
@@ -451,6 +454,7 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
         raise DataError(f"no contact is ever in force in {path} ({method}); a foot must carry the robot "
                         "somewhere in the log: check the F/T topics and thresholds, or use contacts='fixed'")
     if contacts == "ft" and never:
+        assert ft is not None  # the F/T topics are required with contacts='ft'
         peak = {names_c[i]: float(np.nanmax(ft[:, i, 2])) if np.isfinite(ft[:, i, 2]).any() else float("nan")
                 for i in range(c) if names_c[i] in never}
         raise DataError(f"contact(s) {never} never come into force (largest F/T normal force "
@@ -467,14 +471,15 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
         for k, i, tilt, height in lf.footholds:
             if tilt > bound_tilt or abs(height) > bound_height:
                 raise DataError(
-                    f"at t = {(grid[k] - grid[0]) * 1e-9:.3f} s contact '{names_c[i]}' lands {np.degrees(tilt):.2f} deg off the floor "
+                    f"at t = {(grid[k] - grid[0]) * 1e-9:.3f} s contact '{names_c[i]}' lands "
+                    f"{np.degrees(tilt):.2f} deg off the floor "
                     f"plane and {1000 * height:.1f} mm above it by the leg kinematics; the ground prior "
                     f"(footholds.terrain = '{footholds.terrain}') allows {FOOTHOLD_BOUND:g} sigma of the kinematics, "
                     f"{np.degrees(bound_tilt):.2f} deg and {1000 * bound_height:.1f} mm: the floor is not that plane "
                     "(set footholds.terrain = 'plane' or 'none') or the kinematics is wrong (joint offsets, "
                     "footholds.kinematics_sigma_tilt/height)")
-    fields = {k: [] for k in ("com", "com_vel", "com_acc", "inertia", "inertia_dot", "sigma", "sigma_dot",
-                              "imu_R", "imu_p", "imu_v", "imu_a", "imu_w")}
+    fields: dict[str, list] = {k: [] for k in ("com", "com_vel", "com_acc", "inertia", "inertia_dot", "sigma",
+                                               "sigma_dot", "imu_R", "imu_p", "imu_v", "imu_a", "imu_w")}
     for k in range(n):
         kin = model.kinematics(lf.q[k], lf.v[k], lf.a[k])
         inp, im = kin.inputs, kin.imu
@@ -484,7 +489,7 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
             fields[key].append(value)
         if k % 50 == 0:
             report(0.6 + 0.35 * k / n)
-    arrays = {k: np.array(v) for k, v in fields.items()}
+    arrays: dict[str, Any] = {k: np.array(v) for k, v in fields.items()}
 
     # ---- motion capture ----
     mocap = {}

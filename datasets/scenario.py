@@ -220,7 +220,7 @@ class Ambient:
     """Factor on both levels (3 gives the mismatched case "ambient x3")."""
 
     @classmethod
-    def parse(cls, raw, where: str, sim_rate: float) -> "Ambient":
+    def parse(cls, raw, where: str, sim_rate: float) -> Ambient:
         if isinstance(raw, bool):
             return cls(enabled=raw)
         if not isinstance(raw, dict):
@@ -237,7 +237,8 @@ class Ambient:
         if kind not in ("acceleration", "wrench"):
             raise ConfigError(f"{where}: ambient.kind = {kind!r}: expected 'acceleration' or 'wrench'")
         out = {"enabled": enabled, "kind": kind}
-        levels = (("linear", "m/s^2"), ("angular", "rad/s^2")) if kind == "acceleration" else (("force", "N"), ("torque", "N m"))
+        levels = ((("linear", "m/s^2"), ("angular", "rad/s^2")) if kind == "acceleration"
+                  else (("force", "N"), ("torque", "N m")))
         for key in ({"linear", "angular", "force", "torque"} - {k for k, _ in levels}) & set(raw):
             raise ConfigError(f"{where}: ambient.{key} does not apply to kind = {kind!r}; "
                               f"its levels are {', '.join(k for k, _ in levels)}")
@@ -295,7 +296,7 @@ class Walk:
     """Fractions of each swing between which the foot moves forward (see :class:`Swing`)."""
 
     @classmethod
-    def parse(cls, raw, where: str) -> "Walk":
+    def parse(cls, raw, where: str) -> Walk:
         if not isinstance(raw, dict):
             raise ConfigError(f"{where}: walk = {raw!r}: expected a table (see flexforce.datasets.scenario.Walk)")
         known = set(cls.__dataclass_fields__)
@@ -329,7 +330,8 @@ class Walk:
                 raise ConfigError(f"{where}: walk.{key} = {raw[key]!r}: expected a contact name")
         walk = cls(**out)
         if walk.first == walk.other:
-            raise ConfigError(f"{where}: walk.first and walk.other are both '{walk.first}': expected two different feet")
+            raise ConfigError(f"{where}: walk.first and walk.other are both '{walk.first}': "
+                              "expected two different feet")
         return walk
 
     @property
@@ -392,7 +394,7 @@ class Scenario:
     source: str = ""
 
     @classmethod
-    def load(cls, name_or_path: str | Path) -> "Scenario":
+    def load(cls, name_or_path: str | Path) -> Scenario:
         """A built-in scenario by name, or a scenario TOML file."""
         path = Path(name_or_path)
         if path.suffix != ".toml":
@@ -410,7 +412,7 @@ class Scenario:
         return cls.from_dict(raw, source=str(path))
 
     @classmethod
-    def from_dict(cls, raw: dict, source: str = "") -> "Scenario":
+    def from_dict(cls, raw: dict, source: str = "") -> Scenario:
         known = set(cls.__dataclass_fields__) - {"source"}
         unknown = set(raw) - known
         if unknown:
@@ -423,18 +425,22 @@ class Scenario:
         if abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 1:
             raise ConfigError(f"sim_rate ({sc.sim_rate} Hz) must be a multiple of rate ({sc.rate} Hz)")
         if sc.touchdown not in TOUCHDOWN_MODES:
-            raise ConfigError(f"scenario {sc.name}: touchdown = {sc.touchdown!r}: expected one of {list(TOUCHDOWN_MODES)}")
+            raise ConfigError(f"scenario {sc.name}: touchdown = {sc.touchdown!r}: "
+                              f"expected one of {list(TOUCHDOWN_MODES)}")
         sc.ambient_spec()
         for robot, joints in sc.posture.items():
             if not isinstance(joints, dict):
-                raise ConfigError(f"scenario {sc.name}: posture.{robot} = {joints!r}: expected a table of joint = angle [rad]")
+                raise ConfigError(f"scenario {sc.name}: posture.{robot} = {joints!r}: "
+                                  "expected a table of joint = angle [rad]")
             for joint, value in joints.items():
-                _number(f"scenario {sc.name}", f"posture.{robot}.{joint}", value, "rad", "a joint angle", lambda x: abs(x) < 10.0)
+                _number(f"scenario {sc.name}", f"posture.{robot}.{joint}", value, "rad", "a joint angle",
+                        lambda x: abs(x) < 10.0)
         sc.noise_scale("imu_noise")
         sc.noise_scale("ft_noise")
         sc.swings()
         if sc.walk:
             walk = sc.walk_spec()
+            assert walk is not None  # sc.walk is set
             if walk.end > sc.duration:
                 raise ConfigError(f"scenario {sc.name}: duration = {sc.duration} s: expected at least the walk's "
                                   f"end ({walk.end:g} s: start + steps x (double_support + single_support) + settle)")

@@ -53,21 +53,21 @@ planned the foot to land.
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
 from scipy import signal
 
-from flexforce.errors import ConfigError, ModelError
 from flexforce.datasets.effects import HiddenEffect, parse_effects
 from flexforce.datasets.recording import Recording, Truth
 from flexforce.datasets.robot import ROBOTS_DIR, FtNoise, ImuNoise, RobotConfig, RobotModel
 from flexforce.datasets.scenario import Ambient, Scenario
+from flexforce.errors import ConfigError, ModelError
 
 E_Z = np.array([0.0, 0.0, 1.0])
 
@@ -97,7 +97,7 @@ class Spring:
     """1/rad^2."""
 
     @classmethod
-    def from_stiffness(cls, stiffness) -> "Spring":
+    def from_stiffness(cls, stiffness) -> Spring:
         """From a robot configuration's :class:`~flexforce.datasets.robot.Stiffness` (scalars are
         isotropic, 3-vectors diagonal in the contact frame, 3x3 full)."""
         def mat(x, key):
@@ -117,7 +117,8 @@ class Spring:
         Rc = world_M_contact.rotation
         s = world_M_contact.translation - world_M_rest.translation
         Omega = pin.log3(Rc @ world_M_rest.rotation.T)
-        F = -(Rc @ (self.K_fs @ (Rc.T @ s))) * (1.0 + self.beta_f * (s @ s)) - Rc @ (self.K_fd @ (Rc.T @ velocity.linear))
+        F = (-(Rc @ (self.K_fs @ (Rc.T @ s))) * (1.0 + self.beta_f * (s @ s))
+             - Rc @ (self.K_fd @ (Rc.T @ velocity.linear)))
         T = (-(Rc @ (self.K_ts @ (Rc.T @ Omega))) * (1.0 + self.beta_t * (Omega @ Omega))
              - Rc @ (self.K_td @ (Rc.T @ velocity.angular)))
         return np.concatenate([F, T])
@@ -312,7 +313,8 @@ class LocalMotion:
                 J = pin.computeFrameJacobian(model, data, q, fid, pin.LOCAL)[:, lv]
                 q[lq] += np.linalg.solve(J, err)
             else:
-                raise ModelError(f"inverse kinematics of contact {ci} did not converge (residual {np.abs(err).max():.2e}); "
+                raise ModelError(f"inverse kinematics of contact {ci} did not converge "
+                                 f"(residual {np.abs(err).max():.2e}); "
                                  "the scenario asks for an unreachable placement")
         return q
 
@@ -527,6 +529,7 @@ class Simulator:
         """RMS (linear m/s^2, angular rad/s^2) of the ambient acceleration (defaults: see Ambient),
         or (force N, torque N m) of the ambient wrench."""
         if spec.kind == "wrench":
+            assert spec.force is not None and spec.torque is not None  # required with kind = "wrench" (Ambient.parse)
             return spec.scale * spec.force, spec.scale * spec.torque
         model = self.robot.model
         data = model.createData()
@@ -731,7 +734,7 @@ class Simulator:
         times = np.arange(n) * dt
         # Local motion at the samples (exact), then quintic Hermite in between.
         samples = [self.motion.sample(float(tk)) for tk in times]
-        rest = [pin.SE3(M) if act else None for M, act in zip(self.motion.placements0, samples[0].active)]
+        rest: list[Any] = [pin.SE3(M) if act else None for M, act in zip(self.motion.placements0, samples[0].active)]
         R, tr = self._equilibrium(samples[0], rest)
         quat = pin.Quaternion(R)
         y = np.concatenate([[quat.w, quat.x, quat.y, quat.z], tr, np.zeros(6)])
@@ -753,7 +756,7 @@ class Simulator:
         disturbance = None
         # The world's rest placement of each contact in force (the spring's anchor), and the local
         # placement the robot believes in (the recording's contact placement).
-        local_rest = [pin.SE3(M) if M is not None else None for M in rest]
+        local_rest: list[Any] = [pin.SE3(M) if M is not None else None for M in rest]  # pin.SE3 or None
         episodes = [{"contact": robot.contact_names[ci], "start": 0.0, "end": None,
                      "world_p": rest[ci].translation.tolist(), "world_R": rest[ci].rotation.tolist(),
                      "local_p": rest[ci].translation.tolist()} if rest[ci] is not None else None
@@ -833,7 +836,8 @@ class Simulator:
                 # A foot still pushing a quarter into its swing is torn off the floor (a force step,
                 # kept in the episode): the floor cannot hold it, nor the robot drag it further.
                 gone = [ci for ci in range(nc) if releasing[ci] and (
-                    out[1].wrenches[ci, 2] <= 0.0 or t >= swinging[ci].lift + 0.25 * (swinging[ci].land - swinging[ci].lift))]
+                    out[1].wrenches[ci, 2] <= 0.0
+                    or t >= swinging[ci].lift + 0.25 * (swinging[ci].land - swinging[ci].lift))]
                 for ci in gone:
                     episodes[ci]["release_force"] = [float(x) for x in out[1].wrenches[ci, :3]]
                     release(ci, t)
@@ -1000,11 +1004,11 @@ class Simulator:
                           for k, v in robot.config.stiffness.__dict__.items()},
             "hidden_effects": [{"type": e.type, **e.params} for e in self.effects],
             "ambient": (None if self.ambient is None else
-                        ({"sigma_linear_m_s2": self.ambient[0], "sigma_angular_rad_s2": self.ambient[1]}
-                         if self.ambient_spec.kind == "acceleration" else
-                         {"sigma_force_N": self.ambient[0], "sigma_torque_Nm": self.ambient[1]})
-                        | {"kind": self.ambient_spec.kind, "corner_hz": self.ambient_spec.corner,
-                           "scale": self.ambient_spec.scale}),
+                        {**({"sigma_linear_m_s2": self.ambient[0], "sigma_angular_rad_s2": self.ambient[1]}
+                            if self.ambient_spec.kind == "acceleration" else
+                            {"sigma_force_N": self.ambient[0], "sigma_torque_Nm": self.ambient[1]}),
+                         "kind": self.ambient_spec.kind, "corner_hz": self.ambient_spec.corner,
+                         "scale": self.ambient_spec.scale}),
             "touchdown": self.touchdown,
             # Per contact episode: the spring's rest placement in the world (the true foothold)
             # and the local placement the recording gives the estimators.
@@ -1012,7 +1016,8 @@ class Simulator:
         }
         return Recording(
             t_ns=np.arange(n, dtype=np.int64) * step_ns,
-            robot=robot.name if robot.config.source.startswith(str(ROBOTS_DIR)) else (robot.config.source or robot.name),
+            robot=(robot.name if robot.config.source.startswith(str(ROBOTS_DIR))
+                   else (robot.config.source or robot.name)),
             contact_names=robot.contact_names,
             mass=robot.mass,
             com=np.array([i.c for i in inp]), com_vel=np.array([i.dc for i in inp]),

@@ -7,9 +7,9 @@ nominal contact spring-dampers, the sensor noise, gravity, and the enabled model
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field, replace
 
 import numpy as np
-from dataclasses import dataclass, field, replace
 
 from flexforce.factors.physics import GRAVITY, ContactParams
 
@@ -36,7 +36,7 @@ class ModelConfig:
     """Enabled model effects (see the diagnostics); empty for the nominal model."""
 
     @classmethod
-    def from_recording(cls, rec, robot=None, **overrides) -> "ModelConfig":
+    def from_recording(cls, rec, robot=None, **overrides) -> ModelConfig:
         """Nominal model for a recording: the robot's configured stiffness and noise model.
 
         The noise densities come from the robot configuration only, the per-sample sigma being

@@ -8,7 +8,8 @@ tangent spaces.  The two are related by ``dtheta = R dphi``.
 The functions are the compiled core's (:mod:`flexforce.factors.core`, one implementation for
 every estimator); ``tests/test_so3.py`` holds them against mpmath.  Series expansions replace the
 closed forms where those cancel (below 1e-8 rad for ``exp``, below 0.1 rad for the Jacobians), so
-every function is smooth and accurate to a few ulps at zero rotation; ``log`` and ``left_jacobian_inverse`` stay accurate up to an angle of pi.
+every function is smooth and accurate to a few ulps at zero rotation; ``log`` and ``left_jacobian_inverse``
+stay accurate up to an angle of pi.
 """
 
 from __future__ import annotations

@@ -39,14 +39,14 @@ gtsam's body-frame tangent to world-frame increments (``blkdiag(R, R) Sigma blkd
 from __future__ import annotations
 
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import gtsam
 import numpy as np
 
 from flexforce.errors import EstimatorError
-from flexforce.factors import gtsam_factors as gf
 from flexforce.factors import core
+from flexforce.factors import gtsam_factors as gf
 from flexforce.smoother import solvers
 from flexforce.smoother.graph import GraphBuilder
 from flexforce.smoother.linearize import Trajectory, assemble_split, linearize
@@ -115,7 +115,7 @@ class GtsamFixedLagSmoother:
         self.update_time = np.zeros(n)
         self.cov_time = np.zeros(n)
         self.k = 0
-        self._last = None
+        self._last: tuple[np.ndarray, np.ndarray] | None = None
 
     # ------------------------------------------------------------------------------------------
     def _predict(self, k: int):
@@ -124,6 +124,7 @@ class GtsamFixedLagSmoother:
             R, q = p.prior_mean
             R, q = R.copy(), q.copy()
         else:
+            assert self._last is not None  # set by the previous step()
             R, q = predict_step(*self._last, p.dt)
         W = p.contact_wrenches(k, R, q)
         return R, q, W
@@ -145,9 +146,11 @@ class GtsamFixedLagSmoother:
         self.traj.q[j, 9:15] = acc
         for i in self.builder.contacts(j):
             key = gf.W(j, i)
-            self.traj.W[j, i] = full_values.atVector(key) if full_values is not None else sm.calculateEstimateVector(key)
+            self.traj.W[j, i] = (full_values.atVector(key) if full_values is not None
+                                 else sm.calculateEstimateVector(key))
         if self.covariance:
             t0 = time.perf_counter()
+            assert self.P is not None  # allocated when covariance is set
             P = self.P[j]
             Cx = sm.marginalCovariance(gf.X(j))
             Ad = np.zeros((6, 6))
@@ -267,7 +270,7 @@ class FixedLagSmoother:
         """Add the next sample and update: relinearise the newest steps, eliminate, back-substitute."""
         k = self.k
         prob = self.prob
-        cap, M, D, nc = self.cap, self.M, prob.state_dim, prob.nc
+        cap, M, D = self.cap, self.M, prob.state_dim
         t0 = time.perf_counter()
         frozen_first = k - M >= 0
         f = max(k - M, 0)
@@ -339,6 +342,7 @@ class FixedLagSmoother:
         R, q, W, e = self._state(j)
         self.traj.R[j], self.traj.q[j], self.traj.W[j], self.traj.e[j] = R, q, W, e
         if self.covariance:
+            assert self.P is not None  # allocated when covariance is set
             self.P[j] = self.Pw[j % self.cap]
 
     def finish(self) -> None:
@@ -379,11 +383,13 @@ def run_fixed_lag(rec, model, progress: Callable[[float], None] | None = None, l
     """
     if options:
         raise EstimatorError(f"fixed-lag smoother: unknown option(s) {sorted(options)}; known: lag, rule, backend, "
-                             "relinearize, report_every, relinearize_threshold, relinearize_skip, covariance, rest_p, rest_R")
+                             "relinearize, report_every, relinearize_threshold, relinearize_skip, covariance, "
+                             "rest_p, rest_R")
     if backend not in ("window", "gtsam"):
         raise EstimatorError(f"fixed-lag smoother: backend must be 'window' or 'gtsam', got {backend!r}")
     t0 = time.perf_counter()
     prob = Problem.build(rec, model, rule or NoiseRule(), rest_p, rest_R)
+    fls: FixedLagSmoother | GtsamFixedLagSmoother
     if backend == "window":
         fls = FixedLagSmoother(prob, lag, relinearize=relinearize, covariance=covariance, report_every=report_every)
     else:
@@ -397,7 +403,8 @@ def run_fixed_lag(rec, model, progress: Callable[[float], None] | None = None, l
     est = make_estimate(prob, "fixed_lag", fls.traj, fls.P, time_per_step=fls.update_time,
                         meta={"lag_s": fls.lag_steps * prob.dt, "use_ft": prob.use_ft, "backend": backend,
                               "cov_time_median_s": cov_stat if covariance else None,
-                              "covariance": ("per-key marginals (no cross-covariance between keys)" if backend == "gtsam"
+                              "covariance": ("per-key marginals (no cross-covariance between keys)"
+                                             if backend == "gtsam"
                                              else "per-step marginals of the window (joint within a step)")})
     est.total_time = time.perf_counter() - t0
     if progress is not None:

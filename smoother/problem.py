@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -44,6 +44,9 @@ from flexforce.errors import ConfigError, DataError, ModelError
 from flexforce.factors import core
 from flexforce.factors.model import unmodelled_acceleration
 from flexforce.factors.physics import ContactParams
+
+if TYPE_CHECKING:
+    from flexforce.datasets.recording import Recording
 
 FAMILIES = ("integration", "newton_euler", "contact", "imu", "ft")
 """Names of the factor families, the keys of :attr:`Estimate.residuals`."""
@@ -72,13 +75,13 @@ class Effect(Protocol):
     labels: tuple[str, ...]
     """One label per unknown, with its unit, e.g. ``("F_x [N]", ...)``."""
 
-    def prior(self, problem: "Problem") -> tuple[np.ndarray, np.ndarray]:
+    def prior(self, problem: Problem) -> tuple[np.ndarray, np.ndarray]:
         """Mean and sigma (both ``(dim,)``) of the effect's value at the first step."""
 
-    def random_walk_sigma(self, problem: "Problem") -> np.ndarray:
+    def random_walk_sigma(self, problem: Problem) -> np.ndarray:
         """Per-step sigma ``(dim,)`` of ``e_k+1 - e_k`` (tiny for a constant parameter)."""
 
-    def residual_terms(self, family: str, problem: "Problem", steps: np.ndarray, R: np.ndarray,
+    def residual_terms(self, family: str, problem: Problem, steps: np.ndarray, R: np.ndarray,
                        q: np.ndarray, W: np.ndarray, e: np.ndarray):
         """The effect's additive term in ``family``'s (unwhitened) residual, or None.
 
@@ -400,7 +403,7 @@ def _contact_arrays(params: tuple[ContactParams, ...]):
 class Problem:
     """A Recording and a ModelConfig turned into what the factors read (contiguous arrays)."""
 
-    rec: object
+    rec: Recording
     model: object
     sigmas: Sigmas
     effects: tuple
@@ -409,9 +412,40 @@ class Problem:
     dt: float
     g: float
     use_ft: bool
+    # Set by :meth:`build` (not constructor arguments; excluded from repr and comparison).
+    com: np.ndarray = field(init=False, repr=False, compare=False)
+    com_vel: np.ndarray = field(init=False, repr=False, compare=False)
+    com_acc: np.ndarray = field(init=False, repr=False, compare=False)
+    inertia: np.ndarray = field(init=False, repr=False, compare=False)
+    inertia_dot: np.ndarray = field(init=False, repr=False, compare=False)
+    sigma_l: np.ndarray = field(init=False, repr=False, compare=False)
+    sigma_dot: np.ndarray = field(init=False, repr=False, compare=False)
+    imu_R: np.ndarray = field(init=False, repr=False, compare=False)
+    imu_p: np.ndarray = field(init=False, repr=False, compare=False)
+    imu_v: np.ndarray = field(init=False, repr=False, compare=False)
+    imu_a: np.ndarray = field(init=False, repr=False, compare=False)
+    imu_w: np.ndarray = field(init=False, repr=False, compare=False)
+    y_imu: np.ndarray = field(init=False, repr=False, compare=False)
+    active: np.ndarray = field(init=False, repr=False, compare=False)
+    contact_p: np.ndarray = field(init=False, repr=False, compare=False)
+    contact_R: np.ndarray = field(init=False, repr=False, compare=False)
+    rest_p: np.ndarray = field(init=False, repr=False, compare=False)
+    rest_R: np.ndarray = field(init=False, repr=False, compare=False)
+    y_ft: np.ndarray | None = field(init=False, repr=False, compare=False)
+    K_fs: np.ndarray = field(init=False, repr=False, compare=False)
+    K_fd: np.ndarray = field(init=False, repr=False, compare=False)
+    K_ts: np.ndarray = field(init=False, repr=False, compare=False)
+    K_td: np.ndarray = field(init=False, repr=False, compare=False)
+    beta: np.ndarray = field(init=False, repr=False, compare=False)
+    iso: np.ndarray = field(init=False, repr=False, compare=False)
+    effect_dims: tuple[int, ...] = field(init=False, repr=False, compare=False)
+    prior_mean: tuple[np.ndarray, np.ndarray] = field(init=False, repr=False, compare=False)
+    integration_whitener: np.ndarray = field(init=False, repr=False, compare=False)
+    ne_whitener: np.ndarray = field(init=False, repr=False, compare=False)
+    contact_whitener: np.ndarray = field(init=False, repr=False, compare=False)
 
     @classmethod
-    def build(cls, rec, model, rule: NoiseRule = NoiseRule(), rest_p=None, rest_R=None) -> "Problem":
+    def build(cls, rec, model, rule: NoiseRule = NoiseRule(), rest_p=None, rest_R=None) -> Problem:
         """Args:
             rest_p, rest_R: (N, C, 3) and (N, C, 3, 3) the contacts' rest placements in the world
                 (footholds) per step; default: the recording's local placements ``contact_p``,
@@ -448,6 +482,8 @@ class Problem:
         prob.effect_dims = tuple(int(e.dim) for e in prob.effects)
         prob.prior_mean = prob.equilibrium(0)
         prob.integration_whitener = whitener(prob.sigmas.integration_cov)
+        # derive_sigmas sets both covariances.
+        assert prob.sigmas.newton_euler_cov is not None and prob.sigmas.contact_cov is not None
         prob.ne_whitener = whitener(prob.sigmas.newton_euler_cov)
         prob.contact_whitener = whitener(prob.sigmas.contact_cov)
         return prob

@@ -17,6 +17,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -29,10 +30,10 @@ from flexforce.datasets.estimate import Estimate
 from flexforce.datasets.scenario import Scenario
 from flexforce.datasets.simulator import simulate
 from flexforce.errors import ConfigError, DataError, EstimatorError
+from flexforce.factors import physics as ph
 from flexforce.factors import so3
 from flexforce.factors.model import ModelConfig
 from flexforce.factors.physics import ContactParams
-from flexforce.factors import physics as ph
 
 # EKF: margin on an error or a statistic of the filter on a seeded recording.  The filter is a
 # fixed sequence of float operations (no iteration count, no stopping rule), so only summation

@@ -10,10 +10,9 @@ import pytest
 
 from flexforce.datasets.scenario import Scenario
 from flexforce.datasets.simulator import Simulator
-from flexforce.smoother import solvers
 from flexforce.factors.effects import make_effect
 from flexforce.factors.model import ModelConfig
-from flexforce.smoother import Problem, fit
+from flexforce.smoother import Problem, fit, solvers
 from flexforce.smoother.batch import initial_trajectory
 from flexforce.smoother.evidence import log_dets
 from flexforce.smoother.linearize import global_columns, linearize

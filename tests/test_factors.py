@@ -14,10 +14,10 @@ import gtsam
 import numpy as np
 import pytest
 
-from flexforce.factors import gtsam_factors as gf
 from flexforce.factors import core, so3
-from flexforce.smoother import solvers
+from flexforce.factors import gtsam_factors as gf
 from flexforce.factors import physics as ph
+from flexforce.smoother import solvers
 
 G = ph.GRAVITY
 

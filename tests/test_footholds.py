@@ -9,7 +9,6 @@ import types
 import numpy as np
 import pinocchio as pin
 import pytest
-
 from conftest import ICUB_DIR
 
 from flexforce.datasets.localframe import on_ground

@@ -10,7 +10,6 @@ import json
 import matplotlib.pyplot as plt
 import numpy as np
 import pytest
-
 from conftest import ICUB_DIR
 
 from flexforce.cli import main

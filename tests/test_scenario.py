@@ -10,19 +10,20 @@ import math
 
 import numpy as np
 import pytest
+from scipy import signal
+
 from flexforce.datasets.robot import RobotConfig
 from flexforce.datasets.scenario import Scenario, Walk
 from flexforce.datasets.simulator import Simulator
-from flexforce.factors.model import ModelConfig
-from scipy import signal
-
 from flexforce.errors import ConfigError
+from flexforce.factors.model import ModelConfig
 
 
 @pytest.mark.parametrize("raw, match", [
     ({"ambient": {"linear": -0.1}}, r"ambient.linear = -0.1 m/s\^2: expected a non-negative RMS level"),
     ({"ambient": {"angular": "x"}}, r"ambient.angular = 'x' rad/s\^2"),
-    ({"ambient": {"corner": 600.0}}, r"ambient.corner = 600.0 Hz: expected .* below half the integration rate \(500 Hz\)"),
+    ({"ambient": {"corner": 600.0}},
+     r"ambient.corner = 600.0 Hz: expected .* below half the integration rate \(500 Hz\)"),
     ({"ambient": {"scale": -3}}, r"ambient.scale = -3 \(factor\): expected a non-negative factor"),
     ({"ambient": {"level": 1.0}}, r"unknown key\(s\) \['level'\] in \[ambient\]"),
     ({"ambient": "loud"}, r"ambient = 'loud': expected true, false or a table"),
@@ -132,7 +133,8 @@ def test_default_ambient_is_white_at_the_samples():
 
 
 def test_band_limited_ambient_has_its_level_and_corner():
-    sc = Scenario.from_dict({"name": "amb", "duration": 1.0, "ambient": {"linear": 0.2, "angular": 0.5, "corner": 10.0}})
+    sc = Scenario.from_dict({"name": "amb", "duration": 1.0,
+                             "ambient": {"linear": 0.2, "angular": 0.5, "corner": 10.0}})
     sim = Simulator(sc)
     n = 20 * 200 + 1
     table = sim._ambient_table(n, 5)  # 20 s at 1 kHz

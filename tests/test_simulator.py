@@ -47,7 +47,8 @@ def _foothold(rec, k: int, i: int):
     contact episodes (the simulator's truth of each touch-down)."""
     t = rec.time[k]
     for ep in rec.meta["contact_episodes"]:
-        if ep["contact"] == rec.contact_names[i] and ep["start"] <= t + 1e-9 and (ep["end"] is None or t < ep["end"] - 1e-9):
+        if (ep["contact"] == rec.contact_names[i] and ep["start"] <= t + 1e-9
+                and (ep["end"] is None or t < ep["end"] - 1e-9)):
             return np.array(ep["world_p"]), np.array(ep["world_R"])
     raise AssertionError(f"no episode of {rec.contact_names[i]} at {t} s")
 

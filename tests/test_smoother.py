@@ -18,9 +18,9 @@ from baseline import lower, upper
 from scipy.stats import chi2
 
 from flexforce.datasets.estimate import Estimate
-from flexforce.errors import ConfigError
 from flexforce.datasets.scenario import Scenario
 from flexforce.datasets.simulator import Simulator
+from flexforce.errors import ConfigError
 from flexforce.factors import so3
 from flexforce.factors.model import ModelConfig
 from flexforce.smoother import Effect, Problem, run_batch, run_fixed_lag

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 import pytest
+
 from flexforce.datasets.scenario import Scenario
 from flexforce.datasets.simulator import Simulator
-
 from flexforce.estimators import run_estimator
 
 
@@ -52,7 +52,8 @@ def test_walk_short_flexibility_is_bounded(walk_short):
     tilt = np.degrees([np.linalg.norm(pin.log3(R)[:2]) for R in tr.R])
     mg = rec.mass * rec.gravity
     static = mg / (2 * sim.springs[0].K_fs[0, 0])
-    print(f"\npeak tilt {tilt.max():.2f} deg, peak sinking {-1e3 * tr.t[:, 2].min():.1f} mm, static {1e3 * static:.1f} mm")
+    print(f"\npeak tilt {tilt.max():.2f} deg, peak sinking {-1e3 * tr.t[:, 2].min():.1f} mm, "
+          f"static {1e3 * static:.1f} mm")
     assert tilt.max() < 1.5 * TILT
     assert -tr.t[:, 2].min() < 1.5 * SINK * 1e-3
 
