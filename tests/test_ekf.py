@@ -306,7 +306,7 @@ def test_mean_nis_is_the_dof(recs, name):
     steps are independent chi-square(6) draws, their mean within the two-sided 99 % band of
     chi-square(6 N) / N."""
     rec = recs[name]
-    est = E.run_ekf(rec, ModelConfig.from_recording(rec), x0=_wrong_x0(rec), fast=False)
+    est = E.run_ekf(rec, ModelConfig.from_recording(rec), x0=_wrong_x0(rec))
     nis = (est.residuals["imu"][_quiet_steps(rec)] ** 2).sum(axis=1)
     lo, hi = stats.chi2.ppf([0.005, 0.995], 6 * nis.size) / nis.size
     assert lo < nis.mean() < hi, (nis.mean(), nis.size, lo, hi)
@@ -494,18 +494,22 @@ def _landing(recs):
     return rec, x, 20
 
 
-@pytest.mark.parametrize("tilt_weight", [0.0, 0.4, 1.0])
-def test_touchdown_sets_the_foothold_where_the_foot_lands(recs, tilt_weight):
+@pytest.mark.parametrize("tilt_weight, height_weight", [(0.0, 0.0), (0.4, 0.5), (1.0, 1.0)])
+def test_touchdown_sets_the_foothold_where_the_foot_lands(recs, tilt_weight, height_weight):
     rec, x, k = _landing(recs)
     model = ModelConfig.from_recording(rec)
-    ekf = E.EKF(rec, model, E.EKFConfig(touchdown="zero-deflection", ground_tilt_weight=tilt_weight))
+    ekf = E.EKF(rec, model, E.EKFConfig(touchdown="zero-deflection", ground_tilt_weight=tilt_weight,
+                                        ground_height_weight=height_weight))
     rest_before = ekf.U[:, kern.NU0 + kern.NUC:].copy()
-    kern.touch_down(k, x, ekf.U, ekf.dt, tilt_weight)
+    floor = 0.003  # m: the plane the landing sole's height is pulled to
+    kern.touch_down(k, x, ekf.U, ekf.dt, tilt_weight, height_weight, floor)
     o = kern.NU0 + kern.NUC  # contact 1
     p_r, R_r = ekf.U[k, o + 13:o + 16], ekf.U[k, o + 16:o + 25].reshape(3, 3)
     x1 = ekf.transition(x, k)
     R1, t1 = so3.exp(x1[3:6]), x1[0:3]
-    np.testing.assert_allclose(p_r, R1 @ rec.contact_p[k, 1] + t1, atol=1e-15)
+    landed_p = R1 @ rec.contact_p[k, 1] + t1
+    expected = landed_p - np.array([0.0, 0.0, height_weight * (landed_p[2] - floor)])
+    np.testing.assert_allclose(p_r, expected, atol=1e-15)
     landed = R1 @ rec.contact_R[k, 1]
     # The sole's tilt against gravity is removed in the given fraction, its yaw kept.
     tilt = lambda Rm: math.acos(np.clip(Rm[2, 2], -1.0, 1.0))  # noqa: E731
@@ -552,3 +556,5 @@ def test_touchdown_options_are_checked():
         E.EKFConfig(touchdown="flat")
     with pytest.raises(ConfigError, match=r"ground_tilt_weight .* \[0, 1\], got 1.5"):
         E.EKFConfig(ground_tilt_weight=1.5)
+    with pytest.raises(ConfigError, match=r"ground_height_weight .* \[0, 1\], got -0.1"):
+        E.EKFConfig(ground_height_weight=-0.1)
