@@ -283,8 +283,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("simulate", help="simulate a scenario into a ROS 2 bag (MCAP) with ground truth")
-    p.add_argument("scenario", help="built-in scenario name (stand, com-step, push-pitch, push-roll, sway, "
-                                    "weight-shift, step) or a scenario .toml file")
+    p.add_argument("scenario", help="built-in scenario name (stand, com-step, push-pitch, push-roll, push-com, "
+                                    "sway, weight-shift, step, walk, walk-short) or a scenario .toml file")
     p.add_argument("-o", "--output", required=True, type=Path, help="bag directory to write")
     p.add_argument("--robot", help="robot name or .toml configuration (overrides the scenario's)")
     p.add_argument("--duration", type=float, help="duration in s (overrides the scenario's)")
