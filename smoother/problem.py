@@ -342,55 +342,6 @@ def rest_placements(rec, rest_p=None, rest_R=None):
     return out[0], out[1]
 
 
-def touchdown_footholds(rec, R: np.ndarray, t: np.ndarray, tilt_weight: float = 1.0,
-                        height_weight: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """World rest placements of the contact episodes from a flexibility trajectory.
-
-    Each episode that starts during the recording (active at step k, not at k-1) rests where the
-    trajectory places the contact at its first step, ``p_r = R_k p_l + t_k``, ``R_r = R_k R_l``
-    (the landing spring starts at zero deflection), with the fraction ``tilt_weight`` of the
-    sole's roll and pitch against gravity removed (yaw kept) and the fraction ``height_weight`` of
-    its height above the floor removed -- the floor being the plane through the rest placements
-    of the contacts in force at the first step.  Episodes in force at the first step keep their
-    local placements.  The rule of the EKF's ``touchdown='zero-deflection'``, applied afterwards
-    to a whole trajectory (for the smoothers: the trajectory of a first pass).
-
-    Args:
-        rec: the Recording (``contact_active``, ``contact_p``, ``contact_R``).
-        R, t: (N, 3, 3), (N, 3) flexibility rotation and translation (m).
-
-    Returns:
-        ``(rest_p, rest_R)``: (N, C, 3) m and (N, C, 3, 3).
-    """
-    if not (0.0 <= tilt_weight <= 1.0 and 0.0 <= height_weight <= 1.0):
-        raise ConfigError(f"touch-down weights are fractions in [0, 1]; got tilt {tilt_weight}, height {height_weight}")
-    act = np.asarray(rec.contact_active, dtype=bool)
-    rest_p = np.array(rec.contact_p, dtype=float)
-    rest_R = np.array(rec.contact_R, dtype=float)
-    floor = float(np.mean(rest_p[0, act[0], 2])) if act[0].any() else 0.0
-    n, nc = act.shape
-    for i in range(nc):
-        k = 1
-        while k < n:
-            if act[k, i] and not act[k - 1, i]:
-                end = k
-                while end < n and act[end, i]:
-                    end += 1
-                p = R[k] @ rec.contact_p[k, i] + t[k]
-                Rc = R[k] @ rec.contact_R[k, i]
-                z = Rc[:, 2]
-                axis = np.array([z[1], -z[0], 0.0])
-                sin_t = float(np.linalg.norm(axis))
-                if sin_t > 1e-12 and tilt_weight > 0:
-                    Rc = core.so3_exp(axis * (tilt_weight * math.atan2(sin_t, z[2]) / sin_t)) @ Rc
-                p[2] -= height_weight * (p[2] - floor)
-                rest_p[k:end, i] = p
-                rest_R[k:end, i] = Rc
-                k = end
-            k += 1
-    return rest_p, rest_R
-
-
 def _contact_arrays(params: tuple[ContactParams, ...]):
     K = [np.ascontiguousarray(np.array([getattr(p, name) for p in params], dtype=float))
          for name in ("K_fs", "K_fd", "K_ts", "K_td")]
