@@ -111,6 +111,9 @@ class GtsamFixedLagSmoother:
     def __init__(self, prob: Problem, lag: float = 1.0, relinearize_threshold: float | None = None,
                  relinearize_skip: int = 10, covariance: bool = True):
         check_positive("GtsamFixedLagSmoother", "lag", lag, "s", "a positive duration")
+        check_positive("GtsamFixedLagSmoother", "relinearize_threshold", relinearize_threshold, "",
+                       "a positive number or None", optional=True)
+        check_int("GtsamFixedLagSmoother", "relinearize_skip", relinearize_skip, 1, "updates", "an integer >= 1")
         self.prob = prob
         self.builder = GraphBuilder(prob)
         self.lag_steps = max(1, int(round(lag / prob.dt)))
@@ -217,6 +220,7 @@ class FixedLagSmoother:
                  report_every: int = 10):
         check_positive("FixedLagSmoother", "lag", lag, "s", "a positive duration")
         check_int("FixedLagSmoother", "relinearize", relinearize, 1, "steps", "an integer >= 1")
+        check_int("FixedLagSmoother", "report_every", report_every, 1, "updates", "an integer >= 1")
         self.prob = prob
         self.lag_steps = max(1, int(round(lag / prob.dt)))
         self.M = int(relinearize)

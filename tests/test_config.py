@@ -81,7 +81,7 @@ def test_configs_are_frozen_and_documented():
         with pytest.raises(dataclasses.FrozenInstanceError):
             cls().__setattr__(dataclasses.fields(cls)[0].name, None)
         # every field is followed by its docstring (an expression statement holding a string)
-        body = ast.parse(inspect.getsource(cls)).body[0].body  # type: ignore[attr-defined]
+        body = ast.parse(inspect.getsource(cls)).body[0].body
         documented = {stmt.target.id for stmt, nxt in zip(body, body[1:])
                       if isinstance(stmt, ast.AnnAssign) and isinstance(nxt, ast.Expr)
                       and isinstance(nxt.value, ast.Constant) and isinstance(nxt.value.value, str)}
@@ -150,7 +150,7 @@ def test_wrong_config_type_in_the_estimator_itself(rec, model):
     with pytest.raises(ConfigError, match=r"batch smoother: config is a FixedLagConfig .*; expected a BatchConfig"):
         run_batch(rec, model, FixedLagConfig())
     with pytest.raises(ConfigError, match=r"EKF: config is a dict .*; expected an EKFConfig"):
-        run_ekf(rec, model, {"outputs": False})  # type: ignore[arg-type]
+        run_ekf(rec, model, {"outputs": False})
 
 
 def _same(a, b):
