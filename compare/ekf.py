@@ -534,7 +534,7 @@ def check_recording(rec: Recording, model: ModelConfig) -> None:
 # ----------------------------------------------------------------------------------------------
 
 
-def run_ekf(rec: Recording, model: ModelConfig, config: EKFConfig = EKFConfig(), x0: np.ndarray | None = None,
+def run_ekf(rec: Recording, model: ModelConfig, config: EKFConfig | None = EKFConfig(), x0: np.ndarray | None = None,
             P0: np.ndarray | None = None, rest_p=None, rest_R=None, progress: Callable[[float], None] | None = None,
             **options) -> Estimate:
     """Run the paper's EKF over a recording and return the common Estimate.
@@ -542,7 +542,7 @@ def run_ekf(rec: Recording, model: ModelConfig, config: EKFConfig = EKFConfig(),
     Args:
         rec: the recording (inputs, active contacts, IMU readings).
         model: the model assumptions (stiffness, sensor noise, gravity).
-        config: an :class:`EKFConfig`.
+        config: an :class:`EKFConfig` (None, the former default, is ``EKFConfig()``).
         x0: initial state (t, Omega, v, w[, a, dw]); default: rest.  Accelerations are recomputed
             from the dynamics.
         P0: 18x18 initial covariance in the filter's order; default: derived (docs/ekf.md).
@@ -559,6 +559,8 @@ def run_ekf(rec: Recording, model: ModelConfig, config: EKFConfig = EKFConfig(),
         EstimatorError: covariance no longer positive definite (unless ``on_covariance_failure =
             "reset"``), or divergence (NIS above ``nis_limit`` for ``nis_steps`` steps).
     """
+    if config is None:
+        config = EKFConfig()
     require_config(config, EKFConfig, "EKF")
     config = with_options(config, options, "EKF")
     if config.jacobians == "numeric":
