@@ -58,6 +58,16 @@ from flexforce.datasets.recording import Recording
 from flexforce.errors import ConfigError, DataError, EstimatorError, ModelError
 from flexforce.factors import so3
 from flexforce.factors.model import ModelConfig, unmodelled_acceleration
+from flexforce.options import (
+    check_bool,
+    check_choice,
+    check_finite,
+    check_fraction,
+    check_int,
+    check_positive,
+    require_config,
+    with_options,
+)
 from flexforce.smoother.problem import rest_placements
 
 __all__ = [
@@ -137,26 +147,24 @@ class EKFConfig:
     position (1: the foothold is on the floor; 0: where the foot lands by the estimate)."""
 
     def __post_init__(self):
-        if self.jacobians not in ("analytic", "numeric"):
-            raise ConfigError(f"EKFConfig.jacobians must be 'analytic' or 'numeric', got '{self.jacobians}'")
-        if self.on_covariance_failure not in ("raise", "reset"):
-            raise ConfigError("EKFConfig.on_covariance_failure must be 'raise' or 'reset', "
-                              f"got '{self.on_covariance_failure}'")
-        for name in ("unmodelled_accel", "unmodelled_ang_accel"):
-            value = getattr(self, name)
-            if value is not None and not (math.isfinite(value) and value > 0):
-                raise ConfigError(f"EKFConfig.{name} must be a positive number, got {value}")
-        if self.touchdown not in ("local", "zero-deflection"):
-            raise ConfigError(f"EKFConfig.touchdown must be 'local' or 'zero-deflection', got '{self.touchdown}'")
-        if not (math.isfinite(self.ground_tilt_weight) and 0.0 <= self.ground_tilt_weight <= 1.0):
-            raise ConfigError("EKFConfig.ground_tilt_weight is the fraction of the sole's tilt removed at a "
-                              f"touch-down, expected a number in [0, 1], got {self.ground_tilt_weight}")
-        if not (math.isfinite(self.ground_height_weight) and 0.0 <= self.ground_height_weight <= 1.0):
-            raise ConfigError("EKFConfig.ground_height_weight is the fraction of the sole's height above the "
-                              "floor removed at a touch-down, expected a number in [0, 1], "
-                              f"got {self.ground_height_weight}")
-        if not (self.p0_scale > 0 and self.nis_limit > 0 and self.nis_steps >= 1):
-            raise ConfigError("EKFConfig.p0_scale and nis_limit must be positive and nis_steps >= 1")
+        o = "EKFConfig"
+        check_positive(o, "unmodelled_accel", self.unmodelled_accel, "m/s^2",
+                       "a positive standard deviation or None (the accelerometer's)", optional=True)
+        check_positive(o, "unmodelled_ang_accel", self.unmodelled_ang_accel, "rad/s^2",
+                       "a positive standard deviation or None (accel_sigma / l)", optional=True)
+        check_positive(o, "p0_scale", self.p0_scale, "", "a positive multiplier of the prior standard deviations")
+        check_finite(o, "z0", self.z0, "m", "a finite height")
+        check_positive(o, "min_force", self.min_force, "N", "a positive force")
+        check_choice(o, "jacobians", self.jacobians, ("analytic", "numeric"))
+        check_bool(o, "outputs", self.outputs)
+        check_choice(o, "on_covariance_failure", self.on_covariance_failure, ("raise", "reset"))
+        check_positive(o, "nis_limit", self.nis_limit, "", "a positive normalised innovation squared (chi^2, 6 dof)")
+        check_int(o, "nis_steps", self.nis_steps, 1, "steps", "an integer >= 1")
+        check_choice(o, "touchdown", self.touchdown, ("local", "zero-deflection"))
+        check_fraction(o, "ground_tilt_weight", self.ground_tilt_weight,
+                       "a number in [0, 1] (the fraction of the sole's tilt removed at a touch-down)")
+        check_fraction(o, "ground_height_weight", self.ground_height_weight,
+                       "a number in [0, 1] (the fraction of the sole's height above the floor removed at a touch-down)")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -526,34 +534,35 @@ def check_recording(rec: Recording, model: ModelConfig) -> None:
 # ----------------------------------------------------------------------------------------------
 
 
-def run_ekf(rec: Recording, model: ModelConfig, progress: Callable[[float], None] | None = None,
-            x0: np.ndarray | None = None, P0: np.ndarray | None = None,
-            config: EKFConfig | None = None, rest_p=None, rest_R=None, **options) -> Estimate:
+def run_ekf(rec: Recording, model: ModelConfig, config: EKFConfig | None = EKFConfig(), x0: np.ndarray | None = None,
+            P0: np.ndarray | None = None, rest_p=None, rest_R=None, progress: Callable[[float], None] | None = None,
+            **options) -> Estimate:
     """Run the paper's EKF over a recording and return the common Estimate.
 
     Args:
         rec: the recording (inputs, active contacts, IMU readings).
         model: the model assumptions (stiffness, sensor noise, gravity).
-        progress: called with the fraction done.
+        config: an :class:`EKFConfig` (None, the former default, is ``EKFConfig()``).
         x0: initial state (t, Omega, v, w[, a, dw]); default: rest.  Accelerations are recomputed
             from the dynamics.
         P0: 18x18 initial covariance in the filter's order; default: derived (docs/ekf.md).
-        config: an :class:`EKFConfig`; ``options`` are its fields, as an alternative.
         rest_p, rest_R: (N, C, 3), (N, C, 3, 3) the contacts' rest placements in the world per
             step (footholds); default the recording's local placements ``contact_p``, ``contact_R``.
+        progress: called with the fraction done.
+        options: fields of :class:`EKFConfig` replacing those of ``config`` (the older calling
+            convention, ``run_ekf(rec, model, touchdown="zero-deflection")``).
 
     Raises:
+        ConfigError: ``config`` is not an EKFConfig, an unknown option (the known ones listed), a
+            bad value, or ``jacobians='numeric'``.
         DataError: NaN or inf in an input or a reading (naming the field, the sample, the time).
         EstimatorError: covariance no longer positive definite (unless ``on_covariance_failure =
             "reset"``), or divergence (NIS above ``nis_limit`` for ``nis_steps`` steps).
     """
     if config is None:
-        try:
-            config = EKFConfig(**options)
-        except TypeError as err:
-            raise ConfigError(f"unknown EKF option: {err}; known: {', '.join(EKFConfig.__dataclass_fields__)}") from err
-    elif options:
-        raise ConfigError("give either config= or EKF options, not both")
+        config = EKFConfig()
+    require_config(config, EKFConfig, "EKF")
+    config = with_options(config, options, "EKF")
     if config.jacobians == "numeric":
         raise ConfigError("EKFConfig(jacobians='numeric') differentiates EKF.transition and EKF.measurement "
                           "numerically (to check the analytic Jacobians); run_ekf runs the compiled step, whose "

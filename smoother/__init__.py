@@ -1,18 +1,42 @@
 """flexforce.smoother: factor-graph smoothing of the flexible-contact model (batch and fixed-lag).
 
-Public API: :func:`run_batch`, :func:`run_fixed_lag` (both return an Estimate), :func:`fit` (batch
-smoothing with the fit statistics the diagnostics read, ``Estimate.meta["fit"]``), the effect
-protocol :class:`Effect`, the noise rule :class:`NoiseRule` and :class:`Problem`.
+Public API: :func:`run_batch` and :func:`run_fixed_lag` (both return an Estimate) with their
+frozen options :class:`BatchConfig` and :class:`FixedLagConfig`, :func:`fit` (batch smoothing
+with the fit statistics the diagnostics read, ``Estimate.meta["fit"]``), the effect protocol
+:class:`Effect`, the noise rule :class:`NoiseRule` and :class:`Problem`.
 """
 
-from flexforce.smoother.batch import fit, run_batch
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+from flexforce.smoother.batch import BatchConfig, fit, run_batch
 from flexforce.smoother.problem import FAMILIES, Effect, NoiseRule, Problem, derive_sigmas
 
-__all__ = ["fit", "run_batch", "run_fixed_lag", "Effect", "NoiseRule", "Problem", "derive_sigmas", "FAMILIES"]
+if TYPE_CHECKING:
+    from flexforce.smoother.fixed_lag import FixedLagConfig
+
+__all__ = ["fit", "run_batch", "run_fixed_lag", "BatchConfig", "FixedLagConfig", "Effect", "NoiseRule", "Problem",
+           "derive_sigmas", "FAMILIES"]
 
 
-def run_fixed_lag(rec, model, progress=None, lag: float = 1.0, **options):
-    """Fixed-lag smoothing (see :mod:`flexforce.smoother.fixed_lag`)."""
+def __getattr__(name: str) -> Any:
+    # The fixed-lag module imports gtsam (~85 ms): loaded on first use, not with the package (the
+    # EKF and the batch smoother do not need it).
+    if name == "FixedLagConfig":
+        from flexforce.smoother.fixed_lag import FixedLagConfig
+
+        return FixedLagConfig
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def run_fixed_lag(rec, model, config: FixedLagConfig | None = None, rest_p=None, rest_R=None,
+                  progress: Callable[[float], None] | None = None, **options):
+    """Fixed-lag smoothing (:func:`flexforce.smoother.fixed_lag.run_fixed_lag`; ``config`` None: the
+    default :class:`FixedLagConfig`)."""
+    from flexforce.smoother.fixed_lag import FixedLagConfig
     from flexforce.smoother.fixed_lag import run_fixed_lag as _run
 
-    return _run(rec, model, progress=progress, lag=lag, **options)
+    return _run(rec, model, FixedLagConfig() if config is None else config, rest_p, rest_R, progress=progress,
+                **options)

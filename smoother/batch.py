@@ -14,10 +14,12 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from flexforce.errors import EstimatorError
+from flexforce.options import check_bool, check_int, check_positive, check_type, require_config, with_options
 from flexforce.smoother import evidence
 from flexforce.smoother.linearize import (
     Trajectory,
@@ -197,34 +199,65 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
     return traj, P, {"iterations": len(log) - 1, "outer": outer, "gradient_fallbacks": fallbacks, "cost": log}
 
 
-def run_batch(rec, model, progress: Callable[[float], None] | None = None, rule: NoiseRule | None = None,
-              max_iterations: int = 200, covariance: bool = True, global_constants: bool | None = None,
-              rest_p=None, rest_R=None, **options):
+@dataclass(frozen=True)
+class BatchConfig:
+    """Options of the batch smoother (:func:`run_batch`); every field is checked on construction
+    (a :class:`~flexforce.errors.ConfigError` naming the option, its value and what is expected)."""
+
+    max_iterations: int = 200
+    """Levenberg-Marquardt iterations at most (count, >= 1; accepted and rejected steps; it stops
+    earlier once converged), per LM run and for the outer (global-constant) iterations.  200: on a
+    simulated 9.5 s walk (Romeo, four steps) from the first step's equilibrium it takes 80
+    accepted steps; the former cap of 30 stopped it at 300 times the optimal cost, with an 8 deg
+    tilt error."""
+    rel_tol: float = 1e-7
+    """Convergence: a step lowering the cost by less than ``rel_tol * max(cost, 1)`` ends the run
+    (dimensionless, relative to the cost, > 0)."""
+    covariance: bool = True
+    """Compute the marginal covariances at the optimum (cheap: one extra block elimination)."""
+    global_constants: bool = GLOBAL_CONSTANTS
+    """Constant effects as one global block, estimated by the marginal likelihood (:func:`optimize`);
+    False: per-step copies tied by a tight random walk, as in the fixed-lag smoother."""
+    rule: NoiseRule = field(default_factory=NoiseRule)
+    """The noise rule of the model-error families (:class:`~flexforce.smoother.problem.NoiseRule`)."""
+
+    def __post_init__(self):
+        o = "BatchConfig"
+        check_int(o, "max_iterations", self.max_iterations, 1, "iterations", "an integer >= 1")
+        check_positive(o, "rel_tol", self.rel_tol, "", "a positive relative cost decrease (e.g. 1e-7)")
+        check_bool(o, "covariance", self.covariance)
+        check_bool(o, "global_constants", self.global_constants)
+        check_type(o, "rule", self.rule, NoiseRule)
+
+
+def run_batch(rec, model, config: BatchConfig = BatchConfig(), rest_p=None, rest_R=None,
+              progress: Callable[[float], None] | None = None, **options):
     """Batch (whole-recording) smoothing of a Recording; returns an :class:`Estimate`.
 
     Args:
         rec: the Recording.
         model: the ModelConfig (contact parameters, sensor noise, ``use_ft``, ``effects``).
-        progress: called with the fraction done.
-        rule: the noise rule of the model-error families (default :class:`NoiseRule`).
-        max_iterations: Levenberg-Marquardt iterations at most (accepted and rejected steps; it
-            stops earlier once converged).  200: on a simulated 9.5 s walk (Romeo, four steps)
-            from the first step's equilibrium it takes 80 accepted steps; the former cap of 30
-            stopped it at 300 times the optimal cost, with an 8 deg tilt error.
-        covariance: compute the marginal covariances (cheap: one extra block elimination).
-        global_constants: constant effects as one global block (:func:`optimize`).
+        config: a :class:`BatchConfig` (iterations, covariance, global constants, noise rule).
         rest_p, rest_R: (N, C, 3), (N, C, 3, 3) the contacts' rest placements in the world per step
             (footholds); default the recording's local placements (:meth:`Problem.build`).
+        progress: called with the fraction done.
+        options: fields of :class:`BatchConfig` replacing those of ``config`` (the older calling
+            convention, ``run_batch(rec, model, max_iterations=50)``; ``rule=None`` is the default rule).
+
+    Raises:
+        ConfigError: ``config`` is not a BatchConfig, an unknown option (the known ones listed), or
+            a bad value.
     """
-    if options:
-        raise EstimatorError(f"batch smoother: unknown option(s) {sorted(options)}; known: rule, "
-                             "max_iterations, covariance, global_constants, rest_p, rest_R")
+    require_config(config, BatchConfig, "batch smoother")
+    if "rule" in options and options["rule"] is None:  # the older convention: None for the default
+        options = {**options, "rule": NoiseRule()}
+    config = with_options(config, options, "batch smoother")
     t0 = time.perf_counter()
-    prob = Problem.build(rec, model, rule or NoiseRule(), rest_p, rest_R)
+    prob = Problem.build(rec, model, config.rule, rest_p, rest_R)
     if progress is not None:
         progress(0.05)
-    traj, P, info = optimize(prob, max_iterations=max_iterations, progress=progress, want_cov=covariance,
-                             global_constants=global_constants)
+    traj, P, info = optimize(prob, max_iterations=config.max_iterations, rel_tol=config.rel_tol, progress=progress,
+                             want_cov=config.covariance, global_constants=config.global_constants)
     elapsed = time.perf_counter() - t0
     est = make_estimate(prob, "batch", traj, P, total_time=elapsed,
                         meta={"iterations": info["iterations"], "final_cost": info["cost"][-1],

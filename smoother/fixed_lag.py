@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
@@ -47,6 +48,15 @@ import numpy as np
 from flexforce.errors import EstimatorError
 from flexforce.factors import core
 from flexforce.factors import gtsam_factors as gf
+from flexforce.options import (
+    check_bool,
+    check_choice,
+    check_int,
+    check_positive,
+    check_type,
+    require_config,
+    with_options,
+)
 from flexforce.smoother import solvers
 from flexforce.smoother.graph import GraphBuilder
 from flexforce.smoother.linearize import Trajectory, assemble_split, linearize
@@ -100,8 +110,10 @@ class GtsamFixedLagSmoother:
 
     def __init__(self, prob: Problem, lag: float = 1.0, relinearize_threshold: float | None = None,
                  relinearize_skip: int = 10, covariance: bool = True):
-        if not lag > 0:
-            raise EstimatorError(f"fixed-lag smoother: lag must be positive (s), got {lag}")
+        check_positive("GtsamFixedLagSmoother", "lag", lag, "s", "a positive duration")
+        check_positive("GtsamFixedLagSmoother", "relinearize_threshold", relinearize_threshold, "",
+                       "a positive number or None", optional=True)
+        check_int("GtsamFixedLagSmoother", "relinearize_skip", relinearize_skip, 1, "updates", "an integer >= 1")
         self.prob = prob
         self.builder = GraphBuilder(prob)
         self.lag_steps = max(1, int(round(lag / prob.dt)))
@@ -206,10 +218,9 @@ class FixedLagSmoother:
 
     def __init__(self, prob: Problem, lag: float = 1.0, relinearize: int = 6, covariance: bool = True,
                  report_every: int = 10):
-        if not lag > 0:
-            raise EstimatorError(f"fixed-lag smoother: lag must be positive (s), got {lag}")
-        if relinearize < 1:
-            raise EstimatorError(f"fixed-lag smoother: relinearize must be >= 1, got {relinearize}")
+        check_positive("FixedLagSmoother", "lag", lag, "s", "a positive duration")
+        check_int("FixedLagSmoother", "relinearize", relinearize, 1, "steps", "an integer >= 1")
+        check_int("FixedLagSmoother", "report_every", report_every, 1, "updates", "an integer >= 1")
         self.prob = prob
         self.lag_steps = max(1, int(round(lag / prob.dt)))
         self.M = int(relinearize)
@@ -358,42 +369,83 @@ class FixedLagSmoother:
             self._report(j)
 
 
-def run_fixed_lag(rec, model, progress: Callable[[float], None] | None = None, lag: float = 1.0,
-                  rule: NoiseRule | None = None, backend: str = "window", relinearize: int = 6,
-                  report_every: int = 10, relinearize_threshold: float | None = None,
-                  relinearize_skip: int = 10, covariance: bool = True, rest_p=None, rest_R=None, **options):
+@dataclass(frozen=True)
+class FixedLagConfig:
+    """Options of the fixed-lag smoother (:func:`run_fixed_lag`); every field is checked on
+    construction (a :class:`~flexforce.errors.ConfigError` naming the option, its value, its unit and
+    what is expected)."""
+
+    lag: float = 1.0
+    """Smoothing window, s (> 0): each step is reported smoothed with at least ``lag`` of future
+    data; rounded to a whole number of samples, at least one."""
+    backend: str = "window"
+    """``window`` (own incremental square-root smoother, effects supported) or ``gtsam`` (iSAM2's
+    IncrementalFixedLagSmoother, the reference; no effects)."""
+    relinearize: int = 6
+    """Window backend: steps relinearised per update, the newest included (count, >= 1).  6: a
+    touch-down is far from the linearisation point and needs several Gauss-Newton passes
+    (docs/smoother.md: three left the iCub walk's per-foot F_z error 50.1 N, six 37.0 N)."""
+    report_every: int = 10
+    """Window backend: updates between read-outs of the window (count, >= 1; capped at the lag in
+    samples).  Output latency: ``lag`` plus up to ``report_every - 1`` samples."""
+    relinearize_threshold: float | None = None
+    """Gtsam backend: iSAM2's relinearisation threshold on every variable's tangent delta (rad, m,
+    m/s, N mixed; > 0).  None: the per-type thresholds of :data:`RELINEARIZE_THRESHOLD`."""
+    relinearize_skip: int = 10
+    """Gtsam backend: iSAM2 checks for relinearisation every ``relinearize_skip`` updates (count, >= 1)."""
+    covariance: bool = True
+    """Extract the marginal covariances (timed apart from the updates)."""
+    rule: NoiseRule = field(default_factory=NoiseRule)
+    """The noise rule of the model-error families (:class:`~flexforce.smoother.problem.NoiseRule`)."""
+
+    def __post_init__(self):
+        o = "FixedLagConfig"
+        check_positive(o, "lag", self.lag, "s", "a positive duration")
+        check_choice(o, "backend", self.backend, ("window", "gtsam"))
+        check_int(o, "relinearize", self.relinearize, 1, "steps", "an integer >= 1 (steps relinearised per update)")
+        check_int(o, "report_every", self.report_every, 1, "updates", "an integer >= 1")
+        check_positive(o, "relinearize_threshold", self.relinearize_threshold, "", "a positive number or None",
+                       optional=True)
+        check_int(o, "relinearize_skip", self.relinearize_skip, 1, "updates", "an integer >= 1")
+        check_bool(o, "covariance", self.covariance)
+        check_type(o, "rule", self.rule, NoiseRule)
+
+
+def run_fixed_lag(rec, model, config: FixedLagConfig = FixedLagConfig(), rest_p=None, rest_R=None,
+                  progress: Callable[[float], None] | None = None, **options):
     """Fixed-lag smoothing of a Recording, one update per sample; returns an :class:`Estimate`.
 
     Args:
-        lag: smoothing window, s (1 s by default).
-        rule: the noise rule of the model-error families (default :class:`NoiseRule`).
-        backend: ``window`` (own incremental square-root smoother, default) or ``gtsam``
-            (IncrementalFixedLagSmoother; no effects).
-        relinearize, report_every: window backend: steps relinearised per update (the newest
-            one included; 6: a touch-down needs several Gauss-Newton passes, docs/smoother.md),
-            and how often (updates) the window is read out.
-        relinearize_threshold, relinearize_skip: gtsam backend: iSAM2's relinearisation settings.
-        covariance: extract the marginal covariances (timed apart from the updates).
+        rec: the Recording.
+        model: the ModelConfig (contact parameters, sensor noise, ``use_ft``, ``effects``).
+        config: a :class:`FixedLagConfig` (lag, backend and its settings, covariance, noise rule).
         rest_p, rest_R: (N, C, 3), (N, C, 3, 3) the contacts' rest placements in the world per step
             (footholds); default the recording's local placements (:meth:`Problem.build`).
+        progress: called with the fraction done.
+        options: fields of :class:`FixedLagConfig` replacing those of ``config`` (the older calling
+            convention, ``run_fixed_lag(rec, model, lag=0.5)``; ``rule=None`` is the default rule).
 
     ``Estimate.time_per_step`` holds the wall-clock time of each update (prediction,
     linearisation, elimination, back substitution); the covariance extraction is in
     ``meta["cov_time_median_s"]`` (window backend: the mean per update, amortised).
+
+    Raises:
+        ConfigError: ``config`` is not a FixedLagConfig, an unknown option (the known ones listed),
+            or a bad value.
     """
-    if options:
-        raise EstimatorError(f"fixed-lag smoother: unknown option(s) {sorted(options)}; known: lag, rule, backend, "
-                             "relinearize, report_every, relinearize_threshold, relinearize_skip, covariance, "
-                             "rest_p, rest_R")
-    if backend not in ("window", "gtsam"):
-        raise EstimatorError(f"fixed-lag smoother: backend must be 'window' or 'gtsam', got {backend!r}")
+    require_config(config, FixedLagConfig, "fixed-lag smoother")
+    if "rule" in options and options["rule"] is None:  # the older convention: None for the default
+        options = {**options, "rule": NoiseRule()}
+    config = with_options(config, options, "fixed-lag smoother")
+    lag, backend, covariance = config.lag, config.backend, config.covariance
     t0 = time.perf_counter()
-    prob = Problem.build(rec, model, rule or NoiseRule(), rest_p, rest_R)
+    prob = Problem.build(rec, model, config.rule, rest_p, rest_R)
     fls: FixedLagSmoother | GtsamFixedLagSmoother
     if backend == "window":
-        fls = FixedLagSmoother(prob, lag, relinearize=relinearize, covariance=covariance, report_every=report_every)
+        fls = FixedLagSmoother(prob, lag, relinearize=config.relinearize, covariance=covariance,
+                               report_every=config.report_every)
     else:
-        fls = GtsamFixedLagSmoother(prob, lag, relinearize_threshold, relinearize_skip, covariance)
+        fls = GtsamFixedLagSmoother(prob, lag, config.relinearize_threshold, config.relinearize_skip, covariance)
     for k in range(prob.n):
         fls.step()
         if progress is not None and k % 50 == 0:

@@ -44,6 +44,7 @@ from flexforce.errors import ConfigError, DataError, ModelError
 from flexforce.factors import core
 from flexforce.factors.model import unmodelled_acceleration
 from flexforce.factors.physics import ContactParams
+from flexforce.options import check_positive, invalid
 
 if TYPE_CHECKING:
     from flexforce.datasets.recording import Recording
@@ -159,6 +160,27 @@ class NoiseRule:
                                       2.0, 2.0, 2.0, 1.0, 1.0, 1.0)
     """Sigma of the first-step prior on (theta rad, t m, w rad/s, v m/s, dw rad/s^2, a m/s^2):
     loose, since the model makes the state observable (seed sec. III-A)."""
+
+    def __post_init__(self):
+        o = "NoiseRule"
+        check_positive(o, "unmodelled_accel", self.unmodelled_accel, "m/s^2",
+                       "a positive standard deviation or None (the EKF's, accel_sigma)", optional=True)
+        check_positive(o, "unmodelled_ang_accel", self.unmodelled_ang_accel, "rad/s^2",
+                       "a positive standard deviation or None (the EKF's, accel_sigma / l)", optional=True)
+        check_positive(o, "contact_ratio", self.contact_ratio, "", "a positive ratio of standard deviations")
+        check_positive(o, "robust_k", self.robust_k, "", "a positive Huber threshold (whitened norm) or None",
+                       optional=True)
+        check_positive(o, "jerk_scale", self.jerk_scale, "", "a positive multiplier")
+        check_positive(o, "inactive_factor", self.inactive_factor, "", "a positive ratio of standard deviations")
+        sigma = self.prior_sigma
+        expected = ("18 positive standard deviations (theta rad, t m, w rad/s, v m/s, dw rad/s^2, a m/s^2)")
+        try:
+            values = tuple(float(v) for v in sigma)  # a TOML array arrives as a list
+        except (TypeError, ValueError) as err:
+            raise invalid(o, "prior_sigma", sigma, "", expected) from err
+        if len(values) != 18 or not all(math.isfinite(v) and v > 0 for v in values):
+            raise invalid(o, "prior_sigma", sigma, "", expected)
+        object.__setattr__(self, "prior_sigma", values)
 
 
 @dataclass(frozen=True)

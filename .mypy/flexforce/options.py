@@ -1,0 +1,1 @@
+../../flexforce/options.py
