@@ -1,14 +1,16 @@
 """flexforce.smoother: factor-graph smoothing of the flexible-contact model (batch and fixed-lag).
 
 Public API: :func:`run_batch`, :func:`run_fixed_lag` (both return an Estimate), :func:`fit` (batch
-smoothing with the fit statistics the diagnostics read, ``Estimate.meta["fit"]``), the effect
-protocol :class:`Effect`, the noise rule :class:`NoiseRule` and :class:`Problem`.
+smoothing for the diagnostics: ``(Estimate, FitStatistics)``), the noise rule :class:`NoiseRule` and
+:class:`Problem`.  The effect protocol :class:`Effect` and the :class:`ProblemView` it is written
+against live in :mod:`flexforce.factors.effects`; they are re-exported here under their old path.
 """
 
-from flexforce.smoother.batch import fit, run_batch
-from flexforce.smoother.problem import FAMILIES, Effect, NoiseRule, Problem, derive_sigmas
+from flexforce.smoother.batch import FitStatistics, fit, run_batch
+from flexforce.smoother.problem import FAMILIES, Effect, NoiseRule, Problem, ProblemView, derive_sigmas
 
-__all__ = ["fit", "run_batch", "run_fixed_lag", "Effect", "NoiseRule", "Problem", "derive_sigmas", "FAMILIES"]
+__all__ = ["fit", "FitStatistics", "run_batch", "run_fixed_lag", "Effect", "ProblemView", "NoiseRule", "Problem",
+           "derive_sigmas", "FAMILIES"]
 
 
 def run_fixed_lag(rec, model, progress=None, lag: float = 1.0, **options):
