@@ -96,7 +96,7 @@ def with_ft_offset_removed(rec, offset: float):
 def identify(rec, robot: RobotConfig, max_iterations: int) -> dict:
     model = ModelConfig.from_recording(rec, robot=robot, use_ft=True, effects=(make_effect("stiffness"),))
     t0 = time.perf_counter()
-    est = fit(rec, model, max_iterations=max_iterations)
+    est, stats = fit(rec, model, max_iterations=max_iterations)
     wall = time.perf_counter() - t0
     rep = est.effects["stiffness"]
     (s, d), (ss, sd) = rep["value"], rep["std"]
@@ -110,7 +110,7 @@ def identify(rec, robot: RobotConfig, max_iterations: int) -> dict:
         "k_fs_std": ss * k.k_fs, "k_ts_std": ss * k.k_ts, "k_fd_std": sd * k.k_fd, "k_td_std": sd * k.k_td,
         "iterations": est.meta.get("iterations"), "max_iterations": max_iterations,
         "converged": bool(est.meta.get("iterations", max_iterations) < max_iterations),
-        "effective_dof": est.meta["fit"]["effective_dof"].get("stiffness"),
+        "effective_dof": stats.effective_dof.get("stiffness"),
         "wall_s": wall,
         "fit_with_ft_vertical_force_rmse_N": _f(m.rmse.get("vertical_force_N")),
         "fit_with_ft_tilt_rmse_deg": (_f(np.degrees(m.rmse["rotation_rad"]))  # type: ignore[arg-type]
@@ -192,11 +192,11 @@ def profile(rec, robot: RobotConfig, max_iterations: int) -> list[dict]:
     """Data cost (F/T fused) of the batch smoother with the stiffness scaled by s, per family."""
     rows = []
     for s in GRID:
-        est = fit(rec, ModelConfig.from_recording(rec, robot=scaled(robot, s), use_ft=True),
-                  max_iterations=max_iterations)
+        est, stats = fit(rec, ModelConfig.from_recording(rec, robot=scaled(robot, s), use_ft=True),
+                         max_iterations=max_iterations)
         fams = {f: 0.5 * float(np.nansum(np.asarray(v) ** 2)) for f, v in est.residuals.items() if v is not None}
-        rows.append({"stiffness_scale": s, "cost_data": est.meta["fit"]["cost_data"],
-                     "n_residuals": est.meta["fit"]["n_residuals"], "iterations": est.meta.get("iterations"),
+        rows.append({"stiffness_scale": s, "cost_data": stats.cost_data,
+                     "n_residuals": stats.n_residuals, "iterations": est.meta.get("iterations"),
                      **{f"cost_{f}": v for f, v in fams.items()}})
     return rows
 

@@ -42,9 +42,11 @@ and it is consistent: with more data it picks the true model with probability on
 likelihood-ratio p-value is the second guard: it bounds the false-alarm rate of each test at
 ``alpha`` whatever ``n``.
 
-Fitting goes through :func:`flexforce.smoother.fit`: its ``Estimate.meta["fit"]`` gives the data
-cost, the evidence, the number of residuals and each effect's effective dof (``p`` for a
-constant, the trace of the effect's share of the hat matrix for a random walk).
+Fitting goes through :func:`flexforce.smoother.fit`: its :class:`~flexforce.smoother.FitStatistics`
+give the data cost, the evidence, the number of residuals and each effect's effective dof (``p``
+for a constant, the trace of the effect's share of the hat matrix for a random walk).  The
+diagnosis never changes an Estimate it is given: what it adds (the residuals' sigmas) goes into
+a copy held by its own :class:`Snapshot`.
 """
 
 from __future__ import annotations
@@ -92,7 +94,7 @@ def registered_effects() -> dict:
 
 
 def _is_effect(obj) -> bool:
-    from flexforce.smoother import Effect
+    from flexforce.factors.effects import Effect
 
     return isinstance(obj, Effect)
 
@@ -163,12 +165,11 @@ def fit_model(rec, model, progress: Callable[[float], None] | None = None) -> Fi
     """Fit ``model`` (with its effects) to ``rec`` with :func:`flexforce.smoother.fit`."""
     from flexforce.smoother import fit
 
-    est = fit(rec, model, progress=progress)
-    info = est.meta["fit"]
-    ev = info.get("cost_evidence")
-    return Fit(tuple(e.name for e in model.effects), est, float(info["cost_data"]), int(info["n_residuals"]),
-               {k: float(v) for k, v in info.get("effective_dof", {}).items()},
-               None if ev is None or not math.isfinite(ev) else float(ev), tuple(info.get("global", ())))
+    est, stats = fit(rec, model, progress=progress)
+    ev = stats.cost_evidence
+    return Fit(tuple(e.name for e in model.effects), est, float(stats.cost_data), int(stats.n_residuals),
+               {k: float(v) for k, v in stats.effective_dof.items()},
+               None if not math.isfinite(ev) else float(ev), tuple(stats.global_effects))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -381,9 +382,10 @@ def mark_rivals(row: list[Candidate], tie: float = TIE) -> None:
                               if c.significant and c.score is not None and row[0].score - c.score < tie)
 
 
-def fill_residual_sigma(est) -> None:
-    """Give a smoother's estimate the per-axis sigmas of its families (``meta["sigmas"]``) when it
-    lacks ``residual_sigma``, so that flagged windows have a size in physical units.
+def with_residual_sigma(est: Estimate) -> Estimate:
+    """A copy of a smoother's estimate with the per-axis sigmas of its families (``meta["sigmas"]``)
+    where it lacks ``residual_sigma``, so that flagged windows have a size in physical units; the
+    estimate itself when it lacks none (the given estimate is never changed).
 
     Newton-Euler and contact residuals are whitened with a full covariance (force and moment are
     correlated); their standard deviations make the force rows exact and the moment rows an
@@ -395,15 +397,18 @@ def fill_residual_sigma(est) -> None:
              "integration": sig.get("integration_std"),
              "contact": None if sig.get("contact") is None else list(sig["contact"]) * nc,
              "ft": None if sig.get("ft") is None else list(sig["ft"]) * nc}
+    added = {}
     for fam, r in est.residuals.items():
         s = known.get(fam)
         if fam not in est.residual_sigma and s is not None and len(s) == r.shape[1]:
-            est.residual_sigma[fam] = np.asarray(s, dtype=float)
+            added[fam] = np.asarray(s, dtype=float)
+    if not added:
+        return est
+    return dataclasses.replace(est, residual_sigma={**est.residual_sigma, **added})
 
 
 def _snapshot(rec, fit: Fit, window: float, alpha: float, skip: float) -> Snapshot:
-    est = fit.estimate
-    fill_residual_sigma(est)
+    est = with_residual_sigma(fit.estimate)
     return Snapshot(fit.effects, est, evaluate(est, rec, skip=skip), flag_windows(est, window=window, alpha=alpha),
                     consistency(est), residual_rms(est), fit.cost_data, fit.n_residuals)
 

@@ -1,4 +1,4 @@
-r"""A user-written effect, written against the smoother's Effect protocol alone (docs/diagnostics.md).
+r"""A user-written effect, written against the Effect protocol alone (docs/diagnostics.md).
 
 A *drifting gyro bias*: an old MEMS gyro warms up after power-on and its bias moves, near enough
 linearly over a few seconds:
@@ -15,7 +15,12 @@ built-in effects, with the same criterion) or ``diagnose(rec, candidates=[GyroDr
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+
+if TYPE_CHECKING:  # the protocol's view of the problem (flexforce.factors.effects); typing only
+    from flexforce.factors.effects import ProblemView
 
 
 class GyroDrift:
@@ -26,15 +31,15 @@ class GyroDrift:
     labels = ("b0_x [rad/s]", "b0_y [rad/s]", "b0_z [rad/s]",
               "b1_x [rad/s^2]", "b1_y [rad/s^2]", "b1_z [rad/s^2]")
 
-    def prior(self, problem):
+    def prior(self, problem: ProblemView):
         """Zero mean; 0.1 rad/s for the bias, 0.01 rad/s^2 for its drift (loose for a MEMS gyro)."""
         return np.zeros(6), np.array([0.1] * 3 + [0.01] * 3)
 
-    def random_walk_sigma(self, problem):
+    def random_walk_sigma(self, problem: ProblemView):
         """Constants: a numerically tight random walk."""
         return np.full(6, 1e-8)
 
-    def residual_terms(self, family, problem, steps, R, q, W, e):
+    def residual_terms(self, family, problem: ProblemView, steps, R, q, W, e):
         if family != "imu":
             return None
         t = (np.asarray(steps, dtype=float) * problem.dt)[:, None]

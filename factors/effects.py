@@ -1,9 +1,15 @@
-r"""The effect catalogue: the hidden physics of the simulator as estimator-side model extensions.
+r"""Model effects: the :class:`Effect` protocol, the :class:`ProblemView` it is written against, and
+the catalogue (the hidden physics of the simulator as estimator-side model extensions).
 
-Each class implements the smoother's :class:`flexforce.smoother.problem.Effect` protocol (per-step
-unknowns, a first-step prior, a random walk between steps, additive terms in family residuals, a
-readable report) for one of the simulator's hidden effects (:mod:`flexforce.datasets.effects`
-defines them; the parameterisation below is chosen so that the truth maps onto it exactly).
+The protocol lives with the physics, not with an estimator: an effect reads the problem through
+:class:`ProblemView` (the per-step inputs, the contact parameters, the noise sigmas and the
+contact law with other parameters), which :class:`flexforce.smoother.Problem` satisfies and any
+other estimator can provide.  This module imports nothing of the project above ``factors/``.
+
+Each class of the catalogue implements :class:`Effect` (per-step unknowns, a first-step prior, a
+random walk between steps, additive terms in family residuals, a readable report) for one of the
+simulator's hidden effects (:mod:`flexforce.datasets.effects` defines them; the parameterisation
+below is chosen so that the truth maps onto it exactly).
 
 =========================  ====  ==========================  ======================================
 name                       dim   unknowns (unit)              family and term
@@ -27,7 +33,7 @@ name                       dim   unknowns (unit)              family and term
 =========================  ====  ==========================  ======================================
 
 ``f(K_fs, K_fd, K_ts, K_td)`` is the contact law (eq. 6-12) evaluated with those matrices
-(:meth:`Problem.contact_law_terms`); it is linear in them, so a parameter that scales a matrix by
+(:meth:`ProblemView.contact_law_terms`); it is linear in them, so a parameter that scales a matrix by
 ``1 + kappa`` adds exactly ``kappa f(K)`` to the contact residual.  The contact effects are
 relative changes of the *nominal* law: two of them enabled together add their changes (first
 order), they do not compose multiplicatively.
@@ -71,9 +77,191 @@ under 50 ms merged, spans under 20 ms dropped) with their peak force; and the fo
 
 from __future__ import annotations
 
+from typing import Protocol, runtime_checkable
+
 import numpy as np
 
 from flexforce.errors import ConfigError
+
+# ----------------------------------------------------------------------------------------------
+# The protocol
+# ----------------------------------------------------------------------------------------------
+
+
+class RecordingView(Protocol):
+    """What an effect reads of the recording itself."""
+
+    @property
+    def mass(self) -> float:
+        """Total mass of the robot's model, kg."""
+
+
+class SigmasView(Protocol):
+    """What an effect reads of the noise of the factor families (the unwhitened residuals' units)."""
+
+    @property
+    def imu(self) -> np.ndarray:
+        """(6,) per-sample sigmas of the gyro (rad/s) and accelerometer (m/s^2) residuals."""
+
+    @property
+    def newton_euler_cov(self) -> np.ndarray | None:
+        """(6, 6) covariance of the wrench the nominal model leaves unexplained (N, N m; F and T
+        about the world origin, correlated)."""
+
+
+@runtime_checkable
+class ProblemView(Protocol):
+    """The minimal view of an estimation problem that the effects are written against.
+
+    Only what the catalogue and the documented example (docs/example_effect.py) read; read-only.
+    Per-step arrays have ``N`` rows (steps) and are indexed by the ``steps`` an effect receives;
+    ``C`` is the number of contacts; the inputs are in the local frame (seed sec. II,
+    :class:`flexforce.factors.physics.Inputs`).  :class:`flexforce.smoother.Problem` satisfies it.
+    """
+
+    @property
+    def rec(self) -> RecordingView:
+        """The recording (an effect reads its ``mass``, kg)."""
+
+    @property
+    def g(self) -> float:
+        """Gravity, m/s^2."""
+
+    @property
+    def dt(self) -> float:
+        """Sampling period, s."""
+
+    @property
+    def nc(self) -> int:
+        """Number of contacts ``C``."""
+
+    @property
+    def sigmas(self) -> SigmasView:
+        """Noise of the factor families."""
+
+    @property
+    def com(self) -> np.ndarray:
+        """(N, 3) CoM in the local frame, m."""
+
+    @property
+    def com_vel(self) -> np.ndarray:
+        """(N, 3) its velocity, m/s."""
+
+    @property
+    def com_acc(self) -> np.ndarray:
+        """(N, 3) its acceleration, m/s^2."""
+
+    @property
+    def inertia(self) -> np.ndarray:
+        """(N, 3, 3) rotational inertia about the local origin, kg m^2."""
+
+    @property
+    def inertia_dot(self) -> np.ndarray:
+        """(N, 3, 3) its time derivative, kg m^2/s."""
+
+    @property
+    def sigma_l(self) -> np.ndarray:
+        """(N, 3) angular momentum about the local origin, kg m^2/s."""
+
+    @property
+    def sigma_dot(self) -> np.ndarray:
+        """(N, 3) its time derivative, N m."""
+
+    @property
+    def contact_p(self) -> np.ndarray:
+        """(N, C, 3) contact positions in the local frame, m."""
+
+    @property
+    def K_fs(self) -> np.ndarray:
+        """(C, 3, 3) translational stiffness in the contact frame, N/m."""
+
+    @property
+    def K_fd(self) -> np.ndarray:
+        """(C, 3, 3) translational damping, N s/m."""
+
+    @property
+    def K_ts(self) -> np.ndarray:
+        """(C, 3, 3) rotational stiffness, N m/rad."""
+
+    @property
+    def K_td(self) -> np.ndarray:
+        """(C, 3, 3) rotational damping, N m s/rad."""
+
+    def contact_law_terms(self, steps: np.ndarray, R: np.ndarray, q: np.ndarray, K_fs: np.ndarray,
+                          K_fd: np.ndarray, K_ts: np.ndarray, K_td: np.ndarray,
+                          beta: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The contact law (eq. 6-12) of every contact with other parameters: ``f`` (n, C, 6) and
+        ``df/ds`` (n, C, 6, 18), zero for inactive contacts (:meth:`flexforce.smoother.Problem.contact_law_terms`)."""
+
+
+@runtime_checkable
+class Effect(Protocol):
+    """A named extension of the nominal model: per-step unknowns plus terms in family residuals.
+
+    The state of one step is ``(s, W_1..W_C, e_1..e_E)``: the core 18 components
+    ``s = (theta, t, w, v, dw, a)`` (world-frame increments), the contact wrenches, then each
+    effect's ``dim`` components in the order of ``ModelConfig.effects``.  All array arguments
+    cover ``n`` steps at once (the batch smoother passes the whole recording, the fixed-lag
+    smoother one step), so an effect written with numpy broadcasting serves both.
+    """
+
+    name: str
+    """Short identifier, e.g. ``external-wrench``."""
+    dim: int
+    """Unknowns per step."""
+    labels: tuple[str, ...]
+    """One label per unknown, with its unit, e.g. ``("F_x [N]", ...)``."""
+
+    def prior(self, problem: ProblemView) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and sigma (both ``(dim,)``) of the effect's value at the first step."""
+
+    def random_walk_sigma(self, problem: ProblemView) -> np.ndarray:
+        """Per-step sigma ``(dim,)`` of ``e_k+1 - e_k`` (tiny for a constant parameter)."""
+
+    def residual_terms(self, family: str, problem: ProblemView, steps: np.ndarray, R: np.ndarray,
+                       q: np.ndarray, W: np.ndarray, e: np.ndarray):
+        """The effect's additive term in ``family``'s (unwhitened) residual, or None.
+
+        Args:
+            family: ``newton_euler`` (6 rows), ``imu`` (6 rows) or ``contact`` (6 rows per
+                contact: the contact law ``f_i(s) - W_i``; the term is added where contact ``i``
+                is active and ignored where it is not; :meth:`ProblemView.contact_law_terms`
+                evaluates the law with other stiffness/damping matrices, which is what such terms
+                need).
+            steps: (n,) indices of the steps (to read per-step inputs from ``problem``).
+            R, q: (n, 3, 3) rotations and (n, 15) ``(t, w, v, dw, a)``.
+            W: (n, C, 6) contact wrenches.
+            e: (n, dim) the effect's values.
+
+        Returns:
+            None when the effect does not touch ``family``, else ``(dr, dr_ds, dr_de)`` with
+            shapes (n, 6), (n, 6, 18) and (n, 6, dim) (``contact``: (n, C, 6), (n, C, 6, 18) and
+            (n, C, 6, dim)): the term and its Jacobians with respect to the core state
+            (world-frame increments) and to ``e``.
+        """
+
+    def report(self, values: np.ndarray, cov: np.ndarray | None) -> dict:
+        """JSON-serialisable summary of the estimated effect (values (N, dim), cov (N, dim, dim)).
+
+        Optional: when the method takes a ``t`` keyword the smoothers pass the steps' times (N,)
+        in seconds from the start (for time-varying effects: *when* the effect acts).  An effect
+        may also set ``constant = True`` (its value does not vary: the random walk only ties the
+        steps together; without the attribute, a random walk negligible over the recording means
+        the same); :func:`flexforce.smoother.fit` then counts its effective dof from its prior
+        alone, and the batch smoother makes it one global block estimated by the marginal
+        likelihood (docs/smoother.md, :mod:`flexforce.smoother.evidence`), still passing ``e`` of
+        shape (n, dim) to ``residual_terms``; its optional ``feasible(values (dim,)) -> bool``
+        rejects steps out of the physical range (a negative stiffness).  And an
+        effect may define ``step_prior_sigma(problem) -> (dim,)``: a prior at *every* step around
+        the prior mean (with the random walk, a mean-reverting process: for transient effects
+        whose constant part the data cannot tell from the core state).
+        """
+
+
+
+# ----------------------------------------------------------------------------------------------
+# The catalogue
+# ----------------------------------------------------------------------------------------------
 
 _AX = ("x", "y", "z")
 _CHI2_6_999 = 22.458  # chi^2_6 99.9 % quantile
@@ -104,7 +292,7 @@ def _pm(value: float, std: float, unit: str) -> str:
     return f"{_fmt(value)} ± {_fmt(std)} {unit}".rstrip()
 
 
-def _static_compression(problem) -> tuple[float, float]:
+def _static_compression(problem: ProblemView) -> tuple[float, float]:
     """``(s_0, l)``: static spring compression under the weight (m) and the contact lever (m)."""
     m, g = float(problem.rec.mass), problem.g
     k = sum(float(np.trace(K)) / 3.0 for K in problem.K_fs)
@@ -128,16 +316,16 @@ class _Constant:
     null = 0.0
     """Report value when the effect is absent."""
 
-    def prior_sigma(self, problem) -> np.ndarray:  # pragma: no cover - overridden
+    def prior_sigma(self, problem: ProblemView) -> np.ndarray:  # pragma: no cover - overridden
         raise NotImplementedError
 
-    def prior(self, problem):
+    def prior(self, problem: ProblemView):
         return np.zeros(self.dim), np.asarray(self.prior_sigma(problem), dtype=float)
 
-    def random_walk_sigma(self, problem):
+    def random_walk_sigma(self, problem: ProblemView):
         return CONSTANT_RW * np.asarray(self.prior_sigma(problem), dtype=float)
 
-    def residual_terms(self, family, problem, steps, R, q, W, e):  # pragma: no cover - overridden
+    def residual_terms(self, family, problem: ProblemView, steps, R, q, W, e):  # pragma: no cover - overridden
         return None
 
     def component_names(self) -> tuple[str, ...]:
@@ -176,15 +364,15 @@ class _ImuBias(_Constant):
             raise ConfigError(f"{self.name}: rw_density must be >= 0, got {rw_density}")
         self.constant = self.rw_density == 0.0
 
-    def prior_sigma(self, problem):
+    def prior_sigma(self, problem: ProblemView):
         return 10.0 * problem.sigmas.imu[self.rows]
 
-    def random_walk_sigma(self, problem):
+    def random_walk_sigma(self, problem: ProblemView):
         if self.rw_density > 0.0:
             return np.full(3, self.rw_density * np.sqrt(problem.dt))
         return super().random_walk_sigma(problem)
 
-    def residual_terms(self, family, problem, steps, R, q, W, e):
+    def residual_terms(self, family, problem: ProblemView, steps, R, q, W, e):
         if family != "imu":
             return None
         n = len(steps)
@@ -235,11 +423,11 @@ class AccelBias(_ImuBias):
 class _ContactEffect(_Constant):
     """A constant change of the contact law: ``term = sum_j e_j f_j(s)`` (linear in the unknowns)."""
 
-    def basis(self, problem, steps, R, q):
+    def basis(self, problem: ProblemView, steps, R, q):
         """List of ``(f_j (n, C, 6), df_j/ds (n, C, 6, 18))``, one per unknown."""
         raise NotImplementedError  # pragma: no cover
 
-    def residual_terms(self, family, problem, steps, R, q, W, e):
+    def residual_terms(self, family, problem: ProblemView, steps, R, q, W, e):
         if family != "contact":
             return None
         fs = self.basis(problem, steps, R, q)
@@ -255,7 +443,7 @@ class _ContactEffect(_Constant):
         return dr, dr_ds, dr_de
 
 
-def _zeros_like_K(problem):
+def _zeros_like_K(problem: ProblemView):
     return np.zeros((problem.nc, 3, 3))
 
 
@@ -272,7 +460,7 @@ class Stiffness(_ContactEffect):
     offset = 1.0
     null = 1.0
 
-    def prior_sigma(self, problem):
+    def prior_sigma(self, problem: ProblemView):
         return np.array([0.5, 0.5])
 
     def feasible(self, values) -> bool:
@@ -280,7 +468,7 @@ class Stiffness(_ContactEffect):
         v = np.asarray(values, dtype=float) + self.offset
         return bool(v[0] > 0.05 and v[1] >= 0.0)
 
-    def basis(self, problem, steps, R, q):
+    def basis(self, problem: ProblemView, steps, R, q):
         Z = _zeros_like_K(problem)
         spring = problem.contact_law_terms(steps, R, q, problem.K_fs, Z, problem.K_ts, Z)
         damper = problem.contact_law_terms(steps, R, q, Z, problem.K_fd, Z, problem.K_td)
@@ -300,14 +488,14 @@ class AnisotropicStiffness(_ContactEffect):
     offset = 1.0
     null = 1.0
 
-    def prior_sigma(self, problem):
+    def prior_sigma(self, problem: ProblemView):
         return np.full(6, 0.5)
 
     def feasible(self, values) -> bool:
         """Positive stiffness along every axis."""
         return bool(np.all(np.asarray(values, dtype=float) + self.offset > 0.05))
 
-    def basis(self, problem, steps, R, q):
+    def basis(self, problem: ProblemView, steps, R, q):
         Z = _zeros_like_K(problem)
         out = []
         for which in ("f", "t"):
@@ -332,11 +520,11 @@ class NonlinearStiffness(_ContactEffect):
     unit = "1/m^2, 1/rad^2"
     what = "cubic stiffening"
 
-    def prior_sigma(self, problem):
+    def prior_sigma(self, problem: ProblemView):
         s0, lever = _static_compression(problem)
         return np.array([1.0 / s0**2, (lever / s0) ** 2])
 
-    def basis(self, problem, steps, R, q):
+    def basis(self, problem: ProblemView, steps, R, q):
         Z = _zeros_like_K(problem)
         nc = problem.nc
         b0 = np.zeros((nc, 2))
@@ -381,20 +569,21 @@ class ExternalWrench:
             raise ConfigError(f"external-wrench: prior_weight_fraction must be positive, got {prior_weight_fraction}")
         self.tau = float(tau)
         self.prior_weight_fraction = float(prior_weight_fraction)
-        self._L = None
-        self._height = None
-        self._weight = None
+        # Set from the problem by _setup (the smoother calls prior() before anything else).
+        self._L: np.ndarray | None = None
+        self._height: float | None = None
+        self._weight: float | None = None
 
-    def _setup(self, problem):
+    def _setup(self, problem: ProblemView):
         self._L = np.linalg.cholesky(np.asarray(problem.sigmas.newton_euler_cov, dtype=float))
         self._height = max(float(problem.com[0][2]), 0.1)
         self._weight = float(problem.rec.mass) * float(problem.g)
         return self._L
 
-    def prior(self, problem):
+    def prior(self, problem: ProblemView):
         return np.zeros(6), self.step_prior_sigma(problem)
 
-    def step_prior_sigma(self, problem):
+    def step_prior_sigma(self, problem: ProblemView):
         """Zero-mean prior at every step: a force of ``prior_weight_fraction`` (8 %) of the robot's
         weight at the CoM, in whitened units.
 
@@ -406,13 +595,14 @@ class ExternalWrench:
         constant ``com-offset`` takes it (push-com with both effects: force error 3.2 -> 2.8 N
         instead of 3.2 -> 9.7 N), while a real push keeps its size (docs/diagnostics.md)."""
         self._setup(problem)
-        sF = float(np.sqrt(np.mean(np.diag(problem.sigmas.newton_euler_cov)[:3])))
-        return np.full(6, self.prior_weight_fraction * self._weight / sF)
+        weight = float(problem.rec.mass) * float(problem.g)  # what _setup stores in self._weight
+        sF = float(np.sqrt(np.mean(np.diag(np.asarray(problem.sigmas.newton_euler_cov, dtype=float))[:3])))
+        return np.full(6, self.prior_weight_fraction * weight / sF)
 
-    def random_walk_sigma(self, problem):
+    def random_walk_sigma(self, problem: ProblemView):
         return np.full(6, problem.dt / self.tau)
 
-    def residual_terms(self, family, problem, steps, R, q, W, e):
+    def residual_terms(self, family, problem: ProblemView, steps, R, q, W, e):
         if family != "newton_euler":
             return None
         L = self._L if self._L is not None else self._setup(problem)
@@ -557,10 +747,10 @@ class ComOffset(_Constant):
         self.labels = tuple(f"{a} [m]" for a in axes)
         self._sel = np.eye(3)[:, [_AX.index(a) for a in axes]]  # (3, dim): delta = sel e
 
-    def prior_sigma(self, problem):
+    def prior_sigma(self, problem: ProblemView):
         return np.full(self.dim, 0.1 * max(float(np.linalg.norm(problem.com[0])), 0.1))
 
-    def inputs(self, problem, steps, d):
+    def inputs(self, problem: ProblemView, steps, d):
         """Modified inputs ``(c, dc, ddc, I, dI, sigma, dsigma)`` for offsets ``d`` (n, 3)."""
         M = float(problem.rec.mass)
         c, dc, ddc = problem.com[steps], problem.com_vel[steps], problem.com_acc[steps]
@@ -571,7 +761,7 @@ class ComOffset(_Constant):
         dsig = problem.sigma_dot[steps] + M * np.cross(d, ddc)
         return c + d, dc, ddc, I, dI, sig, dsig
 
-    def residual_terms(self, family, problem, steps, R, q, W, e):
+    def residual_terms(self, family, problem: ProblemView, steps, R, q, W, e):
         if family != "newton_euler":
             return None
         from flexforce.factors import core

@@ -1,9 +1,10 @@
 """flexforce.smoother: factor-graph smoothing of the flexible-contact model (batch and fixed-lag).
 
 Public API: :func:`run_batch` and :func:`run_fixed_lag` (both return an Estimate) with their
-frozen options :class:`BatchConfig` and :class:`FixedLagConfig`, :func:`fit` (batch smoothing
-with the fit statistics the diagnostics read, ``Estimate.meta["fit"]``), the effect protocol
-:class:`Effect`, the noise rule :class:`NoiseRule` and :class:`Problem`.
+frozen options :class:`BatchConfig` and :class:`FixedLagConfig`, :func:`fit` (batch smoothing for
+the diagnostics: ``(Estimate, FitStatistics)``), the noise rule :class:`NoiseRule` and
+:class:`Problem`.  The effect protocol :class:`Effect` and the :class:`ProblemView` it is written
+against live in :mod:`flexforce.factors.effects`; they are re-exported here under their old path.
 """
 
 from __future__ import annotations
@@ -11,13 +12,14 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from flexforce.smoother.batch import BatchConfig, fit, run_batch
-from flexforce.smoother.problem import FAMILIES, Effect, NoiseRule, Problem, derive_sigmas
+from flexforce.smoother.batch import BatchConfig, FitStatistics, fit, run_batch
+from flexforce.smoother.problem import FAMILIES, Effect, NoiseRule, Problem, ProblemView, derive_sigmas
 
 if TYPE_CHECKING:
     from flexforce.smoother.fixed_lag import FixedLagConfig
 
-__all__ = ["fit", "run_batch", "run_fixed_lag", "BatchConfig", "FixedLagConfig", "Effect", "NoiseRule", "Problem",
+__all__ = ["fit", "FitStatistics", "run_batch", "run_fixed_lag", "BatchConfig", "FixedLagConfig", "Effect",
+           "ProblemView", "NoiseRule", "Problem",
            "derive_sigmas", "FAMILIES"]
 
 

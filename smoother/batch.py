@@ -15,6 +15,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -32,6 +33,9 @@ from flexforce.smoother.linearize import (
 )
 from flexforce.smoother.problem import NoiseRule, Problem
 from flexforce.smoother.result import make_estimate
+
+if TYPE_CHECKING:
+    from flexforce.datasets.estimate import Estimate
 
 S_CORE = 18
 
@@ -314,26 +318,50 @@ def effective_dof(prob: Problem, P: np.ndarray, Pc: np.ndarray) -> dict[str, flo
     return out
 
 
+@dataclass(frozen=True)
+class FitStatistics:
+    """What :func:`fit` measures of a fitted model, for the diagnostics' information criterion.
+
+    Costs are dimensionless: halves of sums of squared *whitened* residuals (a negative
+    log-likelihood up to a constant), log-determinants natural logarithms of information matrices
+    in the state's units (their difference, posterior minus prior, is unit-free).
+    """
+
+    cost_data: float
+    """``1/2 sum r^2`` over the whitened residuals of the measurement and model families
+    (:data:`DATA_FAMILIES`: ``imu``, ``newton_euler`` unweighted, i.e. before the Huber loss,
+    ``contact`` of the active contacts, ``integration``, ``ft`` when fused); the effects' own prior
+    and random-walk terms and the first-step prior are left out."""
+    cost_total: float
+    """The optimised objective: robust Newton-Euler, every prior and random walk included."""
+    n_residuals: int
+    """Number of scalar (finite) residuals in ``cost_data``: the ``n`` of BIC's ``ln n``."""
+    effective_dof: dict[str, float]
+    """Effect name -> its effective number of parameters (:func:`effective_dof`; ``dim`` for a
+    constant the data determine, less when its prior does)."""
+    cost_state_prior: float
+    """``1/2 sum r^2`` of the state prior: the first-step prior, the per-step effects' priors and
+    random walks (:func:`flexforce.smoother.evidence.state_prior_cost`)."""
+    log_det_posterior: float
+    """``ln det`` of the states' posterior information (Gauss-Newton Hessian at the optimum)."""
+    log_det_prior: float
+    """``ln det`` of the states' prior information (:func:`flexforce.smoother.evidence.log_dets`)."""
+    cost_evidence: float
+    """Negative log marginal likelihood of the data given the constant parameters, up to a
+    constant (:mod:`.evidence`, Laplace): ``cost_data + cost_state_prior + (log_det_posterior -
+    log_det_prior) / 2``."""
+    global_effects: tuple[str, ...] = ()
+    """Effects whose unknowns were one global block: the constants the evidence is conditioned on
+    (empty without ``global_constants``)."""
+
+
 def fit(rec, model, progress: Callable[[float], None] | None = None, rule: NoiseRule | None = None,
-        max_iterations: int = 200, global_constants: bool | None = None):
-    """Batch smoothing with ``model.effects`` for the diagnostics; returns an :class:`Estimate`.
+        max_iterations: int = 200, global_constants: bool | None = None) -> tuple[Estimate, FitStatistics]:
+    """Batch smoothing with ``model.effects`` for the diagnostics: ``(estimate, statistics)``.
 
-    As :func:`run_batch`, plus ``Estimate.meta["fit"]``:
-
-    - ``cost_data``: 0.5 x the sum of squared whitened residuals of the measurement and model
-      families (``imu``, ``newton_euler`` unweighted i.e. before the Huber loss, ``contact`` of the
-      active contacts, ``integration``, ``ft`` when fused): the effects' own prior and random-walk
-      terms and the first-step prior are left out.
-    - ``cost_total``: the optimised objective (robust Newton-Euler, every prior and random walk).
-    - ``n_residuals``: the number of scalar residuals in ``cost_data``.
-    - ``effective_dof``: effect name -> its effective number of parameters (:func:`effective_dof`).
-    - ``cost_evidence``: the negative log marginal likelihood of the data given the constant
-      parameters, up to a constant (:mod:`.evidence`): ``cost_data`` + ``cost_state_prior`` (the
-      first-step prior, the per-step effects' priors and walks) + ``(log_det_posterior -
-      log_det_prior) / 2`` (the states integrated out, Laplace); ``global`` names the effects
-      whose unknowns were one global block (the constants the evidence is conditioned on).
-
-    ``Estimate.effects[name]`` is each effect's report (value, std, unit, summary, ...).
+    The estimate is :func:`run_batch`'s (``Estimate.effects[name]`` is each effect's report: value,
+    std, unit, summary, ...); the :class:`FitStatistics` hold the data cost, the evidence, the
+    number of residuals and each effect's effective dof.
     """
     t0 = time.perf_counter()
     prob = Problem.build(rec, model, rule or NoiseRule())
@@ -359,12 +387,13 @@ def fit(rec, model, progress: Callable[[float], None] | None = None, rule: Noise
         n_res += int(ok.sum())
     post, prior = evidence.log_dets(prob, lin, cidx)
     state_prior = evidence.state_prior_cost(prob, lin)
-    est.meta["fit"] = {"cost_data": cost_data, "cost_total": float(lin.cost), "n_residuals": n_res,
-                       "effective_dof": effective_dof(prob, P, Pc),
-                       "cost_state_prior": state_prior, "log_det_posterior": post, "log_det_prior": prior,
-                       "cost_evidence": cost_data + state_prior + 0.5 * (post - prior),
-                       "global": [e.name for e in prob.effects if is_global(e, prob)] if cidx.size else []}
+    stats = FitStatistics(
+        cost_data=cost_data, cost_total=float(lin.cost), n_residuals=n_res,
+        effective_dof=effective_dof(prob, P, Pc), cost_state_prior=float(state_prior),
+        log_det_posterior=float(post), log_det_prior=float(prior),
+        cost_evidence=float(cost_data + state_prior + 0.5 * (post - prior)),
+        global_effects=tuple(e.name for e in prob.effects if is_global(e, prob)) if cidx.size else ())
     est.total_time = time.perf_counter() - t0
     if progress is not None:
         progress(1.0)
-    return est
+    return est, stats

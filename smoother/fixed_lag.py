@@ -11,7 +11,7 @@ Two backends share the factors and the noise of :class:`Problem`:
     elimination, and marginalising the oldest step is dropping its conditional.  A back
     substitution over the window gives every step's estimate.  The factors are linearised by the
     compiled kernels (:func:`flexforce.smoother.linearize.linearize`, the batch smoother's), so
-    effects (the :class:`~flexforce.smoother.problem.Effect` protocol) work as in batch.
+    effects (the :class:`~flexforce.factors.effects.Effect` protocol) work as in batch.
     Every update back-substitutes the newest steps only (what the next relinearisation needs);
     every ``report_every`` updates the whole window is back-substituted and the steps that have
     left it since are read out, each smoothed with at least ``lag`` of future data (output

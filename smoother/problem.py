@@ -1,4 +1,4 @@
-r"""The smoothing problem: per-step data, noise of every factor family, and the effect protocol.
+r"""The smoothing problem: per-step data, noise of every factor family, and the enabled effects.
 
 Everything both smoothers (batch and fixed-lag) need from a Recording and a ModelConfig, computed
 once: the inputs as contiguous arrays, the contact parameters, the noise sigmas with their
@@ -25,23 +25,27 @@ Noise derivation (docs/smoother.md gives the full argument)
 
 Effects
 -------
-An effect (see :class:`Effect`) appends ``dim`` unknowns to every step, constrains them with a
-prior on the first step and a random walk between steps, and adds a term to the residual of one
-or more families (e.g. an external wrench subtracts from the Newton-Euler residual, a gyro bias
-adds to the gyro residual, a stiffness scale adds to each active contact's law).  The catalogue
-is :mod:`flexforce.factors.effects`.  The smoothers handle effects generically: the core never names one.
+An effect (the :class:`~flexforce.factors.effects.Effect` protocol, written against
+:class:`~flexforce.factors.effects.ProblemView`, which :class:`Problem` satisfies) appends ``dim``
+unknowns to every step, constrains them with a prior on the first step and a random walk between
+steps, and adds a term to the residual of one or more families (e.g. an external wrench subtracts
+from the Newton-Euler residual, a gyro bias adds to the gyro residual, a stiffness scale adds to
+each active contact's law).  The protocol and the catalogue are :mod:`flexforce.factors.effects`;
+``Effect`` is re-exported here (and from :mod:`flexforce.smoother`) under its old import path.
+The smoothers handle effects generically: the core never names one.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Protocol, runtime_checkable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from flexforce.errors import ConfigError, DataError, ModelError
 from flexforce.factors import core
+from flexforce.factors.effects import Effect, ProblemView
 from flexforce.factors.model import unmodelled_acceleration
 from flexforce.factors.physics import ContactParams
 from flexforce.options import check_positive, invalid
@@ -49,76 +53,11 @@ from flexforce.options import check_positive, invalid
 if TYPE_CHECKING:
     from flexforce.datasets.recording import Recording
 
+__all__ = ["FAMILIES", "Effect", "NoiseRule", "Problem", "ProblemView", "Sigmas", "derive_sigmas", "rest_placements",
+           "static_equilibrium", "whitener"]
+
 FAMILIES = ("integration", "newton_euler", "contact", "imu", "ft")
 """Names of the factor families, the keys of :attr:`Estimate.residuals`."""
-
-
-# ----------------------------------------------------------------------------------------------
-# Effect protocol
-# ----------------------------------------------------------------------------------------------
-
-
-@runtime_checkable
-class Effect(Protocol):
-    """A named extension of the nominal model: per-step unknowns plus terms in family residuals.
-
-    The state of one step is ``(s, W_1..W_C, e_1..e_E)``: the core 18 components
-    ``s = (theta, t, w, v, dw, a)`` (world-frame increments), the contact wrenches, then each
-    effect's ``dim`` components in the order of ``ModelConfig.effects``.  All array arguments
-    cover ``n`` steps at once (the batch smoother passes the whole recording, the fixed-lag
-    smoother one step), so an effect written with numpy broadcasting serves both.
-    """
-
-    name: str
-    """Short identifier, e.g. ``external-wrench``."""
-    dim: int
-    """Unknowns per step."""
-    labels: tuple[str, ...]
-    """One label per unknown, with its unit, e.g. ``("F_x [N]", ...)``."""
-
-    def prior(self, problem: Problem) -> tuple[np.ndarray, np.ndarray]:
-        """Mean and sigma (both ``(dim,)``) of the effect's value at the first step."""
-
-    def random_walk_sigma(self, problem: Problem) -> np.ndarray:
-        """Per-step sigma ``(dim,)`` of ``e_k+1 - e_k`` (tiny for a constant parameter)."""
-
-    def residual_terms(self, family: str, problem: Problem, steps: np.ndarray, R: np.ndarray,
-                       q: np.ndarray, W: np.ndarray, e: np.ndarray):
-        """The effect's additive term in ``family``'s (unwhitened) residual, or None.
-
-        Args:
-            family: ``newton_euler`` (6 rows), ``imu`` (6 rows) or ``contact`` (6 rows per
-                contact: the contact law ``f_i(s) - W_i``; the term is added where contact ``i``
-                is active and ignored where it is not; :meth:`Problem.contact_law_terms` evaluates
-                the law with other stiffness/damping matrices, which is what such terms need).
-            steps: (n,) indices of the steps (to read per-step inputs from ``problem``).
-            R, q: (n, 3, 3) rotations and (n, 15) ``(t, w, v, dw, a)``.
-            W: (n, C, 6) contact wrenches.
-            e: (n, dim) the effect's values.
-
-        Returns:
-            None when the effect does not touch ``family``, else ``(dr, dr_ds, dr_de)`` with
-            shapes (n, 6), (n, 6, 18) and (n, 6, dim) (``contact``: (n, C, 6), (n, C, 6, 18) and
-            (n, C, 6, dim)): the term and its Jacobians with respect to the core state
-            (world-frame increments) and to ``e``.
-        """
-
-    def report(self, values: np.ndarray, cov: np.ndarray | None) -> dict:
-        """JSON-serialisable summary of the estimated effect (values (N, dim), cov (N, dim, dim)).
-
-        Optional: when the method takes a ``t`` keyword the smoothers pass the steps' times (N,)
-        in seconds from the start (for time-varying effects: *when* the effect acts).  An effect
-        may also set ``constant = True`` (its value does not vary: the random walk only ties the
-        steps together; without the attribute, a random walk negligible over the recording means
-        the same); :func:`flexforce.smoother.fit` then counts its effective dof from its prior
-        alone, and the batch smoother makes it one global block estimated by the marginal
-        likelihood (docs/smoother.md, :mod:`flexforce.smoother.evidence`), still passing ``e`` of
-        shape (n, dim) to ``residual_terms``; its optional ``feasible(values (dim,)) -> bool``
-        rejects steps out of the physical range (a negative stiffness).  And an
-        effect may define ``step_prior_sigma(problem) -> (dim,)``: a prior at *every* step around
-        the prior mean (with the random walk, a mean-reverting process: for transient effects
-        whose constant part the data cannot tell from the core state).
-        """
 
 
 # ----------------------------------------------------------------------------------------------
@@ -374,7 +313,10 @@ def _contact_arrays(params: tuple[ContactParams, ...]):
 
 @dataclass
 class Problem:
-    """A Recording and a ModelConfig turned into what the factors read (contiguous arrays)."""
+    """A Recording and a ModelConfig turned into what the factors read (contiguous arrays).
+
+    Satisfies :class:`~flexforce.factors.effects.ProblemView`, the view the effects are written against.
+    """
 
     rec: Recording
     model: object

@@ -60,16 +60,18 @@ def simulate(effect: str | None, duration: float = DURATION):
 def null():
     rec = simulate(None)
     model = ModelConfig.from_recording(rec)
-    return rec, model, fit(rec, model)
+    est, stats = fit(rec, model)
+    return rec, model, est, stats
 
 
 _FITS: dict = {}
 
 
 def fits(name, null):
-    """(rec, nominal fit, fit with the effect, fit of the effect on the recording without it)."""
+    """(rec, nominal fit, fit with the effect, fit of the effect on the recording without it), each
+    fit an ``(Estimate, FitStatistics)`` pair."""
     if name not in _FITS:
-        rec0, model, base0 = null
+        rec0, model, _, _ = null
         rec = simulate(name)
         cfg = dataclasses.replace(model, effects=(make_effect(name),))
         _FITS[name] = (rec, fit(rec, model), fit(rec, cfg), fit(rec0, cfg))
@@ -85,7 +87,8 @@ def errors(est, rec):
 
 
 def gain(a, b):
-    return a.meta["fit"]["cost_data"] - b.meta["fit"]["cost_data"]
+    """Data cost of fit statistics ``a`` minus that of ``b``."""
+    return a.cost_data - b.cost_data
 
 
 # ----------------------------------------------------------------------------------------------
@@ -174,21 +177,20 @@ def test_contact_effect_in_the_window_fixed_lag_smoother():
 # ----------------------------------------------------------------------------------------------
 
 
-def test_fit_meta(null):
-    rec, model, est = null
-    info = est.meta["fit"]
-    assert set(info) >= {"cost_data", "cost_total", "n_residuals", "effective_dof"}
-    assert info["effective_dof"] == {}
+def test_fit_statistics(null):
+    rec, model, est, info = null
+    assert "fit" not in est.meta  # the statistics are returned, typed, not a side channel
+    assert info.effective_dof == {}
     # nominal world = nominal model: the data cost is below half the number of residuals (the
     # fit absorbs part of the noise), at the fraction measured
-    frac = info["cost_data"] / info["n_residuals"]
+    frac = info.cost_data / info.n_residuals
     assert frac < 0.5
     key = "effects.null_fit.cost_data_per_residual"
     assert lower(key, frac, rel=FIT) <= frac <= upper(key, frac, rel=FIT), frac
     r = np.concatenate([np.ravel(est.residuals[f]) for f in ("imu", "newton_euler", "contact", "integration")])
     r = r[np.isfinite(r)]
-    assert info["n_residuals"] == r.size
-    np.testing.assert_allclose(info["cost_data"], 0.5 * np.sum(r**2))
+    assert info.n_residuals == r.size
+    np.testing.assert_allclose(info.cost_data, 0.5 * np.sum(r**2))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -201,12 +203,12 @@ def check_common(name, null):
     measured (FIT; the gains are tens to thousands of dof, far above a BIC penalty of ~ln N per
     dof); and, where it is absent, a gain within chance: below 10 + 2 dof (chi-square(dof)/2 has
     mean dof/2 and standard deviation sqrt(dof/2))."""
-    rec, base, with_e, null_fit = fits(name, null)
-    dof = with_e.meta["fit"]["effective_dof"][name]
-    g = gain(base, with_e)
+    rec, (base, base_stats), (with_e, with_stats), (null_fit, null_stats) = fits(name, null)
+    dof = with_stats.effective_dof[name]
+    g = gain(base_stats, with_stats)
     assert g / dof >= lower(f"effects.{name}.gain_per_dof", g / dof, rel=FIT), (g, dof)
-    g0 = gain(null[2], null_fit)
-    dof0 = null_fit.meta["fit"]["effective_dof"][name]
+    g0 = gain(null[3], null_stats)
+    dof0 = null_stats.effective_dof[name]
     assert g0 < 10 + 2 * dof0, (g0, dof0)
     return rec, base, with_e, null_fit, g0, dof0
 
@@ -316,7 +318,7 @@ def test_stiffness(null):
 
 @pytest.mark.slow
 def test_stiffness_recovered_within_its_std(null):
-    rec, base, est, nfit = fits("stiffness", null)
+    rec, _, (est, _), _ = fits("stiffness", null)
     rep = est.effects["stiffness"]
     assert abs(rep["value"][0] - 0.7) < 4 * rep["std"][0]
 
@@ -355,7 +357,7 @@ def test_nonlinear_stiffness(null):
 
 @pytest.mark.slow
 def test_nonlinear_stiffness_is_recovered(null):
-    rec, base, est, nfit = fits("nonlinear-stiffness", null)
+    rec, _, (est, _), _ = fits("nonlinear-stiffness", null)
     rep = est.effects["nonlinear-stiffness"]
     v, s = np.array(rep["value"]), np.array(rep["std"])
     assert abs(v[0] - 4000.0) < 4 * s[0], (v, s)
