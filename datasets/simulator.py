@@ -240,19 +240,23 @@ class LocalMotion:
         start = float(item.get("start", 0.0))
         q = self.sample(start).q
         com = pin.centerOfMass(self.model, self.data, q)
-        placements = self.contact_targets(start)[0]
-        names = self.robot.contact_names
-        if toward == "middle":
-            goal = np.mean([M.translation for M in placements], axis=0)
-        elif toward in names:
-            goal = placements[names.index(toward)].translation
-        else:
-            raise ConfigError(f"base segment toward '{toward}': expected 'middle' or one of {list(names)}")
+        goal = self._toward_goal(toward, start)
         item.update(offset=[fraction * (goal[0] - com[0]), fraction * (goal[1] - com[1]), 0.0],
                     target="com-horizontal", kind="step")
         return item
 
     # ------------------------------------------------------------------------------------------
+    def _toward_goal(self, toward: str, start: float) -> np.ndarray:
+        """Where a CoM segment ``toward = CONTACT|"middle"`` heads: that contact's placement, or
+        the middle of all contacts, at the segment's start (local frame, m)."""
+        placements = self.contact_targets(start)[0]
+        names = self.robot.contact_names
+        if toward == "middle":
+            return np.mean([M.translation for M in placements], axis=0)
+        if toward in names:
+            return placements[names.index(toward)].translation
+        raise ConfigError(f"base segment toward '{toward}': expected 'middle' or one of {list(names)}")
+
     def _resolve_toward(self, items: list[dict]) -> list[dict]:
         """Turn ``toward = CONTACT|"middle"`` (with ``fraction``) into a CoM offset.
 
@@ -261,7 +265,6 @@ class LocalMotion:
         """
         out = []
         com = pin.centerOfMass(self.model, self.data, self.q_ref).copy()
-        names = self.robot.contact_names
         for item in sorted(items, key=lambda it: it.get("start", 0.0)):
             item = dict(item)
             if item.get("horizontal"):  # resolved from the actual motion (_walk_shift)
@@ -270,13 +273,7 @@ class LocalMotion:
             toward = item.pop("toward", None)
             fraction = float(item.pop("fraction", 1.0))
             if toward is not None:
-                placements = self.contact_targets(float(item.get("start", 0.0)))[0]
-                if toward == "middle":
-                    goal = np.mean([M.translation for M in placements], axis=0)
-                elif toward in names:
-                    goal = placements[names.index(toward)].translation
-                else:
-                    raise ConfigError(f"base segment toward '{toward}': expected 'middle' or one of {list(names)}")
+                goal = self._toward_goal(toward, float(item.get("start", 0.0)))
                 item["offset"] = [fraction * (goal[0] - com[0]), fraction * (goal[1] - com[1]), 0.0]
                 item["target"] = "com"
                 item["kind"] = "step"
