@@ -246,21 +246,21 @@ class FootholdConfig:
             return 0.0
         return float(self.plane_height) / float(np.linalg.norm(np.asarray(self.plane_normal, dtype=float)))
 
+    def _weight(self, sigma_kinematics: float, sigma_ground: float) -> float:
+        """``s_kin^2 / (s_kin^2 + s_ground^2)``, or 0 without a ground prior."""
+        if self.terrain == "none":
+            return 0.0
+        return sigma_kinematics**2 / (sigma_kinematics**2 + sigma_ground**2)
+
     @property
     def tilt_weight(self) -> float:
         """Fraction of a landing sole's tilt off the plane that the ground prior removes."""
-        if self.terrain == "none":
-            return 0.0
-        k, g = self.kinematics_sigma_tilt ** 2, self.ground_sigma_tilt ** 2
-        return k / (k + g)
+        return self._weight(self.kinematics_sigma_tilt, self.ground_sigma_tilt)
 
     @property
     def height_weight(self) -> float:
         """Fraction of a landing sole's height off the plane that the ground prior removes."""
-        if self.terrain == "none":
-            return 0.0
-        k, g = self.kinematics_sigma_height ** 2, self.ground_sigma_height ** 2
-        return k / (k + g)
+        return self._weight(self.kinematics_sigma_height, self.ground_sigma_height)
 
 
 @dataclass(frozen=True)

@@ -462,10 +462,10 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
                         + f", on threshold {on:.1f} N): check their F/T topics "
                         f"{[ros.ft_topics[k] for k in never]} and ros.contact_on, or use contacts='fixed' with "
                         "ros.fixed_contacts naming the feet that are down")
-    footholds = None if config.footholds.terrain == "none" else config.footholds
+    footholds = config.footholds  # terrain "none": zero weights, the touch-downs still measured
     lf = anchored_local_frame(model, q_grid, v_grid, a_grid, active, load, anchor,
                               progress=lambda f: report(0.3 + 0.3 * f), footholds=footholds)
-    if footholds is not None:
+    if footholds.terrain != "none":
         bound_tilt = FOOTHOLD_BOUND * footholds.kinematics_sigma_tilt
         bound_height = FOOTHOLD_BOUND * footholds.kinematics_sigma_height
         for k, i, tilt, height in lf.footholds:
