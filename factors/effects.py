@@ -172,6 +172,30 @@ class ProblemView(Protocol):
         """(N, C, 3) contact positions in the local frame, m."""
 
     @property
+    def contact_R(self) -> np.ndarray:
+        """(N, C, 3, 3) contact orientations in the local frame."""
+
+    @property
+    def active(self) -> np.ndarray:
+        """(N, C) bool: contact in force."""
+
+    @property
+    def rest_p(self) -> np.ndarray:
+        """(N, C, 3) nominal rest positions in the world (footholds), m."""
+
+    @property
+    def rest_R(self) -> np.ndarray:
+        """(N, C, 3, 3) nominal rest orientations in the world."""
+
+    @property
+    def beta(self) -> np.ndarray:
+        """(C, 2) cubic stiffening coefficients ``(beta_f 1/m^2, beta_t 1/rad^2)``."""
+
+    @property
+    def iso(self) -> np.ndarray:
+        """(C,) bool: isotropic contact (stiffness not rotated with the contact)."""
+
+    @property
     def K_fs(self) -> np.ndarray:
         """(C, 3, 3) translational stiffness in the contact frame, N/m."""
 
@@ -216,7 +240,8 @@ class Effect(Protocol):
         """Mean and sigma (both ``(dim,)``) of the effect's value at the first step."""
 
     def random_walk_sigma(self, problem: ProblemView) -> np.ndarray:
-        """Per-step sigma ``(dim,)`` of ``e_k+1 - e_k`` (tiny for a constant parameter)."""
+        """Sigma of ``e_k+1 - e_k``: ``(dim,)`` for every step (tiny for a constant parameter), or
+        ``(N - 1, dim)`` per transition (row ``k`` between steps ``k`` and ``k + 1``)."""
 
     def residual_terms(self, family: str, problem: ProblemView, steps: np.ndarray, R: np.ndarray,
                        q: np.ndarray, W: np.ndarray, e: np.ndarray):
@@ -254,7 +279,11 @@ class Effect(Protocol):
         rejects steps out of the physical range (a negative stiffness).  And an
         effect may define ``step_prior_sigma(problem) -> (dim,)``: a prior at *every* step around
         the prior mean (with the random walk, a mean-reverting process: for transient effects
-        whose constant part the data cannot tell from the core state).
+        whose constant part the data cannot tell from the core state).  Finally an effect may define
+        ``factors(problem, steps, R, q, e) -> {name: (r (n, m), dr_ds (n, m, 18), dr_de (n, m, dim),
+        weight (n,))}``: factors of its own on single steps, residuals already whitened, ``weight``
+        1 where a factor exists and 0 where not (:class:`flexforce.factors.footholds.Footholds`: the
+        leg kinematics at a touch-down and the ground plane).
         """
 
 

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from flexforce.factors.footholds import FootholdPrior
 from flexforce.factors.physics import GRAVITY, ContactParams
 
 
@@ -34,6 +35,9 @@ class ModelConfig:
     """Fuse the recording's F/T readings as measurements."""
     effects: tuple = field(default_factory=tuple)
     """Enabled model effects (see the diagnostics); empty for the nominal model."""
+    foothold_prior: FootholdPrior = field(default_factory=FootholdPrior)
+    """Leg-kinematics and ground priors of the footholds, when the smoothers estimate them
+    (``BatchConfig.footholds``, ``FixedLagConfig.footholds``; the robot's ``[footholds]`` table)."""
 
     @classmethod
     def from_recording(cls, rec, robot=None, **overrides) -> ModelConfig:
@@ -63,6 +67,7 @@ class ModelConfig:
             gravity=rec.gravity,
             ft_force_sigma=float(ft["force"]),
             ft_torque_sigma=float(ft["torque"]),
+            foothold_prior=FootholdPrior.from_config(robot.footholds),
         )
         return replace(cfg, **overrides) if overrides else cfg
 

@@ -30,8 +30,9 @@ from flexforce.smoother.linearize import (
     is_global,
     linearize,
     solve_arrow,
+    walk_sigma,
 )
-from flexforce.smoother.problem import NoiseRule, Problem
+from flexforce.smoother.problem import NoiseRule, Problem, with_footholds
 from flexforce.smoother.result import make_estimate
 
 if TYPE_CHECKING:
@@ -222,6 +223,10 @@ class BatchConfig:
     global_constants: bool = GLOBAL_CONSTANTS
     """Constant effects as one global block, estimated by the marginal likelihood (:func:`optimize`);
     False: per-step copies tied by a tight random walk, as in the fixed-lag smoother."""
+    footholds: bool = False
+    """Estimate every contact episode's rest placement (foothold) with the trajectory, from the leg
+    kinematics at its touch-down and the ground plane (:mod:`flexforce.factors.footholds`, priors
+    from the model's ``foothold_prior``); False: the rest placements are the given ones."""
     rule: NoiseRule = field(default_factory=NoiseRule)
     """The noise rule of the model-error families (:class:`~flexforce.smoother.problem.NoiseRule`)."""
 
@@ -231,6 +236,7 @@ class BatchConfig:
         check_positive(o, "rel_tol", self.rel_tol, "", "a positive relative cost decrease (e.g. 1e-7)")
         check_bool(o, "covariance", self.covariance)
         check_bool(o, "global_constants", self.global_constants)
+        check_bool(o, "footholds", self.footholds)
         check_type(o, "rule", self.rule, NoiseRule)
 
 
@@ -257,6 +263,8 @@ def run_batch(rec, model, config: BatchConfig = BatchConfig(), rest_p=None, rest
         options = {**options, "rule": NoiseRule()}
     config = with_options(config, options, "batch smoother")
     t0 = time.perf_counter()
+    if config.footholds:
+        model = with_footholds(rec, model)
     prob = Problem.build(rec, model, config.rule, rest_p, rest_R)
     if progress is not None:
         progress(0.05)
@@ -297,7 +305,7 @@ def effective_dof(prob: Problem, P: np.ndarray, Pc: np.ndarray) -> dict[str, flo
         sl = slice(off, off + d)
         _, s0 = eff.prior(prob)
         s0 = np.broadcast_to(np.asarray(s0, dtype=float), (d,))
-        rw = np.broadcast_to(np.asarray(eff.random_walk_sigma(prob), dtype=float), (d,))
+        rw = walk_sigma(eff, prob)
         p00 = np.diagonal(P[0, sl, sl])
         prior_term = float(np.sum(p00 / s0**2))
         constant = getattr(eff, "constant", None)

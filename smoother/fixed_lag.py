@@ -60,7 +60,7 @@ from flexforce.options import (
 from flexforce.smoother import solvers
 from flexforce.smoother.graph import GraphBuilder
 from flexforce.smoother.linearize import Trajectory, assemble_split, linearize
-from flexforce.smoother.problem import NoiseRule, Problem
+from flexforce.smoother.problem import NoiseRule, Problem, with_footholds
 from flexforce.smoother.result import make_estimate
 
 S = core.STATE_DIM
@@ -395,6 +395,10 @@ class FixedLagConfig:
     """Gtsam backend: iSAM2 checks for relinearisation every ``relinearize_skip`` updates (count, >= 1)."""
     covariance: bool = True
     """Extract the marginal covariances (timed apart from the updates)."""
+    footholds: bool = False
+    """Estimate every contact episode's rest placement (foothold) with the trajectory, from the leg
+    kinematics at its touch-down and the ground plane (:mod:`flexforce.factors.footholds`, priors
+    from the model's ``foothold_prior``); False: the rest placements are the given ones."""
     rule: NoiseRule = field(default_factory=NoiseRule)
     """The noise rule of the model-error families (:class:`~flexforce.smoother.problem.NoiseRule`)."""
 
@@ -408,6 +412,7 @@ class FixedLagConfig:
                        optional=True)
         check_int(o, "relinearize_skip", self.relinearize_skip, 1, "updates", "an integer >= 1")
         check_bool(o, "covariance", self.covariance)
+        check_bool(o, "footholds", self.footholds)
         check_type(o, "rule", self.rule, NoiseRule)
 
 
@@ -439,6 +444,8 @@ def run_fixed_lag(rec, model, config: FixedLagConfig = FixedLagConfig(), rest_p=
     config = with_options(config, options, "fixed-lag smoother")
     lag, backend, covariance = config.lag, config.backend, config.covariance
     t0 = time.perf_counter()
+    if config.footholds:
+        model = with_footholds(rec, model)
     prob = Problem.build(rec, model, config.rule, rest_p, rest_R)
     fls: FixedLagSmoother | GtsamFixedLagSmoother
     if backend == "window":

@@ -71,6 +71,13 @@ def _whiten_matrix(r, J, Linv):
     return r @ Linv.T, Linv @ J
 
 
+def walk_sigma(eff, prob) -> np.ndarray:
+    """(N - 1, dim) random-walk sigma of an effect per transition (its ``random_walk_sigma``, given
+    per effect or per transition)."""
+    rw = np.asarray(eff.random_walk_sigma(prob), dtype=float)
+    return np.broadcast_to(rw, (max(prob.n - 1, 0), int(eff.dim)))
+
+
 def huber_weights(r, k):
     """IRLS weights of a Huber loss on each row's norm (whitened units) and the robust cost per row."""
     norm = np.sqrt(np.sum(r * r, axis=1))
@@ -215,14 +222,22 @@ def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True) -> Linea
             J = np.zeros((n, eff.dim, D))
             J[:, :, cols] = np.eye(eff.dim)
             lin.unary[f"effect_level/{eff.name}"] = _whiten_rows(ev - mean, J, sl_)
+        own = getattr(eff, "factors", None)
+        if own is not None:
+            for key, (r, dr_ds, dr_de, weight) in own(prob, steps, R, q, ev).items():
+                w = np.asarray(weight, dtype=float)[:, None]
+                J = np.zeros((n, r.shape[1], D))
+                J[:, :, :S] = dr_ds
+                J[:, :, cols] = dr_de
+                lin.unary[f"effect_factor/{eff.name}/{key}"] = (r * w, J * w[:, :, None])
         if n > 1:
-            rw = np.asarray(eff.random_walk_sigma(prob), dtype=float)
+            rw = walk_sigma(eff, prob)[k0:k0 + n - 1]
             J0 = np.zeros((n - 1, eff.dim, D))
             J1 = np.zeros((n - 1, eff.dim, D))
             J0[:, :, cols] = -np.eye(eff.dim)
             J1[:, :, cols] = np.eye(eff.dim)
             r = (ev[1:] - ev[:-1]) / rw
-            lin.binary[f"effect_walk/{eff.name}"] = (r, J0 / rw[:, None], J1 / rw[:, None])
+            lin.binary[f"effect_walk/{eff.name}"] = (r, J0 / rw[:, :, None], J1 / rw[:, :, None])
 
     # Integration between successive steps, whitened by the Brownian-bridge covariance.
     if n > 1:
@@ -373,7 +388,7 @@ def is_global(eff, prob=None) -> bool:
     _, s0 = eff.prior(prob)
     d = int(eff.dim)
     s0 = np.broadcast_to(np.asarray(s0, dtype=float), (d,))
-    rw = np.broadcast_to(np.asarray(eff.random_walk_sigma(prob), dtype=float), (d,))
+    rw = walk_sigma(eff, prob)
     return bool(np.all(rw * np.sqrt(max(prob.n - 1, 1)) < 1e-3 * s0))
 
 

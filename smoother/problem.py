@@ -38,7 +38,7 @@ The smoothers handle effects generically: the core never names one.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -46,6 +46,7 @@ import numpy as np
 from flexforce.errors import ConfigError, DataError, ModelError
 from flexforce.factors import core
 from flexforce.factors.effects import Effect, ProblemView
+from flexforce.factors.footholds import Footholds
 from flexforce.factors.model import unmodelled_acceleration
 from flexforce.factors.physics import ContactParams
 from flexforce.options import check_positive, invalid
@@ -54,7 +55,7 @@ if TYPE_CHECKING:
     from flexforce.datasets.recording import Recording
 
 __all__ = ["FAMILIES", "Effect", "NoiseRule", "Problem", "ProblemView", "Sigmas", "derive_sigmas", "rest_placements",
-           "static_equilibrium", "whitener"]
+           "static_equilibrium", "whitener", "with_footholds"]
 
 FAMILIES = ("integration", "newton_euler", "contact", "imu", "ft")
 """Names of the factor families, the keys of :attr:`Estimate.residuals`."""
@@ -301,6 +302,16 @@ def rest_placements(rec, rest_p=None, rest_R=None):
                             "are in m and rotation matrices")
         out.append(a)
     return out[0], out[1]
+
+
+def with_footholds(rec, model):
+    """``model`` with the footholds of the contact episodes as unknowns
+    (:class:`~flexforce.factors.footholds.Footholds`, its priors from ``model.foothold_prior``);
+    unchanged when they already are."""
+    if any(isinstance(e, Footholds) for e in model.effects):
+        return model
+    eff = Footholds(len(rec.contact_names), model.foothold_prior)
+    return replace(model, effects=tuple(model.effects) + (eff,))
 
 
 def _contact_arrays(params: tuple[ContactParams, ...]):

@@ -108,9 +108,9 @@ def model(rec):
 
 
 @pytest.mark.parametrize(("run", "what", "known"), [
-    (run_batch, "batch smoother", "max_iterations, rel_tol, covariance, global_constants, rule"),
+    (run_batch, "batch smoother", "max_iterations, rel_tol, covariance, global_constants, footholds, rule"),
     (run_fixed_lag, "fixed-lag smoother", "lag, backend, relinearize, report_every, relinearize_threshold, "
-                                          "relinearize_skip, covariance, rule"),
+                                          "relinearize_skip, covariance, footholds, rule"),
     (run_ekf, "EKF", "unmodelled_accel, unmodelled_ang_accel, p0_scale, .*, ground_height_weight"),
 ])
 def test_unknown_option_lists_the_known_ones(rec, model, run, what, known):

@@ -1,0 +1,333 @@
+r"""Footholds as unknowns: every contact episode's rest placement estimated with the trajectory.
+
+A contact's spring is at rest at a placement in the world, ``(p_r, R_r)``, fixed for one contact
+episode (touch-down to lift-off): the law is ``s = R p_l + t - p_r``, ``Omega = log(R R_l R_r^T)``
+(:mod:`flexforce.factors.core`).  The recording gives a nominal rest placement (the local frame's,
+e.g. leg odometry's foothold at the touch-down); :class:`Footholds` adds to it, per contact, a
+correction ``e_i = (dp_i, dr_i)`` (world axes, m and rad)::
+
+    p_r' = p_r + dp_i,        R_r' = exp([dr_i]x) R_r
+
+estimated by the smoothers with every other unknown.  Three kinds of factors decide it:
+
+- **Leg kinematics at the touch-down.**  At the first step ``k`` of an episode that starts during
+  the recording, the landing sole is where the kinematics put it and its spring starts with no
+  deflection: ``(s_k, Omega_k) = 0`` within ``kinematics_sigma_position`` / ``_height`` (m) and
+  ``kinematics_sigma_rotation`` / ``_tilt`` (rad), horizontal and vertical separately.  This is
+  the touch-down convention of the simulator's ``floor`` mode and of the EKF's
+  ``touchdown = "zero-deflection"``: landing creates no force jump.  (The paper's convention,
+  ``p_r = p_l``, preloads a foot landing while the flexibility is deflected by that deflection.)
+  A contact already in force at the first sample has no such factor (the robot stands on
+  deflected springs); its correction has the first-step prior ``N(0, kinematics sigmas)``
+  instead, which also fixes where the world is (the first stance soles).
+- **Ground.**  At the first step of every episode the corrected sole lies on the floor plane
+  (``n . p_r' = h`` within ``ground_sigma_height``; its z axis along ``n`` within
+  ``ground_sigma_tilt``, two rows: the components of ``R_r' e_z`` on the plane's tangent axes).
+  ``terrain = "flat"``: the plane ``z = `` the first sample's mean rest height of the contacts in
+  force; ``"plane"``: ``normal`` and ``height`` as given (world = local frame at the first sample);
+  ``"none"``: no ground factor.
+- **Constancy.**  Within an episode (and through the swing that follows it) the correction is a
+  random walk of ``1e-5`` of the kinematic sigma per step, numerically constant; the walk is cut
+  (``1e3`` times the kinematic sigma) where the contact touches down, so each episode is its own
+  foothold.  This is a per-episode landmark written as per-step copies tied by equality: the
+  graph stays a chain (block tridiagonal, O(N D^3)) instead of gaining long-range edges.
+
+The local frame may then drift in yaw and position, as leg odometry does, but not in tilt: the
+ground holds every foothold level, and the flexibility ``(R, t)`` stays the springs' deflection.
+The estimate reports each episode's foothold correction (``report``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from flexforce.errors import ConfigError
+from flexforce.factors import core
+from flexforce.factors.effects import ProblemView
+
+__all__ = ["FootholdPrior", "Footholds", "episode_starts"]
+
+WALK_WITHIN = 1e-3
+"""Random-walk sigma of a foothold within an episode, relative to its kinematic sigma."""
+WALK_CUT = 1e3
+"""Random-walk sigma where the contact touches down, relative to its kinematic sigma."""
+
+
+@dataclass(frozen=True)
+class FootholdPrior:
+    """Where a landing sole rests: the leg kinematics' errors and the ground plane.
+
+    Built from the robot configuration's ``[footholds]`` table
+    (:class:`flexforce.datasets.robot.FootholdConfig`: terrain, plane, the tilt and height sigmas);
+    the horizontal ones are the kinematics' alone.
+    """
+
+    terrain: str = "flat"
+    """``flat`` (default), ``plane`` (``normal``, ``height``) or ``none`` (no ground factor)."""
+    normal: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    """Floor normal, world (= local frame at the first sample) axes (``terrain = "plane"``)."""
+    height: float = 0.0
+    """Floor offset along the unit normal, m (``terrain = "plane"``)."""
+    ground_sigma_tilt: float = 0.0035
+    """Floor flatness: sole tilt about the plane, rad."""
+    ground_sigma_height: float = 0.002
+    """Floor flatness: sole height about the plane, m."""
+    kinematics_sigma_tilt: float = 0.017
+    """Leg kinematics (and zero deflection) at a touch-down: sole roll and pitch, rad."""
+    kinematics_sigma_height: float = 0.005
+    """Leg kinematics at a touch-down: sole height, m."""
+    kinematics_sigma_rotation: float = 0.017
+    """Leg kinematics at a touch-down: sole yaw, rad."""
+    kinematics_sigma_position: float = 0.005
+    """Leg kinematics at a touch-down: sole horizontal position, m."""
+
+    def __post_init__(self):
+        if self.terrain not in ("flat", "plane", "none"):
+            raise ConfigError(f"FootholdPrior.terrain = {self.terrain!r}; expected 'flat', 'plane' or 'none'")
+        for key in ("ground_sigma_tilt", "ground_sigma_height", "kinematics_sigma_tilt", "kinematics_sigma_height",
+                    "kinematics_sigma_rotation", "kinematics_sigma_position"):
+            value = getattr(self, key)
+            unit = "m" if key.endswith(("height", "position")) else "rad"
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ConfigError(f"FootholdPrior.{key} = {value!r} {unit}; expected a positive standard deviation")
+        n = np.asarray(self.normal, dtype=float)
+        if n.shape != (3,) or not np.all(np.isfinite(n)) or np.linalg.norm(n) < 1e-9:
+            raise ConfigError(f"FootholdPrior.normal = {self.normal!r}; expected a non-zero 3-vector")
+        if not math.isfinite(float(self.height)):
+            raise ConfigError(f"FootholdPrior.height = {self.height!r} m; expected a finite number")
+
+    @classmethod
+    def from_config(cls, footholds) -> FootholdPrior:
+        """From a :class:`~flexforce.datasets.robot.FootholdConfig` (duck-typed: its attributes)."""
+        nx, ny, nz = (float(x) for x in footholds.normal)
+        return cls(terrain=footholds.terrain, normal=(nx, ny, nz),
+                   height=float(footholds.height), ground_sigma_tilt=float(footholds.ground_sigma_tilt),
+                   ground_sigma_height=float(footholds.ground_sigma_height),
+                   kinematics_sigma_tilt=float(footholds.kinematics_sigma_tilt),
+                   kinematics_sigma_height=float(footholds.kinematics_sigma_height))
+
+    def kinematic_sigma(self, normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(3, 3) covariances of the position and the rotation from the kinematics, world axes:
+        the horizontal and vertical (along ``normal``) sigmas."""
+        P = np.outer(normal, normal)
+        cov_p = (self.kinematics_sigma_position**2 * (np.eye(3) - P) + self.kinematics_sigma_height**2 * P)
+        cov_r = (self.kinematics_sigma_tilt**2 * (np.eye(3) - P) + self.kinematics_sigma_rotation**2 * P)
+        return cov_p, cov_r
+
+
+def episode_starts(active: np.ndarray) -> np.ndarray:
+    """(N, C) bool: contact ``i`` comes into force at step ``k`` (active at k, not at k - 1; step 0
+    excluded: an episode in force at the first sample did not start in the recording)."""
+    out = np.zeros_like(active, dtype=bool)
+    out[1:] = active[1:] & ~active[:-1]
+    return out
+
+
+def _skew(v):
+    v = np.asarray(v, dtype=float)
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
+    return S
+
+
+def _exp_all(phi):
+    out = [core.so3_exp(np.ascontiguousarray(p)) for p in phi.reshape(-1, 3)]
+    return np.array(out).reshape(phi.shape[:-1] + (3, 3))
+
+
+def _log_all(R):
+    return np.array([core.so3_log(np.ascontiguousarray(M)) for M in R.reshape(-1, 3, 3)]).reshape(R.shape[:-2] + (3,))
+
+
+def _jl_all(phi, inverse=False):
+    out = [core.so3_jl(np.ascontiguousarray(p), inverse) for p in phi.reshape(-1, 3)]
+    return np.array(out).reshape(phi.shape[:-1] + (3, 3))
+
+
+class Footholds:
+    """Per-contact foothold corrections (module docstring): ``6 C`` unknowns per step, ``(dp_i m,
+    dr_i rad)`` world axes, each contact's in turn."""
+
+    name = "foothold"
+    constant = False
+    unit = "m, rad"
+
+    def __init__(self, n_contacts: int, prior: FootholdPrior | None = None):
+        if int(n_contacts) < 1:
+            raise ConfigError(f"Footholds: n_contacts = {n_contacts!r}; expected at least one contact")
+        self.nc = int(n_contacts)
+        self.dim = 6 * self.nc
+        self.prior_config = FootholdPrior() if prior is None else prior
+        self.labels = tuple(f"c{i} {kind}{a} [{u}]" for i in range(self.nc)
+                            for kind, u in (("dp_", "m"), ("dr_", "rad")) for a in "xyz")
+        self._cache: tuple | None = None
+
+    # -- set-up ---------------------------------------------------------------------------------
+    def _setup(self, problem: ProblemView):
+        """Plane, kinematic whiteners and episode starts of ``problem`` (cached per problem)."""
+        if self._cache is not None and self._cache[0] is problem:
+            return self._cache[1]
+        cfg = self.prior_config
+        active = np.asarray(problem.active, dtype=bool)
+        rest_p = np.asarray(problem.rest_p, dtype=float)
+        if cfg.terrain == "plane":
+            n = np.asarray(cfg.normal, dtype=float)
+            h = float(cfg.height) / float(np.linalg.norm(n))
+            n = n / np.linalg.norm(n)
+        else:
+            n = np.array([0.0, 0.0, 1.0])
+            on = active[0]
+            h = float(np.mean(rest_p[0, on, 2])) if on.any() else 0.0
+        # tangent axes of the plane
+        a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        u1 = np.cross(n, a)
+        u1 /= np.linalg.norm(u1)
+        u2 = np.cross(n, u1)
+        cov_p, cov_r = cfg.kinematic_sigma(n)
+        sig0 = np.concatenate([np.sqrt(np.diag(cov_p)), np.sqrt(np.diag(cov_r))])
+        info = {"normal": n, "height": h, "tangent": np.stack([u1, u2]),
+                "Lp": np.linalg.inv(np.linalg.cholesky(cov_p)), "Lr": np.linalg.inv(np.linalg.cholesky(cov_r)),
+                "sigma0": np.tile(sig0, self.nc), "starts": episode_starts(active)}
+        self._cache = (problem, info)
+        return info
+
+    # -- the Effect protocol --------------------------------------------------------------------
+    def prior(self, problem: ProblemView):
+        """Zero mean, the kinematic sigmas (per axis of the world, diagonal of the covariances)."""
+        return np.zeros(self.dim), self._setup(problem)["sigma0"].copy()
+
+    def random_walk_sigma(self, problem: ProblemView):
+        """(N - 1, 6 C): tiny within an episode and through the swing, cut at a touch-down."""
+        info = self._setup(problem)
+        s0 = info["sigma0"]
+        starts = info["starts"][1:]  # transition k-1 -> k cut where contact i starts at k
+        cut = np.repeat(starts, 6, axis=1)
+        return np.where(cut, WALK_CUT * s0, WALK_WITHIN * s0)
+
+    def rest(self, problem: ProblemView, steps, e):
+        """Corrected rest placements ``p_r'`` (n, C, 3), ``R_r'`` (n, C, 3, 3) and the left
+        Jacobians ``J_l(dr)`` (n, C, 3, 3) of the rotation corrections."""
+        e = np.asarray(e, dtype=float).reshape(len(steps), self.nc, 6)
+        p = np.asarray(problem.rest_p, dtype=float)[steps] + e[:, :, :3]
+        dr = e[:, :, 3:]
+        R = np.einsum("ncij,ncjk->ncik", _exp_all(dr), np.asarray(problem.rest_R, dtype=float)[steps])
+        return p, R, _jl_all(dr)
+
+    def residual_terms(self, family, problem: ProblemView, steps, R, q, W, e):
+        if family != "contact":
+            return None
+        steps = np.asarray(steps)
+        n, nc = len(steps), self.nc
+        c = np.ascontiguousarray
+        p1, R1, Jl = self.rest(problem, steps, e)
+        active = c(np.asarray(problem.active)[steps])
+        args = (c(R, dtype=float), c(q, dtype=float), np.zeros((n, nc, 6)), active,
+                c(np.asarray(problem.contact_p)[steps], dtype=float),
+                c(np.asarray(problem.contact_R)[steps], dtype=float))
+        K = (c(problem.K_fs), c(problem.K_fd), c(problem.K_ts), c(problem.K_td), c(problem.beta), c(problem.iso))
+        r0 = np.empty((n, nc, 6))
+        J0 = np.empty((n, nc, 6, core.STATE_DIM))
+        core.contact_all(*args, c(np.asarray(problem.rest_p, dtype=float)[steps]),
+                         c(np.asarray(problem.rest_R, dtype=float)[steps]), *K, r0, J0, np.empty((0, nc, 6, 6)))
+        r1 = np.empty((n, nc, 6))
+        J1 = np.empty((n, nc, 6, core.STATE_DIM))
+        Jr = np.empty((n, nc, 6, 6))
+        core.contact_all(*args, c(p1), c(R1), *K, r1, J1, Jr)
+        dr_de = np.zeros((n, nc, 6, self.dim))
+        for i in range(nc):
+            dr_de[:, i, :, 6 * i:6 * i + 3] = Jr[:, i, :, :3]
+            dr_de[:, i, :, 6 * i + 3:6 * i + 6] = Jr[:, i, :, 3:] @ Jl[:, i]
+        return r1 - r0, J1 - J0, dr_de
+
+    def factors(self, problem: ProblemView, steps, R, q, e) -> dict:
+        """The effect's own factors on ``steps``: ``name -> (r (n, m), dr_ds (n, m, 18),
+        dr_de (n, m, dim), weight (n,))``, residuals already whitened, ``weight`` 1 where the factor
+        exists and 0 elsewhere (rows to drop).
+
+        ``kinematics/i`` (6 rows): the spring deflection ``(s, Omega)`` of contact ``i`` at its
+        touch-down, whitened by the kinematic covariances; ``ground/i`` (3 rows): height and tilt
+        of its corrected rest placement against the floor plane, at every episode start (step 0
+        included).
+        """
+        info = self._setup(problem)
+        steps = np.asarray(steps)
+        n, nc = len(steps), self.nc
+        R = np.asarray(R, dtype=float)
+        t = np.asarray(q, dtype=float)[:, :3]
+        p1, R1, Jl = self.rest(problem, steps, e)
+        starts = info["starts"][steps]
+        active = np.asarray(problem.active, dtype=bool)[steps]
+        first = np.zeros((n, nc), dtype=bool)
+        if steps[0] == 0:
+            first[0] = active[0]
+        out: dict = {}
+        Lp, Lr = info["Lp"], info["Lr"]
+        cp = np.asarray(problem.contact_p, dtype=float)[steps]
+        cR = np.asarray(problem.contact_R, dtype=float)[steps]
+        for i in range(nc):
+            cols = slice(6 * i, 6 * i + 6)
+            # kinematics at the touch-down: zero deflection
+            k = np.flatnonzero(starts[:, i])
+            r = np.zeros((n, 6))
+            Js = np.zeros((n, 6, core.STATE_DIM))
+            Je = np.zeros((n, 6, self.dim))
+            if k.size:
+                Rp = np.einsum("nij,nj->ni", R[k], cp[k, i])
+                s = Rp + t[k] - p1[k, i]
+                M = R[k] @ cR[k, i] @ np.swapaxes(R1[k, i], 1, 2)
+                Om = _log_all(M)
+                Jli = _jl_all(Om, inverse=True)
+                r[k, :3] = s @ Lp.T
+                r[k, 3:] = Om @ Lr.T
+                Js[k, :3, 0:3] = Lp @ -_skew(Rp)
+                Js[k, :3, 3:6] = Lp
+                Js[k, 3:, 0:3] = Lr @ Jli
+                Je[k, :3, cols.start:cols.start + 3] = -Lp
+                Je[k, 3:, cols.start + 3:cols.stop] = -Lr @ Jli @ M @ Jl[k, i]
+            out[f"kinematics/{i}"] = (r, Js, Je, starts[:, i].astype(float))
+            if self.prior_config.terrain == "none":
+                continue
+            # ground at every episode start
+            g = starts[:, i] | first[:, i]
+            k = np.flatnonzero(g)
+            cfg = self.prior_config
+            nrm, h, T = info["normal"], info["height"], info["tangent"]
+            r = np.zeros((n, 3))
+            Js = np.zeros((n, 3, core.STATE_DIM))
+            Je = np.zeros((n, 3, self.dim))
+            if k.size:
+                z = R1[k, i][:, :, 2]
+                r[k, 0] = (p1[k, i] @ nrm - h) / cfg.ground_sigma_height
+                r[k, 1:] = z @ T.T / cfg.ground_sigma_tilt
+                Je[k, 0, cols.start:cols.start + 3] = nrm / cfg.ground_sigma_height
+                Je[k, 1:, cols.start + 3:cols.stop] = (T @ -_skew(z)) @ Jl[k, i] / cfg.ground_sigma_tilt
+            out[f"ground/{i}"] = (r, Js, Je, g.astype(float))
+        return out
+
+    def report(self, values, cov, t=None) -> dict:
+        """Per contact: the correction of every episode (at its first step) and the largest."""
+        v = np.asarray(values, dtype=float)
+        if self._cache is None:
+            return {"value": v[-1].tolist(), "unit": self.unit, "labels": list(self.labels), "summary": "footholds"}
+        info = self._cache[1]
+        starts = info["starts"].copy()
+        active = np.asarray(self._cache[0].active, dtype=bool)
+        starts[0] = active[0]
+        episodes = []
+        worst = [0.0, 0.0]
+        for k, i in zip(*np.nonzero(starts)):
+            e = v[k, 6 * i:6 * i + 6]
+            std = (np.sqrt(np.maximum(np.diagonal(np.asarray(cov)[k])[6 * i:6 * i + 6], 0.0)).tolist()
+                   if cov is not None else None)
+            episodes.append({"step": int(k), "t": float(t[k]) if t is not None else None, "contact": int(i),
+                             "dp_m": e[:3].tolist(), "dr_rad": e[3:].tolist(), "std": std})
+            worst = [max(worst[0], float(np.linalg.norm(e[:3]))), max(worst[1], float(np.linalg.norm(e[3:])))]
+        summary = (f"{len(episodes)} footholds estimated; largest correction {1e3 * worst[0]:.1f} mm, "
+                   f"{math.degrees(worst[1]):.2f} deg")
+        return {"value": v[-1].tolist(), "unit": self.unit, "labels": list(self.labels), "episodes": episodes,
+                "max_position_m": worst[0], "max_rotation_rad": worst[1], "summary": summary}
