@@ -33,10 +33,23 @@ every episode with its foothold in the world.  Three conventions (``Scenario.tou
   it reaches the floor, or at its scheduled landing at the latest; its foothold is where it
   touches, flat on the floor with the foot's heading.  The spring starts with no deflection but
   the sole's tilt (the body's tilt at that instant, taken by the ankle's rotational spring): no
-  force jump, the force rising as the robot keeps moving its foot down as planned.  A lifting
-  foot leaves the floor when its spring no longer pushes (vertical force <= 0), or a quarter into
-  its swing at the latest (the episode keeps the force it was torn off with).  The recording's
-  contact flags are the truth's, as a perfect contact detector would give them.
+  force jump beyond the damping of the foot's landing speed.  A foot that touches before its
+  scheduled landing (the stance leg sinks and the body tilts in single support: on Romeo's
+  ``walk-short`` the feet touch ~0.25 s early, 21-26 mm above their planned landing in the local
+  frame) stops there, as a walking controller stops a foot on contact (:class:`Stop`): from the
+  touch its local motion brakes to rest in ``TOUCHDOWN_STOP`` (20 ms, about a millimetre further)
+  and the rest of its swing is dropped; the leg then extends by the descent it skipped, in
+  ``TOUCHDOWN_LEVEL`` (0.4 s, minimum jerk) -- a gradual weight transfer that brings the feet
+  level again in the robot's belief, as they are on the floor (without it, each step's offset
+  carries into the next: measured on ``walk-short``, footholds up to 30 mm above and 45 mm behind
+  their plan, the flexibility sinking 62 mm); the foot's next swing makes up the travel it
+  skipped (an early touch-down leaves up to a few centimetres of it; the last step of a walk
+  stays short).  Pelvis, CoM, joints and the other contacts follow the plan unchanged.  Before,
+  the plan drove the foot on through the rest of its swing: ~2 cm into the spring in ~0.25 s,
+  0.57-0.66 mg on the landing foot within 0.3 s (0.35-0.43 mg with the stop and levelling).  A
+  lifting foot leaves the floor when its spring no longer pushes (vertical force <= 0), or a
+  quarter into its swing at the latest (the episode keeps the force it was torn off with).  The
+  recording's contact flags are the truth's, as a perfect contact detector would give them.
 - ``"relaxed"``: at the scheduled landing, wherever the foot is in the world, sole tilt included:
   the spring starts fully unloaded.  Each foothold inherits the body's tilt and sinking at its
   touch-down, so an open-loop walk drifts (measured on 4 steps of Romeo with 0.7 s weight
@@ -47,8 +60,11 @@ every episode with its foothold in the world.  Three conventions (``Scenario.tou
   force step of ``K_fs (world - local placement)`` -- the convention of a model that freezes
   footholds from its own belief, kept as the mismatched case.
 
-The recording's contact placements are always the local-frame ones, the robot's belief: where it
-planned the foot to land.
+The recording's contact placements are always the local-frame ones, the robot's belief: where its
+legs hold each contact in force, the forward kinematics of the recorded pelvis pose and joints --
+its planned landing, or while a foot brakes, levels or lifts (``floor``), where the leg puts it.
+``meta["contact_episodes"]`` gives, for an early touch-down, how far from its planned landing the
+foot came to rest (``local_off_plan``) and where it ends once levelled (``levelled_off_plan``).
 """
 
 from __future__ import annotations
@@ -66,7 +82,7 @@ from scipy import signal
 from flexforce.datasets.effects import HiddenEffect, parse_effects
 from flexforce.datasets.recording import Recording, Truth
 from flexforce.datasets.robot import ROBOTS_DIR, FtNoise, ImuNoise, RobotConfig, RobotModel
-from flexforce.datasets.scenario import Ambient, Scenario
+from flexforce.datasets.scenario import Ambient, Scenario, minjerk
 from flexforce.errors import ConfigError, ModelError
 
 E_Z = np.array([0.0, 0.0, 1.0])
@@ -154,6 +170,69 @@ class LocalSample:
     """(C,) bool, contacts in force."""
 
 
+TOUCHDOWN_STOP = 0.02
+"""s: how long a landing foot that touched the floor before its scheduled landing takes to come to
+rest in the local frame (``touchdown = "floor"``, see :class:`Stop`)."""
+TOUCHDOWN_LEVEL = 0.4
+"""s: how long the landed leg then takes to extend by the descent it skipped (:class:`Stop`)."""
+
+
+@dataclass(frozen=True)
+class Stop:
+    """A landing foot that touched the floor early coming to rest in the local frame.
+
+    From the touch instant ``t0`` the foot's displacement leaves its swing with the swing's
+    velocity ``v0`` and acceleration ``a0`` and brakes to rest in ``duration``: the velocity is
+    the cubic Hermite blend from (``v0``, ``a0``) to (0, 0), the displacement its integral (a
+    quartic, continuous in position, velocity and acceleration).  The foot ends
+    ``duration (v0 / 2 + a0 duration / 12)`` past where it touched (about a millimetre).  The
+    rest of the swing is dropped; then the leg extends by ``level`` (the skipped descent,
+    vertical) in ``level_duration`` (minimum jerk): in the world a gradual weight transfer that
+    brings the feet level again in the robot's belief, as they are on the floor.  The skipped
+    horizontal travel is made up by the foot's next swing (:meth:`LocalMotion.stop`).
+    """
+
+    t0: float
+    duration: float
+    d0: np.ndarray
+    v0: np.ndarray
+    a0: np.ndarray
+    level: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
+    level_duration: float = TOUCHDOWN_LEVEL
+
+    @property
+    def end(self) -> float:
+        """Instant the foot is at rest (s)."""
+        return self.t0 + self.duration
+
+    @property
+    def rest(self) -> np.ndarray:
+        """Displacement at rest, before the levelling (m)."""
+        T = self.duration
+        return self.d0 + T * (0.5 * self.v0 + self.a0 * T / 12.0)
+
+    @property
+    def levelled(self) -> float:
+        """Instant the levelling ends (s)."""
+        return self.end + self.level_duration
+
+    def __call__(self, t: float):
+        """Displacement of the contact from its initial placement, with derivatives (as a swing)."""
+        T = self.duration
+        s = min(max((t - self.t0) / T, 0.0), 1.0)
+        s2, s3 = s * s, s**3
+        d = self.d0 + T * (self.v0 * (0.5 * s2 * s2 - s3 + s)
+                           + self.a0 * T * (0.25 * s2 * s2 - 2.0 * s3 / 3.0 + 0.5 * s2))
+        v = self.v0 * (2.0 * s3 - 3.0 * s2 + 1.0) + self.a0 * T * (s3 - 2.0 * s2 + s)
+        a = (self.v0 * (6.0 * s2 - 6.0 * s) + self.a0 * T * (3.0 * s2 - 4.0 * s + 1.0)) / T
+        if t > self.end and self.level_duration > 0.0:
+            m, dm, ddm = minjerk((t - self.end) / self.level_duration)
+            d = d + self.level * m
+            v = v + self.level * dm / self.level_duration
+            a = a + self.level * ddm / self.level_duration**2
+        return d, v, a
+
+
 class LocalMotion:
     """The prescribed motion of the robot in its local frame.
 
@@ -188,6 +267,8 @@ class LocalMotion:
             if sw.contact not in names:
                 raise ConfigError(f"swing names contact '{sw.contact}'; robot '{robot.name}' has {list(names)}")
         self.swing_index = [names.index(sw.contact) for sw in self.swings]
+        self.stops: dict[int, Stop] = {}
+        """Per swing (index in ``swings``) that touched the floor early, its :class:`Stop`."""
         self.joint_segments = []
         for name, seg in scenario.segments(scenario.joint, robot.name, 1):
             if not model.existJointName(name):
@@ -322,14 +403,50 @@ class LocalMotion:
                 return sw
         return None
 
+    def stop(self, ci: int, t0: float, duration: float = TOUCHDOWN_STOP,
+             level_duration: float = TOUCHDOWN_LEVEL) -> Stop:
+        """Contact ``ci``, swinging at ``t0``, touched the floor: from ``t0`` the rest of its swing
+        is replaced by a :class:`Stop` (brake, then extend the leg by the skipped descent), and its
+        next swing, if any, also makes up the skipped horizontal travel, so that it lands where
+        planned.  The rest of the motion (pelvis, CoM, joints, other contacts) is unchanged."""
+        for j, (i, sw) in enumerate(zip(self.swing_index, self.swings)):
+            if i == ci and sw.lift <= t0 < sw.land:
+                d0, v0, a0 = sw(t0)
+                stop = Stop(float(t0), float(duration), d0, v0, a0, np.zeros(3), float(level_duration))
+                short = sw(sw.land)[0] - stop(stop.end)[0]
+                stop = dataclasses.replace(stop, level=short * E_Z)
+                self.stops[j] = stop
+                later = [jj for jj, (ii, s2) in enumerate(zip(self.swing_index, self.swings))
+                         if ii == ci and s2.lift >= sw.land]
+                if later:
+                    jn = min(later, key=lambda jj: self.swings[jj].lift)
+                    nxt = self.swings[jn]
+                    if nxt.lift < stop.levelled:
+                        raise ModelError(f"contact {ci} lifts at {nxt.lift} s, before its leg has levelled "
+                                         f"after touching the floor at {t0:.3f} s ({stop.levelled:.3f} s)")
+                    self.swings[jn] = dataclasses.replace(
+                        nxt, displacement=nxt.displacement + np.array([short[0], short[1], 0.0]))
+                return stop
+        raise ValueError(f"contact {ci} is not swinging at {t0} s")
+
     def contact_targets(self, t: float):
-        """Per contact: placement (SE3), LWA velocity and classical acceleration (6,), active flag."""
+        """Per contact: placement (SE3), LWA velocity and classical acceleration (6,), active flag
+        (False while the foot swings or, after an early touch, comes to rest)."""
         n = len(self.fids)
         disp = [np.zeros(3) for _ in range(n)]
         vel = [np.zeros(3) for _ in range(n)]
         acc = [np.zeros(3) for _ in range(n)]
         active = np.ones(n, dtype=bool)
-        for ci, sw in zip(self.swing_index, self.swings):
+        for j, (ci, sw) in enumerate(zip(self.swing_index, self.swings)):
+            stop = self.stops.get(j)
+            if stop is not None and t >= stop.t0:
+                d, dv, da = stop(t)
+                disp[ci] = disp[ci] + d
+                vel[ci] = vel[ci] + dv
+                acc[ci] = acc[ci] + da
+                if t < stop.end:
+                    active[ci] = False
+                continue
             d, dv, da = sw(min(max(t, sw.lift), sw.land))
             disp[ci] = disp[ci] + d
             if sw.lift <= t < sw.land:
@@ -729,8 +846,9 @@ class Simulator:
         h = dt / sub
         nc = len(robot.contact_names)
         times = np.arange(n) * dt
-        # Local motion at the samples (exact), then quintic Hermite in between.
-        samples = [self.motion.sample(float(tk)) for tk in times]
+        # Local motion at the samples (exact), then quintic Hermite in between; each sample is
+        # computed when its interval starts (an early touch-down changes the motion from then on).
+        samples = [self.motion.sample(0.0)]
         rest: list[Any] = [pin.SE3(M) if act else None for M, act in zip(self.motion.placements0, samples[0].active)]
         R, tr = self._equilibrium(samples[0], rest)
         quat = pin.Quaternion(R)
@@ -767,14 +885,24 @@ class Simulator:
         floor_z = float(np.mean([M.translation[2] for M in rest if M is not None]))
         # Each sole's normal to the floor, in its own frame (from the standing posture).
         floor_normal = [M.rotation.T @ E_Z for M in self.motion.placements0]
+        replanned = [False]  # an early touch-down changed the local motion in the current interval
 
         def land(ci, t, y, q_local):
             """Start a contact episode at ``t``: the spring's rest placement and the recorded one."""
             model, data = self.motion.model, self.motion.data
             fid = robot.contact_frame_ids[ci]
             sw = swinging[ci]
-            # What the robot believes: where its foot is planned to land, in the local frame.
-            local_rest[ci] = (self.motion.contact_targets(sw.land)[0][ci] if sw is not None else
+            planned = self.motion.contact_targets(sw.land)[0][ci] if sw is not None else None
+            stop = None
+            if floor_mode and sw is not None and t < sw.land:
+                # touched before its scheduled landing: the foot stops there (Stop), the plan's
+                # remaining descent is dropped
+                stop = self.motion.stop(ci, t)
+                replanned[0] = True
+            # What the robot believes: where its foot rests, in the local frame (the placement its
+            # kinematics holds from the end of the landing on).
+            local_rest[ci] = (self.motion.contact_targets(stop.end)[0][ci] if stop is not None else planned
+                              if planned is not None else
                               (pin.framesForwardKinematics(model, data, q_local), data.oMf[fid].copy())[1])
             if self.touchdown == "deflected":  # where the robot believes it is: preloaded by the deflection
                 rest[ci] = pin.SE3(local_rest[ci])
@@ -795,6 +923,11 @@ class Simulator:
                             "world_p": rest[ci].translation.tolist(), "world_R": rest[ci].rotation.tolist(),
                             "local_p": local_rest[ci].translation.tolist(),
                             "above_floor": float(rest[ci].translation[2] - floor_z)}
+            if stop is not None:  # how far the foot stopped from its planned landing, in the local frame:
+                # at rest, then once the leg has levelled
+                episodes[ci]["local_off_plan"] = (local_rest[ci].translation - planned.translation).tolist()
+                episodes[ci]["levelled_off_plan"] = (self.motion.contact_targets(stop.levelled)[0][ci].translation
+                                                     - planned.translation).tolist()
 
         def release(ci, t):
             """End contact ``ci``'s episode at ``t``."""
@@ -899,10 +1032,13 @@ class Simulator:
             truth_amb[k] = ev.ambient
             ft_true[k] = ev.local_wrenches
             active[k] = [M is not None for M in rest]
+            commanded = self.motion.contact_targets(tk)[0]
             for ci in range(nc):
                 if rest[ci] is not None:
-                    rec_rest_p[k, ci] = local_rest[ci].translation
-                    rec_rest_R[k, ci] = local_rest[ci].rotation
+                    # the placement the robot's kinematics holds the contact at: its landing, or
+                    # while it brakes, levels or lifts, where the leg puts it
+                    rec_rest_p[k, ci] = commanded[ci].translation
+                    rec_rest_R[k, ci] = commanded[ci].rotation
                 else:
                     # placement in the air: where the contact frame is in the local frame
                     pin.framesForwardKinematics(self.motion.model, self.motion.data, local.q)
@@ -922,16 +1058,20 @@ class Simulator:
             truth["cop"][k] = center_of_pressure(ev.wrenches.sum(axis=0), z0=0.0)
             if k == n - 1:
                 break
+            samples.append(self.motion.sample(float(times[k + 1])))
+            replanned[0] = False
             for j in range(sub):
                 s0 = j / sub
-                l0 = local_at(k, s0)
-                lm = local_at(k, s0 + 0.5 / sub)
-                l1 = local_at(k, s0 + 1.0 / sub) if j < sub - 1 else LocalSample(
-                    samples[k + 1].q, samples[k + 1].v, samples[k + 1].a, local.active)
                 t0 = tk + j * h
                 if amb is not None:
                     disturbance = amb[k * sub + j]
-                k1 = k1_sample if j == 0 else deriv_with_events(t0, y, l0)[0]
+                k1 = k1_sample if j == 0 else deriv_with_events(t0, y, local_at(k, s0))[0]
+                if replanned[0]:  # an early touch-down at t0 changed the motion: re-solve the next sample
+                    samples[k + 1] = self.motion.sample(float(times[k + 1]))
+                    replanned[0] = False
+                lm = local_at(k, s0 + 0.5 / sub)
+                l1 = local_at(k, s0 + 1.0 / sub) if j < sub - 1 else LocalSample(
+                    samples[k + 1].q, samples[k + 1].v, samples[k + 1].a, local.active)
                 if amb is not None:
                     disturbance = 0.5 * (amb[k * sub + j] + amb[k * sub + j + 1])
                 k2, _ = deriv(t0 + 0.5 * h, y + 0.5 * h * k1, lm, rest)

@@ -117,23 +117,25 @@ def test_imu_model_reproduces_noise_free_readings(busy):
 
 def test_contact_law_reproduces_ground_truth_wrenches(busy):
     """Eq. (6)-(12) on the ground truth give the wrenches of the simulator's springs, anchored at
-    the true footholds, wherever the foot is where the robot plans it (the recorded placement):
-    not while a lifting foot unloads or a landing foot that touched the floor early still moves."""
+    the true footholds, wherever the foot is held still in the local frame at its recorded
+    placement: not while a lifting foot unloads, nor while a landing foot that touched the floor
+    early brakes and levels (its local placement moves: the law has no local contact velocity)."""
     sim, rec = busy
     tr = rec.truth
     checked = 0
     for k in range(rec.n):
-        planned = sim.motion.contact_targets(rec.time[k])[3]
+        _, vel, _, planned = sim.motion.contact_targets(rec.time[k])
         for i in range(len(rec.contact_names)):
             if not rec.contact_active[k, i]:
                 np.testing.assert_array_equal(tr.wrench[k, i], 0.0)
                 continue
-            if not planned[i]:
+            if not planned[i] or np.any(vel[i] != 0.0):
                 continue
             checked += 1
             wr = _model_wrench(rec, k, i, _params(sim.springs[i]))
             np.testing.assert_allclose(wr, tr.wrench[k, i], atol=1e-6 * np.abs(tr.wrench[k, i]).max())
-    assert checked > 0.9 * rec.contact_active.sum()
+    # the 0.42 s of braking and levelling of the right foot, which touches the floor early, are skipped
+    assert checked > 0.85 * rec.contact_active.sum()
 
 
 def test_step_changes_contacts_without_jump_in_flexibility(busy):
@@ -154,8 +156,11 @@ def test_step_changes_contacts_without_jump_in_flexibility(busy):
         assert np.abs(dtr).max() < dt * dt * np.abs(tr.a[k - 1:k + 1]).max() + 1e-9
     k = changes[1]
     assert tr.wrench[k - 1, 1, 2] == 0.0  # touch-down: see test_touchdown_*
-    # while in the air the contact's placement moves; the landing rest placement is where it landed
-    np.testing.assert_allclose(rec.contact_p[-1, 1][:2] - rec.contact_p[0, 1][:2], [0.05, 0.0], atol=1e-9)
+    # while in the air the contact's placement moves; the landing rest placement is where it landed:
+    # the planned 5 cm, short of the travel left when the foot touched the floor early
+    ep = rec.meta["contact_episodes"][-1]
+    short = np.array(ep.get("local_off_plan", [0.0, 0.0, 0.0]))[:2]
+    np.testing.assert_allclose(rec.contact_p[-1, 1][:2] - rec.contact_p[0, 1][:2], [0.05, 0.0] + short, atol=1e-9)
 
 
 def test_statics_standing_still():
