@@ -48,7 +48,7 @@ from flexforce.errors import ConfigError
 from flexforce.factors import core
 from flexforce.factors.effects import ProblemView
 
-__all__ = ["FootholdPrior", "Footholds", "episode_starts"]
+__all__ = ["FootholdPrior", "Footholds", "episode_starts", "held_rest"]
 
 WALK_WITHIN = 1e-3
 """Random-walk sigma of a foothold within an episode, relative to its kinematic sigma."""
@@ -124,6 +124,22 @@ def episode_starts(active: np.ndarray) -> np.ndarray:
     out = np.zeros_like(active, dtype=bool)
     out[1:] = active[1:] & ~active[:-1]
     return out
+
+
+def held_rest(active: np.ndarray, contact_p: np.ndarray, contact_R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Nominal footholds: each contact's placement at the first step of its episode, held while it
+    stays in force ((N, C, 3), (N, C, 3, 3); the placements themselves where it is not in force).
+
+    The rest placement of an episode is one placement in the world; a contact that moves in the
+    local frame during its episode (a foot levelling after an early touch-down, a sole rolling)
+    deflects its spring by that motion instead of dragging its rest placement along."""
+    p = np.array(contact_p, dtype=float)
+    R = np.array(contact_R, dtype=float)
+    for k in range(1, len(p)):
+        keep = active[k] & active[k - 1]
+        p[k, keep] = p[k - 1, keep]
+        R[k, keep] = R[k - 1, keep]
+    return p, R
 
 
 def _skew(v):

@@ -11,7 +11,7 @@ import sys
 import time
 from pathlib import Path
 
-from flexforce.errors import FlexforceError
+from flexforce.errors import ConfigError, FlexforceError
 
 
 class Progress:
@@ -92,6 +92,11 @@ def _cmd_run(args) -> int:
     options = {}
     if args.lag is not None:
         options["lag"] = args.lag
+    if args.footholds:
+        if args.estimator == "ekf":
+            raise ConfigError("--footholds estimates the footholds in the smoothers (fixed-lag, batch); the EKF "
+                              "resets them at each touch-down instead: EKFConfig(touchdown='zero-deflection')")
+        options["footholds"] = True
     est = run_estimator(args.estimator, rec, model,
                         progress=Progress(f"{args.estimator}", enabled=not args.quiet and None), **options)
     out = Path(args.output)
@@ -304,6 +309,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="overwrite an existing .mcap output")
     p.add_argument("--ft", action="store_true", help="fuse the recording's F/T readings as measurements")
     p.add_argument("--lag", type=float, help="fixed-lag window, s (default 1)")
+    p.add_argument("--footholds", action="store_true",
+                   help="smoothers: estimate every contact episode's foothold (leg kinematics at the touch-down, "
+                        "ground plane of the robot's [footholds] table) instead of holding the given one")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_run)
 
