@@ -429,6 +429,9 @@ class _Topics:
         self.path, self.types, self.msgs, self.t_ns = path, types, msgs, t_ns
 
     def get(self, topic: str, msgtype: str, why: str = "") -> list:
+        if topic not in self.msgs and topic in self.types:
+            raise BagError(f"topic {topic} ({self.types[topic]}) of bag {self.path} has no messages; expected one "
+                           f"per sample{why}")
         if topic not in self.msgs:
             raise BagError(f"bag {self.path} lacks topic {topic}; expected it{why}")
         if self.types[topic] != msgtype:
@@ -498,6 +501,9 @@ def load_recording(path) -> Recording:
         raise BagError(f"bag {path} does not exist; expected a ROS 2 bag directory, "
                        ".mcap/.db3 file or ROS 1 .bag file")
     types, msgs = _read_bag(path)
+    if empty := [t for t in (META_TOPIC, INPUTS_TOPIC) if t in types and t not in msgs]:
+        raise BagError(f"topic {' and '.join(empty)} of bag {path} has no messages; expected a flexforce "
+                       "recording written completely")
     if missing := [t for t in (META_TOPIC, INPUTS_TOPIC) if t not in msgs]:
         raise BagError(f"bag {path} lacks {' and '.join(missing)}: {_NOT_FLEXFORCE}")
     for topic, msgtype in ((META_TOPIC, T_STRING), (INPUTS_TOPIC, T_ARRAY)):

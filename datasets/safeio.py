@@ -197,19 +197,21 @@ def is_bag_folder(path: Path) -> bool:
                for e in path.iterdir())
 
 
-def check_output(path: str | Path, what: str, *, suffixes: tuple[str, ...] | None = None, folder: bool = False,
-                 overwrite: bool = True, replaceable: Callable[[Path], bool] | None = None,
-                 replaceable_what: str = "") -> Path:
+def check_output(path: str | Path, what: str, *, suffixes: tuple[str, ...] | None = None,
+                 file_suffixes: tuple[str, ...] = (), folder: bool = False, overwrite: bool = True,
+                 replaceable: Callable[[Path], bool] | None = None, replaceable_what: str = "") -> Path:
     """Check, before any work, that ``path`` can be written; return it as a :class:`Path`.
 
     Args:
         path: the output (a file, or a folder when ``folder``).
         what: what is written, for the messages (``estimate``, ``report folder``...).
         suffixes: the suffixes the writer knows (``None``: any; ``""`` stands for none).
+        file_suffixes: for a folder, suffixes refused because they name a file (``.npz``...).
         folder: the output is a folder (a report, a ROS 2 bag directory).
         overwrite: an existing output may be replaced; otherwise it is refused.
-        replaceable: for an existing folder, whether it may be replaced (a report folder, a bag:
-            never a folder of other files); ``replaceable_what`` says what it must be.
+        replaceable: whether an existing output may be replaced (a report folder, a bag: never a
+            folder of other files); ``replaceable_what`` says what it must be.  Without it, an
+            existing file is replaced by a file and a folder by a folder.
 
     Raises:
         OutputError: naming the path, what is wrong and what is expected.
@@ -221,6 +223,9 @@ def check_output(path: str | Path, what: str, *, suffixes: tuple[str, ...] | Non
     if suffixes is not None and path.suffix not in suffixes:
         known = ", ".join(s or "no suffix" for s in suffixes)
         raise OutputError(f"output {path} has suffix {path.suffix or '(none)'!r}; expected {known} for the {what}")
+    if folder and path.suffix in file_suffixes:
+        raise OutputError(f"output {path} has the suffix of a file ({path.suffix}); expected a folder name for "
+                          f"the {what}")
     parent = path.parent
     if not parent.exists():
         raise OutputError(f"folder {parent} of output {path} does not exist; expected an existing folder "
@@ -241,13 +246,15 @@ def check_output(path: str | Path, what: str, *, suffixes: tuple[str, ...] | Non
     if path.exists() or path.is_symlink():
         if not overwrite:
             raise OutputError(f"{path} exists already; expected a new path (or --force to replace it)")
-        if folder and not path.is_dir():
+        if replaceable is not None:
+            if not replaceable(path):
+                kind = "folder" if path.is_dir() else "file"
+                raise OutputError(f"cannot replace {path}: it is a {kind} that is not {replaceable_what}; expected "
+                                  f"a new path (remove the {kind} yourself to reuse its name)")
+        elif folder and not path.is_dir():
             raise OutputError(f"{path} is a file; expected a new path or a folder for the {what}")
-        if not folder and path.is_dir():
+        elif not folder and path.is_dir():
             raise OutputError(f"{path} is a folder; expected a file path for the {what}")
-        if folder and replaceable is not None and not replaceable(path):
-            raise OutputError(f"cannot replace {path}: it is a folder that is not {replaceable_what}; expected a "
-                              "new path (remove the folder yourself to reuse its name)")
     lock = lock_path(path)
     if lock.exists() and _key(path) not in _held and not _stale(lock):
         pid = _read_pid(lock)
