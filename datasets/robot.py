@@ -384,8 +384,8 @@ class RobotConfig:
         if missing := [k for k in STIFFNESS_UNITS if k not in raw["stiffness"]]:
             raise ConfigError(f"[stiffness] lacks {', '.join(f'{k} ({STIFFNESS_UNITS[k]})' for k in missing)}{where}; "
                               "expected all of k_fs, k_fd, k_ts and k_td")
-        if "gravity" in raw:
-            _check_positive("robot", "gravity", raw["gravity"], "m/s^2", "a positive, finite acceleration")
+        if "gravity" in raw and not _positive_number(raw["gravity"]):
+            raise ConfigError(f"gravity = {raw['gravity']!r} m/s^2{where}; expected a positive, finite acceleration")
         try:
             contacts = tuple(ContactConfig(**c) for c in raw.pop("contacts"))
             stiffness = Stiffness(**{k: tuple(v) if isinstance(v, list) else v
@@ -531,7 +531,7 @@ class RobotModel:
         for i in range(1, full.njoints):
             link_mass = float(full.inertias[i].mass)
             if not (math.isfinite(link_mass) and link_mass >= 0):
-                raise ConfigError(f"the mass carried by joint '{full.names[i]}' of the URDF {config.urdf} is "
+                raise ConfigError(f"the mass of the links moved by joint '{full.names[i]}' in the URDF {config.urdf} is "
                                   f"{link_mass!r} kg; expected a non-negative, finite mass")
         q_ref = pin.neutral(full)
         if config.srdf:
