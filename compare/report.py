@@ -20,7 +20,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from flexforce.compare.metrics import RMSE_KEYS  # noqa: E402
-from flexforce.datasets.safeio import is_report_folder, safe_output  # noqa: E402
+from flexforce.datasets.safeio import replaceable_by_report, safe_output  # noqa: E402
 from flexforce.errors import OutputError  # noqa: E402
 from flexforce.factors import so3  # noqa: E402
 
@@ -523,7 +523,7 @@ def report_folder(target: Path) -> AbstractContextManager[Path]:
     """Where a report folder is built: a temporary sibling of ``target``, swapped in when complete
     (:func:`flexforce.datasets.safeio.safe_output`); an existing ``target`` is replaced only if it
     holds a flexforce report and nothing else."""
-    if target.exists() and not is_report_folder(target):
+    if target.exists() and not replaceable_by_report(target):
         raise OutputError(f"cannot replace {target}: it is not a flexforce report folder (index.html, .json and "
                           "figures only); expected a new path or an earlier report")
     return safe_output(target, folder=True)

@@ -37,7 +37,7 @@ STIFFNESS_UNITS = {"k_fs": "N/m", "k_fd": "N s/m", "k_ts": "N m/rad", "k_td": "N
 
 def _positive_number(value) -> bool:
     return (isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
-            and value > 0)
+            and float(value) > 0)
 
 
 def _check_positive(section: str, key: str, value, unit: str, what: str) -> None:
@@ -379,8 +379,8 @@ class RobotConfig:
             if not isinstance(table, dict):
                 raise ConfigError(f"{section} = {table!r}{where}; expected a [{section}] table")
             known_keys = [f for f in cls_.__dataclass_fields__]
-            if unknown := sorted(set(table) - set(known_keys)):
-                raise ConfigError(f"unknown key(s) {unknown} in [{section}]{where}; known keys: {known_keys}")
+            if extra := sorted(set(table) - set(known_keys)):
+                raise ConfigError(f"unknown key(s) {extra} in [{section}]{where}; known keys: {known_keys}")
         if missing := [k for k in STIFFNESS_UNITS if k not in raw["stiffness"]]:
             raise ConfigError(f"[stiffness] lacks {', '.join(f'{k} ({STIFFNESS_UNITS[k]})' for k in missing)}{where}; "
                               "expected all of k_fs, k_fd, k_ts and k_td")
@@ -531,8 +531,8 @@ class RobotModel:
         for i in range(1, full.njoints):
             link_mass = float(full.inertias[i].mass)
             if not (math.isfinite(link_mass) and link_mass >= 0):
-                raise ConfigError(f"the mass of the links moved by joint '{full.names[i]}' in the URDF {config.urdf} is "
-                                  f"{link_mass!r} kg; expected a non-negative, finite mass")
+                raise ConfigError(f"the mass of the links moved by joint '{full.names[i]}' in the URDF "
+                                  f"{config.urdf} is {link_mass!r} kg; expected a non-negative, finite mass")
         q_ref = pin.neutral(full)
         if config.srdf:
             try:

@@ -189,6 +189,11 @@ def is_report_folder(path: Path) -> bool:
     return True
 
 
+def replaceable_by_report(path: Path) -> bool:
+    """An empty folder, or a report folder (:func:`is_report_folder`): a new report may replace it."""
+    return path.is_dir() and (not any(path.iterdir()) or is_report_folder(path))
+
+
 def is_bag_folder(path: Path) -> bool:
     """A ROS 2 bag directory: metadata.yaml and storage files only."""
     if not path.is_dir() or not (path / "metadata.yaml").is_file():

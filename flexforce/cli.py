@@ -77,9 +77,10 @@ def _check_bag_output(path: Path, force: bool, what: str) -> Path:
 
 
 def _check_report_output(path: Path) -> Path:
-    from flexforce.datasets.safeio import check_output, is_report_folder
+    from flexforce.datasets.safeio import check_output, replaceable_by_report
 
-    return check_output(path, "report folder", folder=True, file_suffixes=FILE_SUFFIXES, replaceable=is_report_folder,
+    return check_output(path, "report folder", folder=True, file_suffixes=FILE_SUFFIXES,
+                        replaceable=replaceable_by_report,
                         replaceable_what="a flexforce report (index.html, .json and figures only)")
 
 
@@ -482,7 +483,7 @@ def interrupted(err: BaseException) -> bool:
     return False
 
 
-def _one_line(text: str) -> str:
+def _one_line(text: object) -> str:
     return " ".join(str(text).split())
 
 

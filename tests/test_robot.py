@@ -173,8 +173,9 @@ def test_stiffness_checked_when_built_in_python():
 def test_k_ts_against_gravity_toppling(tmp_path):
     """Romeo: m g h = 40.5 kg x 9.81 x 0.663 m = 263 N m/rad.  Below it with both feet in force (2 k_ts): an
     error; below it for one foot alone: a warning (single support unstable, double support fine)."""
-    with pytest.warns(ConfigWarning, match=r"stiffness.k_ts = 200 N m/rad of robot 'romeo' is not above the gravity "
-                                           r"toppling stiffness m g h = 40.5 kg x 9.81 m/s\^2 x 0.66\d m = 26\d N m/rad"):
+    with pytest.warns(ConfigWarning, match=r"stiffness.k_ts = 200 N m/rad of robot 'romeo' is not above the "
+                                           r"gravity toppling stiffness m g h = 40.5 kg x 9.81 m/s\^2 x 0.66\d m = "
+                                           r"26\d N m/rad"):
         RobotModel(RobotConfig.load(_romeo_with(tmp_path, "k_ts = 450.0", "k_ts = 200.0")))
     with pytest.raises(ConfigError, match=r"stiffness.k_ts = 100.0 N m/rad of robot 'romeo': with its 2 contact\(s\) "
                                           r"in force the tilt stiffness about y \(pitch\) is 200 N m/rad, not above "
@@ -197,8 +198,8 @@ def test_negative_and_zero_masses_in_the_urdf(tmp_path):
 
     config = RobotConfig.load("romeo")
     urdf = Path(config.urdf).read_text()
-    for value, message in (("-1.0", r"the mass of the links moved by joint '\w+' in the URDF .*neg.urdf is -\d+\.\d+ kg; expected a "
-                                    "non-negative, finite mass"),
+    for value, message in (("-1.0", r"the mass of the links moved by joint '\w+' in the URDF .*neg.urdf is "
+                                    r"-\d+\.\d+ kg; expected a non-negative, finite mass"),
                            ("0.0", "the total mass of robot 'romeo' in the URDF .*neg.urdf is 0.0 kg; expected a "
                                    "positive mass")):
         (tmp_path / "neg.urdf").write_text(re.sub(r'<mass value="[^"]*"', f'<mass value="{value}"', urdf))

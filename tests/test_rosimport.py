@@ -442,6 +442,7 @@ def test_bad_config(romeo, tmp_path, good_topics):
         RosConfig(contact_on=150.0, contact_off=160.0)
     with pytest.raises(ConfigError, match=r"unknown key\(s\) \['imu_topc'\] in \[ros\]"):
         RobotConfig.from_dict({"name": "x", "urdf": "x", "imu_frame": "x", "contacts": [],
+                               "stiffness": {"k_fs": 1e4, "k_fd": 1e2, "k_ts": 3e2, "k_td": 5.0},
                                "ros": {"imu_topc": "/imu"}})
 
 

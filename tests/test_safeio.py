@@ -9,7 +9,14 @@ import sys
 import numpy as np
 import pytest
 
-from flexforce.datasets.safeio import check_output, is_report_folder, lock_path, output_lock, safe_output
+from flexforce.datasets.safeio import (
+    check_output,
+    is_report_folder,
+    lock_path,
+    output_lock,
+    replaceable_by_report,
+    safe_output,
+)
 from flexforce.errors import OutputError
 
 
@@ -77,8 +84,8 @@ def test_a_second_writer_is_refused(tmp_path):
     other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
     try:
         lock_path(target).write_text(f"{other.pid}\n")
-        with pytest.raises(OutputError, match=rf"est.npz is being written by process {other.pid} \(lock .*est.npz.lock\); "
-                                              "expected one writer at a time"):
+        with pytest.raises(OutputError, match=rf"est.npz is being written by process {other.pid} "
+                                              r"\(lock .*est.npz.lock\); expected one writer at a time"):
             with safe_output(target):
                 pass
         with pytest.raises(OutputError, match=f"being written by process {other.pid}"):
@@ -156,11 +163,11 @@ def test_check_output_refuses_a_read_only_folder(tmp_path):
 def test_is_report_folder(tmp_path):
     rep = tmp_path / "rep"
     rep.mkdir()
-    assert not is_report_folder(rep)
+    assert not is_report_folder(rep) and replaceable_by_report(rep)  # empty: nothing to lose
     (rep / "index.html").write_text("")
     (rep / "summary.json").write_text("")
     (rep / "seed0").mkdir()
     (rep / "seed0" / "index.html").write_text("")
     assert is_report_folder(rep)
     (rep / "thesis.tex").write_text("")
-    assert not is_report_folder(rep)
+    assert not is_report_folder(rep) and not replaceable_by_report(rep)
