@@ -116,9 +116,12 @@ class ImuNoise:
     """Accelerometer bias random walk, m/s^3/sqrt(Hz)."""
 
     def __post_init__(self):
-        for key, unit in (("gyro_density", "rad/s/sqrt(Hz)"), ("accel_density", "m/s^2/sqrt(Hz)"),
-                          ("gyro_bias_rw", "rad/s^2/sqrt(Hz)"), ("accel_bias_rw", "m/s^3/sqrt(Hz)")):
+        for key, unit in (("gyro_density", "rad/s/sqrt(Hz)"), ("accel_density", "m/s^2/sqrt(Hz)")):
             _check_positive("imu_noise", key, getattr(self, key), unit, "a positive, finite noise density")
+        for key, unit in (("gyro_bias_rw", "rad/s^2/sqrt(Hz)"), ("accel_bias_rw", "m/s^3/sqrt(Hz)")):
+            value = getattr(self, key)  # 0: biases that do not drift
+            if not (value == 0 or _positive_number(value)) or isinstance(value, bool):
+                raise ConfigError(f"imu_noise.{key} = {value!r} {unit}; expected a finite random walk >= 0")
 
     def gyro_sigma(self, rate: float) -> float:
         """Per-sample gyro standard deviation (rad/s) at ``rate`` Hz."""

@@ -225,3 +225,12 @@ def _short_recording(n: int) -> Recording:
 
     rec = Simulator(Scenario.from_dict({"name": "s", "duration": 0.1}), noise=False).run()
     return rec.slice(0, n)
+
+
+def test_imu_bias_random_walks_may_be_zero():
+    from flexforce.datasets.robot import ImuNoise
+
+    ImuNoise(gyro_bias_rw=0.0, accel_bias_rw=0.0)
+    with pytest.raises(ConfigError, match=r"imu_noise.accel_bias_rw = -1.0 m/s\^3/sqrt\(Hz\); expected a finite "
+                                          "random walk >= 0"):
+        ImuNoise(accel_bias_rw=-1.0)
