@@ -17,7 +17,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy import stats  # noqa: E402
 
-from flexforce.compare.report import LABELS  # noqa: E402
+from flexforce.compare.report import LABELS, report_folder  # noqa: E402
 
 BEFORE, AFTER = "tab:red", "tab:green"
 
@@ -210,7 +210,13 @@ def figure_wrench(diag):
 
 def write_diagnosis(diag, out: str | Path, title: str = "flexforce diagnosis") -> Path:
     """Write DIR/diagnosis.json, DIR/index.html and the figures; returns the folder."""
-    out = Path(out)
+    target = Path(out)
+    with report_folder(target) as out:
+        _write_diagnosis(diag, out, title)
+    return target
+
+
+def _write_diagnosis(diag, out: Path, title: str) -> None:
     out.mkdir(parents=True, exist_ok=True)
     (out / "diagnosis.json").write_text(json.dumps(diag.to_json(), indent=2, allow_nan=False))
     figures = {"residuals_before.png": lambda: figure_residuals(diag.before, diag.ekf, "Nominal model"),
@@ -268,4 +274,3 @@ sizes are the RMS and mean of the residual in its physical unit.</p>
 </body></html>
 """
     (out / "index.html").write_text(page)
-    return out

@@ -10,6 +10,7 @@ from __future__ import annotations
 import html
 import json
 import math
+from contextlib import AbstractContextManager
 from pathlib import Path
 
 import matplotlib
@@ -19,6 +20,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from flexforce.compare.metrics import RMSE_KEYS  # noqa: E402
+from flexforce.datasets.safeio import replaceable_by_report, safe_output  # noqa: E402
+from flexforce.errors import OutputError  # noqa: E402
 from flexforce.factors import so3  # noqa: E402
 
 COLORS = {"ekf": "tab:red", "fixed_lag": "tab:blue", "batch": "tab:green", "leg_odometry": "tab:gray"}
@@ -505,8 +508,28 @@ def per_contact_table_html(summary: dict) -> str:
 
 
 def write_report(comp, rec, out_dir: str | Path, title: str | None = None) -> Path:
-    """Write index.html, summary.json and the figures of a comparison into ``out_dir``."""
-    out = Path(out_dir)
+    """Write index.html, summary.json and the figures of a comparison into ``out_dir``.
+
+    The folder is built aside and swapped in when complete (:func:`report_folder`): an interrupted
+    report leaves the previous one whole, never a mixture of old and new files.
+    """
+    target = Path(out_dir)
+    with report_folder(target) as out:
+        _write_report(comp, rec, out, title)
+    return target
+
+
+def report_folder(target: Path) -> AbstractContextManager[Path]:
+    """Where a report folder is built: a temporary sibling of ``target``, swapped in when complete
+    (:func:`flexforce.datasets.safeio.safe_output`); an existing ``target`` is replaced only if it
+    holds a flexforce report and nothing else."""
+    if target.exists() and not replaceable_by_report(target):
+        raise OutputError(f"cannot replace {target}: it is not a flexforce report folder (index.html, .json and "
+                          "figures only); expected a new path or an earlier report")
+    return safe_output(target, folder=True)
+
+
+def _write_report(comp, rec, out: Path, title: str | None) -> None:
     out.mkdir(parents=True, exist_ok=True)
     summary = comp.summary()
     (out / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=False))
@@ -587,4 +610,3 @@ for a consistent estimator. {baseline_text} {' '.join(extra)}</p>
 </body></html>
 """
     (out / "index.html").write_text(page)
-    return out

@@ -92,13 +92,13 @@ from __future__ import annotations
 
 import json
 import re
-import shutil
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from flexforce.datasets.recording import Recording, Truth
+from flexforce.datasets.safeio import is_bag_folder, safe_output
 from flexforce.errors import BagError
 
 __all__ = ["FORMAT_NAME", "FORMAT_VERSION", "inputs_layout", "load_recording", "save_recording"]
@@ -163,22 +163,15 @@ def _check_names(kind: str, names) -> None:
         seen.add(name)
 
 
-def _remove_old_bag(path: Path) -> None:
-    """Delete an existing bag at ``path`` (a bag directory or a single bag file), nothing else."""
+def check_replaceable_bag(path: Path) -> None:
+    """An existing ``path`` may be replaced only if it is a bag (a bag directory or a single bag file)."""
     if path.is_dir():
-        entries = list(path.iterdir())
-        looks_like_bag = (path / "metadata.yaml").is_file() and all(
-            e.is_file() and (e.name == "metadata.yaml" or e.suffix in {".mcap", ".db3", ".zstd"})
-            for e in entries)
-        if not looks_like_bag:
+        if not is_bag_folder(path):
             raise BagError(f"cannot overwrite {path}: it is a directory that is not a ROS 2 bag "
                            "(expected metadata.yaml and .mcap/.db3 files only); remove it yourself")
-        shutil.rmtree(path)
-    else:
-        if path.suffix not in {".mcap", ".db3", ".bag"}:
-            raise BagError(f"cannot overwrite {path}: it is a file that is not a bag "
-                           "(expected a .mcap, .db3 or .bag file); remove it yourself")
-        path.unlink()
+    elif path.suffix not in {".mcap", ".db3", ".bag"}:
+        raise BagError(f"cannot overwrite {path}: it is a file that is not a bag "
+                       "(expected a .mcap, .db3 or .bag file); remove it yourself")
 
 
 def _meta_json(rec: Recording) -> str:
@@ -217,7 +210,8 @@ def save_recording(rec: Recording, path, *, overwrite: bool = False) -> Path:
 
     The layout is described in the module docstring.  The recording is validated first
     (:meth:`Recording.validate`).  An existing ``path`` is refused with :class:`BagError`
-    unless ``overwrite=True``; even then only an existing bag is replaced.
+    unless ``overwrite=True``; even then only an existing bag is replaced.  The bag is written
+    aside and moved into place when complete (:func:`flexforce.datasets.safeio.safe_output`).
     """
     from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
 
@@ -243,18 +237,17 @@ def save_recording(rec: Recording, path, *, overwrite: bool = False) -> Path:
     if path.exists() or path.is_symlink():
         if not overwrite:
             raise BagError(f"{path} exists already; expected a new path (or overwrite=True)")
-        _remove_old_bag(path)
+        check_replaceable_bag(path)
 
     ts = _typestore()
-    try:
-        with Writer(path, version=8, storage_plugin=StoragePlugin.MCAP) as writer:
-            _write(writer, ts, rec, meta)
-    except (WriterError, OSError) as err:
-        shutil.rmtree(path, ignore_errors=True)  # the path did not exist before: it is ours
-        raise BagError(f"cannot write bag {path}: {err}") from err
-    except BaseException:
-        shutil.rmtree(path, ignore_errors=True)
-        raise
+    # Written aside and swapped in when complete (safeio): an interrupted save leaves the previous
+    # bag or none, and a second writer of the same path is refused.
+    with safe_output(path, folder=True) as tmp:
+        try:
+            with Writer(tmp, version=8, storage_plugin=StoragePlugin.MCAP) as writer:
+                _write(writer, ts, rec, meta)
+        except (WriterError, OSError) as err:
+            raise BagError(f"cannot write bag {path}: {err}") from err
     return path
 
 
@@ -436,6 +429,9 @@ class _Topics:
         self.path, self.types, self.msgs, self.t_ns = path, types, msgs, t_ns
 
     def get(self, topic: str, msgtype: str, why: str = "") -> list:
+        if topic not in self.msgs and topic in self.types:
+            raise BagError(f"topic {topic} ({self.types[topic]}) of bag {self.path} has no messages; expected one "
+                           f"per sample{why}")
         if topic not in self.msgs:
             raise BagError(f"bag {self.path} lacks topic {topic}; expected it{why}")
         if self.types[topic] != msgtype:
@@ -505,6 +501,9 @@ def load_recording(path) -> Recording:
         raise BagError(f"bag {path} does not exist; expected a ROS 2 bag directory, "
                        ".mcap/.db3 file or ROS 1 .bag file")
     types, msgs = _read_bag(path)
+    if empty := [t for t in (META_TOPIC, INPUTS_TOPIC) if t in types and t not in msgs]:
+        raise BagError(f"topic {' and '.join(empty)} of bag {path} has no messages; expected a flexforce "
+                       "recording written completely")
     if missing := [t for t in (META_TOPIC, INPUTS_TOPIC) if t not in msgs]:
         raise BagError(f"bag {path} lacks {' and '.join(missing)}: {_NOT_FLEXFORCE}")
     for topic, msgtype in ((META_TOPIC, T_STRING), (INPUTS_TOPIC, T_ARRAY)):

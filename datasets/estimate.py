@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from flexforce.datasets.safeio import safe_output
 from flexforce.errors import DataError
 
 STATE_LABELS = ("theta_x", "theta_y", "theta_z", "t_x", "t_y", "t_z", "w_x", "w_y", "w_z",
@@ -92,7 +93,12 @@ class Estimate:
 
     # ------------------------------------------------------------------------------------------
     def save(self, path: str | Path) -> Path:
-        """Write to a compressed ``.npz`` file (arrays plus a JSON header)."""
+        """Write to a compressed ``.npz`` file (arrays plus a JSON header); return its path.
+
+        The file is written aside and moved into place when complete
+        (:func:`flexforce.datasets.safeio.safe_output`): an interrupted save leaves the previous
+        file, and a second writer of the same file is refused with an :class:`OutputError`.
+        """
         path = Path(path)
         if path.suffix != ".npz":
             path = path.with_suffix(path.suffix + ".npz") if path.suffix else path.with_suffix(".npz")
@@ -111,7 +117,8 @@ class Estimate:
                   "total_time": self.total_time, "effects": self.effects, "meta": self.meta,
                   "residual_labels": {k: list(v) for k, v in self.residual_labels.items()}}
         arrays["header"] = np.array(json.dumps(header))
-        np.savez_compressed(path, **arrays)
+        with safe_output(path) as tmp:  # complete or not at all, one writer at a time
+            np.savez_compressed(tmp, **arrays)
         return path
 
     @classmethod

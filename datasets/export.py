@@ -38,7 +38,6 @@ absolute times, so estimates and measurements line up.
 from __future__ import annotations
 
 import re
-import shutil
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -48,6 +47,7 @@ from scipy.spatial.transform import Rotation
 
 from flexforce.datasets.estimate import STATE_LABELS, Estimate
 from flexforce.datasets.recording import Recording
+from flexforce.datasets.safeio import is_bag_folder, safe_output
 from flexforce.errors import BagError, DataError
 
 __all__ = ["csv_columns", "export_csv", "export_mcap"]
@@ -92,7 +92,7 @@ def export_csv(estimate: Estimate, path) -> Path:
         parts.append(np.sqrt(np.maximum(np.diagonal(estimate.cop_cov, axis1=1, axis2=2), 0.0)))
     table = np.concatenate(parts, axis=1)
     cols = csv_columns(estimate)
-    with path.open("w") as f:
+    with safe_output(path) as tmp, tmp.open("w") as f:  # complete or not at all, one writer at a time
         f.write(",".join(cols) + "\n")
         for k, row in enumerate(table):
             cells = [repr(float(x)) for x in row]
@@ -130,25 +130,24 @@ def export_mcap(estimate: Estimate, source, out_path, *, overwrite: bool = False
     if out_path.exists():
         if not overwrite:
             raise BagError(f"{out_path} exists already; expected a new path (or overwrite=True)")
-        if not (out_path / "metadata.yaml").is_file():
+        if not is_bag_folder(out_path):
             raise BagError(f"cannot overwrite {out_path}: it is not a ROS 2 bag directory; remove it yourself")
-        shutil.rmtree(out_path)
     if isinstance(source, (str, Path)) and Path(source).resolve() == out_path.resolve():
         raise BagError(f"output {out_path} is the input bag; expected a new path beside it")
     ts = _typestore()
-    try:
-        with Writer(out_path, version=8, storage_plugin=StoragePlugin.MCAP) as writer:
-            if isinstance(source, Recording):
-                _write_recording(writer, ts, source)
-            elif source is not None:
-                _copy_bag(writer, ts, Path(source))
-            _write_estimate(writer, ts, estimate)
-    except BagError:
-        shutil.rmtree(out_path, ignore_errors=True)
-        raise
-    except Exception as err:  # noqa: BLE001 -- a writer failure: report one line
-        shutil.rmtree(out_path, ignore_errors=True)
-        raise BagError(f"cannot write bag {out_path}: {' '.join(str(err).split()) or type(err).__name__}") from err
+    # Written aside and swapped in when complete: an interrupted export leaves the previous bag.
+    with safe_output(out_path, folder=True) as tmp:
+        try:
+            with Writer(tmp, version=8, storage_plugin=StoragePlugin.MCAP) as writer:
+                if isinstance(source, Recording):
+                    _write_recording(writer, ts, source)
+                elif source is not None:
+                    _copy_bag(writer, ts, Path(source))
+                _write_estimate(writer, ts, estimate)
+        except BagError:
+            raise
+        except Exception as err:  # noqa: BLE001 -- a writer failure: report one line
+            raise BagError(f"cannot write bag {out_path}: {' '.join(str(err).split()) or type(err).__name__}") from err
     return out_path
 
 

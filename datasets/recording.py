@@ -186,8 +186,26 @@ class Recording:
             truth = Truth(**{f.name: cut(getattr(self.truth, f.name)) for f in dataclasses.fields(Truth)})
         return Recording(**kwargs, truth=truth)
 
-    MIN_WINDOW_SAMPLES = 10
-    """Fewest samples :meth:`window` accepts: below this no estimator has anything to converge on."""
+    MIN_SAMPLES = 10
+    """Fewest samples the estimators accept (:meth:`require_samples`; :meth:`window` keeps at least
+    as many): below this no estimator has anything to converge on (a 10-sample EKF run has not
+    passed its initial transient; the smoothers' integration factors need several steps to
+    constrain the velocities)."""
+    MIN_WINDOW_SAMPLES = MIN_SAMPLES
+    """Fewest samples :meth:`window` accepts (:attr:`MIN_SAMPLES`)."""
+
+    def require_samples(self, minimum: int | None = None) -> Recording:
+        """The recording itself, when it holds at least ``minimum`` samples (:attr:`MIN_SAMPLES`).
+
+        Raises:
+            DataError: naming the count and the minimum.
+        """
+        minimum = self.MIN_SAMPLES if minimum is None else minimum
+        if self.n < minimum:
+            rate = f" at {1.0 / self.dt:.0f} Hz" if self.n >= 2 else ""
+            raise DataError(f"recording has {self.n} sample(s){rate}; the estimators need at least {minimum} "
+                            "samples")
+        return self
 
     def window(self, start: float | None = None, end: float | None = None) -> Recording:
         """The samples with ``start <= time <= end`` (seconds from the first sample) as a new Recording.

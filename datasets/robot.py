@@ -13,21 +13,38 @@ and the contact placements.
 from __future__ import annotations
 
 import math
+import numbers
 import re
 import site
 import sys
 import tomllib
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
 
-from flexforce.errors import ConfigError
+from flexforce.errors import ConfigError, ConfigWarning
 from flexforce.factors.physics import GRAVITY, ContactParams, ImuPlacement, Inputs
 
 ROBOTS_DIR = Path(__file__).resolve().parent / "robots"
 DEFAULT_ROBOT = "romeo"
+
+STIFFNESS_UNITS = {"k_fs": "N/m", "k_fd": "N s/m", "k_ts": "N m/rad", "k_td": "N m s/rad"}
+"""The keys of a robot configuration's ``[stiffness]`` section (all four required) and their units."""
+
+
+def _positive_number(value) -> bool:
+    return (isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+            and float(value) > 0)
+
+
+def _check_positive(section: str, key: str, value, unit: str, what: str) -> None:
+    """``value`` is a positive, finite number; a ConfigError naming ``section.key``, the value and unit otherwise."""
+    if not _positive_number(value):
+        shown = f"{value!r} {unit}" if unit else repr(value)
+        raise ConfigError(f"{section}.{key} = {shown}; expected {what}")
 
 
 def example_robot_data_dir() -> Path:
@@ -57,6 +74,24 @@ class Stiffness:
     k_td: float | tuple = 10.0
     """Rotational damping, N m s/rad."""
 
+    def __post_init__(self):
+        for key, unit in STIFFNESS_UNITS.items():
+            value = getattr(self, key)
+            kind = "damping" if key.endswith("d") else "stiffness"
+            if isinstance(value, list | tuple | np.ndarray):
+                ok = len(value) == 3 and all(_positive_number(v) for v in value)
+            else:
+                ok = _positive_number(value)
+            if not ok:
+                shown = list(value) if isinstance(value, tuple | np.ndarray) else value
+                raise ConfigError(f"stiffness.{key} = {shown!r} {unit}; expected a positive, finite {kind} (a number, "
+                                  "or 3 numbers: one per axis of the contact frame)")
+
+    def minimum(self, key: str) -> float:
+        """The smallest value of ``key`` over the axes (the value itself when isotropic)."""
+        value = getattr(self, key)
+        return float(np.min(value))
+
     def params(self) -> ContactParams:
         """The :class:`ContactParams` of one contact."""
         return ContactParams.make(self.k_fs, self.k_fd, self.k_ts, self.k_td)
@@ -80,6 +115,14 @@ class ImuNoise:
     accel_bias_rw: float = 2e-4
     """Accelerometer bias random walk, m/s^3/sqrt(Hz)."""
 
+    def __post_init__(self):
+        for key, unit in (("gyro_density", "rad/s/sqrt(Hz)"), ("accel_density", "m/s^2/sqrt(Hz)")):
+            _check_positive("imu_noise", key, getattr(self, key), unit, "a positive, finite noise density")
+        for key, unit in (("gyro_bias_rw", "rad/s^2/sqrt(Hz)"), ("accel_bias_rw", "m/s^3/sqrt(Hz)")):
+            value = getattr(self, key)  # 0: biases that do not drift
+            if not (value == 0 or _positive_number(value)) or isinstance(value, bool):
+                raise ConfigError(f"imu_noise.{key} = {value!r} {unit}; expected a finite random walk >= 0")
+
     def gyro_sigma(self, rate: float) -> float:
         """Per-sample gyro standard deviation (rad/s) at ``rate`` Hz."""
         return self.gyro_density * math.sqrt(rate)
@@ -97,6 +140,10 @@ class FtNoise:
     """N."""
     torque: float = 0.2
     """N m."""
+
+    def __post_init__(self):
+        _check_positive("ft_noise", "force", self.force, "N", "a positive, finite standard deviation")
+        _check_positive("ft_noise", "torque", self.torque, "N m", "a positive, finite standard deviation")
 
 
 @dataclass(frozen=True)
@@ -321,13 +368,31 @@ class RobotConfig:
         if unknown:
             raise ConfigError(f"unknown key(s) {sorted(unknown)} in robot configuration {source}; "
                               f"known keys: {sorted(known - {'source'})}")
+        where = f" in robot configuration {source}" if source else " in the robot configuration"
         for key in ("name", "urdf", "contacts", "imu_frame"):
             if key not in raw:
                 raise ConfigError(f"robot configuration {source} lacks '{key}'")
+        if "stiffness" not in raw:
+            # No default: the contact springs are the robot's (the seed's HRP-2 values suit a 58 kg
+            # robot and must be scaled to another, DESIGN.md "Stability").
+            raise ConfigError(f"the [stiffness] section is missing{where}; expected the contact spring-damper "
+                              f"of the robot: {', '.join(f'{k} ({u})' for k, u in STIFFNESS_UNITS.items())}")
+        for section, cls_ in (("stiffness", Stiffness), ("imu_noise", ImuNoise), ("ft_noise", FtNoise)):
+            table = raw.get(section, {})
+            if not isinstance(table, dict):
+                raise ConfigError(f"{section} = {table!r}{where}; expected a [{section}] table")
+            known_keys = [f for f in cls_.__dataclass_fields__]
+            if extra := sorted(set(table) - set(known_keys)):
+                raise ConfigError(f"unknown key(s) {extra} in [{section}]{where}; known keys: {known_keys}")
+        if missing := [k for k in STIFFNESS_UNITS if k not in raw["stiffness"]]:
+            raise ConfigError(f"[stiffness] lacks {', '.join(f'{k} ({STIFFNESS_UNITS[k]})' for k in missing)}{where}; "
+                              "expected all of k_fs, k_fd, k_ts and k_td")
+        if "gravity" in raw and not _positive_number(raw["gravity"]):
+            raise ConfigError(f"gravity = {raw['gravity']!r} m/s^2{where}; expected a positive, finite acceleration")
         try:
             contacts = tuple(ContactConfig(**c) for c in raw.pop("contacts"))
             stiffness = Stiffness(**{k: tuple(v) if isinstance(v, list) else v
-                                     for k, v in raw.pop("stiffness", {}).items()})
+                                     for k, v in raw.pop("stiffness").items()})
             imu_noise = ImuNoise(**raw.pop("imu_noise", {}))
             ft_noise = FtNoise(**raw.pop("ft_noise", {}))
             fh = dict(raw.pop("footholds", {}))
@@ -350,6 +415,10 @@ class RobotConfig:
                 ros = RosConfig(**ros)
         except TypeError as err:
             raise ConfigError(f"robot configuration {source}: {err}") from err
+        except ConfigError as err:
+            if source and source not in str(err):
+                raise ConfigError(f"{err}{where}") from None
+            raise
         for key in ("urdf", "srdf"):
             if raw.get(key):
                 raw[key] = _resolve(raw[key], base)
@@ -361,6 +430,65 @@ class RobotConfig:
     @property
     def contact_names(self) -> tuple[str, ...]:
         return tuple(c.name for c in self.contacts)
+
+
+def check_toppling(stiffness: Stiffness, mass: float, com, contact_p, contact_R, gravity: float = GRAVITY,
+                   robot: str = "") -> None:
+    """The contact springs against gravity toppling (DESIGN.md, "Stability").
+
+    Tilting a robot of mass ``m`` whose CoM stands ``h`` above its contacts by a small angle moves
+    its weight's line of action by ``h`` per radian: gravity pushes it over with a stiffness of
+    ``m g h`` (N m/rad) that the springs must beat.  About each horizontal axis, the contacts in
+    force resist with ``sum k_ts`` plus ``k_fs d^2`` for each contact at a distance ``d`` from
+    their centroid across that axis.
+
+    - **Error** (:class:`ConfigError`): even with every given contact in force the tilt stiffness
+      about an axis is at most ``m g h``: the model has no upright equilibrium, the estimators'
+      covariances blow up.
+    - **Warning** (:class:`ConfigWarning`): one contact alone has ``k_ts <= m g h`` (on its
+      softest axis): standing on one point contact is unstable, so a recording with single
+      support (steps, walking) will not be explained; double support is.
+
+    Args:
+        stiffness: the robot's springs (the same on every contact).
+        mass: total mass, kg.
+        com: CoM in the frame of ``contact_p`` (z up, along gravity), m.
+        contact_p: (C, 3) positions of the contacts in force, m.
+        contact_R: (C, 3, 3) their orientations.
+        gravity: m/s^2.
+        robot: name for the messages.
+    """
+    contact_p = np.asarray(contact_p, dtype=float).reshape(-1, 3)
+    contact_R = np.asarray(contact_R, dtype=float).reshape(-1, 3, 3)
+    if contact_p.shape[0] == 0 or not (np.isfinite(contact_p).all() and np.isfinite(com).all()):
+        return
+    params = stiffness.params()
+    centroid = contact_p.mean(axis=0)
+    height = float(np.asarray(com, dtype=float)[2] - centroid[2])
+    m_g_h = mass * gravity * height
+    if not m_g_h > 0:  # CoM at or below the contacts: gravity does not topple it
+        return
+    who = f" of robot '{robot}'" if robot else ""
+    toppling = (f"the gravity toppling stiffness m g h = {mass:.1f} kg x {gravity:.2f} m/s^2 x {height:.3f} m = "
+                f"{m_g_h:.0f} N m/rad (m the mass, h the CoM height above the contacts)")
+    for axis, name, across in ((0, "x (roll)", 1), (1, "y (pitch)", 0)):
+        u = np.eye(3)[axis]
+        k_total = 0.0
+        for p, R in zip(contact_p, contact_R):
+            k_rot = float(u @ R @ params.K_ts @ R.T @ u)
+            k_vert = float(np.eye(3)[2] @ R @ params.K_fs @ R.T @ np.eye(3)[2])
+            k_total += k_rot + k_vert * float(p[across] - centroid[across]) ** 2
+        if k_total <= m_g_h:
+            raise ConfigError(
+                f"stiffness.k_ts = {stiffness.k_ts!r} N m/rad{who}: with its {len(contact_p)} contact(s) in force the "
+                f"tilt stiffness about {name} is {k_total:.0f} N m/rad, not above {toppling}; expected a stiffer "
+                "k_ts (and k_fs), or the robot falls over its springs")
+    k_ts = stiffness.minimum("k_ts")
+    if k_ts <= m_g_h:
+        warnings.warn(f"stiffness.k_ts = {k_ts:g} N m/rad{who} is not above {toppling}: one contact alone cannot "
+                      "hold the robot upright, so single support (steps, walking) will not be explained; expected "
+                      f"k_ts > {m_g_h:.0f} N m/rad unless the robot always stands on several contacts",
+                      ConfigWarning, stacklevel=2)
 
 
 def _resolve(path: str, base: Path | None) -> str:
@@ -403,6 +531,11 @@ class RobotModel:
             full = pin.buildModelFromUrdf(config.urdf, pin.JointModelFreeFlyer())
         except Exception as err:  # pinocchio raises plain RuntimeError/ValueError
             raise ConfigError(f"cannot read URDF {config.urdf}: {err}") from err
+        for i in range(1, full.njoints):
+            link_mass = float(full.inertias[i].mass)
+            if not (math.isfinite(link_mass) and link_mass >= 0):
+                raise ConfigError(f"the mass of the links moved by joint '{full.names[i]}' in the URDF "
+                                  f"{config.urdf} is {link_mass!r} kg; expected a non-negative, finite mass")
         q_ref = pin.neutral(full)
         if config.srdf:
             try:
@@ -435,8 +568,21 @@ class RobotModel:
         self.imu_frame_id = model.getFrameId(config.imu_frame)
         self.link_frame_ids = [model.getFrameId(f) for f in config.links]
         self.mass = float(sum(model.inertias[i].mass for i in range(1, model.njoints)))
+        if not self.mass > 0:
+            raise ConfigError(f"the total mass of robot '{config.name}' in the URDF {config.urdf} is {self.mass!r} kg; "
+                              "expected a positive mass")
         self.joint_names: tuple[str, ...] = tuple(model.names[2:])
         self.q_reference = self._place_on_ground(q_ref)
+        self.check_toppling(self.q_reference)
+
+    def check_toppling(self, q: np.ndarray) -> None:
+        """:func:`check_toppling` with every contact in force in the configuration ``q`` (the
+        reference posture when the model is built)."""
+        pin.framesForwardKinematics(self.model, self.data, q)
+        com = pin.centerOfMass(self.model, self.data, q)
+        cp = np.array([self.data.oMf[i].translation for i in self.contact_frame_ids])
+        cR = np.array([self.data.oMf[i].rotation for i in self.contact_frame_ids])
+        check_toppling(self.config.stiffness, self.mass, com, cp, cR, self.config.gravity, self.config.name)
 
     # ------------------------------------------------------------------------------------------
     @property

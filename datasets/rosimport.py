@@ -273,6 +273,9 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
     if contacts == "ft":
         required += [ros.ft_topics[c] for c in config.contact_names]
     for required_topic in required:
+        if required_topic not in topics and required_topic in all_types:
+            raise BagError(f"topic {required_topic} ({all_types[required_topic]}) of bag {path} has no messages; "
+                           f"expected the messages robot config '{config.name}' reads from it")
         if required_topic not in topics:
             have = ", ".join(f"{t} ({m})" for t, m in sorted(all_types.items())) or "none"
             raise BagError(f"bag {path} lacks topic {required_topic} ({wanted[required_topic]}) named by robot config "

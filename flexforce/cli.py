@@ -1,17 +1,41 @@
 """The ``flexforce`` command line: a thin layer over the library.
 
-Known errors (:class:`flexforce.errors.FlexforceError`) become one line on stderr and exit
-status 1; anything else is a bug and keeps its traceback.
+Every command ends with one line on stderr when it fails, and an exit status (:data:`EXIT_STATUSES`):
+
+- 0: done;
+- 1: bad input, configuration or output path, or the estimation failed
+  (:class:`flexforce.errors.FlexforceError`, an operating-system error such as a full disk, or an
+  unexpected internal error, which says so; ``FLEXFORCE_DEBUG=1`` shows its traceback);
+- 2: wrong command-line usage (argparse);
+- 130: interrupted (Ctrl-C, wherever it lands: also inside the compiled kernels, where it
+  surfaces as a ``SystemError`` whose cause is the ``KeyboardInterrupt``).
+
+Every output path is checked before any work (:func:`flexforce.datasets.safeio.check_output`),
+locked for the whole command, written aside and moved into place when complete.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
+import warnings
 from pathlib import Path
 
 from flexforce.errors import ConfigError, FlexforceError
+
+EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+EXIT_STATUSES = {
+    EXIT_OK: "done",
+    EXIT_ERROR: "bad input, configuration or output path, or the estimation failed (one line on stderr)",
+    EXIT_USAGE: "wrong command-line usage",
+    EXIT_INTERRUPTED: "interrupted (Ctrl-C); every output is the previous one or none, never a mixture",
+}
+"""Exit status -> meaning (README "Command line", ``flexforce --help``)."""
+
+FILE_SUFFIXES = (".npz", ".csv", ".json", ".html", ".toml", ".txt", ".png", ".py", ".db3", ".bag")
+"""Suffixes refused for an output folder (a bag directory, a report): they name files."""
 
 
 class Progress:
@@ -39,7 +63,36 @@ class Progress:
         sys.stderr.flush()
 
 
+def _is_bag(path: Path) -> bool:
+    from flexforce.datasets.safeio import is_bag_folder
+
+    return is_bag_folder(path) if path.is_dir() else path.suffix in {".mcap", ".db3", ".bag"}
+
+
+def _check_bag_output(path: Path, force: bool, what: str) -> Path:
+    from flexforce.datasets.safeio import check_output
+
+    return check_output(path, what, folder=True, file_suffixes=FILE_SUFFIXES, overwrite=force, replaceable=_is_bag,
+                        replaceable_what="a ROS 2 bag")
+
+
+def _check_report_output(path: Path) -> Path:
+    from flexforce.datasets.safeio import check_output, replaceable_by_report
+
+    return check_output(path, "report folder", folder=True, file_suffixes=FILE_SUFFIXES,
+                        replaceable=replaceable_by_report,
+                        replaceable_what="a flexforce report (index.html, .json and figures only)")
+
+
 def _cmd_simulate(args) -> int:
+    from flexforce.datasets.safeio import output_lock
+
+    out = _check_bag_output(args.output, args.force, "recording bag")
+    with output_lock(out):
+        return _simulate(args)
+
+
+def _simulate(args) -> int:
     from flexforce.datasets.bagio import save_recording
     from flexforce.datasets.scenario import Scenario
     from flexforce.datasets.simulator import Simulator
@@ -76,19 +129,50 @@ def open_recording(path: Path, robot: str | None = None, contacts: str = "ft", q
 
 
 def _window(rec, args):
-    """The part of ``rec`` chosen with --start/--end (the whole recording without them)."""
+    """The part of ``rec`` chosen with --start/--end (the whole recording without them), long
+    enough for the estimators."""
     start, end = getattr(args, "start", None), getattr(args, "end", None)
-    if start is None and end is None:
-        return rec
-    return rec.window(start, end)
+    if start is not None or end is not None:
+        rec = rec.window(start, end)
+    return rec.require_samples()
+
+
+def _model(rec, args):
+    """The nominal model of ``rec`` with the robot configuration of --robot (or the recording's),
+    its springs checked against gravity toppling on the recording's first sample."""
+    from flexforce.datasets.robot import RobotConfig, check_toppling
+    from flexforce.factors.model import ModelConfig
+
+    config = RobotConfig.load(args.robot or rec.robot)
+    active = rec.contact_active[0]
+    check_toppling(config.stiffness, rec.mass, rec.com[0], rec.contact_p[0][active], rec.contact_R[0][active],
+                   rec.gravity, config.name)
+    return ModelConfig.from_recording(rec, robot=config, use_ft=args.ft)
 
 
 def _cmd_run(args) -> int:
+    from flexforce.datasets.safeio import check_output, is_bag_folder, output_lock
+    from flexforce.errors import OutputError
+    from flexforce.estimators import estimator_key
+
+    args.estimator = estimator_key(args.estimator)
+    out = Path(args.output)
+    if out.suffix == ".mcap":
+        check_output(out, "estimate bag", folder=True, overwrite=args.force, replaceable=is_bag_folder,
+                     replaceable_what="a ROS 2 bag directory")
+    else:
+        check_output(out, "estimate", suffixes=(".npz", ".csv", ".mcap"))
+    if Path(args.recording).exists() and out.resolve() == Path(args.recording).resolve():
+        raise OutputError(f"output {out} is the input recording; expected a new path beside it")
+    with output_lock(out):
+        return _run(args)
+
+
+def _run(args) -> int:
     from flexforce.estimators import run_estimator
-    from flexforce.factors.model import ModelConfig
 
     rec = _window(open_recording(args.recording, args.robot, args.contacts, args.quiet), args)
-    model = ModelConfig.from_recording(rec, robot=args.robot, use_ft=args.ft)
+    model = _model(rec, args)
     options = {}
     if args.lag is not None:
         options["lag"] = args.lag
@@ -139,9 +223,8 @@ def _load_or_simulate(source: str, seed: int | None, quiet: bool, robot: str | N
 def _compare_one(rec, args, out: Path):
     from flexforce.compare.report import write_report
     from flexforce.compare.runner import compare
-    from flexforce.factors.model import ModelConfig
 
-    model = ModelConfig.from_recording(rec, robot=args.robot, use_ft=args.ft)
+    model = _model(rec, args)
     bars = {}
 
     def progress(name, fraction):
@@ -186,11 +269,26 @@ def _print_table(comp) -> None:
 
 
 def _cmd_compare(args) -> int:
+    from flexforce.datasets.safeio import output_lock
+    from flexforce.errors import ConfigError
+    from flexforce.estimators import estimator_key
+
+    names = [e.strip() for e in args.estimators.split(",") if e.strip()]
+    if not names:
+        raise ConfigError(f"--estimators {args.estimators!r} names no estimator; expected a comma-separated list "
+                          "such as ekf,fixed-lag,batch")
+    args.estimators = [estimator_key(e) for e in names]  # the message of 'run' for an unknown one
+    out = _check_report_output(args.output)
+    with output_lock(out):
+        return _compare(args)
+
+
+def _compare(args) -> int:
     import json
 
     from flexforce.compare.runner import aggregate
+    from flexforce.datasets.safeio import safe_output
 
-    args.estimators = [e.strip() for e in args.estimators.split(",") if e.strip()]
     sources: list[tuple[str, str, int | None]] = []
     for src in args.recordings:
         if args.seeds and args.seeds > 1:
@@ -198,21 +296,28 @@ def _cmd_compare(args) -> int:
         else:
             sources.append((Path(src).stem or str(src), src, None))
     out = Path(args.output)
-    comps = []
-    for label, src, seed in sources:
+    if len(sources) == 1:
+        label, src, seed = sources[0]
         rec = _window(_load_or_simulate(src, seed, args.quiet, args.robot, args.contacts), args)
-        target = out if len(sources) == 1 else out / label
-        comp = _compare_one(rec, args, target)
-        comps.append(comp)
-        if len(sources) > 1:
-            print(f"{label}:")
-        _print_table(comp)
-    if len(comps) > 1:
-        agg = aggregate(comps)
-        (out / "summary.json").write_text(json.dumps(agg, indent=2, allow_nan=False))
-        index = "".join(f'<li><a href="{label}/index.html">{label}</a></li>' for label, _, _ in sources)
-        (out / "index.html").write_text(f"<!DOCTYPE html><html><body><h1>flexforce comparison</h1><ul>{index}</ul>"
-                                        f"<pre>{json.dumps(agg['estimators'], indent=1)}</pre></body></html>")
+        _print_table(_compare_one(rec, args, out))  # the report is written aside and swapped in whole
+    else:
+        # one folder of reports, built aside and swapped in whole: an interrupted comparison leaves
+        # the previous folder (or none), never new reports beside an old index
+        with safe_output(out, folder=True) as staging:
+            staging.mkdir()
+            comps = []
+            for label, src, seed in sources:
+                rec = _window(_load_or_simulate(src, seed, args.quiet, args.robot, args.contacts), args)
+                comp = _compare_one(rec, args, staging / label)
+                comps.append(comp)
+                print(f"{label}:")
+                _print_table(comp)
+            agg = aggregate(comps)
+            (staging / "summary.json").write_text(json.dumps(agg, indent=2, allow_nan=False))
+            index = "".join(f'<li><a href="{label}/index.html">{label}</a></li>' for label, _, _ in sources)
+            (staging / "index.html").write_text(
+                f"<!DOCTYPE html><html><body><h1>flexforce comparison</h1><ul>{index}</ul>"
+                f"<pre>{json.dumps(agg['estimators'], indent=1)}</pre></body></html>")
     print(f"report: {out / 'index.html'}")
     return 0
 
@@ -233,12 +338,19 @@ def _cmd_demo(args) -> int:
 
 
 def _cmd_diagnose(args) -> int:
+    from flexforce.datasets.safeio import output_lock
+
+    out = _check_report_output(args.output)
+    with output_lock(out):
+        return _diagnose(args)
+
+
+def _diagnose(args) -> int:
     from flexforce.compare.diagnose import diagnose, load_plugin, registered_effects
     from flexforce.compare.diagnose_report import write_diagnosis
-    from flexforce.factors.model import ModelConfig
 
     rec = _window(_load_or_simulate(str(args.recording), args.seed, args.quiet, args.robot, args.contacts), args)
-    model = ModelConfig.from_recording(rec, robot=args.robot, use_ft=args.ft)
+    model = _model(rec, args)
     plugins = [eff for path in args.plugin for eff in load_plugin(path)]
     if args.candidates:
         names = [c.strip() for c in args.candidates.split(",") if c.strip()]
@@ -280,11 +392,19 @@ def _add_input_options(p: argparse.ArgumentParser) -> None:
                    help="keep the recording up to S seconds after its first sample (default: its end)")
 
 
+def _epilog() -> str:
+    lines = "\n".join(f"  {code:<4d} {meaning}" for code, meaning in EXIT_STATUSES.items())
+    return (f"exit status:\n{lines}\n\nOutputs are checked before any work, written aside and moved into place "
+            "when complete;\na second writer of the same output is refused (a <output>.lock file holds the "
+            "writer's PID).")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="flexforce",
         description="Contact forces and floating-base kinematics of flexible legged robots from an IMU "
-                    "and joint encoders.")
+                    "and joint encoders.",
+        epilog=_epilog(), formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("simulate", help="simulate a scenario into a ROS 2 bag (MCAP) with ground truth")
@@ -351,17 +471,73 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def interrupted(err: BaseException) -> bool:
+    """``err`` is, or was caused by, a KeyboardInterrupt (through ``__cause__`` or ``__context__``).
+
+    Ctrl-C landing inside a compiled (numba) kernel surfaces as ``SystemError: ... returned a
+    result with an exception set`` whose context is the KeyboardInterrupt; a library that turned
+    it into its own error keeps it as the cause.
+    """
+    seen: set[int] = set()
+    stack: list[BaseException | None] = [err]
+    while stack:
+        e = stack.pop()
+        if e is None or id(e) in seen:
+            continue
+        seen.add(id(e))
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        stack += [e.__cause__, e.__context__]
+    return False
+
+
+def _one_line(text: object) -> str:
+    return " ".join(str(text).split())
+
+
+def exit_status(err: BaseException, command: str) -> int:
+    """Print the one line for ``err`` (raised by ``command``) on stderr and return the exit status."""
+    if interrupted(err):
+        print(f"flexforce {command}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    if isinstance(err, FlexforceError):
+        message = _one_line(err) or type(err).__name__
+    elif isinstance(err, OSError):
+        where = f" {err.filename}" if err.filename else ""
+        message = f"cannot access{where}: {_one_line(err.strerror or err)}"
+    elif isinstance(err, MemoryError):
+        message = "out of memory; expected a shorter recording (--start/--end) or a smaller problem"
+    else:
+        message = (f"internal error {type(err).__name__}: {_one_line(err)} (a bug in flexforce; "
+                   "FLEXFORCE_DEBUG=1 shows its traceback)")
+    print(f"flexforce {command}: error: {message}", file=sys.stderr)
+    return EXIT_ERROR
+
+
+def _show_warning(command: str):
+    def show(message, category, filename, lineno, file=None, line=None):
+        print(f"flexforce {command}: warning: {_one_line(message)}", file=sys.stderr)
+    return show
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run the command line; return its exit status (:data:`EXIT_STATUSES`)."""
     parser = build_parser()
-    args = parser.parse_args(argv)
     try:
-        return args.func(args)
-    except FlexforceError as err:
-        print(f"flexforce {args.command}: error: {err}", file=sys.stderr)
-        return 1
+        args = parser.parse_args(argv)
     except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
+        print("flexforce: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    with warnings.catch_warnings():
+        warnings.showwarning = _show_warning(args.command)
+        try:
+            return args.func(args)
+        except (SystemExit, GeneratorExit):
+            raise
+        except BaseException as err:  # noqa: BLE001 -- every path ends in one line and a documented status
+            if os.environ.get("FLEXFORCE_DEBUG") and not interrupted(err):
+                raise
+            return exit_status(err, args.command)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -17,6 +17,11 @@ class DataError(FlexforceError):
     """Input data is malformed: NaN, wrong shape, time going backwards, missing fields."""
 
 
+class OutputError(FlexforceError):
+    """An output cannot be written: its folder is missing or read-only, its suffix unknown, it
+    exists and may not be replaced, or another process is writing it."""
+
+
 class BagError(DataError):
     """A ROS bag cannot be read or written, or lacks what is expected."""
 
@@ -27,3 +32,8 @@ class ModelError(FlexforceError):
 
 class EstimatorError(FlexforceError):
     """An estimator failed: diverging filter, covariance no longer positive definite..."""
+
+
+class ConfigWarning(UserWarning):
+    """A configuration that works but is probably not what was meant (e.g. a contact spring too soft
+    for single support); the command line prints it as one line."""

@@ -12,6 +12,18 @@ ESTIMATORS = ("ekf", "fixed-lag", "batch")
 """Names accepted by :func:`run_estimator` (``fixed_lag`` is accepted for ``fixed-lag``)."""
 
 
+def estimator_key(name: str) -> str:
+    """The canonical name of estimator ``name`` (``fixed_lag`` -> ``fixed-lag``).
+
+    Raises:
+        ConfigError: an unknown estimator, listing the known ones.
+    """
+    key = str(name).replace("_", "-").lower()
+    if key not in ESTIMATORS:
+        raise ConfigError(f"unknown estimator '{name}'; expected one of {', '.join(ESTIMATORS)}")
+    return key
+
+
 def run_estimator(name: str, rec, model=None, config: Any = None, progress: Callable[[float], None] | None = None,
                   **options):
     """Run estimator ``name`` on a Recording and return its Estimate.
@@ -31,12 +43,12 @@ def run_estimator(name: str, rec, model=None, config: Any = None, progress: Call
     Raises:
         ConfigError: an unknown estimator, a config of another estimator's type (naming the expected
             one), an unknown option or a bad value.
+        DataError: an invalid recording, or one shorter than
+            :attr:`~flexforce.datasets.recording.Recording.MIN_SAMPLES` samples.
     """
     from flexforce.factors.model import ModelConfig
 
-    key = name.replace("_", "-").lower()
-    if key not in ESTIMATORS:
-        raise ConfigError(f"unknown estimator '{name}'; expected one of {', '.join(ESTIMATORS)}")
+    key = estimator_key(name)
     cls: type
     run: Callable[..., Any]
     if key == "ekf":
@@ -58,6 +70,7 @@ def run_estimator(name: str, rec, model=None, config: Any = None, progress: Call
         raise ConfigError(f"estimator '{key}' takes {article(cls.__name__)} {cls.__name__}, got {article(got)} {got} "
                           f"({config!r})")
     rec.validate()
+    rec.require_samples()
     if model is None:
         model = ModelConfig.from_recording(rec)
     return run(rec, model, config=config, progress=progress, **options)

@@ -278,3 +278,17 @@ def test_layout_mismatch(full_bag, tmp_path):
     with pytest.raises(BagError, match=r"/flexforce/inputs sample 0 has an unexpected layout "
                                        r"\(block contact/left_foot/active\[1\]\)"):
         load_recording(bag)
+
+
+def test_topics_without_messages_are_named_as_such(tmp_path):
+    """A bag whose topics are declared but hold no message: the error says so, not that they are missing."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    with Writer(tmp_path / "empty", version=8, storage_plugin=StoragePlugin.MCAP) as writer:
+        writer.add_connection("/flexforce/meta", "std_msgs/msg/String", typestore=ts)
+        writer.add_connection("/flexforce/inputs", "std_msgs/msg/Float64MultiArray", typestore=ts)
+        writer.add_connection("/imu", "sensor_msgs/msg/Imu", typestore=ts)
+    with pytest.raises(BagError, match="topic /flexforce/meta and /flexforce/inputs of bag .*empty has no messages"):
+        load_recording(tmp_path / "empty")

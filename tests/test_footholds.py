@@ -67,7 +67,8 @@ def test_bad_foothold_configuration(key, value, match):
 
 
 def test_unknown_foothold_key_is_refused():
-    raw = {"name": "r", "urdf": "x.urdf", "imu_frame": "imu", "contacts": [], "footholds": {"terain": "flat"}}
+    raw = {"name": "r", "urdf": "x.urdf", "imu_frame": "imu", "contacts": [], "footholds": {"terain": "flat"},
+           "stiffness": {"k_fs": 1e4, "k_fd": 100.0, "k_ts": 300.0, "k_td": 5.0}}
     with pytest.raises(ConfigError, match=r"unknown key\(s\) \['terain'\] in \[footholds\]"):
         RobotConfig.from_dict(raw)
 

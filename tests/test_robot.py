@@ -8,8 +8,11 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from flexforce.datasets.robot import RobotConfig, RobotModel
-from flexforce.errors import ConfigError
+from flexforce.datasets.recording import Recording
+from flexforce.datasets.robot import RobotConfig, RobotModel, Stiffness, check_toppling
+from flexforce.errors import ConfigError, ConfigWarning, DataError
+
+STIFFNESS = "[stiffness]\nk_fs = 28000.0\nk_fd = 420.0\nk_ts = 450.0\nk_td = 8.0\n"
 
 
 @pytest.fixture(scope="module", params=["romeo", "talos", "icub"])
@@ -105,9 +108,129 @@ def test_config_errors_are_clear(tmp_path):
     bad.write_text('name = "x"\nurdf = "nowhere.urdf"\nimu_frame = "imu"\ncontacts = []\ncolour = 1\n')
     with pytest.raises(ConfigError, match="unknown key.*colour"):
         RobotConfig.load(bad)
-    bad.write_text('name = "x"\nurdf = "nowhere.urdf"\nimu_frame = "imu"\ncontacts = []\n')
+    bad.write_text('name = "x"\nurdf = "nowhere.urdf"\nimu_frame = "imu"\ncontacts = []\n' + STIFFNESS)
     with pytest.raises(ConfigError, match="URDF of robot 'x' not found"):
         RobotModel(RobotConfig.load(bad))
     bad.write_text("name = [")
     with pytest.raises(ConfigError, match="not valid TOML"):
         RobotConfig.load(bad)
+
+
+# ---- validation at load ---------------------------------------------------------------------------
+ROMEO_TOML = Path(RobotConfig.load("romeo").source).read_text()
+
+
+def _romeo_with(tmp_path, old: str, new: str) -> Path:
+    assert old in ROMEO_TOML
+    path = tmp_path / "robot.toml"
+    path.write_text(ROMEO_TOML.replace(old, new))
+    return path
+
+
+@pytest.mark.parametrize("old, new, message", [
+    ("k_fs = 28000.0", "k_fs = -28000.0",
+     "stiffness.k_fs = -28000.0 N/m; expected a positive, finite stiffness"),
+    ("k_fs = 28000.0", "k_fs = nan", "stiffness.k_fs = nan N/m; expected a positive, finite stiffness"),
+    ("k_fs = 28000.0", 'k_fs = "stiff"', "stiffness.k_fs = 'stiff' N/m; expected a positive, finite stiffness"),
+    ("k_ts = 450.0", "k_ts = 0.0", "stiffness.k_ts = 0.0 N m/rad; expected a positive, finite stiffness"),
+    ("k_ts = 450.0", "k_ts = [450.0, -1.0, 450.0]",
+     r"stiffness.k_ts = \[450.0, -1.0, 450.0\] N m/rad; expected a positive, finite stiffness \(a number, or 3"),
+    ("k_fd = 420.0", "k_fd = -1.0", "stiffness.k_fd = -1.0 N s/m; expected a positive, finite damping"),
+    ("k_td = 8.0", "k_td = inf", "stiffness.k_td = inf N m s/rad; expected a positive, finite damping"),
+    ("k_td = 8.0", "", r"\[stiffness\] lacks k_td \(N m s/rad\).*expected all of k_fs, k_fd, k_ts and k_td"),
+    ("k_td = 8.0", "k_td = 8.0\nk_tx = 1.0", r"unknown key\(s\) \['k_tx'\] in \[stiffness\]"),
+    ("[stiffness]", "gravity = -9.81\n[stiffness]",
+     "gravity = -9.81 m/s\\^2 in robot configuration .*; expected a positive, finite acceleration"),
+    ("[stiffness]", "[imu_noise]\ngyro_density = 0.0\n[stiffness]",
+     r"imu_noise.gyro_density = 0.0 rad/s/sqrt\(Hz\); expected a positive, finite noise density"),
+    ("[stiffness]", "[ft_noise]\nforce = -2.0\n[stiffness]",
+     "ft_noise.force = -2.0 N; expected a positive, finite standard deviation"),
+])
+def test_bad_springs_and_noise_are_refused_at_load(tmp_path, old, new, message):
+    """Each message names the key, its value, its unit and what is expected (and the file)."""
+    path = _romeo_with(tmp_path, old, new)
+    with pytest.raises(ConfigError, match=message) as info:
+        RobotConfig.load(path)
+    assert str(path) in str(info.value)
+
+
+def test_a_missing_stiffness_section_is_an_error(tmp_path):
+    """No silent HRP-2 defaults: the springs are the robot's (DESIGN.md, "Stability")."""
+    path = tmp_path / "robot.toml"
+    path.write_text(ROMEO_TOML.split("[stiffness]")[0])
+    with pytest.raises(ConfigError, match=r"the \[stiffness\] section is missing in robot configuration .*robot.toml; "
+                                          r"expected .*k_fs \(N/m\), k_fd \(N s/m\), k_ts \(N m/rad\)"):
+        RobotConfig.load(path)
+
+
+def test_stiffness_checked_when_built_in_python():
+    with pytest.raises(ConfigError, match="stiffness.k_fs = -1.0 N/m"):
+        Stiffness(k_fs=-1.0)
+    with pytest.raises(ConfigError, match=r"stiffness.k_ts = \[1.0, 2.0\] N m/rad"):
+        Stiffness(k_ts=(1.0, 2.0))
+
+
+def test_k_ts_against_gravity_toppling(tmp_path):
+    """Romeo: m g h = 40.5 kg x 9.81 x 0.663 m = 263 N m/rad.  Below it with both feet in force (2 k_ts): an
+    error; below it for one foot alone: a warning (single support unstable, double support fine)."""
+    with pytest.warns(ConfigWarning, match=r"stiffness.k_ts = 200 N m/rad of robot 'romeo' is not above the "
+                                           r"gravity toppling stiffness m g h = 40.5 kg x 9.81 m/s\^2 x 0.66\d m = "
+                                           r"26\d N m/rad"):
+        RobotModel(RobotConfig.load(_romeo_with(tmp_path, "k_ts = 450.0", "k_ts = 200.0")))
+    with pytest.raises(ConfigError, match=r"stiffness.k_ts = 100.0 N m/rad of robot 'romeo': with its 2 contact\(s\) "
+                                          r"in force the tilt stiffness about y \(pitch\) is 200 N m/rad, not above "
+                                          r"the gravity toppling stiffness m g h = .* expected a stiffer k_ts"):
+        RobotModel(RobotConfig.load(_romeo_with(tmp_path, "k_ts = 450.0", "k_ts = 100.0")))
+
+
+def test_toppling_counts_the_contact_spacing():
+    """Two feet 0.2 m apart: the vertical springs add k_fs d^2 about the roll axis, not about pitch."""
+    stiffness = Stiffness(k_fs=1e4, k_fd=1.0, k_ts=60.0, k_td=1.0)
+    feet = np.array([[0.0, 0.1, 0.0], [0.0, -0.1, 0.0]])
+    R = np.array([np.eye(3)] * 2)
+    check_toppling(stiffness, 10.0, np.array([0.0, 0.0, 1.0]), feet[:1] * 0, R[:1], gravity=1.0)  # 60 > 10
+    with pytest.raises(ConfigError, match=r"about y \(pitch\) is 120 N m/rad"):  # roll: 120 + 2 * 1e4 * 0.01
+        check_toppling(stiffness, 200.0, np.array([0.0, 0.0, 1.0]), feet, R, gravity=1.0)
+
+
+def test_negative_and_zero_masses_in_the_urdf(tmp_path):
+    import re
+
+    config = RobotConfig.load("romeo")
+    urdf = Path(config.urdf).read_text()
+    for value, message in (("-1.0", r"the mass of the links moved by joint '\w+' in the URDF .*neg.urdf is "
+                                    r"-\d+\.\d+ kg; expected a non-negative, finite mass"),
+                           ("0.0", "the total mass of robot 'romeo' in the URDF .*neg.urdf is 0.0 kg; expected a "
+                                   "positive mass")):
+        (tmp_path / "neg.urdf").write_text(re.sub(r'<mass value="[^"]*"', f'<mass value="{value}"', urdf))
+        path = _romeo_with(tmp_path, 'urdf = "erd:romeo_description/urdf/romeo.urdf"',
+                           f'urdf = "{tmp_path / "neg.urdf"}"')
+        with pytest.raises(ConfigError, match=message):
+            RobotModel(RobotConfig.load(path))
+
+
+def test_a_recording_too_short_for_the_estimators():
+    from flexforce.estimators import run_estimator
+
+    rec = _short_recording(3)
+    with pytest.raises(DataError, match="recording has 3 sample\\(s\\) at 200 Hz; the estimators need at least 10 "
+                                        "samples"):
+        run_estimator("ekf", rec)
+    assert Recording.MIN_SAMPLES == 10
+
+
+def _short_recording(n: int) -> Recording:
+    from flexforce.datasets.scenario import Scenario
+    from flexforce.datasets.simulator import Simulator
+
+    rec = Simulator(Scenario.from_dict({"name": "s", "duration": 0.1}), noise=False).run()
+    return rec.slice(0, n)
+
+
+def test_imu_bias_random_walks_may_be_zero():
+    from flexforce.datasets.robot import ImuNoise
+
+    ImuNoise(gyro_bias_rw=0.0, accel_bias_rw=0.0)
+    with pytest.raises(ConfigError, match=r"imu_noise.accel_bias_rw = -1.0 m/s\^3/sqrt\(Hz\); expected a finite "
+                                          "random walk >= 0"):
+        ImuNoise(accel_bias_rw=-1.0)

@@ -377,6 +377,15 @@ def test_missing_topic(romeo, tmp_path, good_topics):
     assert rec.contact_active.all() and np.isnan(rec.ft[:, 1]).all()
 
 
+def test_topics_without_messages(romeo, tmp_path, good_topics):
+    """Declared topics with no message: the error says the topic is empty, not that it is missing."""
+    empty = {topic: (msgtype, []) for topic, (msgtype, _) in good_topics.items()}
+    path = write_bag(tmp_path / "e", "mcap", empty)
+    with pytest.raises(BagError, match=r"topic /imu \(sensor_msgs/msg/Imu\) of bag .*e has no messages; expected the "
+                                       "messages robot config 'romeo' reads from it"):
+        import_bag(path, romeo)
+
+
 def test_unknown_joint(romeo, tmp_path, good_topics):
     for _, f in good_topics["/joint_states"][1]:
         f["name"] = list(f["name"])
@@ -433,6 +442,7 @@ def test_bad_config(romeo, tmp_path, good_topics):
         RosConfig(contact_on=150.0, contact_off=160.0)
     with pytest.raises(ConfigError, match=r"unknown key\(s\) \['imu_topc'\] in \[ros\]"):
         RobotConfig.from_dict({"name": "x", "urdf": "x", "imu_frame": "x", "contacts": [],
+                               "stiffness": {"k_fs": 1e4, "k_fd": 1e2, "k_ts": 3e2, "k_td": 5.0},
                                "ros": {"imu_topc": "/imu"}})
 
 
