@@ -18,8 +18,10 @@ estimated by the smoothers with every other unknown.  Three kinds of factors dec
   ``touchdown = "zero-deflection"``: landing creates no force jump.  (The paper's convention,
   ``p_r = p_l``, preloads a foot landing while the flexibility is deflected by that deflection.)
   A contact already in force at the first sample has no such factor (the robot stands on
-  deflected springs); its correction has the first-step prior ``N(0, kinematics sigmas)``
-  instead, which also fixes where the world is (the first stance soles).
+  deflected springs); its correction has a first-step prior instead: ``N(0, kinematics sigmas)``
+  in height and tilt, and ``GAUGE`` (1e-3) times them in horizontal position and yaw, which
+  fixes where the world is: the first stance soles' placements (a common horizontal shift or yaw
+  of every foothold is seen by no sensor).
 - **Ground.**  At the first step of every episode the corrected sole lies on the floor plane
   (``n . p_r' = h`` within ``ground_sigma_height``; its z axis along ``n`` within
   ``ground_sigma_tilt``, two rows: the components of ``R_r' e_z`` on the plane's tangent axes).
@@ -52,6 +54,9 @@ __all__ = ["FootholdPrior", "Footholds", "episode_starts", "held_rest"]
 
 WALK_WITHIN = 1e-3
 """Random-walk sigma of a foothold within an episode, relative to its kinematic sigma."""
+GAUGE = 1e-3
+"""Prior sigma of the first stance footholds' horizontal position and yaw, relative to the
+kinematic sigmas: the world's horizontal origin and heading are theirs."""
 WALK_CUT = 1e3
 """Random-walk sigma where the contact touches down, relative to its kinematic sigma."""
 
@@ -214,8 +219,19 @@ class Footholds:
 
     # -- the Effect protocol --------------------------------------------------------------------
     def prior(self, problem: ProblemView):
-        """Zero mean, the kinematic sigmas (per axis of the world, diagonal of the covariances)."""
-        return np.zeros(self.dim), self._setup(problem)["sigma0"].copy()
+        """Zero mean; the kinematic sigmas (per axis of the world, diagonal of the covariances), but
+        ``GAUGE`` times them for the horizontal position and yaw of the contacts in force at the
+        first sample: they define where the world is (a common horizontal shift or yaw of every
+        foothold and of the flexibility changes no measurement), and a gauge held only loosely
+        leaves the batch smoother's Gauss-Newton steps wandering along it."""
+        sigma = self._setup(problem)["sigma0"].copy()
+        for i in np.flatnonzero(np.asarray(problem.active, dtype=bool)[0]):
+            sigma[[6 * i, 6 * i + 1, 6 * i + 5]] *= GAUGE
+        return np.zeros(self.dim), sigma
+
+    def kinematic_sigmas(self, problem: ProblemView) -> np.ndarray:
+        """(6 C,) the kinematic sigmas per unknown (world axes): the scale of the priors and walks."""
+        return self._setup(problem)["sigma0"].copy()
 
     def random_walk_sigma(self, problem: ProblemView):
         """(N - 1, 6 C): tiny within an episode and through the swing, cut at a touch-down."""

@@ -26,7 +26,7 @@ from flexforce.datasets.simulator import Simulator
 from flexforce.errors import ConfigError
 from flexforce.estimators import run_estimator
 from flexforce.factors import core
-from flexforce.factors.footholds import FootholdPrior, Footholds, episode_starts
+from flexforce.factors.footholds import GAUGE, FootholdPrior, Footholds, episode_starts
 from flexforce.factors.model import ModelConfig
 from flexforce.smoother import BatchConfig
 from flexforce.smoother.linearize import walk_sigma
@@ -108,12 +108,18 @@ def test_each_episode_is_its_own_foothold(relaxed_step):
     prob = Problem.build(rec, with_footholds(rec, model))
     eff = prob.effects[-1]
     rw = walk_sigma(eff, prob)
-    s0 = eff.prior(prob)[1]
+    s0 = eff.kinematic_sigmas(prob)
     k, i, _ = _landing(rec)
     cut = rw > 10 * s0
     # cut exactly between the step before the touch-down and the touch-down, for that contact's six
     assert np.argwhere(cut).tolist() == [[k - 1, 6 * i + j] for j in range(6)]
     # elsewhere constant: over the whole recording (720 steps) the walk allows 3 % of the sigma
+    # (the first stance footholds' horizontal position and yaw have a prior GAUGE times tighter)
+    prior = eff.prior(prob)[1]
+    first = np.flatnonzero(rec.contact_active[0])
+    for j in first:
+        np.testing.assert_allclose(prior[[6 * j, 6 * j + 1, 6 * j + 5]], GAUGE * s0[[6 * j, 6 * j + 1, 6 * j + 5]])
+        np.testing.assert_allclose(prior[[6 * j + 2, 6 * j + 3, 6 * j + 4]], s0[[6 * j + 2, 6 * j + 3, 6 * j + 4]])
     assert np.all(rw[~cut] * np.sqrt(rec.n) < 0.05 * np.broadcast_to(s0, rw.shape)[~cut])
 
 
