@@ -114,7 +114,7 @@ def robust_weights(norm: np.ndarray, kind: str | None, k: float):
     raise ValueError(f"unknown robust loss {kind!r}; expected one of {ROBUST_LOSSES} or None")
 
 
-def entry(t: float, step: int, sensor: str, axis: str, reason: str, size: float, weight: float) -> dict:
+def entry(t: float, step: int | np.integer, sensor: str, axis: str, reason: str, size: float, weight: float) -> dict:
     """One reported sample: time (s), step, sensor (``gyro``, ``accel``, ``ft/<contact>/force`` ...),
     axis (``x``/``y``/``z`` or ``norm``), reason (``missing``, ``saturated``, ``outlier``), size
     (the reading for missing/saturated; the whitened norm for an outlier) and the weight it kept
