@@ -19,16 +19,20 @@ Packed inputs, one row per step (:func:`pack_inputs`)::
 
     0:3 com | 3:6 com_vel | 6:9 com_acc | 9:18 inertia | 18:27 inertia_dot | 27:30 sigma
     30:33 sigma_dot | 33:42 imu_R | 42:45 imu_p | 45:48 imu_v | 48:51 imu_a | 51:54 imu_w
-    54:57 gyro | 57:60 accel | then per contact c, at 60 + 25 c: active, p_l (3), R_l (9),
+    54:57 gyro | 57:60 accel | 60:66 use (1: the axis is read, 0: missing or saturated)
+    then per contact c, at 66 + 25 c: active, p_l (3), R_l (9),
     p_r (3), R_r (9) (placement in the local frame, rest placement in the world)
 
 Contact parameters, one row per contact: K_fs, K_fd, K_ts, K_td (9 each, row-major), beta_f,
 beta_t, isotropic flag.  Constants (:func:`pack_constants`): Q (324), R (36), then dt, m, g, z0,
-min_force, the touch-down rule (1: zero deflection, :func:`touch_down`) and its tilt weight.
+min_force, the touch-down rule (1: zero deflection, :func:`touch_down`), its tilt and height
+weights, the floor height, and the IMU gates for 1, 2 and 3 used axes of a sensor (chi-square
+values; 0: no gate).
 
 Output row of a step (:data:`OUT_FIELDS`): the state, the world covariance, the per-contact
 wrenches, their total's covariance, the CoP and its covariance, the innovation, its covariance,
-the whitened innovation and the NIS.
+the whitened innovation and the NIS, then per sensor (gyro, accel) its NIS and the gate's
+inflation of its innovation covariance (1: not gated).
 """
 
 from __future__ import annotations
@@ -68,7 +72,7 @@ from flexforce.factors.core import (
 
 AVAILABLE = core.HAVE_NUMBA
 
-NU0 = 60
+NU0 = 66
 """Packed columns before the contacts."""
 NUC = 25
 """Packed columns per contact."""
@@ -89,7 +93,8 @@ _PERM = np.array([1, 0, 3, 2, 5, 4])
 def out_layout(n_c: int) -> dict:
     """Column ranges of one step's output row: name -> (start, shape)."""
     shapes = [("x", (18,)), ("cov", (18, 18)), ("wrench", (n_c, 6)), ("wrench_cov", (6, 6)), ("cop", (3,)),
-              ("cop_cov", (2, 2)), ("innovation", (6,)), ("S", (6, 6)), ("white", (6,)), ("nis", ())]
+              ("cop_cov", (2, 2)), ("innovation", (6,)), ("S", (6, 6)), ("white", (6,)), ("nis", ()),
+              ("sensor_nis", (2,)), ("inflation", (2,))]
     out, o = {}, 0
     for name, shape in shapes:
         out[name] = (o, shape)
@@ -367,15 +372,28 @@ def predict(x, P, u, CP, Q, dt, m, g, WS):
 
 
 @njit
-def update(x, P, u, Rn, g, WS, innov, S, white):
+def update(x, P, u, Rn, g, WS, innov, S, white, gates, snis, infl):
     """Correct ``(x, P)`` in place with the IMU readings of ``u``; writes the innovation, its
     covariance and the whitened innovation.  Returns ``(status, nis)``: 0 ok, 2 S not positive
-    definite (x, P unchanged), 3 P not positive definite, 4 state not finite."""
+    definite (x, P unchanged), 3 P not positive definite, 4 state not finite.
+
+    Axes whose ``use`` flag (``u[60:66]``) is 0 (missing or saturated readings) are left out: zero
+    innovation and row of ``H``, unit variance uncorrelated with the others, so that their gain is
+    zero.  Per sensor (gyro, accel), the NIS of its used axes is written to ``snis``; above the
+    gate ``gates[d - 1]`` (d used axes) its block of ``S`` is scaled by ``NIS / gate`` (the
+    innovation covariance inflated so that the sample sits on the gate: bounded influence, the
+    update never skipped), and the factor written to ``infl``.  The whitened innovation and the
+    NIS are those of the raw ``S``."""
     hx = WS[6, 1, 0:6]
     H = WS[5, 0:6]
     measurement(x, u, g, hx, H)
     for i in range(6):
-        innov[i] = u[54 + i] - hx[i]
+        if u[60 + i] != 0.0:
+            innov[i] = u[54 + i] - hx[i]
+        else:
+            innov[i] = 0.0
+            for j in range(18):
+                H[i, j] = 0.0
     U = WS[4, :, 0:6]
     K = WS[4, :, 6:12]
     KS = WS[4, :, 12:18]
@@ -391,24 +409,70 @@ def update(x, P, u, Rn, g, WS, innov, S, white):
             s = 0.0
             for j in cols:
                 s += H[r, j] * U[j, c]
-            S[r, c] = s + 0.5 * (Rn[r, c] + Rn[c, r])
+            if u[60 + r] != 0.0 and u[60 + c] != 0.0:
+                S[r, c] = s + 0.5 * (Rn[r, c] + Rn[c, r])
+            else:
+                S[r, c] = 1.0 if r == c else 0.0
             S[c, r] = S[r, c]
     L = WS[5, 6:12, 0:6]
     if not core.cholesky_into(S, L):
         for i in range(6):
             white[i] = 0.0
         return 2, np.inf
-    for i in range(18):
-        for r in range(6):
-            K[i, r] = U[i, r]
-        core.trsv_lower_inplace(L, K[i])
-        core.trsv_upper_t_inplace(L, K[i])
     nis = 0.0
     for i in range(6):
         white[i] = innov[i]
     core.trsv_lower_inplace(L, white)
     for i in range(6):
         nis += white[i] * white[i]
+    # Per-sensor gate: the NIS of each sensor's used axes against its own block of S; the gain
+    # uses Se, S with the gated blocks inflated (S itself, an output, stays the model's).
+    Se = WS[5, 12:18, 12:18]
+    for r in range(6):
+        for c in range(6):
+            Se[r, c] = S[r, c]
+    gated = False
+    Ls = WS[6, 6:9, 0:3]
+    ws = WS[6, 9, 0:3]
+    for sn in range(2):
+        d = 0
+        for a in range(3):
+            if u[60 + 3 * sn + a] != 0.0:
+                d += 1
+        snis[sn] = 0.0
+        infl[sn] = 1.0
+        if d == 0:
+            continue
+        # The 3x3 block (unused axes have unit variance and zero innovation: they add nothing).
+        for a in range(3):
+            for b in range(3):
+                Ls[a, b] = 0.0
+        Ss = WS[6, 10:13, 0:3]
+        for a in range(3):
+            ws[a] = innov[3 * sn + a]
+            for b in range(3):
+                Ss[a, b] = S[3 * sn + a, 3 * sn + b]
+        if not core.cholesky_into(Ss, Ls):
+            return 2, np.inf
+        core.trsv_lower_inplace(Ls, ws)
+        v = ws[0] * ws[0] + ws[1] * ws[1] + ws[2] * ws[2]
+        snis[sn] = v
+        gate = gates[d - 1]
+        if gate > 0.0 and v > gate:
+            lam = v / gate
+            infl[sn] = lam
+            gated = True
+            for a in range(3):
+                for b in range(3):
+                    if u[60 + 3 * sn + a] != 0.0 and u[60 + 3 * sn + b] != 0.0:
+                        Se[3 * sn + a, 3 * sn + b] *= lam
+    if gated and not core.cholesky_into(Se, L):
+        return 2, np.inf
+    for i in range(18):
+        for r in range(6):
+            K[i, r] = U[i, r]
+        core.trsv_lower_inplace(L, K[i])
+        core.trsv_upper_t_inplace(L, K[i])
     for i in range(18):
         s = 0.0
         for r in range(6):
@@ -416,7 +480,7 @@ def update(x, P, u, Rn, g, WS, innov, S, white):
         x[i] += s
     if x[3] * x[3] + x[4] * x[4] + x[5] * x[5] > math.pi * math.pi:
         st3(x, 3, log_t(exp_t(ld3(x, 3))))
-    core.matmul_into(K, S, KS)
+    core.matmul_into(K, Se, KS)
     for i in range(18):
         for j in range(i, 18):
             s = P[i, j]
@@ -533,6 +597,7 @@ def step(k, x, P, U, CP, C, WS, OUT, do_predict, want_outputs):
     o = _NQ + _NR
     dt, m, g, z0, min_force = C[o], C[o + 1], C[o + 2], C[o + 3], C[o + 4]
     touchdown, tilt_weight, height_weight, floor_z = C[o + 5], C[o + 6], C[o + 7], C[o + 8]
+    gates = C[o + 9:o + 12]
     u = U[k]
     row = OUT[k]
     o_wc = _O_WR + 6 * n_c
@@ -542,6 +607,7 @@ def step(k, x, P, U, CP, C, WS, OUT, do_predict, want_outputs):
     o_S = o_in + 6
     o_wh = o_S + 36
     o_nis = o_wh + 6
+    o_sn = o_nis + 1
     if do_predict and k > 0:
         if touchdown != 0.0:
             touch_down(k, x, U, dt, tilt_weight, height_weight, floor_z)
@@ -549,7 +615,8 @@ def step(k, x, P, U, CP, C, WS, OUT, do_predict, want_outputs):
         if st != 0:
             return st
     S = row[o_S:o_S + 36].reshape((6, 6))
-    st, nis = update(x, P, u, Rn, g, WS, row[o_in:o_in + 6], S, row[o_wh:o_wh + 6])
+    st, nis = update(x, P, u, Rn, g, WS, row[o_in:o_in + 6], S, row[o_wh:o_wh + 6], gates, row[o_sn:o_sn + 2],
+                     row[o_sn + 2:o_sn + 4])
     row[o_nis] = nis
     if st != 0:
         return st
@@ -567,17 +634,24 @@ def step(k, x, P, U, CP, C, WS, OUT, do_predict, want_outputs):
 # ----------------------------------------------------------------------------------------------
 
 
-def pack_inputs(rec, rest_p=None, rest_R=None) -> np.ndarray:
-    """(N, 60 + 25 C) packed inputs and readings (see the module docstring); rest placements
-    default to the local ones."""
+def pack_inputs(rec, rest_p=None, rest_R=None, imu_use=None) -> np.ndarray:
+    """(N, 66 + 25 C) packed inputs and readings (see the module docstring); rest placements
+    default to the local ones; ``imu_use`` (N, 6) the axes that carry information (default: the
+    finite readings)."""
     n, n_c = rec.n, len(rec.contact_names)
     rest_p = rec.contact_p if rest_p is None else rest_p
     rest_R = rec.contact_R if rest_R is None else rest_R
     U = np.zeros((n, NU0 + NUC * n_c))
     cols = [rec.com, rec.com_vel, rec.com_acc, rec.inertia.reshape(n, 9), rec.inertia_dot.reshape(n, 9),
             rec.sigma, rec.sigma_dot, rec.imu_R.reshape(n, 9), rec.imu_p, rec.imu_v, rec.imu_a, rec.imu_w,
-            rec.gyro, rec.accel]
+            np.zeros((n, 3)), np.zeros((n, 3)), np.ones((n, 6))]
     U[:, :NU0] = np.hstack(cols)
+    # Readings and which axes carry information (missing or saturated: use 0, reading 0).
+    use = np.ones((n, 6), dtype=bool) if imu_use is None else np.asarray(imu_use, dtype=bool)
+    y = np.concatenate([rec.gyro, rec.accel], axis=1)
+    use = use & np.isfinite(y)
+    U[:, 54:60] = np.where(use, y, 0.0)
+    U[:, 60:66] = use
     eye9 = np.eye(3).ravel()
     for c in range(n_c):
         o = NU0 + NUC * c
@@ -601,9 +675,10 @@ def pack_params(params) -> np.ndarray:
 
 
 def pack_constants(Q, Rn, dt, m, g, z0, min_force, touchdown: bool = False, tilt_weight: float = 0.0,
-                   height_weight: float = 0.0, floor_z: float = 0.0) -> np.ndarray:
+                   height_weight: float = 0.0, floor_z: float = 0.0, gates=(0.0, 0.0, 0.0)) -> np.ndarray:
     return np.concatenate([np.asarray(Q, float).ravel(), np.asarray(Rn, float).ravel(),
-                           [dt, m, g, z0, min_force, float(touchdown), tilt_weight, height_weight, floor_z]])
+                           [dt, m, g, z0, min_force, float(touchdown), tilt_weight, height_weight, floor_z],
+                           np.asarray(gates, float)])
 
 
 def workspace() -> np.ndarray:

@@ -53,6 +53,7 @@ from typing import NamedTuple
 import numpy as np
 
 from flexforce.compare import _ekf_kernel as K
+from flexforce.datasets import faults
 from flexforce.datasets.estimate import Estimate
 from flexforce.datasets.recording import Recording
 from flexforce.errors import ConfigError, DataError, EstimatorError, ModelError
@@ -65,6 +66,7 @@ from flexforce.options import (
     check_fraction,
     check_int,
     check_positive,
+    invalid,
     require_config,
     with_options,
 )
@@ -130,7 +132,8 @@ class EKFConfig:
     """Normalised innovation squared (dimensionless, chi^2 with 6 dof, mean 6) above which a step
     counts as diverged."""
     nis_steps: int = 20
-    """Consecutive diverged steps after which the filter raises EstimatorError."""
+    """Consecutive diverged steps after which the filter raises EstimatorError (without the gate,
+    ``imu_gate = None``; with it, ``gate_max_time`` applies to each sensor)."""
     touchdown: str = "local"
     """Rest placement of a contact episode that starts during the run (active at step k, not at
     k-1): ``local`` -- the given rest placements (default: the contact's local placement, the
@@ -145,6 +148,19 @@ class EKFConfig:
     """With ``touchdown='zero-deflection'``: fraction (0 to 1) of the landing sole's height above the
     floor (the plane z = 0 of the world, where the first step's contacts rest) removed from its rest
     position (1: the foothold is on the floor; 0: where the foot lands by the estimate)."""
+    imu_gate: float | None = 1e-6
+    """Upper-tail probability (dimensionless, in (0, 1)) of the chi-square gate on each IMU sensor's
+    innovation (gyrometer and accelerometer apart, d = its used axes): a consistent filter exceeds
+    it with this probability (1e-6: chi^2_3 > 30.7, once in 83 min at 200 Hz).  A sample beyond
+    the gate is not skipped: its block of the innovation covariance is inflated by NIS / gate, so
+    that its correction is that of a sample on the gate (bounded influence; docs/ekf.md, "Sensor
+    faults").  None: no gate."""
+    gate_max_time: float = 1.0
+    """With the gate: longest run (s) of one sensor's samples with a NIS above ``nis_limit`` (so far
+    beyond the gate that they barely correct the state) before the filter stops with an
+    EstimatorError naming the sensor and the time: a stuck sensor the range does not catch, or a
+    diverged filter.  Shorter runs are ridden out (a 0.5 s plateau at 16 g leaves the estimate
+    unchanged, tests/test_faults.py) and reported in ``meta['rejected']``."""
 
     def __post_init__(self):
         o = "EKFConfig"
@@ -158,6 +174,7 @@ class EKFConfig:
         check_choice(o, "jacobians", self.jacobians, ("analytic", "numeric"))
         check_bool(o, "outputs", self.outputs)
         check_choice(o, "on_covariance_failure", self.on_covariance_failure, ("raise", "reset"))
+        check_positive(o, "gate_max_time", self.gate_max_time, "s", "a positive duration")
         check_positive(o, "nis_limit", self.nis_limit, "", "a positive normalised innovation squared (chi^2, 6 dof)")
         check_int(o, "nis_steps", self.nis_steps, 1, "steps", "an integer >= 1")
         check_choice(o, "touchdown", self.touchdown, ("local", "zero-deflection"))
@@ -165,6 +182,10 @@ class EKFConfig:
                        "a number in [0, 1] (the fraction of the sole's tilt removed at a touch-down)")
         check_fraction(o, "ground_height_weight", self.ground_height_weight,
                        "a number in [0, 1] (the fraction of the sole's height above the floor removed at a touch-down)")
+        if self.imu_gate is not None and not (isinstance(self.imu_gate, float | int) and not isinstance(
+                self.imu_gate, bool) and 0.0 < self.imu_gate < 1.0):
+            raise invalid(o, "imu_gate", self.imu_gate, "",
+                          "a tail probability in (0, 1) of the chi-square gate, or None (no gate)")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -364,11 +385,16 @@ class EKF:
         self.g = model.gravity
         self.noise = noise_model(rec, model, config)
         rest_p, rest_R = rest_placements(rec, rest_p, rest_R)
-        self.U = K.pack_inputs(rec, rest_p, rest_R)
+        self.imu_use, self.imu_missing, self.imu_saturated = faults.imu_validity(
+            rec.gyro, rec.accel, float(getattr(model, "gyro_range", math.inf)),
+            float(getattr(model, "accel_range", math.inf)))
+        self.gates = (np.zeros(3) if config.imu_gate is None
+                      else np.array([faults.gate_threshold(config.imu_gate, d) for d in (1, 2, 3)]))
+        self.U = K.pack_inputs(rec, rest_p, rest_R, self.imu_use)
         self.CP = K.pack_params(model.contact_params)
         self.C = K.pack_constants(self.noise.Q, self.noise.R, self.dt, rec.mass, self.g, config.z0,
                                   config.min_force, config.touchdown == "zero-deflection", config.ground_tilt_weight,
-                                  config.ground_height_weight, _floor_height(rec, rest_p))
+                                  config.ground_height_weight, _floor_height(rec, rest_p), self.gates)
         self.WS = K.workspace()
 
     # --- model functions ----------------------------------------------------------------------
@@ -466,8 +492,26 @@ class EKF:
         """Correct ``(x, P)`` at step ``k`` with its gyrometer and accelerometer readings."""
         hx, H = self.measurement(x, k, jacobian=True)
         y = self.rec.imu_measurement(k)
-        up = kf_update(x, P, y, hx, H, self.noise.R)
-        return up._replace(x=_wrap(up.x))
+        use = self.imu_use[k]
+        # Missing or saturated axes are left out: zero innovation and H row, unit variance alone.
+        innov = np.where(use, y - hx, 0.0)
+        H = H * use[:, None]
+        HPH = H @ P @ H.T
+        S = np.where(np.outer(use, use), HPH + self.noise.R, np.diag((~use).astype(float)))
+        S = 0.5 * (S + S.T)
+        white = np.linalg.solve(np.linalg.cholesky(S), innov)
+        # The gate: a sensor whose NIS exceeds it has its block of S inflated to sit on the gate
+        # (as if its noise were R + (NIS / gate - 1) S_ss).
+        S_eff = S.copy()
+        for _, sl in faults.IMU_SENSORS:
+            idx = np.arange(sl.start, sl.stop)[use[sl]]
+            if idx.size and self.gates[idx.size - 1] > 0:
+                blk = np.ix_(idx, idx)
+                v = float(innov[idx] @ np.linalg.solve(S[blk], innov[idx]))
+                if v > self.gates[idx.size - 1]:
+                    S_eff[blk] *= v / self.gates[idx.size - 1]
+        up = kf_update(x, P, hx + innov, hx, H, S_eff - HPH)
+        return up._replace(x=_wrap(up.x), S=S, whitened=white, nis=float(white @ white))
 
     # --- outputs ---------------------------------------------------------------------------
     def outputs(self, x: np.ndarray, P: np.ndarray, k: int) -> dict:
@@ -500,7 +544,9 @@ def _wrap(x: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------
 
 _FINITE_FIELDS = ("com", "com_vel", "com_acc", "inertia", "inertia_dot", "sigma", "sigma_dot", "imu_R",
-                  "imu_p", "imu_v", "imu_a", "imu_w", "contact_p", "contact_R", "gyro", "accel")
+                  "imu_p", "imu_v", "imu_a", "imu_w", "contact_p", "contact_R")
+"""Fields that must be finite; a missing gyro or accelerometer reading is skipped instead
+(:func:`flexforce.datasets.faults.check_missing` bounds how many)."""
 
 
 def check_recording(rec: Recording, model: ModelConfig) -> None:
@@ -519,6 +565,7 @@ def check_recording(rec: Recording, model: ModelConfig) -> None:
             k = int(np.flatnonzero(bad_k)[0])
             raise DataError(f"field '{name}' is not finite (NaN or inf) at sample {k}, "
                             f"t = {time_s[k]:.3f} s; the EKF needs finite inputs and readings")
+    faults.check_missing(time_s, rec.gyro, rec.accel)
     if not (math.isfinite(rec.mass) and rec.mass > 0):
         raise DataError(f"mass must be a positive number of kg, got {rec.mass}")
     if rec.n < 2:
@@ -580,6 +627,8 @@ def run_ekf(rec: Recording, model: ModelConfig, config: EKFConfig | None = EKFCo
     P_reset = P.copy()
     start = time.perf_counter()
     diverged = 0
+    beyond = np.zeros(2, dtype=int)  # per sensor: consecutive samples with a NIS above nis_limit
+    max_run = max(1, int(round(config.gate_max_time / ekf.dt)))
     every = max(1, n // 100)
     step = K.step
     U, CP, C, WS, row, want = ekf.U, ekf.CP, ekf.C, ekf.WS, out.row, out.want
@@ -590,20 +639,59 @@ def run_ekf(rec: Recording, model: ModelConfig, config: EKFConfig | None = EKFCo
         if status:
             _handle_failure(status, k, ekf, x, P, P_reset, out)
         nis = out.nis[k]
-        if nis > config.nis_limit:
+        if config.imu_gate is not None:
+            far = out.sensor_nis[k] > config.nis_limit
+            beyond = np.where(far, beyond + 1, 0)
+            if (beyond >= max_run).any():
+                _gate_timeout(ekf, out, k, int(np.argmax(beyond)), int(beyond.max()))
+        if config.imu_gate is None and nis > config.nis_limit:
             diverged += 1
             if diverged >= config.nis_steps:
                 raise EstimatorError(
                     f"EKF diverged: the normalised innovation squared has exceeded {config.nis_limit:g} "
                     f"(chi^2, 6 dof, mean 6) for {diverged} consecutive steps, up to sample {k} "
-                    f"(t = {rec.time[k]:.3f} s, NIS = {nis:.3g}); check the model (stiffness, "
-                    "mass, contacts) and the IMU placement")
+                    f"(t = {rec.time[k]:.3f} s, NIS = {nis:.3g}; gyro {out.sensor_nis[k, 0]:.3g}, accel "
+                    f"{out.sensor_nis[k, 1]:.3g}); check the model (stiffness, mass, contacts), the IMU "
+                    "placement, and that sensor (stuck or saturated: set its range in the robot's [imu_noise])")
         else:
             diverged = 0
         if progress is not None and (k % every == 0 or k == n - 1):
             progress((k + 1) / n)
     total = time.perf_counter() - start
-    return out.estimate(rec, ekf, total)
+    est = out.estimate(rec, ekf, total)
+    est.meta["rejected"] = rejected_samples(ekf, out)
+    est.meta["imu_gate"] = None if config.imu_gate is None else {"probability": config.imu_gate,
+                                                                  "chi2": ekf.gates.tolist()}
+    faults.warn_summary("EKF", est.meta["rejected"], stacklevel=2)
+    return est
+
+
+def _gate_timeout(ekf: EKF, out: _Outputs, k: int, sensor: int, run: int) -> None:
+    rec = ekf.rec
+    name = faults.IMU_SENSORS[sensor][0]
+    k0 = k - run + 1
+    raise EstimatorError(
+        f"EKF: the {name} has disagreed with the model beyond the gate (NIS above {ekf.config.nis_limit:g}, "
+        f"chi^2 with 3 dof) for {run} consecutive samples, from sample {k0} (t = {rec.time[k0]:.3f} s) to "
+        f"{k} (t = {rec.time[k]:.3f} s, NIS = {out.sensor_nis[k, sensor]:.3g}), longer than "
+        f"EKFConfig.gate_max_time = {ekf.config.gate_max_time:g} s: a stuck or saturated {name} (set its "
+        "range in the robot's [imu_noise]) or a diverged filter; the estimate is not trustworthy past "
+        f"t = {rec.time[k0]:.3f} s")
+
+
+def rejected_samples(ekf: EKF, out: _Outputs) -> list[dict]:
+    """The IMU samples the filter gave less weight: missing and saturated axes (left out), and the
+    sensors beyond the gate (weight 1 / inflation)."""
+    rec = ekf.rec
+    time_s = rec.time
+    y = np.concatenate([rec.gyro, rec.accel], axis=1)
+    entries = faults.masked_entries(time_s, y, ekf.imu_missing, ekf.imu_saturated)
+    for sn, (name, _) in enumerate(faults.IMU_SENSORS):
+        for k in np.flatnonzero(out.inflation[:, sn] > 1.0):
+            entries.append(faults.entry(time_s[k], k, name, "norm", "outlier", math.sqrt(out.sensor_nis[k, sn]),
+                                        1.0 / out.inflation[k, sn]))
+    entries.sort(key=lambda e: (e["step"], e["sensor"]))
+    return entries
 
 
 _STATUS = {1: "the predicted state covariance", 2: "the innovation covariance", 3: "the corrected state covariance",
@@ -644,6 +732,8 @@ class _Outputs:
     S: np.ndarray
     white: np.ndarray
     nis: np.ndarray
+    sensor_nis: np.ndarray
+    inflation: np.ndarray
 
     def __init__(self, n: int, n_c: int, want: bool = True):
         layout = K.out_layout(n_c)

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from flexforce.datasets.faults import check_missing
 from flexforce.errors import DataError
 from flexforce.factors.physics import GRAVITY, ImuPlacement, Inputs
 
@@ -273,6 +274,10 @@ class Recording:
     def validate(self) -> Recording:
         """Check shapes, finiteness and time order; raise :class:`DataError` naming the problem.
 
+        A missing (NaN) gyrometer or accelerometer reading is allowed (the estimators skip it,
+        docs/smoother.md "Sensor faults") up to :data:`flexforce.datasets.faults.MAX_MISSING_FRACTION`
+        of the samples.
+
         Returns the recording itself so that calls can be chained.
         """
         n = self.n
@@ -303,10 +308,13 @@ class Recording:
             if not isinstance(arr, np.ndarray) or arr.shape != shape:
                 got = getattr(arr, "shape", type(arr).__name__)
                 raise DataError(f"field '{name}' has shape {got}; expected {shape}")
+            if name in ("gyro", "accel"):
+                continue  # a missing IMU reading is skipped by the estimators (checked below)
             if arr.dtype != bool and not np.all(np.isfinite(arr)):
                 k = int(np.flatnonzero(~np.isfinite(arr.reshape(n, -1)).all(axis=1))[0])
                 raise DataError(f"field '{name}' is not finite (NaN or inf) at sample {k}, "
                                 f"t = {(self.t_ns[k] - self.t_ns[0]) * 1e-9:.3f} s")
+        check_missing(self.time, self.gyro, self.accel)
         if not (np.isfinite(self.mass) and self.mass > 0):
             raise DataError(f"mass must be a positive number of kg, got {self.mass}")
         if self.ft is not None and self.ft.shape != (n, c, 6):

@@ -114,6 +114,12 @@ class ImuNoise:
     """Gyro bias random walk, rad/s^2/sqrt(Hz)."""
     accel_bias_rw: float = 2e-4
     """Accelerometer bias random walk, m/s^3/sqrt(Hz)."""
+    accel_range: float = 16.0 * 9.80665
+    """Accelerometer full scale, m/s^2 (per axis): a reading at or beyond it (within 0.1 %) is
+    saturated and carries no information.  Default +-16 g, the largest range of common MEMS parts;
+    set it from the IMU's data sheet (``inf``: no saturation check)."""
+    gyro_range: float = math.radians(2000.0)
+    """Gyrometer full scale, rad/s (per axis), as ``accel_range``.  Default +-2000 deg/s (34.9 rad/s)."""
 
     def __post_init__(self):
         for key, unit in (("gyro_density", "rad/s/sqrt(Hz)"), ("accel_density", "m/s^2/sqrt(Hz)")):
@@ -122,6 +128,12 @@ class ImuNoise:
             value = getattr(self, key)  # 0: biases that do not drift
             if not (value == 0 or _positive_number(value)) or isinstance(value, bool):
                 raise ConfigError(f"imu_noise.{key} = {value!r} {unit}; expected a finite random walk >= 0")
+        for key, unit in (("accel_range", "m/s^2"), ("gyro_range", "rad/s")):
+            value = getattr(self, key)
+            if not (isinstance(value, numbers.Real) and not isinstance(value, bool) and value > 0
+                    and not math.isnan(value)):
+                raise ConfigError(f"imu_noise.{key} = {value!r} {unit}; expected the sensor's positive full scale "
+                                  "(inf: no saturation check)")
 
     def gyro_sigma(self, rate: float) -> float:
         """Per-sample gyro standard deviation (rad/s) at ``rate`` Hz."""

@@ -1124,6 +1124,9 @@ class Simulator:
             accel = accel_true + accel_bias + rng.normal(0.0, self.imu_noise.accel_sigma(sc.rate), (n, 3))
             ft[..., :3] += rng.normal(0.0, self.ft_noise.force, ft[..., :3].shape)
             ft[..., 3:] += rng.normal(0.0, self.ft_noise.torque, ft[..., 3:].shape)
+        # The sensors clip at their full scale (``[imu_noise]`` accel_range, gyro_range).
+        gyro = np.clip(gyro, -self.imu_noise.gyro_range, self.imu_noise.gyro_range)
+        accel = np.clip(accel, -self.imu_noise.accel_range, self.imu_noise.accel_range)
         truth_obj = Truth(
             R=truth_R, t=truth["t"], w=truth["w"], v=truth["v"], dw=truth["dw"], a=truth["a"],
             wrench=truth_wrench, external_wrench=truth_ext, cop=truth["cop"],

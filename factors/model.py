@@ -31,6 +31,11 @@ class ModelConfig:
     """Per-sample F/T force noise, N (used only with ``use_ft``)."""
     ft_torque_sigma: float = 0.2
     """Per-sample F/T torque noise, N m (used only with ``use_ft``)."""
+    gyro_range: float = math.inf
+    """Gyrometer full scale, rad/s: readings at or beyond it are saturated (no information);
+    ``inf``: no check.  :meth:`from_recording` takes the robot's ``imu_noise.gyro_range``."""
+    accel_range: float = math.inf
+    """Accelerometer full scale, m/s^2, as ``gyro_range``."""
     use_ft: bool = False
     """Fuse the recording's F/T readings as measurements."""
     effects: tuple = field(default_factory=tuple)
@@ -67,6 +72,8 @@ class ModelConfig:
             gravity=rec.gravity,
             ft_force_sigma=float(ft["force"]),
             ft_torque_sigma=float(ft["torque"]),
+            gyro_range=float(noise["gyro_range"]),
+            accel_range=float(noise["accel_range"]),
             foothold_prior=FootholdPrior.from_config(robot.footholds),
         )
         return replace(cfg, **overrides) if overrides else cfg

@@ -255,6 +255,21 @@ class FixedLagSmoother:
             off += eff.dim
         self._e0 = e0
 
+    def _lower_weight_caps(self, f: int, lin) -> None:
+        """Remember the sensors' robust weights of the steps just linearised: a sample's weight
+        never rises again (IRLS with one Gauss-Newton step per update would otherwise let an
+        outlier back in as the estimate drifts towards it, and freeze that drift)."""
+        caps = self.prob.weight_cap
+        if caps is None:
+            return
+        for fam, w in lin.weights.items():
+            # not the newest step: it is linearised at its prediction, which a legitimate jump
+            # of the readings (a push) leaves far from them; its weight is remembered once the
+            # step has been estimated.
+            cap = caps.setdefault(fam, np.ones((self.prob.n, w.shape[1])))
+            m = len(w) - 1
+            cap[f:f + m] = np.minimum(cap[f:f + m], w[:m])
+
     def _state(self, k: int):
         """Current estimate of step ``k`` (in the window): linearisation point retracted by dx."""
         p = k % self.cap
@@ -298,6 +313,7 @@ class FixedLagSmoother:
         pos = np.arange(f, k + 1) % cap
         traj = Trajectory(self.Rb[pos], self.qb[pos], self.Wb[pos], self.eb[pos])
         lin = linearize(prob, traj, k0=f)
+        self._lower_weight_caps(f, lin)
         U, gU, Fw, gF, B = assemble_split(lin, len(pos), D, skip_first_unary=frozen_first)
         m = len(pos)
         Ld = np.empty((m, D, D))
@@ -450,6 +466,7 @@ def run_fixed_lag(rec, model, config: FixedLagConfig = FixedLagConfig(), rest_p=
         if rest_p is None and rest_R is None:
             rest_p, rest_R = held_rest(rec.contact_active, rec.contact_p, rec.contact_R)
     prob = Problem.build(rec, model, config.rule, rest_p, rest_R)
+    prob.weight_cap = {}  # the sensors' robust weights only fall (FixedLagSmoother._lower_weight_caps)
     fls: FixedLagSmoother | GtsamFixedLagSmoother
     if backend == "window":
         fls = FixedLagSmoother(prob, lag, relinearize=config.relinearize, covariance=covariance,

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from flexforce.datasets.faults import robust_weights
 from flexforce.errors import EstimatorError
 from flexforce.factors import core
 from flexforce.smoother import solvers
@@ -56,6 +57,8 @@ class Linearization:
     """family -> (r (N-1, m), J0 (N-1, m, D), J1 (N-1, m, D)) for factors between steps k, k+1."""
     cost: float = 0.0
     """Half the sum of squared whitened residuals."""
+    weights: dict = field(default_factory=dict)
+    """family -> (n, sensors) robust weights of the sensor families (``imu``, ``ft/<i>``)."""
 
 
 def _whiten_rows(r, J, sigma):
@@ -86,6 +89,32 @@ def huber_weights(r, k):
     return w, cost
 
 
+def sensor_weights(r, groups, kind, k):
+    """(n, len(groups)) IRLS weights, robust costs and whitened norms of the row groups of ``r``
+    (one group per sensor: gyro rows 0-2, accelerometer rows 3-5)."""
+    norms = np.stack([np.sqrt(np.sum(r[:, a:b] ** 2, axis=1)) for a, b in groups], axis=1)
+    w, rho = robust_weights(norms, kind, k)
+    return w, rho, norms
+
+
+def sensor_reweight(r, J, groups, kind, k, cap=None):
+    """IRLS on each sensor's whitened 3-D residual: rows scaled by ``sqrt(w)``; returns ``(r, J,
+    extra cost, w)`` with the extra cost making ``0.5 |r_w|^2 + extra`` the robust cost.
+
+    ``cap`` (n, groups): upper bounds of the weights (the fixed-lag smoother's memory of the
+    weight each sample had when it was first linearised, so that a rejected sample is not let
+    back in as the estimate drifts towards it)."""
+    w, rho, norms = sensor_weights(r, groups, kind, k)
+    if cap is not None:
+        w = np.minimum(w, cap)
+    r, J = r.copy(), J.copy()
+    for j, (a, b) in enumerate(groups):
+        sw = np.sqrt(w[:, j])
+        r[:, a:b] *= sw[:, None]
+        J[:, a:b] *= sw[:, None, None]
+    return r, J, float(np.sum(rho)) - 0.5 * float(np.sum(w * norms**2)), w
+
+
 def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True) -> Linearization:
     """Evaluate every factor of ``prob`` at ``traj`` (residuals whitened, Jacobians in world increments).
 
@@ -93,7 +122,9 @@ def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True) -> Linea
     default; the fixed-lag smoother passes its newest steps).  The first-step priors are included
     only when ``k0 == 0``.  With a robust Newton-Euler loss (``Sigmas.robust_k``) its rows are
     reweighted (IRLS: ``sqrt(w)`` times residual and Jacobian) and ``cost`` is the robust cost;
-    ``robust=False`` gives the plain whitened residuals (the diagnostics).
+    ``robust=False`` gives the plain whitened residuals (the diagnostics).  The IMU (and fused
+    F/T) rows of a missing or saturated axis are zero; with a robust sensor loss
+    (``Sigmas.imu_robust``) each sensor's 3-D block is reweighted the same way.
     """
     nc = prob.nc
     n = traj.R.shape[0]
@@ -184,7 +215,16 @@ def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True) -> Linea
     J = np.zeros((n, 6, D))
     J[:, :, :S] = Js
     add_effects("imu", r, J)
-    lin.unary["imu"] = _whiten_rows(r, J, sig.imu)
+    r, J = _whiten_rows(r, J, sig.imu)
+    use = prob.imu_use[sl]  # missing or saturated axes: zero weight
+    r, J = r * use, J * use[:, :, None]
+    if robust and sig.imu_robust is not None:
+        cap = prob.weight_cap.get("imu") if prob.weight_cap is not None else None
+        r, J, c, w = sensor_reweight(r, J, ((0, 3), (3, 6)), sig.imu_robust, sig.imu_robust_k,
+                                     None if cap is None else cap[sl])
+        extra_cost += c
+        lin.weights["imu"] = w
+    lin.unary["imu"] = (r, J)
 
     # F/T readings (optional).
     if prob.use_ft:
@@ -196,7 +236,14 @@ def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True) -> Linea
             J = np.zeros((n, 6, D))
             J[:, :, :S] = Jf[:, i]
             J[:, :, w_cols[i]] = JW[:, i]
-            lin.unary[f"ft/{i}"] = _whiten_rows(rf[:, i].copy(), J, sig.ft)
+            r, J = _whiten_rows(rf[:, i].copy(), J, sig.ft)  # NaN readings: zero rows (core.ft)
+            if robust and sig.imu_robust is not None:
+                cap = prob.weight_cap.get(f"ft/{i}") if prob.weight_cap is not None else None
+                r, J, c, w = sensor_reweight(r, J, ((0, 3), (3, 6)), sig.imu_robust, sig.imu_robust_k,
+                                             None if cap is None else cap[sl])
+                extra_cost += c
+                lin.weights[f"ft/{i}"] = w
+            lin.unary[f"ft/{i}"] = (r, J)
 
     # Prior on the first step (core state), around the static equilibrium.
     if k0 == 0:

@@ -43,6 +43,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from flexforce.datasets.faults import ROBUST_LOSSES, imu_validity
 from flexforce.errors import ConfigError, DataError, ModelError
 from flexforce.factors import core
 from flexforce.factors.effects import Effect, ProblemView
@@ -92,6 +93,18 @@ class NoiseRule:
     keep their full Gaussian weight (Huber's scalar 1.345 would apply to a 1-D residual; the norm
     of a 6-D one exceeds it 9 times out of 10).  A push is an outlier of this family, which the
     Huber loss lets through linearly instead of quadratically, so that it does not drag the state."""
+    imu_robust: str | None = "log-tail"
+    """Robust loss on the whitened residual of each IMU sensor (the gyrometer's 3-D norm and the
+    accelerometer's, separately), and of each F/T sensor's force and torque when fused:
+    ``"log-tail"`` (Gaussian up to ``imu_robust_k``, logarithmic beyond: influence at most
+    ``imu_robust_k`` and falling to zero for gross outliers), ``"huber"`` (bounded influence,
+    convex), ``"cauchy"`` (redescending everywhere) or None (plain Gaussian).  docs/smoother.md,
+    "Sensor faults", gives the choice."""
+    imu_robust_k: float = 5.537
+    """Threshold of the IMU and F/T robust loss (whitened norm of one 3-D sensor).
+    5.537 = sqrt(chi^2_3 upper 1e-6 quantile): a nominal sample is down-weighted once in a million
+    (once in 83 min at 200 Hz), and it lies above the Newton-Euler threshold ``robust_k``, so that
+    an unmodelled push stays an outlier of the model (Newton-Euler) and not of the sensor."""
     jerk_scale: float = 1.0
     """Multiplier of the jerk density of the integration noise (1: the derivation below)."""
     inactive_factor: float = 1e-3
@@ -110,6 +123,11 @@ class NoiseRule:
         check_positive(o, "contact_ratio", self.contact_ratio, "", "a positive ratio of standard deviations")
         check_positive(o, "robust_k", self.robust_k, "", "a positive Huber threshold (whitened norm) or None",
                        optional=True)
+        if self.imu_robust is not None and self.imu_robust not in ROBUST_LOSSES:
+            raise invalid(o, "imu_robust", self.imu_robust, "",
+                          " or ".join(repr(c) for c in ROBUST_LOSSES) + " or None (plain Gaussian)")
+        check_positive(o, "imu_robust_k", self.imu_robust_k, "",
+                       "a positive threshold of the IMU/F-T robust loss (whitened norm of a 3-D sensor)")
         check_positive(o, "jerk_scale", self.jerk_scale, "", "a positive multiplier")
         check_positive(o, "inactive_factor", self.inactive_factor, "", "a positive ratio of standard deviations")
         sigma = self.prior_sigma
@@ -147,6 +165,10 @@ class Sigmas:
     """(6, 6) covariance of one active contact's law error."""
     robust_k: float | None = None
     """Huber threshold of the Newton-Euler family (whitened norm), or None."""
+    imu_robust: str | None = None
+    """Robust loss of each IMU (and F/T) sensor's whitened 3-D residual (``NoiseRule.imu_robust``)."""
+    imu_robust_k: float = 5.537
+    """Its threshold (whitened norm)."""
     derivation: dict = field(default_factory=dict)
     """The quantities the rule used (JSON-serialisable)."""
 
@@ -216,7 +238,10 @@ def derive_sigmas(rec, model, rule: NoiseRule = NoiseRule()) -> Sigmas:
         newton_euler_cov=cov_ne,
         contact_cov=cov_c,
         robust_k=rule.robust_k,
-        derivation={"weight_N": weight, "imu_contact_lever_m": lever,
+        imu_robust=rule.imu_robust,
+        imu_robust_k=rule.imu_robust_k,
+        derivation={"imu_robust": rule.imu_robust, "imu_robust_k": rule.imu_robust_k,
+                    "weight_N": weight, "imu_contact_lever_m": lever,
                     "unmodelled_accel_m_s2": sa, "unmodelled_ang_accel_rad_s2": sdw,
                     "newton_euler_cov": cov_ne.tolist(), "contact_ratio": rule.contact_ratio,
                     "robust_k": rule.robust_k, "omega_c_rad_s": omega_c,
@@ -358,6 +383,15 @@ class Problem:
     rest_p: np.ndarray = field(init=False, repr=False, compare=False)
     rest_R: np.ndarray = field(init=False, repr=False, compare=False)
     y_ft: np.ndarray | None = field(init=False, repr=False, compare=False)
+    imu_use: np.ndarray = field(init=False, repr=False, compare=False)
+    """(N, 6) 1.0 where the IMU axis carries information, 0.0 where its reading is missing or saturated."""
+    imu_missing: np.ndarray = field(init=False, repr=False, compare=False)
+    imu_saturated: np.ndarray = field(init=False, repr=False, compare=False)
+    ft_use: np.ndarray | None = field(init=False, repr=False, compare=False)
+    weight_cap: dict | None = field(default=None, init=False, repr=False, compare=False)
+    """family -> (N, sensors) upper bounds of the sensors' robust weights (None: none); the
+    fixed-lag smoother lowers them as samples are linearised (a rejected sample stays rejected)."""
+    """(N, C, 6) 1.0 where the fused F/T component is finite."""
     K_fs: np.ndarray = field(init=False, repr=False, compare=False)
     K_fd: np.ndarray = field(init=False, repr=False, compare=False)
     K_ts: np.ndarray = field(init=False, repr=False, compare=False)
@@ -399,11 +433,17 @@ class Problem:
         prob.sigma_l, prob.sigma_dot = c(rec.sigma, float), c(rec.sigma_dot, float)
         prob.imu_R, prob.imu_p, prob.imu_v = c(rec.imu_R, float), c(rec.imu_p, float), c(rec.imu_v, float)
         prob.imu_a, prob.imu_w = c(rec.imu_a, float), c(rec.imu_w, float)
-        prob.y_imu = c(np.concatenate([rec.gyro, rec.accel], axis=1), float)
+        use, prob.imu_missing, prob.imu_saturated = imu_validity(
+            rec.gyro, rec.accel, float(getattr(model, "gyro_range", math.inf)),
+            float(getattr(model, "accel_range", math.inf)))
+        prob.imu_use = c(use, float)
+        # A missing or saturated axis has zero weight; its reading is replaced by a finite placeholder.
+        prob.y_imu = c(np.where(use, np.concatenate([rec.gyro, rec.accel], axis=1), 0.0), float)
         prob.active = c(rec.contact_active, bool)
         prob.contact_p, prob.contact_R = c(rec.contact_p, float), c(rec.contact_R, float)
         prob.rest_p, prob.rest_R = rest_placements(rec, rest_p, rest_R)
-        prob.y_ft = c(rec.ft, float) if use_ft else None
+        prob.y_ft = c(rec.ft, float) if use_ft else None  # NaN: not measured (zero rows, factors.core.ft)
+        prob.ft_use = c(np.isfinite(rec.ft), float) if use_ft else None
         (prob.K_fs, prob.K_fd, prob.K_ts, prob.K_td), prob.beta, prob.iso = _contact_arrays(model.contact_params)
         prob.effect_dims = tuple(int(e.dim) for e in prob.effects)
         prob.prior_mean = prob.equilibrium(0)

@@ -6,6 +6,7 @@ import inspect
 
 import numpy as np
 
+from flexforce.datasets import faults
 from flexforce.datasets.estimate import Estimate
 from flexforce.factors import core
 from flexforce.factors.physics import center_of_pressure
@@ -47,7 +48,7 @@ def family_residuals(prob, traj: Trajectory) -> dict[str, np.ndarray]:
         r_int[:-1] = lin.binary["integration"][0]
     out["integration"] = r_int
     out["newton_euler"] = lin.unary["newton_euler"][0].copy()
-    out["imu"] = lin.unary["imu"][0].copy()
+    out["imu"] = np.where(prob.imu_use > 0, lin.unary["imu"][0], np.nan)  # NaN: missing or saturated
     rc = np.full((n, 6 * nc), np.nan)
     for i in range(nc):
         r = lin.unary[f"contact/{i}"][0]
@@ -60,6 +61,30 @@ def family_residuals(prob, traj: Trajectory) -> dict[str, np.ndarray]:
             measured = prob.active[:, i, None] & np.isfinite(prob.y_ft[:, i])
             rf[:, 6 * i:6 * i + 6] = np.where(measured, r, np.nan)
         out["ft"] = rf
+    return out
+
+
+def rejected_samples(prob, residuals: dict) -> list[dict]:
+    """The sensor samples the smoother gave less weight (:mod:`flexforce.datasets.faults`): missing
+    and saturated IMU axes (weight 0), and the IMU and F/T sensors whose whitened 3-D residual
+    at the estimate lies beyond the robust loss's threshold (with their robust weight)."""
+    time_s = prob.rec.time
+    y = np.concatenate([prob.rec.gyro, prob.rec.accel], axis=1)
+    out = faults.masked_entries(time_s, y, prob.imu_missing, prob.imu_saturated)
+    sig = prob.sigmas
+    if sig.imu_robust is None:
+        return out
+    blocks = [(name, residuals["imu"][:, sl]) for name, sl in faults.IMU_SENSORS]
+    if prob.use_ft and "ft" in residuals:
+        for i, cname in enumerate(prob.rec.contact_names):
+            rf = residuals["ft"][:, 6 * i:6 * i + 6]
+            blocks += [(f"ft/{cname}/force", rf[:, :3]), (f"ft/{cname}/torque", rf[:, 3:])]
+    for name, r in blocks:
+        norm = np.sqrt(np.nansum(r * r, axis=1))
+        w, _ = faults.robust_weights(norm, sig.imu_robust, sig.imu_robust_k)
+        for k in np.flatnonzero(norm > sig.imu_robust_k):
+            out.append(faults.entry(time_s[k], k, name, "norm", "outlier", norm[k], w[k]))
+    out.sort(key=lambda e: (e["step"], e["sensor"]))
     return out
 
 
@@ -112,7 +137,10 @@ def make_estimate(prob, name: str, traj: Trajectory, P: np.ndarray | None = None
         effects[eff.name] = call_report(eff, vals, ecov, (rec.t_ns - rec.t_ns[0]) * 1e-9)
         off += eff.dim
         eoff += eff.dim
+    residuals = family_residuals(prob, traj)
     meta = dict(meta or {})
+    meta["rejected"] = rejected_samples(prob, residuals)
+    faults.warn_summary(name, meta["rejected"], stacklevel=4)
     meta.setdefault("noise", {k: (v.tolist() if isinstance(v, np.ndarray) else v)
                               for k, v in prob.sigmas.derivation.items()})
     meta["sigmas"] = {"imu": prob.sigmas.imu.tolist(), "newton_euler": prob.sigmas.newton_euler.tolist(),
@@ -123,5 +151,5 @@ def make_estimate(prob, name: str, traj: Trajectory, P: np.ndarray | None = None
         R=traj.R.copy(), t=traj.q[:, 0:3].copy(), w=traj.q[:, 3:6].copy(), v=traj.q[:, 6:9].copy(),
         dw=traj.q[:, 9:12].copy(), a=traj.q[:, 12:15].copy(), wrench=W, cop=cop,
         cov=cov, wrench_cov=wrench_cov, cop_cov=cop_cov,
-        residuals=family_residuals(prob, traj), residual_labels=residual_labels(prob),
+        residuals=residuals, residual_labels=residual_labels(prob),
         time_per_step=time_per_step, total_time=float(total_time), effects=effects, meta=meta)
