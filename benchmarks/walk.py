@@ -19,7 +19,7 @@ configuration, as they would on a real robot.
 
 Per estimator, over the first and the last 10 s (after a 0.5 s start-up):
 tilt (roll/pitch of the flexibility's rotation error) and force RMSE, their ratio last/first
-(the issue's target: at most 1.2, nothing grows with the length of the walk); the flexibility's
+(the target: at most 1.2, nothing grows with the length of the walk); the flexibility's
 largest translation and tilt against the static deflection ``m g / sum k_fs`` (target: within 2x,
 here for the estimate, and for the truth both its flexibility -- which also holds the world's
 horizontal and yaw drift from the robot's belief, each foothold keeping where its foot touched --

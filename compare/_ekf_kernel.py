@@ -371,6 +371,10 @@ def predict(x, P, u, CP, Q, dt, m, g, WS):
     return 0
 
 
+GATE_REJECT = 1e12
+"""Inflation of a gated sensor's block of the innovation covariance: the sample is left out."""
+
+
 @njit
 def update(x, P, u, Rn, g, WS, innov, S, white, gates, snis, infl):
     """Correct ``(x, P)`` in place with the IMU readings of ``u``; writes the innovation, its
@@ -380,9 +384,8 @@ def update(x, P, u, Rn, g, WS, innov, S, white, gates, snis, infl):
     Axes whose ``use`` flag (``u[60:66]``) is 0 (missing or saturated readings) are left out: zero
     innovation and row of ``H``, unit variance uncorrelated with the others, so that their gain is
     zero.  Per sensor (gyro, accel), the NIS of its used axes is written to ``snis``; above the
-    gate ``gates[d - 1]`` (d used axes) its block of ``S`` is scaled by ``NIS / gate`` (the
-    innovation covariance inflated so that the sample sits on the gate: bounded influence, the
-    update never skipped), and the factor written to ``infl``.  The whitened innovation and the
+    gate ``gates[d - 1]`` (d used axes) its block of ``S`` is scaled by :data:`GATE_REJECT` (the
+    sample left out: a gross fault, far beyond any model error), and the factor written to ``infl``.  The whitened innovation and the
     NIS are those of the raw ``S``."""
     hx = WS[6, 1, 0:6]
     H = WS[5, 0:6]
@@ -459,7 +462,7 @@ def update(x, P, u, Rn, g, WS, innov, S, white, gates, snis, infl):
         snis[sn] = v
         gate = gates[d - 1]
         if gate > 0.0 and v > gate:
-            lam = v / gate
+            lam = GATE_REJECT
             infl[sn] = lam
             gated = True
             for a in range(3):

@@ -1,4 +1,4 @@
-"""The estimators' frozen config dataclasses (issue 12, item 3): every bad option is a ConfigError
+"""The estimators' frozen config dataclasses: every bad option is a ConfigError
 naming the option, its value, its unit and what is expected; unknown keyword options list the
 known ones; run_estimator refuses another estimator's config; and the config path and the older
 keyword path give the same estimate, bit for bit (the keyword options only build the config).

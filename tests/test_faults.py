@@ -150,8 +150,8 @@ def test_options_are_checked():
     from flexforce.compare.ekf import EKFConfig
     from flexforce.datasets.robot import ImuNoise
 
-    with pytest.raises(ConfigError, match=r"EKFConfig.imu_gate = 2"):
-        EKFConfig(imu_gate=2)
+    with pytest.raises(ConfigError, match=r"EKFConfig.imu_gate = -2"):
+        EKFConfig(imu_gate=-2)
     with pytest.raises(ConfigError, match=r"imu_noise.accel_range = -8"):
         ImuNoise(accel_range=-8)
 

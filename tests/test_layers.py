@@ -42,12 +42,12 @@ compare)."""
 EXCEPTIONS = {
     ("factors/model.py", "flexforce.datasets.robot"):
         "ModelConfig.from_recording builds the contact parameters from the robot's config "
-        "(RobotConfig, RobotModel), lazily; issue 12 item 2 names it; it goes with the config dataclasses "
-        "(issue 12 item 3), which take the robot's parameters as arguments",
+        "(RobotConfig, RobotModel), lazily; it goes with the config dataclasses "
+        "which take the robot's parameters as arguments",
     ("compare/runner.py", "flexforce.estimators"):
         "the comparison runs every estimator through the one entry point run_estimator (name -> EKF, "
         "batch, fixed-lag), which sits in flexforce/ above compare/ because it imports compare's EKF; "
-        "it resolves once the EKF has its own subpackage below the comparison (issue 12 item 2)",
+        "it resolves once the EKF has its own subpackage below the comparison",
 }
 """``(module, imported module) -> reason``: the upward imports that exist today."""
 
@@ -127,7 +127,7 @@ def test_the_recorded_exceptions_still_exist():
 
 
 def test_the_effect_protocol_names_no_estimator():
-    """The effects' protocol lives in factors/ and imports nothing above it (issue 12 item 2)."""
+    """The effects' protocol lives in factors/ and imports nothing above it."""
     effects = _imports(ROOT / "factors" / "effects.py")
     assert {_layer(m) for m in effects} <= {"factors", "errors"}, effects
 

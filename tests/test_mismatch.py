@@ -95,7 +95,7 @@ def test_touchdown_on_the_floor_against_the_models_convention(weight_shift, name
     """The estimators anchor a landing foot's spring at its local placement (the ``deflected``
     world); on the floor the foot lands unloaded, touches before its planned landing and leaves
     after its planned lift: the estimates are an order of magnitude worse, which is what footholds
-    as estimated variables must repair (issue 13, item 1)."""
+    as estimated variables repair (tests/test_foothold_variables.py)."""
     floor, own = weight_shift["floor"][name], weight_shift["deflected"][name]
     print(f"\n{name}: deflected {own}\n{name}: floor {floor}")
     tilt, force = FLOOR_MEASURED[name]
