@@ -259,6 +259,12 @@ class Snapshot:
     residual_rms: dict[str, dict[str, float]]
     cost_data: float
     n_residuals: int
+    residual_rms_smoothed: dict[str, dict[str, float]] | None = None
+    """RMS of the whitened smoothed residuals before standardisation (below 1 under the model:
+    the fit absorbs part of the noise); ``residual_rms`` is then that of the standardised ones."""
+    raw_residuals: dict[str, np.ndarray] | None = None
+    """The whitened smoothed residuals before standardisation (``estimate.residuals`` holds the
+    standardised ones: the calibrated view)."""
 
     @property
     def rmse(self) -> dict[str, float | None]:
@@ -274,7 +280,11 @@ class Snapshot:
                 "flagged_windows": [_jsonable(f.to_dict()) for f in self.flags],
                 "inconsistent_axes": [_jsonable(c.to_dict()) for c in self.consistency
                                       if c.chi2_p < ALPHA or c.ljung_box_p < ALPHA],
-                "effect_estimates": _jsonable(self.estimate.effects)}
+                "effect_estimates": _jsonable(self.estimate.effects),
+                "residuals": ("standardised by their own variance (1 - leverage)" if self.raw_residuals is not None
+                              else "whitened"),
+                **({"residual_rms_smoothed": _jsonable(self.residual_rms_smoothed)}
+                   if self.residual_rms_smoothed is not None else {})}
 
 
 @dataclass
@@ -452,10 +462,36 @@ def with_residual_sigma(est: Estimate) -> Estimate:
     return dataclasses.replace(est, residual_sigma={**est.residual_sigma, **added})
 
 
-def _snapshot(rec, fit: Fit, window: float, alpha: float, skip: float) -> Snapshot:
+def calibrated_view(rec, fit: Fit, window: float) -> tuple[dict, dict, dict] | None:
+    """``(standardised, variances, correlations)`` of a fit's residuals
+    (:mod:`flexforce.smoother.leverage`): each whitened residual divided by the square root of its
+    own variance ``1 - h``, and the lag correlations (up to a window) the tests account for;
+    None without the fitted trajectory."""
+    if fit.trajectory is None or fit.model is None:
+        return None
+    from flexforce.smoother import NoiseRule, Problem
+    from flexforce.smoother.leverage import residual_lag_correlations, residual_variances, standardized_residuals
+
+    prob = Problem.build(rec, fit.model, NoiseRule())
+    var = residual_variances(prob, fit.trajectory)  # type: ignore[arg-type]
+    lags = max(1, int(round(window / rec.dt)))
+    corr = residual_lag_correlations(prob, fit.trajectory, var, lags, fit.estimate.residuals)  # type: ignore[arg-type]
+    return standardized_residuals(fit.estimate.residuals, var), var, corr
+
+
+def _snapshot(rec, fit: Fit, window: float, alpha: float, skip: float, calibrated: bool = True) -> Snapshot:
     est = with_residual_sigma(fit.estimate)
-    return Snapshot(fit.effects, est, evaluate(est, rec, skip=skip), flag_windows(est, window=window, alpha=alpha),
-                    consistency(est), residual_rms(est), fit.cost_data, fit.n_residuals)
+    view = calibrated_view(rec, fit, window) if calibrated else None
+    if view is None:
+        return Snapshot(fit.effects, est, evaluate(est, rec, skip=skip), flag_windows(est, window=window, alpha=alpha),
+                        consistency(est), residual_rms(est), fit.cost_data, fit.n_residuals)
+    z, var, corr = view
+    raw = est.residuals
+    shown = dataclasses.replace(est, residuals=z, meta={**est.meta, "residuals": "standardised by their own variance"})
+    return Snapshot(fit.effects, shown, evaluate(est, rec, skip=skip),
+                    flag_windows(shown, window=window, alpha=alpha, raw=raw, corr=corr),
+                    consistency(shown, raw=raw, corr=corr), residual_rms(shown), fit.cost_data, fit.n_residuals,
+                    residual_rms_smoothed=residual_rms(est), raw_residuals=raw)
 
 
 def screen(rec, fit: Fit, makers: dict[str, Callable[[], object]], window: float = SCREEN_WINDOW,
@@ -482,7 +518,8 @@ def screen(rec, fit: Fit, makers: dict[str, Callable[[], object]], window: float
 def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable = (), *, rank: bool = True,
              max_effects: int = 3, alpha: float = ALPHA, window: float = 0.5, skip: float = 0.5,
              ekf: bool = True, progress: Callable[[str, float], None] | None = None,
-             screen_level: float | None = SCREEN_LEVEL, screen_window: float = SCREEN_WINDOW) -> Diagnosis:
+             screen_level: float | None = SCREEN_LEVEL, screen_window: float = SCREEN_WINDOW,
+             calibrated: bool = True) -> Diagnosis:
     """Fit the nominal model, rank the candidate effects, and refit with the ``add``-ed ones.
 
     Args:
@@ -504,6 +541,9 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
             candidates whose score p-value is below it are refitted and scored by the evidence;
             None refits every candidate (no screening).
         screen_window: window of a per-step effect's score test, s.
+        calibrated: the smoother's residuals standardised by their own variance, their tests
+            accounting for their correlation in time (:func:`calibrated_view`); False: the
+            whitened smoothed residuals tested as if they were innovations (conservative).
     """
     from flexforce.compare.runner import describe
     from flexforce.factors.model import ModelConfig
@@ -593,10 +633,10 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
         ranking += [c for c in rounds[-1] if c.effect not in selected]
     ranking += dropped
     added = list(dict.fromkeys((selected if want_auto else []) + list(add_makers)))
-    before = _snapshot(rec, nominal, window, alpha, skip)
+    before = _snapshot(rec, nominal, window, alpha, skip, calibrated)
     after = None
     if added:
-        after = _snapshot(rec, fitted(tuple(added)), window, alpha, skip)
+        after = _snapshot(rec, fitted(tuple(added)), window, alpha, skip, calibrated)
     ekf_snap = None
     if ekf:
         from flexforce.compare.ekf import run_ekf
