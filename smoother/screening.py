@@ -144,7 +144,8 @@ def _quad(g, S, idx):
 
 
 def _with_candidate(prob_base: Problem, traj: Trajectory, effect, rule: NoiseRule):
-    model = dataclasses.replace(prob_base.model, effects=tuple(prob_base.effects) + (effect,))
+    model = dataclasses.replace(prob_base.model,  # type: ignore[type-var]
+                                effects=tuple(prob_base.effects) + (effect,))
     prob = Problem.build(prob_base.rec, model, rule, prob_base.rest_p, prob_base.rest_R)
     mean, _ = effect.prior(prob)
     e_new = np.broadcast_to(np.asarray(mean, dtype=float), (prob.n, int(effect.dim)))
