@@ -66,9 +66,16 @@ from flexforce.errors import ConfigError, FlexforceError
 
 if TYPE_CHECKING:
     from flexforce.datasets.estimate import Estimate
+    from flexforce.smoother.screening import ScoreTest
 
 ALPHA = 0.01
 """Level of the likelihood-ratio test of an effect (and of the windowed residual tests)."""
+
+SCREEN_LEVEL = 0.01
+"""Level of the score test that decides which candidates are refitted (:func:`screen`)."""
+
+SCREEN_WINDOW = 0.25
+"""Window of the score test of a per-step effect (the external wrench taken constant within it), s."""
 
 AUTO = "auto"
 """``add=["auto"]``: add the effects the greedy selection found significant."""
@@ -159,6 +166,11 @@ class Fit:
     integrated out (Laplace; :mod:`flexforce.smoother.evidence`), up to a constant."""
     global_effects: tuple[str, ...] = ()
     """Effects whose unknowns are constants (one global block): the evidence is conditioned on them."""
+    trajectory: object = None
+    """The fitted trajectory (:attr:`flexforce.smoother.FitStatistics.trajectory`): where the
+    candidates are screened and the residuals' own variances are computed."""
+    model: object = None
+    """The fitted ModelConfig."""
 
 
 def fit_model(rec, model, progress: Callable[[float], None] | None = None) -> Fit:
@@ -169,7 +181,8 @@ def fit_model(rec, model, progress: Callable[[float], None] | None = None) -> Fi
     ev = stats.cost_evidence
     return Fit(tuple(e.name for e in model.effects), est, float(stats.cost_data), int(stats.n_residuals),
                {k: float(v) for k, v in stats.effective_dof.items()},
-               None if not math.isfinite(ev) else float(ev), tuple(stats.global_effects))
+               None if not math.isfinite(ev) else float(ev), tuple(stats.global_effects),
+               getattr(stats, "trajectory", None), model)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -202,14 +215,36 @@ class Candidate:
     rivals: tuple[str, ...] = ()
     """For the best of a round: the other significant candidates within :data:`TIE` of its score,
     which the data do not tell apart from it."""
+    screen: ScoreTest | None = None
+    """Its score test at the nominal fit (:mod:`flexforce.smoother.screening`), when screened."""
+    refitted: bool = True
+    """False when the score test did not pass: no refit, no evidence (``score`` is None)."""
+
+    def screen_text(self, level: float | None = None) -> str:
+        """``score T = 322.5 (nu 3.0), p = 1.3e-69`` (and the passing windows of a windowed test)."""
+        s = self.screen
+        if s is None:
+            return ""
+        out = f"score T = {s.statistic:.1f} (nu {s.dof:.1f}), p = {s.p_value:.2g}"
+        if s.kind == "windowed" and level is not None:
+            spans = [f"{w.start_s:.2f}-{w.end_s:.2f} s" for w in s.passing_windows(level)]
+            shown = ", ".join(spans[:6]) + (" ..." if len(spans) > 6 else "")
+            out += f"; windows passing: {shown or 'none'}"
+        return out
 
     def to_dict(self) -> dict:
         return {"effect": self.effect, "score": _clean(self.score), "significant": bool(self.significant),
                 "parameters": _jsonable(self.parameters), "summary": self.summary, "round": self.round,
                 "base": list(self.base), "likelihood_ratio": _clean(self.lr),
                 "effective_dof": _clean(self.effective_dof), "p_value": _clean(self.p_value),
-                "indistinguishable_from": list(self.rivals),
+                "indistinguishable_from": list(self.rivals), "refitted": bool(self.refitted),
+                **({"screen": self.screen.to_dict(self.screen_level)} if self.screen is not None else {}),
+                **({"not_refitted": f"not refitted: score p = {self.screen.p_value:.2g}"}
+                   if not self.refitted and self.screen is not None else {}),
                 **({"error": self.error} if self.error else {})}
+
+    screen_level: float | None = None
+    """Level of the screening (for the passing windows in :meth:`to_dict`)."""
 
 
 @dataclass
@@ -224,6 +259,12 @@ class Snapshot:
     residual_rms: dict[str, dict[str, float]]
     cost_data: float
     n_residuals: int
+    residual_rms_smoothed: dict[str, dict[str, float]] | None = None
+    """RMS of the whitened smoothed residuals before standardisation (below 1 under the model:
+    the fit absorbs part of the noise); ``residual_rms`` is then that of the standardised ones."""
+    raw_residuals: dict[str, np.ndarray] | None = None
+    """The whitened smoothed residuals before standardisation (``estimate.residuals`` holds the
+    standardised ones: the calibrated view)."""
 
     @property
     def rmse(self) -> dict[str, float | None]:
@@ -239,7 +280,11 @@ class Snapshot:
                 "flagged_windows": [_jsonable(f.to_dict()) for f in self.flags],
                 "inconsistent_axes": [_jsonable(c.to_dict()) for c in self.consistency
                                       if c.chi2_p < ALPHA or c.ljung_box_p < ALPHA],
-                "effect_estimates": _jsonable(self.estimate.effects)}
+                "effect_estimates": _jsonable(self.estimate.effects),
+                "residuals": ("standardised by their own variance (1 - leverage)" if self.raw_residuals is not None
+                              else "whitened"),
+                **({"residual_rms_smoothed": _jsonable(self.residual_rms_smoothed)}
+                   if self.residual_rms_smoothed is not None else {})}
 
 
 @dataclass
@@ -261,6 +306,8 @@ class Diagnosis:
     criterion: dict = field(default_factory=dict)
     truth_external_wrench: np.ndarray | None = None
     """(N, 6) the simulated recording's true external wrench (for the figures), None on real logs."""
+    screening: list[ScoreTest] = field(default_factory=list)
+    """Every candidate's score test at the nominal fit, most significant first (empty unscreened)."""
 
     def to_json(self) -> dict:
         out = {"recording": _jsonable(self.recording), "criterion": self.criterion,
@@ -268,6 +315,7 @@ class Diagnosis:
                "rounds": [[c.to_dict() for c in r] for r in self.rounds],
                "selected": list(self.selected), "added": list(self.added),
                "ambiguities": self.ambiguities(),
+               "screening": [s.to_dict(self.criterion.get("screen_level")) for s in self.screening],
                "before": self.before.to_dict(), "after": self.after.to_dict() if self.after else None}
         if self.ekf is not None:
             m = self.ekf.metrics
@@ -279,12 +327,19 @@ class Diagnosis:
     def ranking_table(self) -> str:
         """Plain-text ranking (what the CLI prints)."""
         lines = [f"{'#':>2s} {'effect':24s} {'score':>10s} {'LR':>10s} {'dof':>6s} {'p':>9s}  sig  estimate"]
+        level = self.criterion.get("screen_level")
         for i, c in enumerate(self.ranking, 1):
             if c.error:
                 lines.append(f"{i:2d} {c.effect:24s} {'failed':>10s}  {c.error}")
                 continue
+            if not c.refitted:
+                lines.append(f"{i:2d} {c.effect:24s} {'-':>10s} {'-':>10s} {'-':>6s} {'-':>9s}  no   "
+                             f"not refitted: {c.screen_text(level)}")
+                continue
             lines.append(f"{i:2d} {c.effect:24s} {c.score:10.1f} {c.lr:10.1f} {c.effective_dof:6.1f} "
                          f"{c.p_value:9.2g}  {'yes' if c.significant else 'no ':3s}  {c.summary}")
+            if c.screen is not None:
+                lines.append(f"{'':28s}screened: {c.screen_text(level)}")
         lines += [f"   {w}" for w in self.ambiguities()]
         return "\n".join(lines)
 
@@ -407,15 +462,64 @@ def with_residual_sigma(est: Estimate) -> Estimate:
     return dataclasses.replace(est, residual_sigma={**est.residual_sigma, **added})
 
 
-def _snapshot(rec, fit: Fit, window: float, alpha: float, skip: float) -> Snapshot:
+def calibrated_view(rec, fit: Fit, window: float) -> tuple[dict, dict, dict] | None:
+    """``(standardised, variances, correlations)`` of a fit's residuals
+    (:mod:`flexforce.smoother.leverage`): each whitened residual divided by the square root of its
+    own variance ``1 - h``, and the lag correlations (up to a window) the tests account for;
+    None without the fitted trajectory."""
+    if fit.trajectory is None or fit.model is None:
+        return None
+    from flexforce.smoother import NoiseRule, Problem
+    from flexforce.smoother.leverage import residual_lag_correlations, residual_variances, standardized_residuals
+
+    prob = Problem.build(rec, fit.model, NoiseRule())
+    var = residual_variances(prob, fit.trajectory)  # type: ignore[arg-type]
+    lags = max(1, int(round(window / rec.dt)))
+    corr = residual_lag_correlations(prob, fit.trajectory, var, lags, fit.estimate.residuals)  # type: ignore[arg-type]
+    return standardized_residuals(fit.estimate.residuals, var), var, corr
+
+
+def _snapshot(rec, fit: Fit, window: float, alpha: float, skip: float, calibrated: bool = True) -> Snapshot:
     est = with_residual_sigma(fit.estimate)
-    return Snapshot(fit.effects, est, evaluate(est, rec, skip=skip), flag_windows(est, window=window, alpha=alpha),
-                    consistency(est), residual_rms(est), fit.cost_data, fit.n_residuals)
+    view = calibrated_view(rec, fit, window) if calibrated else None
+    if view is None:
+        return Snapshot(fit.effects, est, evaluate(est, rec, skip=skip), flag_windows(est, window=window, alpha=alpha),
+                        consistency(est), residual_rms(est), fit.cost_data, fit.n_residuals)
+    z, var, corr = view
+    raw = est.residuals
+    shown = dataclasses.replace(est, residuals=z, meta={**est.meta, "residuals": "standardised by their own variance"})
+    return Snapshot(fit.effects, shown, evaluate(est, rec, skip=skip),
+                    flag_windows(shown, window=window, alpha=alpha, raw=raw, corr=corr),
+                    consistency(shown, raw=raw, corr=corr), residual_rms(shown), fit.cost_data, fit.n_residuals,
+                    residual_rms_smoothed=residual_rms(est), raw_residuals=raw)
+
+
+def screen(rec, fit: Fit, makers: dict[str, Callable[[], object]], window: float = SCREEN_WINDOW,
+           progress: Callable[[float], None] | None = None) -> dict[str, ScoreTest | str]:
+    """The score test of every candidate at ``fit`` (name -> :class:`ScoreTest`, or the error's
+    text when the test failed): one linearisation each, no refit (:mod:`flexforce.smoother.screening`)."""
+    from flexforce.smoother import NoiseRule, Problem
+    from flexforce.smoother.screening import score_test
+
+    if fit.trajectory is None or fit.model is None:
+        raise ConfigError("screening needs the fitted trajectory (flexforce.smoother.fit returns it)")
+    prob = Problem.build(rec, fit.model, NoiseRule())
+    out: dict[str, ScoreTest | str] = {}
+    for i, (name, make) in enumerate(makers.items()):
+        try:
+            out[name] = score_test(prob, fit.trajectory, make(), window=window)  # type: ignore[arg-type]
+        except FlexforceError as err:
+            out[name] = f"{type(err).__name__}: {err}"
+        if progress is not None:
+            progress((i + 1) / max(len(makers), 1))
+    return out
 
 
 def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable = (), *, rank: bool = True,
              max_effects: int = 3, alpha: float = ALPHA, window: float = 0.5, skip: float = 0.5,
-             ekf: bool = True, progress: Callable[[str, float], None] | None = None) -> Diagnosis:
+             ekf: bool = True, progress: Callable[[str, float], None] | None = None,
+             screen_level: float | None = SCREEN_LEVEL, screen_window: float = SCREEN_WINDOW,
+             calibrated: bool = True) -> Diagnosis:
     """Fit the nominal model, rank the candidate effects, and refit with the ``add``-ed ones.
 
     Args:
@@ -433,6 +537,13 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
         skip: seconds left out at the start of the error statistics (filter convergence).
         ekf: also run the EKF on the nominal model (innovations, NIS).
         progress: called with (stage label, fraction done of that stage).
+        screen_level: level of the score test at the nominal fit (:func:`screen`): only the
+            candidates whose score p-value is below it are refitted and scored by the evidence;
+            None refits every candidate (no screening).
+        screen_window: window of a per-step effect's score test, s.
+        calibrated: the smoother's residuals standardised by their own variance, their tests
+            accounting for their correlation in time (:func:`calibrated_view`); False: the
+            whitened smoothed residuals tested as if they were innovations (conservative).
     """
     from flexforce.compare.runner import describe
     from flexforce.factors.model import ModelConfig
@@ -474,8 +585,23 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
     nominal = fitted(())
     rounds: list[list[Candidate]] = []
     selected: list[str] = []
+    screened: dict[str, ScoreTest | str] = {}
+    dropped: list[Candidate] = []
+    if screen_level is not None and not 0.0 < screen_level < 1.0:
+        raise ConfigError(f"screen_level = {screen_level!r}; expected a probability in (0, 1) or None (no screening)")
     if rank:
         remaining = list(cands)
+        if screen_level is not None and cands:
+            screened = screen(rec, nominal, cands, screen_window, progress=cb("screening"))
+            tests = {k: v for k, v in screened.items() if not isinstance(v, str)}
+            order = sorted(tests, key=lambda k: (tests[k].p_value, -tests[k].statistic))
+            # a failed test is refitted (the refit decides); passing ones first, most significant first
+            remaining = [k for k in order if tests[k].p_value < screen_level] + \
+                [k for k, v in screened.items() if isinstance(v, str)]
+            for k in order:
+                if tests[k].p_value >= screen_level:
+                    dropped.append(Candidate(k, (), 1, None, None, None, None, False, screen=tests[k], refitted=False,
+                                             screen_level=screen_level))
         while remaining:
             base = fitted(tuple(selected))
             row = []
@@ -488,8 +614,10 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                     continue
                 s, lr, nu, p, sig = score(base, f, name, alpha)
                 rep = f.estimate.effects.get(name, {})
+                test = screened.get(name)
                 row.append(Candidate(name, tuple(selected), len(rounds) + 1, s, lr, nu, p, sig, rep,
-                                     summarize_effect(rep, makers[name]())))
+                                     summarize_effect(rep, makers[name]()),
+                                     screen=None if isinstance(test, str) else test, screen_level=screen_level))
             row.sort(key=lambda c: -math.inf if c.score is None else c.score, reverse=True)
             mark_rivals(row)
             rounds.append(row)
@@ -503,11 +631,12 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
         ranking.append(next(c for c in rounds[i] if c.effect == name))
     if rounds:
         ranking += [c for c in rounds[-1] if c.effect not in selected]
+    ranking += dropped
     added = list(dict.fromkeys((selected if want_auto else []) + list(add_makers)))
-    before = _snapshot(rec, nominal, window, alpha, skip)
+    before = _snapshot(rec, nominal, window, alpha, skip, calibrated)
     after = None
     if added:
-        after = _snapshot(rec, fitted(tuple(added)), window, alpha, skip)
+        after = _snapshot(rec, fitted(tuple(added)), window, alpha, skip, calibrated)
     ekf_snap = None
     if ekf:
         from flexforce.compare.ekf import run_ekf
@@ -523,10 +652,16 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                  "score": "2 (E_base - E) - nu_constant ln(n), E the negative log marginal likelihood",
                  "alpha": alpha, "tie": TIE,
                  "n_residuals": nominal.n_residuals, "penalty_per_dof": math.log(max(nominal.n_residuals, 2)),
-                 "fit": "flexforce.smoother.fit"}
+                 "fit": "flexforce.smoother.fit",
+                 "screen_level": screen_level, "screen_window_s": screen_window if screen_level is not None else None,
+                 "screen": ("score (Lagrange-multiplier) test at the nominal fit: g^T S^-1 g against chi-square "
+                            "with the effect's effective dof; only candidates with p < screen_level are refitted")
+                 if screen_level is not None else "none: every candidate refitted"}
     truth = getattr(rec, "truth", None)
+    tests_sorted = sorted((v for v in screened.values() if not isinstance(v, str)),
+                          key=lambda t: (t.p_value, -t.statistic))
     return Diagnosis(describe(rec), ranking, rounds, selected, added, before, after, ekf_snap, criterion,
-                     None if truth is None else np.asarray(truth.external_wrench, dtype=float))
+                     None if truth is None else np.asarray(truth.external_wrench, dtype=float), tests_sorted)
 
 
 def load_plugin(path) -> list:

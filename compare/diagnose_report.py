@@ -136,18 +136,38 @@ def _fmt(x, digits: int = 3) -> str:
     return f"{x:.{digits}g}"
 
 
+def _screen_cells(c, level) -> str:
+    s = getattr(c, "screen", None)
+    if s is None:
+        return "<td>–</td><td>–</td><td>–</td>"
+    return f"<td>{s.statistic:.1f}</td><td>{s.dof:.1f}</td><td>{s.p_value:.2g}</td>"
+
+
 def ranking_html(diag) -> str:
     rows = []
+    level = diag.criterion.get("screen_level")
     for i, c in enumerate(diag.ranking, 1):
         if c.error:
-            rows.append(f"<tr><td>{i}</td><td>{html.escape(c.effect)}</td><td colspan=6>failed: "
+            rows.append(f"<tr><td>{i}</td><td>{html.escape(c.effect)}</td><td colspan=10>failed: "
                         f"{html.escape(c.error)}</td></tr>")
             continue
-        rows.append(f"<tr><td>{i}</td><td style='text-align:left'>{html.escape(c.effect)}</td><td>{c.round}</td>"
+        windows = ""
+        if c.screen is not None and c.screen.kind == "windowed" and level is not None:
+            spans = [f"{w.start_s:.2f}–{w.end_s:.2f} s" for w in c.screen.passing_windows(level)]
+            windows = f" (score windows passing: {', '.join(spans) or 'none'})"
+        if not c.refitted:
+            rows.append(f"<tr><td>{i}</td><td style='text-align:left'>{html.escape(c.effect)}</td>"
+                        f"{_screen_cells(c, level)}<td>–</td><td colspan=4 style='text-align:left'>not refitted: "
+                        f"score p = {c.screen.p_value:.2g} ≥ {level}</td><td>no</td>"
+                        f"<td style='text-align:left'>{html.escape(windows)}</td></tr>")
+            continue
+        rows.append(f"<tr><td>{i}</td><td style='text-align:left'>{html.escape(c.effect)}</td>{_screen_cells(c, level)}"
+                    f"<td>{c.round}</td>"
                     f"<td>{c.score:.1f}</td><td>{c.lr:.1f}</td><td>{c.effective_dof:.1f}</td><td>{c.p_value:.2g}</td>"
                     f"<td>{'<b>yes</b>' if c.significant else 'no'}</td>"
-                    f"<td style='text-align:left'>{html.escape(c.summary)}</td></tr>")
-    return ("<table><tr><th>#</th><th>effect</th><th>round</th><th>score (BIC)</th><th>2ΔC</th><th>ν</th><th>p</th>"
+                    f"<td style='text-align:left'>{html.escape(c.summary + windows)}</td></tr>")
+    return ("<table><tr><th>#</th><th>effect</th><th>score test T</th><th>ν (T)</th><th>p (T)</th><th>round</th>"
+            "<th>score (BIC)</th><th>2ΔC</th><th>ν</th><th>p</th>"
             "<th>significant</th><th>estimate</th></tr>" + "".join(rows) + "</table>")
 
 
@@ -208,6 +228,17 @@ def figure_wrench(diag):
     return fig
 
 
+def _screen_sentence(crit) -> str:
+    level = crit.get("screen_level")
+    if level is None:
+        return "No screening: every candidate was refitted."
+    return (f"Screening: at the nominal fit, every candidate's score (Lagrange-multiplier) test T = gᵀ S⁻¹ g "
+            f"(g the cost's gradient in the effect's unknowns at zero, S their information with the states "
+            f"eliminated) against χ² with the effect's effective dof ν; per-step effects are tested on "
+            f"{crit.get('screen_window_s')} s windows (Bonferroni over the windows). Only candidates with "
+            f"p < {level} are refitted (docs/diagnostics.md, \"Screening\").")
+
+
 def write_diagnosis(diag, out: str | Path, title: str = "flexforce diagnosis") -> Path:
     """Write DIR/diagnosis.json, DIR/index.html and the figures; returns the folder."""
     target = Path(out)
@@ -251,7 +282,8 @@ td,th{{border:1px solid #ccc;padding:3px 6px;text-align:right}}img{{max-width:10
 ({_fmt(info.get('duration_s'))} s). {html.escape(info.get('description') or '')}</p>
 <p>Hidden effects in the data (simulated recordings):</p><ul>{hidden_html}</ul>
 <h2>Which effect is missing</h2>
-<p>Each candidate is refitted on top of the effects already selected and scored by the gain in log
+<p>{html.escape(_screen_sentence(crit))}</p>
+<p>Each candidate that passes is refitted on top of the effects already selected and scored by the gain in log
 marginal likelihood (Laplace: the data cost, the priors of the per-step states and their Occam factor),
 2ΔE, less ν ln n for each of its constant unknowns (BIC), with n = {crit.get('n_residuals')} scalar residuals
 (ln n = {_fmt(crit.get('penalty_per_dof'))}); 2ΔE is in the column 2ΔC and ν is the effective degrees of freedom

@@ -7,8 +7,15 @@ chi-square with ``n`` degrees of freedom, and successive values are uncorrelated
 sum of squares exceeds the chi-square bound, or an axis whose autocorrelation is significant, is
 where the model disagrees with the measurements.
 
-Smoothed residuals have less than unit variance (the estimate absorbs part of the noise), so the
-chi-square test is conservative for the smoothers; it is exact for the EKF's innovations.
+Smoothed residuals have less than unit variance (the estimate absorbs part of the noise) and are
+correlated in time.  The calibrated view (:mod:`flexforce.smoother.leverage`) divides each by the
+square root of its own variance (``1 - h``, ``h`` its leverage) and gives the correlation of each
+row with the next ``L`` ones; the tests then take the correlation into account (Satterthwaite: a
+window's sum of squares of correlated unit-variance Gaussians, of mean ``m`` and variance
+``2 sum_kl rho_kl^2``, is referred to ``a chi2(nu)`` with the same two moments), and the whiteness
+test is made only where the model expects white residuals (expected lag correlations all below
+:data:`WHITE_RHO`).  Without that view (an EKF's innovations: white, unit variance) the tests
+are the plain ones.
 
 The level of each test is corrected for the number of windows and axes tested (Bonferroni), so
 that a run of the right model raises a flag with probability about ``alpha`` in all.
@@ -69,14 +76,43 @@ def _sigma(est, family: str, n: int, k: int) -> np.ndarray | None:
     return np.broadcast_to(s, (n, k)) if s.ndim == 1 else s
 
 
+WHITE_RHO = 0.1
+"""The whiteness (Ljung-Box) test of an axis is made only where the model expects its standardised
+residual to be white: every expected lag correlation (mean over the run) below this."""
+
+
+def _satterthwaite(corr, j: int, s0: int, s1: int, ok: np.ndarray) -> float:
+    """Scale ``a = var / (2 m)`` of the sum of squares of the standardised rows ``s0..s1-1`` of
+    axis ``j`` (correlations ``corr`` (N, k, L+1)); 1 without correlations."""
+    if corr is None:
+        return 1.0
+    m = int(ok.sum())
+    if m == 0:
+        return 1.0
+    L = corr.shape[2] - 1
+    tot = float(m)
+    mask = ok.astype(float)
+    for h in range(1, min(L, s1 - s0 - 1) + 1):
+        rho = corr[s0:s1 - h, j, h]
+        both = mask[:len(rho)] * mask[h:h + len(rho)]
+        tot += 2.0 * float(np.nansum(rho * rho * both))
+    return tot / m
+
+
 def flag_windows(est, window: float = 0.5, alpha: float = 0.01, families: list[str] | None = None,
-                 merge: bool = True) -> list[FlaggedWindow]:
+                 merge: bool = True, raw: dict | None = None, corr: dict | None = None) -> list[FlaggedWindow]:
     """Windows where a whitened residual axis exceeds its chi-square bound.
 
     Args:
         window: window length, s (non-overlapping windows).
         alpha: overall false-alarm probability for the whole run (Bonferroni-corrected).
         merge: merge adjacent flagged windows of the same axis into one span.
+        raw: family -> the whitened residuals before standardisation (the physical sizes are
+            computed from them; default ``est.residuals``): ``est.residuals`` are then the
+            standardised ones (:mod:`flexforce.smoother.leverage`).
+        corr: family -> (N, k, L+1) lag correlations of the standardised residuals: a window's
+            bound is then that of ``a chi2(nu)`` (:func:`_satterthwaite`), ``chi2`` and ``bound``
+            are in units of the residual's squares and ``dof`` is ``nu`` rounded.
     """
     t = est.time
     dt = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
@@ -100,9 +136,12 @@ def flag_windows(est, window: float = 0.5, alpha: float = 0.01, families: list[s
         r = est.residuals[fam]
         seg = r[s0:s1, j]
         ok = np.isfinite(seg)
-        dof = int(ok.sum())
+        m = int(ok.sum())
         chi2 = float(np.sum(seg[ok] ** 2))
-        bound = float(stats.chi2.isf(level, dof))
+        a = _satterthwaite((corr or {}).get(fam), j, s0, s1, ok)
+        nu = m / a
+        dof = max(1, int(round(nu)))
+        bound = float(a * stats.chi2.isf(level, nu))
         if chi2 <= bound:
             continue
         labels = est.residual_labels.get(fam, ())
@@ -110,17 +149,18 @@ def flag_windows(est, window: float = 0.5, alpha: float = 0.01, families: list[s
         sig = _sigma(est, fam, r.shape[0], r.shape[1])
         size = mean = None
         if sig is not None:
-            phys = seg[ok] * sig[s0:s1, j][ok]
+            base = (raw or {}).get(fam, r)[s0:s1, j]
+            phys = base[ok] * sig[s0:s1, j][ok]
             size = float(np.sqrt(np.mean(phys**2)))
             mean = float(np.mean(phys))
         flagged.append(FlaggedWindow(est.estimator, fam, label, float(t[s0]), float(t[s1 - 1]), chi2, dof, bound,
-                                     math.sqrt(chi2 / dof), size, _unit(label), mean))
+                                     math.sqrt(chi2 / m), size, _unit(label), mean))
     if merge:
-        flagged = _merge(flagged, est, level)
+        flagged = _merge(flagged, est, level, corr is not None)
     return flagged
 
 
-def _merge(flags: list[FlaggedWindow], est, level: float) -> list[FlaggedWindow]:
+def _merge(flags: list[FlaggedWindow], est, level: float, correlated: bool = False) -> list[FlaggedWindow]:
     out: list[FlaggedWindow] = []
     dt = float(np.median(np.diff(est.time))) if est.n > 1 else 1.0
     for f in sorted(flags, key=lambda f: (f.family, f.axis, f.start_s)):
@@ -133,8 +173,10 @@ def _merge(flags: list[FlaggedWindow], est, level: float) -> list[FlaggedWindow]
                 size = math.sqrt((prev.size**2 * prev.dof + f.size**2 * f.dof) / dof)
                 # a window's mean is set whenever its size is
                 mean = (prev.mean * prev.dof + f.mean * f.dof) / dof  # type: ignore[operator]
+            # correlated residuals: the spans' bounds add (each is a scaled chi-square's quantile)
+            bound = prev.bound + f.bound if correlated else float(stats.chi2.isf(level, dof))
             out[-1] = FlaggedWindow(f.estimator, f.family, f.axis, prev.start_s, f.end_s, chi2, dof,
-                                    float(stats.chi2.isf(level, dof)), math.sqrt(chi2 / dof), size, f.unit, mean)
+                                    bound, math.sqrt(chi2 / dof), size, f.unit, mean)
         else:
             out.append(f)
     return sorted(out, key=lambda f: (f.start_s, f.family, f.axis))
@@ -154,14 +196,20 @@ class AxisConsistency:
     chi2_p: float
     """p-value of the whole-run chi-square test (small: inconsistent)."""
     ljung_box_p: float
-    """p-value of the Ljung-Box whiteness test over ``lags`` lags (small: correlated)."""
+    """p-value of the Ljung-Box whiteness test over ``lags`` lags (small: correlated); NaN where the
+    model itself correlates the residual (calibrated view, expected lag correlation above
+    :data:`WHITE_RHO`): not tested."""
 
     def to_dict(self) -> dict:
         return asdict(self)
 
 
-def consistency(est, lags: int = 10) -> list[AxisConsistency]:
-    """Chi-square and whiteness (Ljung-Box) of every residual axis over the whole run."""
+def consistency(est, lags: int = 10, raw: dict | None = None, corr: dict | None = None) -> list[AxisConsistency]:
+    """Chi-square and whiteness (Ljung-Box) of every residual axis over the whole run.
+
+    ``raw``, ``corr``: as :func:`flag_windows` (standardised residuals in ``est.residuals``, their
+    raw values for the physical RMS, their lag correlations for the chi-square's two moments and
+    to decide where the whiteness test applies)."""
     out = []
     for fam, r in est.residuals.items():
         n, k = r.shape
@@ -175,14 +223,22 @@ def consistency(est, lags: int = 10) -> list[AxisConsistency]:
             xs = x[ok]
             dof = xs.size
             chi2 = float(np.sum(xs**2))
-            chi2_p = float(min(stats.chi2.sf(chi2, dof), stats.chi2.cdf(chi2, dof)) * 2)
+            c = (corr or {}).get(fam)
+            a = _satterthwaite(c, j, 0, n, ok)
+            nu = dof / a
+            chi2_p = float(min(stats.chi2.sf(chi2 / a, nu), stats.chi2.cdf(chi2 / a, nu)) * 2)
             xc = xs - xs.mean()
             denom = float(np.sum(xc * xc)) or 1.0
             acf = np.array([np.sum(xc[h:] * xc[:-h]) / denom for h in range(1, lags + 1)])
             q = dof * (dof + 2) * np.sum(acf**2 / (dof - np.arange(1, lags + 1)))
             lb_p = float(stats.chi2.sf(q, lags))
+            if c is not None:
+                expected = np.nanmean(c[:, j, 1:lags + 1], axis=0) if c.shape[2] > 1 else np.zeros(1)
+                if expected.size < lags or not np.all(np.abs(expected) < WHITE_RHO):
+                    lb_p = float("nan")
             label = labels[j] if j < len(labels) else f"axis {j}"
-            rms = float(np.sqrt(np.mean((xs * sig[ok, j]) ** 2))) if sig is not None else None
+            base = (raw or {}).get(fam, r)[:, j][ok]
+            rms = float(np.sqrt(np.mean((base * sig[ok, j]) ** 2))) if sig is not None else None
             out.append(AxisConsistency(fam, label, float(np.sqrt(chi2 / dof)), rms, _unit(label), chi2_p, lb_p))
     return out
 

@@ -364,8 +364,11 @@ def _diagnose(args) -> int:
             bars[label] = Progress(f"  {label}"[:24], enabled=not args.quiet and None)
         bars[label](fraction)
 
+    level = None if args.no_screen else args.screen_level
+    if level is not None and not 0.0 < level < 1.0:
+        raise ConfigError(f"--screen-level {level}; expected a probability in (0, 1) (or --no-screen)")
     diag = diagnose(rec, model, candidates=candidates, add=args.add, rank=not args.no_rank,
-                    max_effects=args.max_effects, ekf=not args.no_ekf, progress=progress)
+                    max_effects=args.max_effects, ekf=not args.no_ekf, progress=progress, screen_level=level)
     out = write_diagnosis(diag, args.output)
     if diag.ranking:
         print(diag.ranking_table())
@@ -462,6 +465,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Python file with user-written effects, ranked like the built-in ones (repeatable)")
     p.add_argument("--max-effects", type=int, default=3, help="at most this many effects selected (default 3)")
     p.add_argument("--no-rank", action="store_true", help="only refit with --add, no ranking")
+    p.add_argument("--screen-level", type=float, default=0.01, metavar="P",
+                   help="refit only the candidates whose score test at the nominal fit has p < P (default 0.01)")
+    p.add_argument("--no-screen", action="store_true", help="refit every candidate (no score-test screening)")
     p.add_argument("--no-ekf", action="store_true", help="do not run the EKF (innovations, NIS)")
     p.add_argument("--seed", type=int, help="noise seed when simulating a scenario")
     _add_input_options(p)

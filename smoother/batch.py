@@ -364,6 +364,10 @@ class FitStatistics:
     global_effects: tuple[str, ...] = ()
     """Effects whose unknowns were one global block: the constants the evidence is conditioned on
     (empty without ``global_constants``)."""
+    trajectory: Trajectory | None = None
+    """The fitted trajectory (every variable's value at the optimum): what the score test of a
+    candidate effect (:mod:`flexforce.smoother.screening`) and the residuals' own variances
+    (:mod:`flexforce.smoother.leverage`) linearise at."""
 
 
 def fit(rec, model, progress: Callable[[float], None] | None = None, rule: NoiseRule | None = None,
@@ -403,7 +407,8 @@ def fit(rec, model, progress: Callable[[float], None] | None = None, rule: Noise
         effective_dof=effective_dof(prob, P, Pc), cost_state_prior=float(state_prior),
         log_det_posterior=float(post), log_det_prior=float(prior),
         cost_evidence=float(cost_data + state_prior + 0.5 * (post - prior)),
-        global_effects=tuple(e.name for e in prob.effects if is_global(e, prob)) if cidx.size else ())
+        global_effects=tuple(e.name for e in prob.effects if is_global(e, prob)) if cidx.size else (),
+        trajectory=traj)
     est.total_time = time.perf_counter() - t0
     if progress is not None:
         progress(1.0)

@@ -206,6 +206,11 @@ def test_report_and_json(gyro_diag, gyro_rec, tmp_path):
     assert data["ranking"][0]["effect"] == "gyro-bias" and data["ranking"][0]["significant"] is True
     assert set(data["ranking"][0]) >= {"effect", "score", "significant", "parameters"}
     assert data["added"] == ["gyro-bias"]
+    # screened at the nominal fit: both numbers kept; accel-bias does not pass, so is not refitted
+    assert data["screening"][0]["effect"] == "gyro-bias" and data["screening"][0]["p_value"] < 1e-10
+    accel = data["ranking"][1]
+    assert accel["refitted"] is False and accel["score"] is None and accel["not_refitted"].startswith("not refitted")
+    assert data["ranking"][0]["screen"]["statistic"] > 0 and data["before"]["residuals"].startswith("standardised")
     assert set(data["before"]["rmse"]) == {"force_N", "moment_Nm", "cop_m", "rotation_rad", "translation_m", "hand_m"}
     gyro_rms = {when: data[when]["residual_rms"]["imu"]["gyro_y [rad/s]"] for when in ("before", "after")}
     assert gyro_rms["after"] < gyro_rms["before"]
