@@ -385,8 +385,8 @@ def update(x, P, u, Rn, g, WS, innov, S, white, gates, snis, infl):
     innovation and row of ``H``, unit variance uncorrelated with the others, so that their gain is
     zero.  Per sensor (gyro, accel), the NIS of its used axes is written to ``snis``; above the
     gate ``gates[d - 1]`` (d used axes) its block of ``S`` is scaled by :data:`GATE_REJECT` (the
-    sample left out: a gross fault, far beyond any model error), and the factor written to ``infl``.  The whitened innovation and the
-    NIS are those of the raw ``S``."""
+    sample left out: a gross fault, far beyond any model error), and the factor written to ``infl``.
+    The whitened innovation and the NIS are those of the raw ``S``."""
     hx = WS[6, 1, 0:6]
     H = WS[5, 0:6]
     measurement(x, u, g, hx, H)

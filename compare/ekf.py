@@ -66,7 +66,6 @@ from flexforce.options import (
     check_fraction,
     check_int,
     check_positive,
-    invalid,
     require_config,
     with_options,
 )
