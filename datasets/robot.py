@@ -355,8 +355,11 @@ class RobotConfig:
     """Where the configuration was read from."""
 
     @classmethod
-    def load(cls, name_or_path: str | Path) -> RobotConfig:
-        """Read a built-in configuration by name (``romeo``, ``talos``, ``icub``) or a TOML file."""
+    def load(cls, name_or_path: str | Path | RobotConfig) -> RobotConfig:
+        """Read a built-in configuration by name (``romeo``, ``talos``, ``icub``) or a TOML file (a
+        RobotConfig is returned as it is)."""
+        if isinstance(name_or_path, RobotConfig):
+            return name_or_path
         path = Path(name_or_path)
         if not path.suffix:
             path = ROBOTS_DIR / f"{name_or_path}.toml"

@@ -383,10 +383,31 @@ def _diagnose(args) -> int:
     return 0
 
 
+def _apply_urdf(args) -> None:
+    """``--urdf``: the robot configuration of ``--robot`` with that URDF (args.robot becomes the
+    configuration itself, which every reader of ``--robot`` takes as well as a name)."""
+    urdf = getattr(args, "urdf", None)
+    if urdf is None:
+        return
+    import dataclasses
+
+    from flexforce.datasets.robot import RobotConfig
+
+    if not args.robot:
+        raise ConfigError("--urdf replaces the URDF of a robot configuration: give that configuration with --robot "
+                          "(e.g. --robot icub --urdf path/to/iCubGenova04.urdf)")
+    path = Path(urdf).expanduser().resolve()
+    if not path.is_file():
+        raise ConfigError(f"--urdf {urdf}: no such file; expected the robot's URDF")
+    args.robot = dataclasses.replace(RobotConfig.load(args.robot), urdf=str(path))
+
+
 def _add_input_options(p: argparse.ArgumentParser) -> None:
     """Options of every command that reads a recording (raw robot bags need a robot config)."""
     p.add_argument("--robot", help="robot name or .toml configuration (default: the recording's; required for a "
                                    "raw robot bag)")
+    p.add_argument("--urdf", type=Path, metavar="FILE",
+                   help="the robot's URDF, replacing the one its configuration names (needs --robot)")
     p.add_argument("--contacts", choices=("ft", "fixed"), default="ft",
                    help="raw bags: contacts from the F/T normal force (Schmitt trigger) or the config's fixed set")
     p.add_argument("--start", type=float, metavar="S",
@@ -537,6 +558,7 @@ def main(argv: list[str] | None = None) -> int:
     with warnings.catch_warnings():
         warnings.showwarning = _show_warning(args.command)
         try:
+            _apply_urdf(args)
             return args.func(args)
         except (SystemExit, GeneratorExit):
             raise

@@ -269,3 +269,43 @@ def test_an_interrupted_compare_leaves_the_previous_report(tmp_path, stand_bag, 
     monkeypatch.undo()
     assert main(["compare", str(stand_bag), "--estimators", "ekf", "-o", str(out), "-q"]) == 0
     assert (out / "index.html").read_text() != "old report" and '"ekf"' in (out / "summary.json").read_text()
+
+
+def test_urdf_option_replaces_the_configurations(tmp_path, capsys):
+    """``--urdf`` points a robot configuration at another copy of its URDF; without ``--robot`` or
+    with a missing file it is one line and exit status 1."""
+    import shutil
+
+    from conftest import ICUB_DIR
+
+    from flexforce.datasets.robot import RobotConfig
+
+    bag = ICUB_DIR / "icub-walk-12s"
+    if not bag.exists():
+        pytest.skip("the iCub recordings are not beside this checkout")
+    shipped = RobotConfig.load("icub").urdf
+    copy = tmp_path / "elsewhere.urdf"
+    shutil.copy(shipped, copy)
+    out = tmp_path / "est.npz"
+    args = ["run", str(bag), "--robot", "icub", "--urdf", str(copy), "--end", "2", "-o", str(out), "-q"]
+    assert main(args) == 0 and out.exists()
+    capsys.readouterr()
+    assert main(["run", str(bag), "--urdf", str(copy), "-o", str(tmp_path / "b.npz"), "-q"]) == 1
+    assert "give that configuration with --robot" in capsys.readouterr().err
+    assert main(["run", str(bag), "--robot", "icub", "--urdf", str(tmp_path / "none.urdf"), "-o",
+                 str(tmp_path / "c.npz"), "-q"]) == 1
+    err = capsys.readouterr().err
+    assert "no such file" in err and len(err.strip().splitlines()) == 1
+
+
+def test_icub_urdf_ships_with_the_package():
+    """The iCub configurations find their URDF inside the package, not beside the checkout."""
+    from pathlib import Path
+
+    import flexforce.datasets
+    from flexforce.datasets.robot import RobotConfig
+
+    package = Path(flexforce.datasets.__file__).resolve().parent
+    for name in ("icub", "icub-identified"):
+        urdf = Path(RobotConfig.load(name).urdf)
+        assert urdf.is_file() and package in urdf.parents
