@@ -111,7 +111,8 @@ def model(rec):
     (run_batch, "batch smoother", "max_iterations, rel_tol, covariance, global_constants, footholds, rule"),
     (run_fixed_lag, "fixed-lag smoother", "lag, backend, relinearize, report_every, relinearize_threshold, "
                                           "relinearize_skip, covariance, footholds, rule"),
-    (run_ekf, "EKF", "unmodelled_accel, unmodelled_ang_accel, p0_scale, .*, ground_height_weight"),
+    (run_ekf, "EKF", "unmodelled_accel, unmodelled_ang_accel, p0_scale, .*, ground_height_weight, imu_gate, "
+                     "gate_max_time"),
 ])
 def test_unknown_option_lists_the_known_ones(rec, model, run, what, known):
     with pytest.raises(ConfigError, match=rf"unknown {what} option\(s\) \['lagg'\]; known: {known}$"):
