@@ -164,6 +164,12 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
             est.total_time = time.perf_counter() - t0
         result.estimates[key] = est
         result.metrics[key] = evaluate(est, rec, skip=skip, peak_memory_mb=mem.peak_mb)
+        chosen = (options or {}).get(name)
+        if chosen:
+            result.metrics[key].extra["options"] = {k: (v if isinstance(v, bool | int | float | str) else repr(v))
+                                                    for k, v in chosen.items()}
+        if "foothold" in est.effects:
+            result.metrics[key].extra["footholds"] = est.effects["foothold"].get("summary")
     if baseline:
         from flexforce.compare.baseline import NAME, leg_odometry
 

@@ -232,7 +232,10 @@ def _compare_one(rec, args, out: Path):
             bars[name] = Progress(f"  {name}", enabled=not args.quiet and None)
         bars[name](fraction)
 
-    comp = compare(rec, estimators=args.estimators, model=model, progress=progress)
+    options = None
+    if getattr(args, "footholds", False):
+        options = {name: {"footholds": True} for name in args.estimators if name != "ekf"}
+    comp = compare(rec, estimators=args.estimators, model=model, progress=progress, options=options)
     write_report(comp, rec, out)
     return comp
 
@@ -466,6 +469,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seeds", type=int, help="simulate each scenario with this many noise seeds and aggregate")
     _add_input_options(p)
     p.add_argument("--ft", action="store_true", help="fuse the recording's F/T readings as measurements")
+    p.add_argument("--footholds", action="store_true",
+                   help="smoothers: estimate every contact episode's foothold (docs/smoother.md)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_cmd_compare)
 

@@ -309,3 +309,17 @@ def test_icub_urdf_ships_with_the_package():
     for name in ("icub", "icub-identified"):
         urdf = Path(RobotConfig.load(name).urdf)
         assert urdf.is_file() and package in urdf.parents
+
+
+def test_compare_with_footholds(stand_bag, tmp_path):
+    """``compare --footholds``: the smoothers estimate the footholds (reported), the EKF runs as it is."""
+    import json
+
+    out = tmp_path / "rep"
+    assert main(["compare", str(stand_bag), "--estimators", "ekf,fixed-lag", "--footholds", "-o", str(out),
+                 "-q"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    rows = summary["estimators"]
+    assert rows["fixed_lag"]["extra"]["options"] == {"footholds": True}
+    assert "footholds estimated" in rows["fixed_lag"]["extra"]["footholds"]
+    assert "options" not in rows["ekf"]["extra"]
