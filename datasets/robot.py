@@ -26,6 +26,7 @@ import numpy as np
 import pinocchio as pin
 
 from flexforce.errors import ConfigError, ConfigWarning
+from flexforce.factors.footholds import FootholdPrior
 from flexforce.factors.physics import GRAVITY, ContactParams, ImuPlacement, Inputs
 
 ROBOTS_DIR = Path(__file__).resolve().parent / "robots"
@@ -269,13 +270,13 @@ class FootholdConfig:
     """Floor normal in the local frame of the first sample (``terrain = "plane"``)."""
     plane_height: float = 0.0
     """Floor offset along the unit normal, m (``terrain = "plane"``)."""
-    ground_sigma_tilt: float = 0.0035
+    ground_sigma_tilt: float = FootholdPrior.ground_sigma_tilt
     """Floor flatness: sole tilt about the plane, rad (0.2 deg)."""
-    ground_sigma_height: float = 0.002
+    ground_sigma_height: float = FootholdPrior.ground_sigma_height
     """Floor flatness: sole height about the plane, m."""
-    kinematics_sigma_tilt: float = 0.017
+    kinematics_sigma_tilt: float = FootholdPrior.kinematics_sigma_tilt
     """Leg-kinematics error of a landing sole's tilt, rad (1 deg)."""
-    kinematics_sigma_height: float = 0.005
+    kinematics_sigma_height: float = FootholdPrior.kinematics_sigma_height
     """Leg-kinematics error of a landing sole's height, m."""
 
     def __post_init__(self):

@@ -49,6 +49,7 @@ import numpy as np
 from flexforce.errors import ConfigError
 from flexforce.factors import core
 from flexforce.factors.effects import ProblemView
+from flexforce.options import check_choice, check_finite, check_positive, invalid
 
 __all__ = ["FootholdPrior", "Footholds", "episode_starts", "held_rest"]
 
@@ -90,19 +91,16 @@ class FootholdPrior:
     """Leg kinematics at a touch-down: sole horizontal position, m."""
 
     def __post_init__(self):
-        if self.terrain not in ("flat", "plane", "none"):
-            raise ConfigError(f"FootholdPrior.terrain = {self.terrain!r}; expected 'flat', 'plane' or 'none'")
+        o = "FootholdPrior"
+        check_choice(o, "terrain", self.terrain, ("flat", "plane", "none"))
         for key in ("ground_sigma_tilt", "ground_sigma_height", "kinematics_sigma_tilt", "kinematics_sigma_height",
                     "kinematics_sigma_rotation", "kinematics_sigma_position"):
-            value = getattr(self, key)
             unit = "m" if key.endswith(("height", "position")) else "rad"
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ConfigError(f"FootholdPrior.{key} = {value!r} {unit}; expected a positive standard deviation")
+            check_positive(o, key, getattr(self, key), unit, "a positive standard deviation")
         n = np.asarray(self.normal, dtype=float)
         if n.shape != (3,) or not np.all(np.isfinite(n)) or np.linalg.norm(n) < 1e-9:
-            raise ConfigError(f"FootholdPrior.normal = {self.normal!r}; expected a non-zero 3-vector")
-        if not math.isfinite(float(self.height)):
-            raise ConfigError(f"FootholdPrior.height = {self.height!r} m; expected a finite number")
+            raise invalid(o, "normal", self.normal, "", "a non-zero 3-vector")
+        check_finite(o, "height", self.height, "m", "a finite number")
 
     @classmethod
     def from_config(cls, footholds) -> FootholdPrior:

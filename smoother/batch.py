@@ -20,7 +20,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from flexforce.errors import EstimatorError
-from flexforce.factors.footholds import held_rest
 from flexforce.options import check_bool, check_int, check_positive, check_type, require_config, with_options
 from flexforce.smoother import evidence
 from flexforce.smoother.linearize import (
@@ -265,9 +264,7 @@ def run_batch(rec, model, config: BatchConfig = BatchConfig(), rest_p=None, rest
     config = with_options(config, options, "batch smoother")
     t0 = time.perf_counter()
     if config.footholds:
-        model = with_footholds(rec, model)
-        if rest_p is None and rest_R is None:
-            rest_p, rest_R = held_rest(rec.contact_active, rec.contact_p, rec.contact_R)
+        model, rest_p, rest_R = with_footholds(rec, model, rest_p, rest_R)
     prob = Problem.build(rec, model, config.rule, rest_p, rest_R)
     if progress is not None:
         progress(0.05)

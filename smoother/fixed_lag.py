@@ -48,7 +48,6 @@ import numpy as np
 from flexforce.errors import EstimatorError
 from flexforce.factors import core
 from flexforce.factors import gtsam_factors as gf
-from flexforce.factors.footholds import held_rest
 from flexforce.options import (
     check_bool,
     check_choice,
@@ -462,9 +461,7 @@ def run_fixed_lag(rec, model, config: FixedLagConfig = FixedLagConfig(), rest_p=
     lag, backend, covariance = config.lag, config.backend, config.covariance
     t0 = time.perf_counter()
     if config.footholds:
-        model = with_footholds(rec, model)
-        if rest_p is None and rest_R is None:
-            rest_p, rest_R = held_rest(rec.contact_active, rec.contact_p, rec.contact_R)
+        model, rest_p, rest_R = with_footholds(rec, model, rest_p, rest_R)
     prob = Problem.build(rec, model, config.rule, rest_p, rest_R)
     prob.weight_cap = {}  # the sensors' robust weights only fall (FixedLagSmoother._lower_weight_caps)
     fls: FixedLagSmoother | GtsamFixedLagSmoother

@@ -47,7 +47,7 @@ from flexforce.datasets.faults import ROBUST_LOSSES, imu_validity
 from flexforce.errors import ConfigError, DataError, ModelError
 from flexforce.factors import core
 from flexforce.factors.effects import Effect, ProblemView
-from flexforce.factors.footholds import Footholds
+from flexforce.factors.footholds import Footholds, held_rest
 from flexforce.factors.model import unmodelled_acceleration
 from flexforce.factors.physics import ContactParams
 from flexforce.options import check_positive, invalid
@@ -333,14 +333,17 @@ def rest_placements(rec, rest_p=None, rest_R=None):
     return out[0], out[1]
 
 
-def with_footholds(rec, model):
-    """``model`` with the footholds of the contact episodes as unknowns
-    (:class:`~flexforce.factors.footholds.Footholds`, its priors from ``model.foothold_prior``);
-    unchanged when they already are."""
-    if any(isinstance(e, Footholds) for e in model.effects):
-        return model
-    eff = Footholds(len(rec.contact_names), model.foothold_prior)
-    return replace(model, effects=tuple(model.effects) + (eff,))
+def with_footholds(rec, model, rest_p=None, rest_R=None):
+    """``(model, rest_p, rest_R)`` with the footholds of the contact episodes as unknowns
+    (:class:`~flexforce.factors.footholds.Footholds`, its priors from ``model.foothold_prior``; the
+    model unchanged when they already are) and, unless given, the nominal rest placements held over
+    each episode (:func:`~flexforce.factors.footholds.held_rest`)."""
+    if not any(isinstance(e, Footholds) for e in model.effects):
+        eff = Footholds(len(rec.contact_names), model.foothold_prior)
+        model = replace(model, effects=tuple(model.effects) + (eff,))
+    if rest_p is None and rest_R is None:
+        rest_p, rest_R = held_rest(rec.contact_active, rec.contact_p, rec.contact_R)
+    return model, rest_p, rest_R
 
 
 def _contact_arrays(params: tuple[ContactParams, ...]):

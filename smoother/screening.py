@@ -42,7 +42,15 @@ from scipy import stats
 
 from flexforce.errors import EstimatorError
 from flexforce.smoother import evidence, solvers
-from flexforce.smoother.linearize import Linearization, Trajectory, assemble, drop_global_walks, is_global, linearize
+from flexforce.smoother.linearize import (
+    Linearization,
+    Trajectory,
+    assemble,
+    drop_global_walks,
+    global_columns,
+    is_global,
+    linearize,
+)
 from flexforce.smoother.problem import NoiseRule, Problem
 
 S_CORE = 18
@@ -173,7 +181,7 @@ def score_test(prob_base: Problem, traj: Trajectory, effect, rule: NoiseRule | N
     n, D = prob.n, prob.state_dim
     dim = int(effect.dim)
     ecols = np.arange(D - dim, D)
-    gcols = [c for c in _global_cols(prob) if c < D - dim]
+    gcols = [int(c) for c in global_columns(prob) if c < D - dim]
     lin = linearize(prob, tr)
     if is_global(effect, prob):
         lin = drop_global_walks(prob, lin)
@@ -239,13 +247,3 @@ def score_test(prob_base: Problem, traj: Trajectory, effect, rule: NoiseRule | N
     best = min(windows, key=lambda x: (x.p_value, -x.statistic))
     p = min(1.0, best.p_value * len(windows))
     return ScoreTest(effect.name, best.statistic, best.dof, p, "windowed", windows, time.perf_counter() - t0)
-
-
-def _global_cols(prob) -> list[int]:
-    out: list[int] = []
-    off = S_CORE + 6 * prob.nc
-    for eff in prob.effects:
-        if is_global(eff, prob):
-            out.extend(range(off, off + int(eff.dim)))
-        off += int(eff.dim)
-    return out

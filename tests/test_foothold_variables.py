@@ -57,7 +57,8 @@ def _landing(rec):
 def test_factors_match_numerical_derivatives(relaxed_step):
     rec, model = relaxed_step
     model = dataclasses.replace(model, foothold_prior=FootholdPrior())  # ground factors on too
-    prob = Problem.build(rec, with_footholds(rec, model))
+    model, rest_p, rest_R = with_footholds(rec, model)
+    prob = Problem.build(rec, model, rest_p=rest_p, rest_R=rest_R)
     eff = prob.effects[-1]
     k, _, _ = _landing(rec)
     steps = np.array([0, k, k + 3])
@@ -105,7 +106,8 @@ def test_factors_match_numerical_derivatives(relaxed_step):
 
 def test_each_episode_is_its_own_foothold(relaxed_step):
     rec, model = relaxed_step
-    prob = Problem.build(rec, with_footholds(rec, model))
+    model, rest_p, rest_R = with_footholds(rec, model)
+    prob = Problem.build(rec, model, rest_p=rest_p, rest_R=rest_R)
     eff = prob.effects[-1]
     rw = walk_sigma(eff, prob)
     s0 = eff.kinematic_sigmas(prob)
