@@ -50,7 +50,7 @@ import pinocchio as pin
 from flexforce.datasets.robot import FootholdConfig
 from flexforce.errors import DataError
 
-__all__ = ["LocalFrame", "anchored_local_frame", "on_ground"]
+__all__ = ["LocalFrame", "LocalFrameTracker", "anchored_local_frame", "on_ground"]
 
 
 @dataclass
@@ -124,93 +124,131 @@ def anchored_local_frame(model, q_joints: np.ndarray, v_joints: np.ndarray, a_jo
             many times the anchor's load (needs ``load``), so that the stance foot is changed
             while both feet are flat rather than when the old one is rolling off its toes; None:
             only when the anchor leaves contact.
+
+    :class:`LocalFrameTracker` does the same part by part (a stream), with identical results.
     """
-    pmodel = model.model
-    data = pmodel.createData()
-    fids = model.contact_frame_ids
-    n, c = active.shape
-    if q_joints.shape != (n, pmodel.nq - 7) or v_joints.shape != (n, pmodel.nv - 6) or a_joints.shape != v_joints.shape:
-        raise DataError(f"joint arrays have shapes {q_joints.shape}, {v_joints.shape}, {a_joints.shape}; "
-                        f"expected {(n, pmodel.nq - 7)} and {(n, pmodel.nv - 6)}")
-    load = np.zeros((n, c)) if load is None else np.where(np.isfinite(load), load, -np.inf)
+    tracker = LocalFrameTracker(model, anchor, footholds, switch_ratio)
+    return tracker.run(q_joints, v_joints, a_joints, active, load, progress)
 
-    def pick(k: int, candidates) -> int:
-        candidates = list(candidates)
-        return max(candidates, key=lambda i: (load[k, i], -i))
 
-    q_out = np.zeros((n, pmodel.nq))
-    v_out = np.zeros((n, pmodel.nv))
-    a_out = np.zeros((n, pmodel.nv))
-    anchors = np.zeros(n, dtype=int)
-    cp = np.zeros((n, c, 3))
-    cR = np.zeros((n, c, 3, 3))
-    rest: list[Any] = [None] * c  # pin.SE3 or None (pinocchio ships no type information)
-    switches = []
-    landed: list[tuple[int, int, float, float]] = []
-    drift = 0.0
+class LocalFrameTracker:
+    """Stance-foot leg odometry over consecutive parts of a log (:func:`anchored_local_frame`):
+    :meth:`run` on each part in turn; the anchor, the held rest placements and the drift carry
+    over, and step indices (switches, touch-downs) count from the first part's first step."""
 
-    def _more_loaded(k: int, i: int) -> bool:
-        """Another contact in force carries ``switch_ratio`` times the anchor's load (and held its
-        foothold since the last step): the anchor passes to it while both feet are down."""
-        others = [j for j in np.flatnonzero(active[k]) if j != i and was[j] and rest[j] is not None]
-        return bool(others) and max(load[k, j] for j in others) > switch_ratio * max(load[k, i], 0.0)
+    def __init__(self, model, anchor: int | None = None, footholds: FootholdConfig | None = None,
+                 switch_ratio: float | None = 3.0):
+        self.model = model
+        self.pmodel = model.model
+        self.data = self.pmodel.createData()
+        self.fids = model.contact_frame_ids
+        self.c = len(self.fids)
+        self.anchor_pref = anchor
+        self.footholds = footholds
+        self.switch_ratio = switch_ratio
+        self.q = pin.neutral(self.pmodel)
+        self.base = pin.SE3.Identity()
+        self.current: int | None = None
+        self.rest: list[Any] = [None] * self.c  # pin.SE3 or None (pinocchio ships no type information)
+        self.was = np.zeros(self.c, dtype=bool)
+        self.drift = 0.0
+        self.k = 0
+        """Steps placed so far (the index of the next part's first step)."""
 
-    def touch_down(k: int, i: int) -> pin.SE3:
-        foothold, tilt, height = on_ground(base * b_T_c[i], footholds)
-        landed.append((k, i, tilt, height))
-        return foothold
+    def run(self, q_joints: np.ndarray, v_joints: np.ndarray, a_joints: np.ndarray, active: np.ndarray,
+            load: np.ndarray | None = None, progress=None) -> LocalFrame:
+        """The local frame of the next part (arrays as in :func:`anchored_local_frame`); ``switches``
+        and ``footholds`` of the result are this part's, ``drift`` the largest so far."""
+        pmodel, data, fids = self.pmodel, self.data, self.fids
+        n, c = active.shape
+        if (c != self.c or q_joints.shape != (n, pmodel.nq - 7) or v_joints.shape != (n, pmodel.nv - 6)
+                or a_joints.shape != v_joints.shape):
+            raise DataError(f"joint arrays have shapes {q_joints.shape}, {v_joints.shape}, {a_joints.shape} and "
+                            f"contacts {active.shape}; expected {(n, pmodel.nq - 7)}, {(n, pmodel.nv - 6)} and "
+                            f"{(n, self.c)}")
+        load = np.zeros((n, c)) if load is None else np.where(np.isfinite(load), load, -np.inf)
+        footholds, switch_ratio, rest = self.footholds, self.switch_ratio, self.rest
+        k0 = self.k
 
-    q = pin.neutral(pmodel)
-    base = pin.SE3.Identity()
-    current = None
-    for k in range(n):
-        q[:7] = (0, 0, 0, 0, 0, 0, 1)
-        q[7:] = q_joints[k]
-        pin.framesForwardKinematics(pmodel, data, q)
-        b_T_c = [data.oMf[f].copy() for f in fids]
-        was = active[k - 1] if k > 0 else np.zeros(c, dtype=bool)
-        for i in range(c):  # released contacts lose their rest placement
-            if not active[k, i]:
-                rest[i] = None
-        if current is None:
-            on = np.flatnonzero(active[k])
-            if anchor is not None and (active[k, anchor] or not on.size):
-                current = anchor
-            else:
-                current = pick(k, on if on.size else range(c))
-            rest[current] = pin.SE3.Identity()
-        elif (not active[k, current] and active[k].any()) or (
-                switch_ratio is not None and active[k, current] and _more_loaded(k, current)):
-            new = pick(k, np.flatnonzero(active[k]))
-            if rest[new] is None:  # touched down at this very step
-                rest[new] = touch_down(k, new)
-            jump = float(np.linalg.norm((base * b_T_c[new]).translation - rest[new].translation))
-            switches.append((k, int(current), int(new), jump))
-            current = new
-        if rest[current] is None:  # virtual anchor (no contact in force): hold its last placement
-            rest[current] = base * b_T_c[current]
-        base = rest[current] * b_T_c[current].inverse()
-        for i in range(c):
-            if active[k, i] and (rest[i] is None or not was[i]) and i != current:
-                rest[i] = touch_down(k, i)
-            placement = rest[i] if active[k, i] else base * b_T_c[i]
-            cp[k, i] = placement.translation
-            cR[k, i] = placement.rotation
-            if active[k, i]:
-                drift = max(drift, float(np.linalg.norm(placement.translation - (base * b_T_c[i]).translation)))
-        anchors[k] = current
+        def pick(k: int, candidates) -> int:
+            candidates = list(candidates)
+            return max(candidates, key=lambda i: (load[k, i], -i))
 
-        # free-flyer velocity and acceleration from the anchor constraint (module docstring, 5)
-        q[:7] = pin.SE3ToXYZQUAT(base)
-        fid = fids[current]
-        J = pin.computeFrameJacobian(pmodel, data, q, fid, pin.LOCAL)
-        Jb_inv = np.linalg.inv(J[:, :6])
-        v = np.concatenate([-Jb_inv @ (J[:, 6:] @ v_joints[k]), v_joints[k]])
-        a0 = np.concatenate([np.zeros(6), a_joints[k]])
-        pin.forwardKinematics(pmodel, data, q, v, a0)
-        gamma = pin.getFrameAcceleration(pmodel, data, fid, pin.LOCAL).vector
-        a = np.concatenate([-Jb_inv @ gamma, a_joints[k]])
-        q_out[k], v_out[k], a_out[k] = q, v, a
-        if progress is not None and (k % 50 == 0 or k == n - 1):
-            progress((k + 1) / n)
-    return LocalFrame(q_out, v_out, a_out, anchors, cp, cR, switches, drift, landed)
+        q_out = np.zeros((n, pmodel.nq))
+        v_out = np.zeros((n, pmodel.nv))
+        a_out = np.zeros((n, pmodel.nv))
+        anchors = np.zeros(n, dtype=int)
+        cp = np.zeros((n, c, 3))
+        cR = np.zeros((n, c, 3, 3))
+        switches = []
+        landed: list[tuple[int, int, float, float]] = []
+
+        def _more_loaded(k: int, i: int) -> bool:
+            """Another contact in force carries ``switch_ratio`` times the anchor's load (and held its
+            foothold since the last step): the anchor passes to it while both feet are down."""
+            others = [j for j in np.flatnonzero(active[k]) if j != i and was[j] and rest[j] is not None]
+            return bool(others) and max(load[k, j] for j in others) > switch_ratio * max(load[k, i], 0.0)
+
+        def touch_down(k: int, i: int) -> pin.SE3:
+            foothold, tilt, height = on_ground(self.base * b_T_c[i], footholds)
+            landed.append((k0 + k, i, tilt, height))
+            return foothold
+
+        q = self.q
+        for k in range(n):
+            q[:7] = (0, 0, 0, 0, 0, 0, 1)
+            q[7:] = q_joints[k]
+            pin.framesForwardKinematics(pmodel, data, q)
+            b_T_c = [data.oMf[f].copy() for f in fids]
+            was = active[k - 1] if k > 0 else self.was
+            for i in range(c):  # released contacts lose their rest placement
+                if not active[k, i]:
+                    rest[i] = None
+            if self.current is None:
+                on = np.flatnonzero(active[k])
+                anchor = self.anchor_pref
+                if anchor is not None and (active[k, anchor] or not on.size):
+                    self.current = anchor
+                else:
+                    self.current = pick(k, on if on.size else range(c))
+                rest[self.current] = pin.SE3.Identity()
+            elif (not active[k, self.current] and active[k].any()) or (
+                    switch_ratio is not None and active[k, self.current] and _more_loaded(k, self.current)):
+                new = pick(k, np.flatnonzero(active[k]))
+                if rest[new] is None:  # touched down at this very step
+                    rest[new] = touch_down(k, new)
+                jump = float(np.linalg.norm((self.base * b_T_c[new]).translation - rest[new].translation))
+                switches.append((k0 + k, int(self.current), int(new), jump))
+                self.current = new
+            current = self.current
+            if rest[current] is None:  # virtual anchor (no contact in force): hold its last placement
+                rest[current] = self.base * b_T_c[current]
+            self.base = rest[current] * b_T_c[current].inverse()
+            for i in range(c):
+                if active[k, i] and (rest[i] is None or not was[i]) and i != current:
+                    rest[i] = touch_down(k, i)
+                placement = rest[i] if active[k, i] else self.base * b_T_c[i]
+                cp[k, i] = placement.translation
+                cR[k, i] = placement.rotation
+                if active[k, i]:
+                    self.drift = max(self.drift, float(np.linalg.norm(
+                        placement.translation - (self.base * b_T_c[i]).translation)))
+            anchors[k] = current
+
+            # free-flyer velocity and acceleration from the anchor constraint (module docstring, 5)
+            q[:7] = pin.SE3ToXYZQUAT(self.base)
+            fid = fids[current]
+            J = pin.computeFrameJacobian(pmodel, data, q, fid, pin.LOCAL)
+            Jb_inv = np.linalg.inv(J[:, :6])
+            v = np.concatenate([-Jb_inv @ (J[:, 6:] @ v_joints[k]), v_joints[k]])
+            a0 = np.concatenate([np.zeros(6), a_joints[k]])
+            pin.forwardKinematics(pmodel, data, q, v, a0)
+            gamma = pin.getFrameAcceleration(pmodel, data, fid, pin.LOCAL).vector
+            a = np.concatenate([-Jb_inv @ gamma, a_joints[k]])
+            q_out[k], v_out[k], a_out[k] = q, v, a
+            if progress is not None and (k % 50 == 0 or k == n - 1):
+                progress((k + 1) / n)
+        if n:
+            self.was = active[n - 1].copy()
+        self.k += n
+        return LocalFrame(q_out, v_out, a_out, anchors, cp, cR, switches, self.drift, landed)

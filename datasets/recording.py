@@ -187,6 +187,13 @@ class Recording:
             truth = Truth(**{f.name: cut(getattr(self.truth, f.name)) for f in dataclasses.fields(Truth)})
         return Recording(**kwargs, truth=truth)
 
+    def per_step_fields(self) -> list[str]:
+        """Names of the fields that hold one row per step (arrays of first dimension N)."""
+        n = self.n
+        return [f.name for f in dataclasses.fields(self)
+                if isinstance(getattr(self, f.name), np.ndarray) and getattr(self, f.name).ndim >= 1
+                and getattr(self, f.name).shape[0] == n]
+
     MIN_SAMPLES = 10
     """Fewest samples the estimators accept (:meth:`require_samples`; :meth:`window` keeps at least
     as many): below this no estimator has anything to converge on (a 10-sample EKF run has not
@@ -324,3 +331,26 @@ class Recording:
         if self.joint_q is not None and self.joint_q.shape != (n, len(self.joint_names)):
             raise DataError(f"field 'joint_q' has shape {self.joint_q.shape}; expected {(n, len(self.joint_names))}")
         return self
+
+
+def concat_recordings(first: Recording, second: Recording) -> Recording:
+    """``second`` appended to ``first`` (one grid: consecutive parts of a stream).  Per-step arrays
+    and motion capture are joined; the other fields, ``meta`` included, are ``first``'s; ground
+    truth is kept only when both have it."""
+    if set(first.per_step_fields()) != set(second.per_step_fields()) or set(first.mocap) != set(second.mocap):
+        raise DataError(f"cannot join recordings with different fields ({sorted(first.per_step_fields())} and "
+                        f"{sorted(second.per_step_fields())}, motion capture {sorted(first.mocap)} and "
+                        f"{sorted(second.mocap)}); expected parts of one stream")
+    kwargs = {f.name: getattr(first, f.name) for f in dataclasses.fields(first) if f.name != "truth"}
+    for name in first.per_step_fields():
+        kwargs[name] = np.concatenate([getattr(first, name), getattr(second, name)], axis=0)
+    kwargs["mocap"] = {k: np.concatenate([v, second.mocap[k]], axis=0) for k, v in first.mocap.items()}
+    truth = None
+    if first.truth is not None and second.truth is not None:
+        truth = Truth(**{f.name: (np.concatenate([getattr(first.truth, f.name), getattr(second.truth, f.name)])
+                                  if isinstance(getattr(first.truth, f.name), np.ndarray)
+                                  and getattr(first.truth, f.name).ndim >= 1
+                                  and getattr(first.truth, f.name).shape[0] == first.n
+                                  else getattr(first.truth, f.name))
+                         for f in dataclasses.fields(Truth)})
+    return Recording(**kwargs, truth=truth)

@@ -217,7 +217,11 @@ class FixedLagSmoother:
     :meth:`finish`.  Memory: ring buffers of ``lag + relinearize + report_every + 2`` steps."""
 
     def __init__(self, prob: Problem, lag: float = 1.0, relinearize: int = 6, covariance: bool = True,
-                 report_every: int = 10):
+                 report_every: int = 10, sink: Callable[..., None] | None = None):
+        """``sink``: called as ``sink(j, R, q, W, e, P)`` for each step ``j`` as it leaves the
+        window (``P`` None without covariances) instead of filling :attr:`traj` and :attr:`P`:
+        a stream of unknown length (:mod:`flexforce.smoother.stream`), whose problem is replaced
+        part by part (:meth:`set_problem`)."""
         check_positive("FixedLagSmoother", "lag", lag, "s", "a positive duration")
         check_int("FixedLagSmoother", "relinearize", relinearize, 1, "steps", "an integer >= 1")
         check_int("FixedLagSmoother", "report_every", report_every, 1, "updates", "an integer >= 1")
@@ -240,11 +244,16 @@ class FixedLagSmoother:
         self.rp = np.zeros((cap, D))
         self.dx = np.zeros((cap, D))
         self.Pw = np.zeros((cap, D, D))
-        # outputs (the Estimate, not the smoother's memory)
-        self.traj = Trajectory(np.zeros((n, 3, 3)), np.zeros((n, 15)), np.zeros((n, nc, 6)), np.zeros((n, E)))
-        self.P = np.zeros((n, D, D)) if covariance else None
-        self.update_time = np.zeros(n)
-        self.cov_time = np.zeros(n)
+        # outputs (the Estimate, not the smoother's memory); a sink takes them instead
+        self.sink = sink
+        n_out = 0 if sink is not None else n
+        self.traj = Trajectory(np.zeros((n_out, 3, 3)), np.zeros((n_out, 15)), np.zeros((n_out, nc, 6)),
+                               np.zeros((n_out, E)))
+        self.P = np.zeros((n_out, D, D)) if covariance else None
+        self.update_time = np.zeros(n_out)
+        self.cov_time = np.zeros(n_out)
+        self.last_update_time = 0.0
+        self.last_cov_time = 0.0
         self.k = 0
         self.next_report = 0
         e0 = np.zeros(E)
@@ -267,7 +276,8 @@ class FixedLagSmoother:
             # step has been estimated.
             cap = caps.setdefault(fam, np.ones((self.prob.n, w.shape[1])))
             m = len(w) - 1
-            cap[f:f + m] = np.minimum(cap[f:f + m], w[:m])
+            a = f - self.prob.offset
+            cap[a:a + m] = np.minimum(cap[a:a + m], w[:m])
 
     def _state(self, k: int):
         """Current estimate of step ``k`` (in the window): linearisation point retracted by dx."""
@@ -289,8 +299,28 @@ class FixedLagSmoother:
         else:
             Rp, qp, _, e = self._state(k - 1)
             R, q = predict_step(Rp, qp, p.dt)
-        W = p.contact_wrenches(k, R, q)
+        W = p.contact_wrenches(k - p.offset, R, q)
         return R, q, W, e
+
+    def set_problem(self, prob: Problem) -> None:
+        """Continue on ``prob``, the next part of the stream (:attr:`Problem.offset` on; it must
+        hold every step still relinearised, from ``k - relinearize``, and the steps to come).
+        The sensors' robust weight caps of the steps both parts hold are carried over."""
+        first = self.k - self.M
+        if prob.offset > max(first, 0):
+            raise EstimatorError(f"fixed-lag smoother: the new part of the stream starts at step {prob.offset}; "
+                                 f"expected at most {max(first, 0)} (the oldest step still relinearised)")
+        old = self.prob
+        if old.weight_cap is not None:
+            caps: dict = {}
+            for fam, cap in old.weight_cap.items():
+                new = np.ones((prob.n, cap.shape[1]))
+                a, b = max(prob.offset, old.offset), min(prob.offset + prob.n, old.offset + old.n)
+                if b > a:
+                    new[a - prob.offset:b - prob.offset] = cap[a - old.offset:b - old.offset]
+                caps[fam] = new
+            prob.weight_cap = caps
+        self.prob = prob
 
     def step(self) -> None:
         """Add the next sample and update: relinearise the newest steps, eliminate, back-substitute."""
@@ -348,7 +378,9 @@ class FixedLagSmoother:
         solvers.window_back_substitute(self.Ld, self.C, self.y, order, self.dx)
         if not np.all(np.isfinite(self.dx[pk])):
             raise EstimatorError(f"fixed-lag smoother: non-finite estimate at step {k} (t = {k * prob.dt:.3f} s)")
-        self.update_time[k] = time.perf_counter() - t0
+        self.last_update_time = time.perf_counter() - t0
+        if self.sink is None:
+            self.update_time[k] = self.last_update_time
         if full:
             j0 = j - self.report_every + 1
             if self.covariance:
@@ -363,10 +395,15 @@ class FixedLagSmoother:
         t0 = time.perf_counter()
         order = np.arange(k, j0 - 1, -1) % self.cap
         solvers.window_marginals(self.Ld, self.C, order, self.Pw)
-        self.cov_time[k] = time.perf_counter() - t0
+        self.last_cov_time = time.perf_counter() - t0
+        if self.sink is None:
+            self.cov_time[k] = self.last_cov_time
 
     def _report(self, j: int) -> None:
         R, q, W, e = self._state(j)
+        if self.sink is not None:
+            self.sink(j, R, q, W, e, self.Pw[j % self.cap].copy() if self.covariance else None)
+            return
         self.traj.R[j], self.traj.q[j], self.traj.W[j], self.traj.e[j] = R, q, W, e
         if self.covariance:
             assert self.P is not None  # allocated when covariance is set

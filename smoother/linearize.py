@@ -128,7 +128,10 @@ def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True) -> Linea
     """
     nc = prob.nc
     n = traj.R.shape[0]
-    sl = slice(k0, k0 + n)
+    # A problem over a part of a stream holds the steps from ``prob.offset`` on (its row 0); the
+    # priors of the first step belong to step 0 of the stream only.
+    base = int(getattr(prob, "offset", 0))
+    sl = slice(k0 - base, k0 - base + n)
     D = prob.state_dim
     sig = prob.sigmas
     R = np.ascontiguousarray(traj.R)
@@ -136,7 +139,7 @@ def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True) -> Linea
     W = np.ascontiguousarray(traj.W)
     act = prob.active[sl]
     lin = Linearization()
-    steps = np.arange(k0, k0 + n)
+    steps = np.arange(k0 - base, k0 - base + n)
     extra_cost = 0.0
     eye6 = np.eye(6)
     w_cols = [slice(S + 6 * i, S + 6 * i + 6) for i in range(nc)]
@@ -278,7 +281,7 @@ def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True) -> Linea
                 J[:, :, cols] = dr_de
                 lin.unary[f"effect_factor/{eff.name}/{key}"] = (r * w, J * w[:, :, None])
         if n > 1:
-            rw = walk_sigma(eff, prob)[k0:k0 + n - 1]
+            rw = walk_sigma(eff, prob)[k0 - base:k0 - base + n - 1]
             J0 = np.zeros((n - 1, eff.dim, D))
             J1 = np.zeros((n - 1, eff.dim, D))
             J0[:, :, cols] = -np.eye(eff.dim)

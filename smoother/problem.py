@@ -370,6 +370,9 @@ class Problem:
     dt: float
     g: float
     use_ft: bool
+    offset: int = 0
+    """Step index of row 0 in the whole stream (0 for a whole recording; a streaming smoother
+    builds problems over consecutive parts of its input, :mod:`flexforce.smoother.stream`)."""
     # Set by :meth:`build` (not constructor arguments; excluded from repr and comparison).
     com: np.ndarray = field(init=False, repr=False, compare=False)
     com_vel: np.ndarray = field(init=False, repr=False, compare=False)
@@ -412,18 +415,23 @@ class Problem:
     contact_whitener: np.ndarray = field(init=False, repr=False, compare=False)
 
     @classmethod
-    def build(cls, rec, model, rule: NoiseRule = NoiseRule(), rest_p=None, rest_R=None) -> Problem:
+    def build(cls, rec, model, rule: NoiseRule = NoiseRule(), rest_p=None, rest_R=None, *,
+              part_of: Problem | None = None, offset: int = 0) -> Problem:
         """Args:
             rest_p, rest_R: (N, C, 3) and (N, C, 3, 3) the contacts' rest placements in the world
                 (footholds) per step; default: the recording's local placements ``contact_p``,
                 ``contact_R`` (the spring is at rest where the local frame puts the contact).
+            part_of, offset: ``rec`` is the part of a stream from step ``offset`` on, and
+                ``part_of`` the problem of the stream's first part: its noise (derived from the
+                stream's first sample), period and first-step prior are kept, so that every part
+                is the same problem.
         """
         rec.validate()
         nc = len(rec.contact_names)
         if len(model.contact_params) != nc:
             raise ConfigError(f"model has {len(model.contact_params)} contact parameter sets; the recording "
                               f"has {nc} contacts ({', '.join(rec.contact_names)})")
-        if not rec.contact_active[0].any():
+        if part_of is None and not rec.contact_active[0].any():
             raise DataError("no contact is active at the first sample; the flexible-contact model needs one")
         use_ft = bool(model.use_ft)
         if use_ft and rec.ft is None:
@@ -432,8 +440,10 @@ class Problem:
             if not isinstance(eff, Effect):
                 raise ConfigError(f"effect {eff!r} does not implement the smoother's Effect protocol "
                                   "(name, dim, labels, prior, random_walk_sigma, residual_terms, report)")
-        prob = cls(rec=rec, model=model, sigmas=derive_sigmas(rec, model, rule), effects=tuple(model.effects),
-                   n=rec.n, nc=nc, dt=rec.dt, g=float(model.gravity), use_ft=use_ft)
+        sigmas = part_of.sigmas if part_of is not None else derive_sigmas(rec, model, rule)
+        dt = part_of.dt if part_of is not None else rec.dt
+        prob = cls(rec=rec, model=model, sigmas=sigmas, effects=tuple(model.effects), n=rec.n, nc=nc, dt=dt,
+                   g=float(model.gravity), use_ft=use_ft, offset=int(offset))
         c = np.ascontiguousarray
         prob.com, prob.com_vel, prob.com_acc = c(rec.com, float), c(rec.com_vel, float), c(rec.com_acc, float)
         prob.inertia, prob.inertia_dot = c(rec.inertia, float), c(rec.inertia_dot, float)
@@ -453,7 +463,7 @@ class Problem:
         prob.ft_use = c(np.isfinite(rec.ft), float) if use_ft else None
         (prob.K_fs, prob.K_fd, prob.K_ts, prob.K_td), prob.beta, prob.iso = _contact_arrays(model.contact_params)
         prob.effect_dims = tuple(int(e.dim) for e in prob.effects)
-        prob.prior_mean = prob.equilibrium(0)
+        prob.prior_mean = part_of.prior_mean if part_of is not None else prob.equilibrium(0)
         prob.integration_whitener = whitener(prob.sigmas.integration_cov)
         # derive_sigmas sets both covariances.
         assert prob.sigmas.newton_euler_cov is not None and prob.sigmas.contact_cov is not None

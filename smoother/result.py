@@ -40,7 +40,7 @@ def family_residuals(prob, traj: Trajectory) -> dict[str, np.ndarray]:
     ``integration`` at step k is the factor between k and k+1 (the last step has none);
     ``contact`` and ``ft`` are NaN where the contact is inactive.
     """
-    lin = linearize(prob, traj, robust=False)
+    lin = linearize(prob, traj, k0=int(getattr(prob, "offset", 0)), robust=False)
     n, nc = prob.n, prob.nc
     out = {}
     r_int = np.full((n, 12), np.nan)

@@ -1,0 +1,604 @@
+r"""Import a robot's messages as they come: parts of a :class:`Recording`, in bounded memory.
+
+:class:`StreamImporter` is the online form of :func:`flexforce.datasets.rosimport.import_bag`:
+it takes the IMU, joint-state and F/T messages in time order (per topic) and hands out
+consecutive parts of the recording, each a :class:`Recording` on one uniform grid, as soon as
+their inputs are final.  :func:`stream_bag` feeds it from a bag read message by message, so a
+log of any length is imported without being loaded.  Same method as the offline import
+(docs/real-logs.md), with these rules for the online case:
+
+* **Grid.** From the later first stamp of the IMU and the joints, at ``rate`` (argument, else
+  ``ros.rate``, else the median period of the first 50 IMU messages, rounded to whole ns).
+* **Resampling.** Linear interpolation between the two messages bracketing each grid time, as
+  offline; a step is final for a topic once a message at or after its time has arrived.  An F/T
+  topic that has fallen more than ``ros.max_gap`` behind the IMU leaves NaN (a gap), as offline.
+* **Derivatives.** The same Savitzky-Golay filter as offline, centred: step ``k``'s joint
+  velocity and acceleration need the positions up to step ``k + h`` (``h`` the half window), so
+  the inputs lag the messages by ``h`` samples (``ros.savgol_window / 2``: 0.1 s on iCub).  The
+  first and last ``h`` steps use the window's polynomial fit, as offline (``mode="interp"``).
+  This delay adds to the smoother's lag: the estimate of a step leaves ``lag + savgol_window/2``
+  after its time (plus ``report_every`` samples).
+* **Contacts.** The Schmitt trigger runs step by step with its state carried; it starts at a
+  contact's first finite force (offline: the same).
+* **Local frame** (:class:`flexforce.datasets.localframe.LocalFrameTracker`) and kinematics, step by
+  step, as offline.
+
+With the same rate and messages, the parts joined are the offline recording to rounding, except
+the contact states before a contact's first finite F/T reading (offline: the state that
+reading decides; online: not in contact) -- tested on the iCub walk.  Not streamed: motion
+capture (a reference, not an input; compare offline).
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+from scipy.signal import savgol_filter
+
+from flexforce.datasets.localframe import LocalFrameTracker
+from flexforce.datasets.recording import Recording
+from flexforce.datasets.robot import RobotConfig, RobotModel, RosConfig
+from flexforce.datasets.rosimport import (FOOTHOLD_BOUND, T_IMU, T_JOINTS, T_WRENCH, _check_path, _reader_error,
+                                          _stamp, _typestore)
+from flexforce.errors import BagError, ConfigError, DataError
+
+__all__ = ["StreamImporter", "stream_bag"]
+
+_NS = 1_000_000_000
+RATE_MESSAGES = 50
+"""IMU messages whose median period sets the grid when no rate is given."""
+
+
+class _Topic:
+    """Messages of one topic not yet used: stamps and values, in order."""
+
+    def __init__(self, name: str):
+        self.name = name
+        self.t: list[int] = []
+        self.v: list[np.ndarray] = []
+        self.last = -1
+        self.count = 0
+        self.duplicates = 0
+
+    def add(self, t: int, value: np.ndarray, t0: int | None) -> bool:
+        if t < self.last:
+            where = f"{(t - t0) * 1e-9:.6f} s" if t0 is not None else f"{t * 1e-9:.6f} s"
+            raise DataError(f"time goes backwards on topic {self.name}: message {self.count} is stamped {where}, "
+                            f"{(self.last - t) * 1e-6:.3f} ms before message {self.count - 1}; expected "
+                            "non-decreasing header stamps")
+        self.count += 1
+        if t == self.last:
+            self.duplicates += 1
+            return False
+        self.last = t
+        self.t.append(t)
+        self.v.append(value)
+        return True
+
+    def at(self, g: int, max_gap_ns: int, fatal: bool, t0: int) -> np.ndarray | None:
+        """Interpolated value at ``g`` (ns); None when no message at or after ``g`` has arrived.
+        Drops the messages before the bracket.  NaN before the first message and inside a gap
+        longer than ``max_gap_ns`` (a DataError instead when ``fatal``)."""
+        t = self.t
+        if not t or t[-1] < g:
+            return None
+        j = 0
+        while j + 1 < len(t) and t[j + 1] <= g:
+            j += 1
+        if j:
+            del self.t[:j]
+            del self.v[:j]
+        if t[0] == g:
+            return self.v[0]
+        if t[0] > g:
+            return np.full_like(self.v[0], np.nan)
+        t0_, t1_ = t[0], t[1]
+        if t1_ - t0_ > max_gap_ns:
+            if fatal:
+                raise DataError(f"topic {self.name} has a gap of {(t1_ - t0_) * 1e-9:.3f} s from t = "
+                                f"{(t0_ - t0) * 1e-9:.3f} s to {(t1_ - t0) * 1e-9:.3f} s; expected gaps shorter "
+                                f"than ros.max_gap = {max_gap_ns * 1e-9} s")
+            return np.full_like(self.v[0], np.nan)
+        w = (g - t0_) / float(t1_ - t0_)
+        return (1.0 - w) * self.v[0] + w * self.v[1]
+
+
+class StreamImporter:
+    """Messages in, parts of a Recording out (module docstring).
+
+    Args:
+        robot_config: :class:`RobotConfig`, :class:`RobotModel`, built-in name or TOML path.
+        rate: grid rate, Hz (default ``ros.rate``, else the first IMU messages' median rate).
+        contacts: ``"ft"`` (Schmitt trigger on the F/T normal forces) or ``"fixed"``.
+        part_seconds: length of the parts handed out (s; the last one may be shorter).
+        ft_contacts: the contacts whose F/T messages will come (default: every contact with an F/T
+            topic in ``ros.ft_topics``); the others' F/T is NaN.
+
+    Feed it with :meth:`add_imu`, :meth:`add_joints` and :meth:`add_ft` in time order per topic
+    (topics may interleave freely), collect :meth:`parts` as they come, and :meth:`finish`.
+    """
+
+    def __init__(self, robot_config, rate: float | None = None, contacts: str = "ft", part_seconds: float = 0.5,
+                 ft_contacts=None):
+        model = robot_config if isinstance(robot_config, RobotModel) else RobotModel(robot_config)
+        config: RobotConfig = model.config
+        ros = config.ros or RosConfig()
+        if contacts not in ("ft", "fixed"):
+            raise ConfigError(f"contacts = {contacts!r}; expected 'ft' (from F/T normal forces) or 'fixed'")
+        if not part_seconds > 0:
+            raise ConfigError(f"part_seconds = {part_seconds}; expected a positive duration, s")
+        if rate is not None and not rate > 0:
+            raise ConfigError(f"rate = {rate} Hz; expected a positive rate")
+        names_c = tuple(config.contact_names)
+        ft_contacts = tuple(c for c in names_c if c in ros.ft_topics) if ft_contacts is None else tuple(ft_contacts)
+        unknown = [c for c in ft_contacts if c not in names_c]
+        if unknown:
+            raise ConfigError(f"F/T contacts {unknown} are not contacts of robot '{config.name}' ({list(names_c)})")
+        if contacts == "ft":
+            missing = [c for c in names_c if c not in ft_contacts]
+            if missing:
+                raise ConfigError(f"contacts='ft' needs the F/T of every contact; none for {missing} "
+                                  "(or use contacts='fixed')")
+        self.model, self.config, self.ros = model, config, ros
+        self.contacts = contacts
+        self.names_c = names_c
+        self.ft_index = [names_c.index(c) for c in ft_contacts]
+        self.part_seconds = float(part_seconds)
+        self.rate = rate or ros.rate
+        self.period: int | None = int(round(1e9 / self.rate)) if self.rate else None
+        self.max_gap_ns = int(round(ros.max_gap * _NS))
+        pmodel = model.model
+        self.joint_names = tuple(model.joint_names)
+        self.index = {name: i for i, name in enumerate(self.joint_names)}
+        self.ignore = re.compile(ros.ignore_joints) if ros.ignore_joints else None
+        for jname in pmodel.names[2:]:
+            if pmodel.joints[pmodel.getJointId(jname)].nq != 1:
+                raise ConfigError(f"joint '{jname}' of robot '{config.name}' has "
+                                  f"{pmodel.joints[pmodel.getJointId(jname)].nq} position coordinates; only 1-dof "
+                                  "joints are supported")
+        self.imu = _Topic(ros.imu_topic)
+        self.joints = _Topic(ros.joint_states_topic)
+        self.ft = {i: _Topic(ros.ft_topics.get(names_c[i], f"F/T of {names_c[i]}")) for i in self.ft_index}
+        self.ft_frames: dict[int, str] = {}
+        self._cols: dict[tuple, tuple] = {}
+        self.measured: np.ndarray | None = None
+        self.velocity_source: str | None = None
+        self._imu_first: list[int] = []
+        self.grid0: int | None = None
+        self.t_first: int | None = None
+        # interpolated rows not yet differentiated (and the h before them, for the filter)
+        self._rows: dict[str, list] = {"gyro": [], "accel": [], "q": [], "v": [], "ft": []}
+        self._rows_first = 0  # step of self._rows[...][0]
+        self._k_interp = 0  # next step to interpolate
+        self._k_deriv = 0  # next step to differentiate
+        self._ready: list[dict] = []  # steps with every input final, not yet handed out
+        win = int(round(ros.savgol_window * self.rate)) | 1 if self.rate else None
+        self._win = win
+        self.tracker = LocalFrameTracker(model, self._anchor(), config.footholds)
+        self._state: dict[int, bool | None] = {i: None for i in range(len(names_c))}
+        mg = model.mass * config.gravity
+        self.on = ros.contact_on if ros.contact_on is not None else ros.contact_on_weight * mg
+        self.off = ros.contact_off if ros.contact_off is not None else ros.contact_off_weight * mg
+        if contacts == "ft" and not self.off < self.on:
+            raise ConfigError(f"contact thresholds: off = {self.off:.1f} N is not below on = {self.on:.1f} N "
+                              f"(m g = {mg:.1f} N); set ros.contact_on / ros.contact_off (N) or the "
+                              "fractions ros.contact_on_weight / ros.contact_off_weight consistently")
+        self._fixed = None
+        if contacts == "fixed":
+            from flexforce.datasets.contacts import fixed_contacts
+            self._fixed = fixed_contacts(1, names_c, ros.fixed_contacts)[0]
+        self._wrench_data = pmodel.createData()
+        self.steps_out = 0
+        self.ever_active = np.zeros(len(names_c), dtype=bool)
+        self.finished = False
+
+    def _anchor(self) -> int | None:
+        a = self.ros.anchor
+        if a is None:
+            return None
+        if a not in self.names_c:
+            raise ConfigError(f"ros.anchor = '{a}' is not a contact of robot '{self.config.name}' "
+                              f"({list(self.names_c)})")
+        return self.names_c.index(a)
+
+    # ------------------------------------------------------------------ messages
+    def _t0(self) -> int | None:
+        return self.t_first
+
+    def _seen(self, t: int) -> None:
+        if self.t_first is None or t < self.t_first:
+            self.t_first = t
+
+    def add_imu(self, t_ns: int, gyro, accel, frame_id: str = "") -> None:
+        """One IMU message: stamp (ns), angular velocity (rad/s) and specific force (m/s^2) in the
+        IMU frame."""
+        if frame_id and frame_id != self.config.imu_frame:
+            known = "a frame of the URDF" if self.model.model.existFrame(frame_id) else "unknown to the URDF"
+            raise BagError(f"topic {self.imu.name} is in frame '{frame_id}' ({known}); expected the IMU frame "
+                           f"'{self.config.imu_frame}' of robot config '{self.config.name}'")
+        value = np.concatenate([np.asarray(gyro, float), np.asarray(accel, float)])
+        if value.shape != (6,) or not np.all(np.isfinite(value)):
+            raise DataError(f"topic {self.imu.name} message {self.imu.count} (t = {self._rel(t_ns):.3f} s) has "
+                            f"{'NaN or inf in' if value.shape == (6,) else 'a malformed'} angular_velocity or "
+                            "linear_acceleration; expected finite values")
+        self._seen(t_ns)
+        if self.imu.add(int(t_ns), value, self._t0()) and self.period is None:
+            self._imu_first.append(int(t_ns))
+            if len(self._imu_first) >= RATE_MESSAGES:
+                self._set_period(int(round(float(np.median(np.diff(self._imu_first))))))
+
+    def _set_period(self, period: int) -> None:
+        if period <= 0:
+            raise DataError(f"topic {self.imu.name}: its messages' median period is {period} ns; expected a "
+                            "positive period (or give the rate)")
+        self.period = period
+        self.rate = 1e9 / period
+        self._win = int(round(self.ros.savgol_window * self.rate)) | 1
+
+    def add_joints(self, t_ns: int, names, position, velocity=None) -> None:
+        """One joint-state message: stamp (ns), joint names, positions (rad or m) and, optionally,
+        velocities."""
+        names = tuple(names)
+        k = self.joints.count
+        if names not in self._cols:
+            src, dst = [], []
+            for s, name in enumerate(names):
+                if name in self.index:
+                    src.append(s)
+                    dst.append(self.index[name])
+                elif self.ignore is None or not self.ignore.search(name):
+                    raise BagError(
+                        f"topic {self.joints.name} message {k} names joint '{name}', which robot "
+                        f"'{self.config.name}' (URDF {self.config.urdf}) does not have; expected names among "
+                        f"{list(self.joint_names)} (or set ros.ignore_joints)")
+            self._cols[names] = (np.array(src, dtype=int), np.array(dst, dtype=int))
+        src, dst = self._cols[names]
+        pos = np.asarray(position, dtype=float)
+        if len(pos) != len(names):
+            raise BagError(f"topic {self.joints.name} message {k} has {len(pos)} positions for {len(names)} names; "
+                           "expected one position per name")
+        if not np.all(np.isfinite(pos)):
+            s = int(np.flatnonzero(~np.isfinite(pos))[0])
+            raise DataError(f"topic {self.joints.name} message {k} (t = {self._rel(t_ns):.3f} s) has NaN or inf "
+                            f"position for joint '{names[s]}'; expected finite values")
+        measured = np.zeros(len(self.joint_names), dtype=bool)
+        measured[dst] = True
+        if self.measured is None:
+            if not measured.any():
+                raise BagError(f"topic {self.joints.name} names none of the joints of robot '{self.config.name}'")
+            self.measured = measured
+            vel = None if velocity is None else np.asarray(velocity, dtype=float)
+            has_vel = vel is not None and len(vel) == len(names)
+            self.velocity_source = "message" if has_vel and self.ros.joint_velocity == "message" else "savgol"
+        elif not np.array_equal(measured, self.measured):
+            raise BagError(f"topic {self.joints.name} message {k} names other joints than the first message; "
+                           "the streaming import expects every message to name the same joints (import the bag "
+                           "offline)")
+        q = np.full(len(self.joint_names), np.nan)
+        q[dst] = pos[src]
+        row = q
+        if self.velocity_source == "message":
+            vel = np.asarray(velocity if velocity is not None else (), dtype=float)
+            if len(vel) != len(names) or not np.all(np.isfinite(vel[src])):
+                raise DataError(f"topic {self.joints.name} message {k} (t = {self._rel(t_ns):.3f} s) has no finite "
+                                "velocity for every joint; expected the velocities of the first message throughout")
+            v = np.full(len(self.joint_names), np.nan)
+            v[dst] = vel[src]
+            row = np.concatenate([q, v])
+        self._seen(t_ns)
+        self.joints.add(int(t_ns), row, self._t0())
+
+    def add_ft(self, contact: str, t_ns: int, wrench, frame_id: str = "") -> None:
+        """One F/T message of ``contact``: stamp (ns), (force N, torque N m) in ``frame_id`` (the
+        contact frame when empty)."""
+        if contact not in self.names_c or self.names_c.index(contact) not in self.ft:
+            raise ConfigError(f"F/T message for '{contact}'; expected one of the F/T contacts "
+                              f"{[self.names_c[i] for i in self.ft]}")
+        i = self.names_c.index(contact)
+        frame = frame_id or self.config.contacts[i].frame
+        prev = self.ft_frames.setdefault(i, frame)
+        if prev != frame:
+            raise BagError(f"topic {self.ft[i].name} changes frame ({sorted({prev, frame})}); expected one frame")
+        if not self.model.model.existFrame(frame):
+            raise BagError(f"topic {self.ft[i].name} is in frame '{frame}', which is not in the URDF of robot "
+                           f"'{self.config.name}'; expected the contact frame '{self.config.contacts[i].frame}'")
+        self._seen(t_ns)
+        self.ft[i].add(int(t_ns), np.asarray(wrench, dtype=float).reshape(6), self._t0())
+
+    def _rel(self, t_ns: int) -> float:
+        return (int(t_ns) - (self.t_first if self.t_first is not None else int(t_ns))) * 1e-9
+
+    # ------------------------------------------------------------------ parts
+    def parts(self) -> Iterator[Recording]:
+        """The parts whose inputs are final (each ``part_seconds`` long), in order."""
+        self._advance(final=False)
+        yield from self._hand_out(final=False)
+
+    def finish(self) -> Iterator[Recording]:
+        """The remaining steps (the last ``h`` with the filter's end fit), as parts.
+
+        Raises:
+            DataError: no grid (the IMU and joint topics never overlapped), fewer steps than the
+                derivative filter's window, or no contact ever in force.
+        """
+        if self.finished:
+            return
+        self.finished = True
+        if self.period is None and len(self._imu_first) >= 2:
+            self._set_period(int(round(float(np.median(np.diff(self._imu_first))))))
+        self._advance(final=True)
+        if self._k_interp == 0:
+            raise DataError(f"topics {self.imu.name} ({self.imu.count} messages) and {self.joints.name} "
+                            f"({self.joints.count} messages) give no common time; expected simultaneous logs")
+        yield from self._hand_out(final=True)
+        if not self.ever_active.any():
+            raise DataError("no contact ever came into force in the stream; a foot must carry the robot "
+                            "(check the F/T topics and thresholds, or use contacts='fixed')")
+
+    def _advance(self, final: bool) -> None:
+        if self.period is None:
+            return
+        if self.grid0 is None:
+            if not self.imu.t or not self.joints.t:
+                return
+            self.grid0 = max(self.imu.t[0], self.joints.t[0])
+        self._interpolate(final)
+        self._differentiate(final)
+
+    def _interpolate(self, final: bool) -> None:
+        assert self.grid0 is not None and self.period is not None
+        rows = self._rows
+        t0 = self.t_first if self.t_first is not None else self.grid0
+        while True:
+            g = self.grid0 + self._k_interp * self.period
+            imu = self.imu.at(g, self.max_gap_ns, True, t0)
+            if imu is None:
+                return
+            joints = self.joints.at(g, self.max_gap_ns, True, t0)
+            if joints is None:
+                return
+            ft = np.full((len(self.names_c), 6), np.nan)
+            for i, topic in self.ft.items():
+                w = topic.at(g, self.max_gap_ns, False, t0)
+                if w is None:
+                    # not arrived: wait, unless the topic has fallen behind by more than max_gap (a gap)
+                    behind = self.imu.last - max(topic.last, g) > self.max_gap_ns
+                    if not (final or behind):
+                        return
+                    continue
+                ft[i] = w
+            rows["gyro"].append(imu[:3])
+            rows["accel"].append(imu[3:])
+            nj = len(self.joint_names)
+            rows["q"].append(joints[:nj])
+            rows["v"].append(joints[nj:] if len(joints) > nj else None)
+            rows["ft"].append(ft)
+            self._k_interp += 1
+
+    def _differentiate(self, final: bool) -> None:
+        assert self._win is not None and self.rate is not None and self.measured is not None
+        ros = self.ros
+        win = max(self._win, ros.savgol_order + 2 + ((ros.savgol_order + 1) % 2))
+        h = win // 2
+        K = self._k_interp
+        stop = K if final else K - h
+        if stop <= self._k_deriv or (not final and K < win):
+            return
+        if final and K < win:
+            raise DataError(f"stream has {K} samples, fewer than the Savitzky-Golay window of {win} samples "
+                            f"(ros.savgol_window = {ros.savgol_window} s); expected a longer log")
+        rows = self._rows
+        a = self._rows_first
+        dt = 1.0 / self.rate
+        q = np.array(rows["q"])
+        nj = len(self.joint_names)
+        q_ref = self.model.q_reference[7:]
+        q[:, ~self.measured] = q_ref[~self.measured]
+        # filter over the rows held (at least a window, and h before k_deriv unless at the start);
+        # keep the outputs k_deriv .. stop: the filter's interior, or its end fits at the ends
+        s = a
+        seg = q
+        if self.velocity_source == "message":
+            v_seg = np.array(rows["v"])
+            v_seg[:, ~self.measured] = 0.0
+            acc = savgol_filter(v_seg, win, ros.savgol_order, deriv=1, delta=dt, axis=0, mode="interp")
+            vel = v_seg
+        else:
+            vel = savgol_filter(seg, win, ros.savgol_order, deriv=1, delta=dt, axis=0, mode="interp")
+            acc = savgol_filter(seg, win, ros.savgol_order, deriv=2, delta=dt, axis=0, mode="interp")
+        vel = vel.copy()
+        vel[:, ~self.measured] = 0.0
+        acc[:, ~self.measured] = 0.0
+        lo, hi = self._k_deriv - s, stop - s
+        for j in range(lo, hi):
+            k = s + j
+            r = k - a
+            self._ready.append({"k": k, "gyro": rows["gyro"][r], "accel": rows["accel"][r], "q": seg[j],
+                                "v": vel[j, :nj], "a": acc[j, :nj], "ft": rows["ft"][r]})
+        self._k_deriv = stop
+        # drop the rows the filter no longer needs (it needs h before the next step to differentiate)
+        keep_from = max(min(self._k_deriv - h, K - win), 0)
+        cut = keep_from - a
+        if cut > 0:
+            for key in rows:
+                del rows[key][:cut]
+            self._rows_first = keep_from
+
+    def _hand_out(self, final: bool) -> Iterator[Recording]:
+        assert self.rate is not None or not self._ready
+        size = max(1, int(round(self.part_seconds * (self.rate or 1.0))))
+        while len(self._ready) >= size or (final and self._ready):
+            steps, self._ready = self._ready[:size], self._ready[size:]
+            yield self._part(steps)
+
+    def _contacts(self, ft: np.ndarray) -> np.ndarray:
+        n = len(ft)
+        active = np.zeros((n, len(self.names_c)), dtype=bool)
+        if self._fixed is not None:
+            active[:] = self._fixed
+            return active
+        for i in range(len(self.names_c)):
+            state = self._state[i]
+            for k in range(n):
+                f = ft[k, i, 2]
+                if state is None:
+                    if np.isfinite(f):
+                        state = bool(f >= self.off)
+                elif state and f < self.off:
+                    state = False
+                elif not state and f > self.on:
+                    state = True
+                active[k, i] = bool(state)
+            self._state[i] = state
+        return active
+
+    def _part(self, steps: list[dict]) -> Recording:
+        assert self.grid0 is not None and self.period is not None
+        n = len(steps)
+        ks = np.array([s["k"] for s in steps])
+        grid = self.grid0 + self.period * ks.astype(np.int64)
+        q = np.array([s["q"] for s in steps])
+        v = np.array([s["v"] for s in steps])
+        a = np.array([s["a"] for s in steps])
+        ft = np.array([s["ft"] for s in steps])
+        for i, frame in self.ft_frames.items():
+            contact_frame = self.config.contacts[i].frame
+            if frame != contact_frame:
+                ft[:, i] = self._to_contact_frame(q, frame, contact_frame, ft[:, i])
+        active = self._contacts(ft)
+        self.ever_active |= active.any(axis=0)
+        load = ft[:, :, 2] if self.ft else None
+        lf = self.tracker.run(q, v, a, active, load)
+        fh = self.config.footholds
+        if fh.terrain != "none":
+            for k, i, tilt, height in lf.footholds:
+                if tilt > FOOTHOLD_BOUND * fh.kinematics_sigma_tilt or \
+                        abs(height) > FOOTHOLD_BOUND * fh.kinematics_sigma_height:
+                    raise DataError(
+                        f"at t = {k * self.period * 1e-9:.3f} s contact '{self.names_c[i]}' lands "
+                        f"{np.degrees(tilt):.2f} deg off the floor plane and {1000 * height:.1f} mm above it by the "
+                        f"leg kinematics; the ground prior (footholds.terrain = '{fh.terrain}') allows "
+                        f"{FOOTHOLD_BOUND:g} sigma of the kinematics: the floor is not that plane or the kinematics "
+                        "is wrong (see the offline import's message)")
+        fields: dict[str, list] = {k: [] for k in ("com", "com_vel", "com_acc", "inertia", "inertia_dot", "sigma",
+                                                   "sigma_dot", "imu_R", "imu_p", "imu_v", "imu_a", "imu_w")}
+        for k in range(n):
+            kin = self.model.kinematics(lf.q[k], lf.v[k], lf.a[k])
+            inp, im = kin.inputs, kin.imu
+            for key, value in (("com", inp.c), ("com_vel", inp.dc), ("com_acc", inp.ddc), ("inertia", inp.I),
+                               ("inertia_dot", inp.dI), ("sigma", inp.sigma), ("sigma_dot", inp.dsigma),
+                               ("imu_R", im.R), ("imu_p", im.p), ("imu_v", im.v), ("imu_a", im.a),
+                               ("imu_w", im.w)):
+                fields[key].append(value)
+        arrays = {k: np.array(val) for k, val in fields.items()}
+        meta = {"stream": {"first_step": int(ks[0]), "steps": n, "rate_hz": 1e9 / self.period,
+                           "period_ns": self.period, "t0_ns": int(self.grid0),
+                           "joint_velocity": self.velocity_source,
+                           "derivative_filter": {"method": "savgol", "window_s": self.ros.savgol_window,
+                                                 "order": self.ros.savgol_order}}}
+        self.steps_out += n
+        return Recording(
+            t_ns=grid, robot=self.config.source or self.config.name, contact_names=self.names_c,
+            mass=self.model.mass, contact_active=active, contact_p=lf.contact_p, contact_R=lf.contact_R,
+            gyro=np.array([s["gyro"] for s in steps]), accel=np.array([s["accel"] for s in steps]),
+            joint_names=self.joint_names, joint_q=q, joint_v=v, ft=ft if self.ft else None, mocap={},
+            base_pose=lf.base_pose, gravity=self.config.gravity, meta=meta, **arrays)
+
+    def _to_contact_frame(self, q_joints, sensor_frame, contact_frame, wrench):
+        pmodel, data = self.model.model, self._wrench_data
+        fs, fc = pmodel.getFrameId(sensor_frame), pmodel.getFrameId(contact_frame)
+        q = pin.neutral(pmodel)
+        out = np.empty_like(wrench)
+        for k in range(len(wrench)):
+            q[7:] = q_joints[k]
+            pin.framesForwardKinematics(pmodel, data, q)
+            c_T_s = data.oMf[fc].inverse() * data.oMf[fs]
+            out[k] = c_T_s.act(pin.Force(wrench[k, :3], wrench[k, 3:])).vector
+        return out
+
+
+# ------------------------------------------------------------------------------------------------
+def stream_bag(path, robot_config, rate: float | None = None, contacts: str = "ft", part_seconds: float = 0.5,
+               on_message: Callable | None = None) -> Iterator[Recording]:
+    """Parts of the recording of a raw robot bag, read message by message (bounded memory).
+
+    Args:
+        path, robot_config, rate, contacts: as :func:`flexforce.datasets.rosimport.import_bag`.
+        part_seconds: length of each part, s.
+        on_message: called as ``on_message(connection, log_time_ns, raw)`` for every message of
+            the bag, in the bag's order (to copy the inputs into an output bag as they are read).
+
+    Raises:
+        BagError: missing or unreadable bag, missing topic, wrong message type, unknown joint or
+            frame (before any part for the topics; as read for the messages).
+        DataError: NaN, time going backwards, long gaps, too short, never in contact.
+    """
+    from rosbags.highlevel import AnyReader
+
+    path = Path(path)
+    _check_path(path)
+    model = robot_config if isinstance(robot_config, RobotModel) else RobotModel(robot_config)
+    ros = model.config.ros or RosConfig()
+    try:
+        reader_cm = AnyReader([path], default_typestore=_typestore())
+        reader = reader_cm.__enter__()
+    except Exception as err:  # noqa: BLE001 -- any library failure means an unreadable bag
+        raise _reader_error(path, err) from err
+    try:
+        types = {c.topic: c.msgtype for c in reader.connections}
+        counts: dict[str, int] = {}
+        for c in reader.connections:
+            counts[c.topic] = counts.get(c.topic, 0) + int(getattr(c, "msgcount", 1) or 0)
+        wanted = {ros.imu_topic: T_IMU, ros.joint_states_topic: T_JOINTS}
+        ft_topics = {topic: name for name, topic in ros.ft_topics.items()}
+        wanted.update({topic: T_WRENCH for topic in ft_topics})
+        for topic, msgtype in wanted.items():
+            if topic in types and types[topic] != msgtype:
+                raise BagError(f"topic {topic} of bag {path} has type {types[topic]}; expected {msgtype}")
+        required = [ros.imu_topic, ros.joint_states_topic]
+        if contacts == "ft":
+            required += [ros.ft_topics[c] for c in model.config.contact_names if c in ros.ft_topics]
+        name = model.config.name
+        for topic in required:
+            if topic not in types:
+                have = ", ".join(f"{t} ({m})" for t, m in sorted(types.items())) or "none"
+                raise BagError(f"bag {path} lacks topic {topic} ({wanted[topic]}) named by robot config '{name}'; "
+                               f"the bag has: {have}")
+            if counts.get(topic, 1) == 0:
+                raise BagError(f"topic {topic} ({types[topic]}) of bag {path} has no messages; expected the "
+                               f"messages robot config '{name}' reads from it")
+        present = tuple(ft_topics[t] for t in ft_topics if t in types and counts.get(t, 1) > 0)
+        imp = StreamImporter(model, rate, contacts, part_seconds, ft_contacts=present)
+        read = [c for c in reader.connections if c.topic in wanted] if on_message is None else reader.connections
+        for conn, log_ns, raw in reader.messages(connections=read):
+            if on_message is not None:
+                on_message(conn, log_ns, raw)
+            topic = conn.topic
+            if topic not in wanted:
+                continue
+            msg = reader.deserialize(raw, conn.msgtype)
+            t = _stamp(msg, log_ns)
+            if topic == ros.imu_topic:
+                av, la = msg.angular_velocity, msg.linear_acceleration
+                imp.add_imu(t, (av.x, av.y, av.z), (la.x, la.y, la.z), msg.header.frame_id)
+            elif topic == ros.joint_states_topic:
+                imp.add_joints(t, msg.name, msg.position, msg.velocity)
+            else:
+                w = msg.wrench
+                imp.add_ft(ft_topics[topic], t, (w.force.x, w.force.y, w.force.z, w.torque.x, w.torque.y, w.torque.z),
+                           msg.header.frame_id)
+            yield from imp.parts()
+        yield from imp.finish()
+    except (BagError, DataError, ConfigError):
+        raise
+    except Exception as err:  # noqa: BLE001 -- a reader failure in the middle: truncated or corrupt
+        raise _reader_error(path, err) from err
+    finally:
+        try:
+            reader_cm.__exit__(None, None, None)
+        except Exception:  # noqa: BLE001, S110 -- closing a reader that already failed
+            pass
