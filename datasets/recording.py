@@ -347,7 +347,7 @@ def concat_recordings(first: Recording, second: Recording) -> Recording:
     kwargs["mocap"] = {k: np.concatenate([v, second.mocap[k]], axis=0) for k, v in first.mocap.items()}
     truth = None
     if first.truth is not None and second.truth is not None:
-        truth = Truth(**{f.name: (np.concatenate([getattr(first.truth, f.name), getattr(second.truth, f.name)])
+        truth = Truth(**{  # type: ignore[arg-type]f.name: (np.concatenate([getattr(first.truth, f.name), getattr(second.truth, f.name)])
                                   if isinstance(getattr(first.truth, f.name), np.ndarray)
                                   and getattr(first.truth, f.name).ndim >= 1
                                   and getattr(first.truth, f.name).shape[0] == first.n

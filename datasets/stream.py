@@ -34,6 +34,7 @@ from __future__ import annotations
 import re
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -42,8 +43,16 @@ from scipy.signal import savgol_filter
 from flexforce.datasets.localframe import LocalFrameTracker
 from flexforce.datasets.recording import Recording
 from flexforce.datasets.robot import RobotConfig, RobotModel, RosConfig
-from flexforce.datasets.rosimport import (FOOTHOLD_BOUND, T_IMU, T_JOINTS, T_WRENCH, _check_path, _reader_error,
-                                          _stamp, _typestore)
+from flexforce.datasets.rosimport import (
+    FOOTHOLD_BOUND,
+    T_IMU,
+    T_JOINTS,
+    T_WRENCH,
+    _check_path,
+    _reader_error,
+    _stamp,
+    _typestore,
+)
 from flexforce.errors import BagError, ConfigError, DataError
 
 __all__ = ["StreamImporter", "stream_bag"]
@@ -494,7 +503,7 @@ class StreamImporter:
                                ("imu_R", im.R), ("imu_p", im.p), ("imu_v", im.v), ("imu_a", im.a),
                                ("imu_w", im.w)):
                 fields[key].append(value)
-        arrays = {k: np.array(val) for k, val in fields.items()}
+        arrays: dict[str, Any] = {k: np.array(val) for k, val in fields.items()}
         meta = {"stream": {"first_step": int(ks[0]), "steps": n, "rate_hz": 1e9 / self.period,
                            "period_ns": self.period, "t0_ns": int(self.grid0),
                            "joint_velocity": self.velocity_source,
@@ -580,7 +589,7 @@ def stream_bag(path, robot_config, rate: float | None = None, contacts: str = "f
             topic = conn.topic
             if topic not in wanted:
                 continue
-            msg = reader.deserialize(raw, conn.msgtype)
+            msg: Any = reader.deserialize(raw, conn.msgtype)
             t = _stamp(msg, log_ns)
             if topic == ros.imu_topic:
                 av, la = msg.angular_velocity, msg.linear_acceleration

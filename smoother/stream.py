@@ -25,7 +25,6 @@ episode's first step, which the offline smoother reads ahead) and the gtsam back
 
 from __future__ import annotations
 
-import time
 import warnings
 from array import array
 
@@ -61,7 +60,8 @@ class FixedLagStream:
         est = stream.finish()              # the rest, smoothed with what there is
     """
 
-    def __init__(self, model, config: FixedLagConfig = FixedLagConfig(), covariance: bool | None = None):
+    def __init__(self, model, config: FixedLagConfig | None = None, covariance: bool | None = None):
+        config = FixedLagConfig() if config is None else config
         require_config(config, FixedLagConfig, "fixed-lag stream")
         if config.backend != "window":
             raise ConfigError(f"the fixed-lag stream runs the 'window' backend; got backend = {config.backend!r} "
