@@ -15,6 +15,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -347,10 +348,10 @@ def concat_recordings(first: Recording, second: Recording) -> Recording:
     kwargs["mocap"] = {k: np.concatenate([v, second.mocap[k]], axis=0) for k, v in first.mocap.items()}
     truth = None
     if first.truth is not None and second.truth is not None:
-        truth = Truth(**{  # type: ignore[arg-type]f.name: (np.concatenate([getattr(first.truth, f.name), getattr(second.truth, f.name)])
-                                  if isinstance(getattr(first.truth, f.name), np.ndarray)
-                                  and getattr(first.truth, f.name).ndim >= 1
-                                  and getattr(first.truth, f.name).shape[0] == first.n
-                                  else getattr(first.truth, f.name))
-                         for f in dataclasses.fields(Truth)})
+        joined: dict[str, Any] = {}
+        for f in dataclasses.fields(Truth):
+            a, b = getattr(first.truth, f.name), getattr(second.truth, f.name)
+            per_step = isinstance(a, np.ndarray) and a.ndim >= 1 and a.shape[0] == first.n
+            joined[f.name] = np.concatenate([a, b]) if per_step else a
+        truth = Truth(**joined)
     return Recording(**kwargs, truth=truth)
