@@ -50,7 +50,7 @@ from flexforce.datasets.recording import Recording
 from flexforce.datasets.safeio import is_bag_folder, safe_output
 from flexforce.errors import BagError, DataError
 
-__all__ = ["csv_columns", "export_csv", "export_mcap"]
+__all__ = ["EstimateWriter", "csv_columns", "export_csv", "export_mcap"]
 
 _NS = 1_000_000_000
 
@@ -77,13 +77,12 @@ def _check(estimate: Estimate) -> None:
                         f"{(n, 3, 3)} and {(n, len(estimate.contact_names), 6)}")
 
 
-def export_csv(estimate: Estimate, path) -> Path:
-    """Write one row per step (columns in the module docstring); return the path."""
-    _check(estimate)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+def _csv_lines(estimate: Estimate, t0_ns: int | None = None):
+    """The CSV rows of ``estimate`` (``time_s`` from ``t0_ns``, default its first step)."""
     rot = Rotation.from_matrix(estimate.R)
-    parts = [estimate.time[:, None], estimate.t_ns[:, None].astype(float), estimate.t, rot.as_quat(),
+    t0 = int(estimate.t_ns[0]) if t0_ns is None else int(t0_ns)
+    time_s = (estimate.t_ns - t0).astype(float) * 1e-9
+    parts = [time_s[:, None], estimate.t_ns[:, None].astype(float), estimate.t, rot.as_quat(),
              rot.as_rotvec(), estimate.w, estimate.v, estimate.dw, estimate.a,
              estimate.wrench.reshape(estimate.n, -1), estimate.total_wrench, estimate.cop]
     if estimate.cov is not None:
@@ -91,14 +90,134 @@ def export_csv(estimate: Estimate, path) -> Path:
     if estimate.cop_cov is not None:
         parts.append(np.sqrt(np.maximum(np.diagonal(estimate.cop_cov, axis1=1, axis2=2), 0.0)))
     table = np.concatenate(parts, axis=1)
+    for k, row in enumerate(table):
+        cells = [repr(float(x)) for x in row]
+        cells[1] = str(int(estimate.t_ns[k]))  # exact ns, not through a float
+        yield ",".join(cells) + "\n"
+
+
+def export_csv(estimate: Estimate, path) -> Path:
+    """Write one row per step (columns in the module docstring); return the path."""
+    _check(estimate)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
     cols = csv_columns(estimate)
     with safe_output(path) as tmp, tmp.open("w") as f:  # complete or not at all, one writer at a time
         f.write(",".join(cols) + "\n")
-        for k, row in enumerate(table):
-            cells = [repr(float(x)) for x in row]
-            cells[1] = str(int(estimate.t_ns[k]))  # exact ns, not through a float
-            f.write(",".join(cells) + "\n")
+        f.writelines(_csv_lines(estimate))
     return path
+
+
+class EstimateWriter:
+    """Writes the consecutive estimates of a stream (:class:`flexforce.smoother.stream.FixedLagStream`)
+    to a ``.csv`` file or a ``.mcap`` bag as they come, in constant memory.
+
+    The output is written aside and moved into place when the block ends normally (an
+    interrupted stream leaves the previous output or none, never a part).  CSV: the columns of
+    :func:`export_csv`, fixed by the first estimate, ``time_s`` from the stream's first step.
+    MCAP: the topics of :func:`export_mcap`; the inputs are copied with :meth:`copy` (as the
+    input bag is read).
+
+    Use::
+
+        with EstimateWriter("out.csv") as w:
+            for est in estimates:
+                w.write(est)
+    """
+
+    def __init__(self, path, *, overwrite: bool = False):
+        self.path = Path(path)
+        self.kind = self.path.suffix
+        if self.kind not in (".csv", ".mcap"):
+            raise DataError(f"streamed estimates are written to .csv or .mcap; got {self.path}")
+        if self.kind == ".mcap" and self.path.exists():
+            if not overwrite:
+                raise BagError(f"{self.path} exists already; expected a new path (or overwrite=True)")
+            if not is_bag_folder(self.path):
+                raise BagError(f"cannot overwrite {self.path}: it is not a ROS 2 bag directory; remove it yourself")
+        self.steps = 0
+        self.t0_ns: int | None = None
+        self._cm: Any = None
+        self._file: Any = None
+        self._writer: Any = None
+        self._ts: Any = None
+        self._conns: dict = {}
+        self._copied: dict = {}
+        self._cols: list[str] | None = None
+
+    def __enter__(self) -> EstimateWriter:
+        self._cm = safe_output(self.path, folder=self.kind == ".mcap")
+        tmp = self._cm.__enter__()
+        try:
+            if self.kind == ".csv":
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+                self._file = tmp.open("w")
+            else:
+                from rosbags.rosbag2 import StoragePlugin, Writer
+
+                self._ts = _typestore()
+                self._writer = Writer(tmp, version=8, storage_plugin=StoragePlugin.MCAP)
+                self._writer.open()
+        except BaseException as err:
+            self._cm.__exit__(type(err), err, err.__traceback__)
+            raise
+        return self
+
+    def __exit__(self, kind, err, tb):
+        try:
+            if self._file is not None:
+                self._file.close()
+            if self._writer is not None:
+                self._writer.close()
+        except Exception as close_err:  # noqa: BLE001 -- reported as the block's failure
+            if err is None:
+                kind, err, tb = type(close_err), close_err, close_err.__traceback__
+        if err is None and self.steps == 0:
+            empty = DataError(f"no estimate was written to {self.path}; expected at least one step")
+            self._cm.__exit__(DataError, empty, None)
+            raise empty
+        return self._cm.__exit__(kind, err, tb)
+
+    def write(self, est: Estimate | None) -> None:
+        """Append the steps of ``est`` (after those written before; None: nothing)."""
+        if est is None or est.n == 0:
+            return
+        _check(est)
+        if self.t0_ns is None:
+            self.t0_ns = int(est.t_ns[0])
+        if self.kind == ".csv":
+            cols = csv_columns(est)
+            if self._cols is None:
+                self._cols = cols
+                self._file.write(",".join(cols) + "\n")
+            elif cols != self._cols:
+                raise DataError(f"estimate columns changed within the stream ({len(cols)} against "
+                                f"{len(self._cols)}); expected one kind of estimate")
+            self._file.writelines(_csv_lines(est, self.t0_ns))
+        else:
+            _write_streams(self._writer, self._ts, _estimate_streams(self._ts, est), est.t_ns, "world", self._conns)
+        self.steps += est.n
+
+    def copy(self, reader, conn, t_ns: int, raw) -> None:
+        """Copy one message of the input bag (``reader`` its rosbags AnyReader) into the MCAP."""
+        if self._writer is None or conn.topic.startswith("/estimate/"):
+            return
+        ts = self._ts
+        out = self._copied.get(conn.id)
+        if out is None:
+            if reader.is2:
+                store = reader.typestore
+            elif conn.msgtype in ts.fielddefs:
+                store = ts
+            else:
+                self._copied[conn.id] = False  # a ROS 1 type without a ROS 2 counterpart
+                return
+            existing = [c for c in self._writer.connections if c.topic == conn.topic]
+            out = existing[0] if existing else self._writer.add_connection(conn.topic, conn.msgtype, typestore=store)
+            self._copied[conn.id] = out
+        if out is False:
+            return
+        self._writer.write(out, int(t_ns), raw if reader.is2 else ts.ros1_to_cdr(raw, conn.msgtype))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -207,7 +326,7 @@ class _Msgs:
         return self.T["geometry_msgs/msg/Wrench"](force=self.vec(w[:3]), torque=self.vec(w[3:]))
 
 
-def _write_estimate(writer, ts, est: Estimate) -> None:
+def _estimate_streams(ts, est: Estimate) -> list[tuple[str, str, Callable[..., Any]]]:
     M = _Msgs(ts)
     T = M.T
     base = f"/estimate/{_token(est.estimator)}"
@@ -239,14 +358,24 @@ def _write_estimate(writer, ts, est: Estimate) -> None:
                         lambda k, h: T["geometry_msgs/msg/PoseWithCovarianceStamped"](
                             header=h, pose=T["geometry_msgs/msg/PoseWithCovariance"](
                                 pose=M.pose(pose[k]), covariance=np.ascontiguousarray(cov6[k].reshape(36))))))
-    _write_streams(writer, ts, streams, est.t_ns, "world")
+    return streams
 
 
-def _write_streams(writer, ts, streams, t_ns, frame) -> None:
-    conns = [(writer.add_connection(topic, msgtype, typestore=ts), msgtype, make) for topic, msgtype, make in streams]
+def _write_estimate(writer, ts, est: Estimate) -> None:
+    _write_streams(writer, ts, _estimate_streams(ts, est), est.t_ns, "world")
+
+
+def _write_streams(writer, ts, streams, t_ns, frame, conns: dict | None = None) -> None:
+    """Write ``streams`` at every step; ``conns`` (topic -> connection) keeps the connections of
+    earlier calls (a stream written part by part)."""
+    conns = {} if conns is None else conns
+    for topic, msgtype, _ in streams:
+        if topic not in conns:
+            conns[topic] = writer.add_connection(topic, msgtype, typestore=ts)
     M = _Msgs(ts)
     for k, t in enumerate(t_ns):
-        for conn, msgtype, make in conns:
+        for topic, msgtype, make in streams:
+            conn = conns[topic]
             f = frame(conn.topic) if callable(frame) else frame
             writer.write(conn, int(t), ts.serialize_cdr(make(k, M.header(t, f)), msgtype))
 

@@ -538,8 +538,9 @@ def stream_bag(path, robot_config, rate: float | None = None, contacts: str = "f
     Args:
         path, robot_config, rate, contacts: as :func:`flexforce.datasets.rosimport.import_bag`.
         part_seconds: length of each part, s.
-        on_message: called as ``on_message(connection, log_time_ns, raw)`` for every message of
-            the bag, in the bag's order (to copy the inputs into an output bag as they are read).
+        on_message: called as ``on_message(reader, connection, log_time_ns, raw)`` for every
+            message of the bag, in the bag's order (``reader`` the rosbags AnyReader; to copy the
+            inputs into an output bag as they are read, :meth:`EstimateWriter.copy`).
 
     Raises:
         BagError: missing or unreadable bag, missing topic, wrong message type, unknown joint or
@@ -585,7 +586,7 @@ def stream_bag(path, robot_config, rate: float | None = None, contacts: str = "f
         read = [c for c in reader.connections if c.topic in wanted] if on_message is None else reader.connections
         for conn, log_ns, raw in reader.messages(connections=read):
             if on_message is not None:
-                on_message(conn, log_ns, raw)
+                on_message(reader, conn, log_ns, raw)
             topic = conn.topic
             if topic not in wanted:
                 continue

@@ -23,6 +23,8 @@ import time
 import warnings
 from pathlib import Path
 
+import numpy as np
+
 from flexforce.errors import ConfigError, FlexforceError
 
 EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
@@ -168,9 +170,98 @@ def _cmd_run(args) -> int:
         return _run(args)
 
 
+def _streams(args) -> bool:
+    """``run`` streams (reads the input and writes the estimate part by part, in bounded memory):
+    the fixed-lag smoother into a .csv or .mcap, unless --offline or --footholds."""
+    out = Path(args.output)
+    streamable = args.estimator == "fixed-lag" and out.suffix in (".csv", ".mcap") and not args.footholds
+    if args.realtime and not (streamable and not args.offline):
+        raise ConfigError("--realtime replays a recording through the streaming fixed-lag smoother: it needs "
+                          "--estimator fixed-lag, a .csv or .mcap output, and neither --offline nor --footholds")
+    return streamable and not args.offline
+
+
+def _stream_parts(args):
+    """``(parts, copy_from)``: the recording as consecutive parts, and the raw bag whose messages
+    are copied into an .mcap output as they are read (None: a flexforce bag, written from the parts)."""
+    from flexforce.datasets.rosimport import is_flexforce_bag
+    from flexforce.datasets.stream import stream_bag
+
+    path = Path(args.recording)
+    if not path.exists() or is_flexforce_bag(path):
+        rec = _window(open_recording(path, args.robot, args.contacts, args.quiet), args)
+        size = max(1, int(round(0.5 / rec.dt)))
+        return (rec.slice(a, min(a + size, rec.n)) for a in range(0, rec.n, size)), rec
+    if not args.robot:
+        raise ConfigError(f"{path} is a raw robot bag (no /flexforce/meta): give its robot configuration with "
+                          "--robot NAME|CONFIG.toml (e.g. --robot icub)")
+    return stream_bag(path, args.robot, contacts=args.contacts, on_message=args._copy), None
+
+
+def _window_parts(parts, start, end):
+    """The steps of ``parts`` from ``start`` to ``end`` s after the first step (None: no bound)."""
+    t0 = None
+    for part in parts:
+        if t0 is None:
+            t0 = int(part.t_ns[0])
+        t = (part.t_ns - t0) * 1e-9
+        keep = np.flatnonzero((t >= (start if start is not None else -np.inf) - 1e-9)
+                              & (t <= (end if end is not None else np.inf) + 1e-9))
+        if keep.size:
+            yield part.slice(int(keep[0]), int(keep[-1]) + 1)
+        if end is not None and t[-1] > end:
+            return
+
+
+def _run_stream(args) -> int:
+    """The streaming fixed-lag run (:func:`flexforce.smoother.stream.run_stream`)."""
+    import itertools
+
+    from flexforce.datasets.export import EstimateWriter, _write_recording
+    from flexforce.smoother import FixedLagConfig
+    from flexforce.smoother.stream import run_stream
+
+    out = Path(args.output)
+    options = {"lag": args.lag} if args.lag is not None else {}
+    config = FixedLagConfig(**options)
+    with EstimateWriter(out, overwrite=args.force) as writer:
+        args._copy = (lambda reader, conn, t, raw: writer.copy(reader, conn, t, raw)) if out.suffix == ".mcap" \
+            else None
+        parts, rec = _stream_parts(args)
+        if rec is not None:  # a flexforce bag: its inputs into the .mcap from the recording
+            if out.suffix == ".mcap":
+                _write_recording(writer._writer, writer._ts, rec)
+        elif args.start is not None or args.end is not None:
+            parts = _window_parts(parts, args.start, args.end)
+        parts = iter(parts)
+        first = next(parts, None)
+        if first is None:
+            raise ConfigError("no step of the recording lies within --start/--end")
+        model = _model(first, args)
+        stats: dict = {}
+        progress = Progress("fixed-lag (stream)", enabled=not args.quiet and None)
+        span = (rec.n - 1) * rec.dt if rec is not None else None
+        for est in run_stream(itertools.chain([first], parts), model, config, covariance=not args.no_cov,
+                              realtime=args.realtime, stats=stats):
+            writer.write(est)
+            if span:
+                progress((int(est.t_ns[-1]) - int(first.t_ns[0])) * 1e-9 / span)
+    up = stats.get("update", {})
+    line = (f"wrote {out}: {stats.get('steps', writer.steps)} steps streamed in {stats.get('wall_s', 0.0):.2f} s "
+            f"({stats.get('realtime_factor') or 0.0:.1f}x real time), update {up.get('median_ms', 0.0):.2f} ms "
+            f"median, {up.get('p99_ms', 0.0):.2f} ms p99")
+    if args.realtime:
+        line += (f"; real time: {stats['missed_deadlines']} missed deadline(s) of {stats['parts']} parts, "
+                 f"at most {1e3 * max(stats['max_late_s'], 0.0):.1f} ms behind the recording's clock")
+    print(line)
+    return 0
+
+
 def _run(args) -> int:
     from flexforce.estimators import run_estimator
 
+    if _streams(args):
+        return _run_stream(args)
     rec = _window(open_recording(args.recording, args.robot, args.contacts, args.quiet), args)
     model = _model(rec, args)
     options = {}
@@ -459,6 +550,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--footholds", action="store_true",
                    help="smoothers: estimate every contact episode's foothold (leg kinematics at the touch-down, "
                         "ground plane of the robot's [footholds] table) instead of holding the given one")
+    p.add_argument("--offline", action="store_true",
+                   help="fixed-lag into .csv/.mcap: load the whole recording first instead of streaming it")
+    p.add_argument("--no-cov", action="store_true",
+                   help="streaming fixed-lag: no covariances (saves their extraction; no std_* columns)")
+    p.add_argument("--realtime", action="store_true",
+                   help="streaming fixed-lag: pace the input at the recording's clock and report missed deadlines")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_run)
 

@@ -25,6 +25,7 @@ episode's first step, which the offline smoother reads ahead) and the gtsam back
 
 from __future__ import annotations
 
+import time
 import warnings
 from array import array
 
@@ -40,7 +41,7 @@ from flexforce.smoother.linearize import Trajectory
 from flexforce.smoother.problem import Problem
 from flexforce.smoother.result import make_estimate
 
-__all__ = ["FixedLagStream"]
+__all__ = ["FixedLagStream", "run_stream"]
 
 
 class FixedLagStream:
@@ -232,3 +233,53 @@ class FixedLagStream:
             return {"updates": 0}
         return {"updates": int(t.size), "median_ms": float(np.median(t)), "p99_ms": float(np.percentile(t, 99)),
                 "max_ms": float(t.max()), "mean_ms": float(t.mean())}
+
+
+def run_stream(parts, model, config: FixedLagConfig | None = None, *, covariance: bool | None = None,
+               realtime: bool = False, clock=time.perf_counter, sleep=time.sleep, stats: dict | None = None):
+    """Fixed-lag smoothing of ``parts`` (an iterable of consecutive Recordings); yields the
+    estimates as the steps leave the window (:class:`FixedLagStream`), the last from its finish.
+
+    ``realtime``: the parts are paced at the recording's clock (a part is pushed once the wall
+    clock since the first part reaches its last step's time), and a part whose updates are not
+    done when the next part is due is a missed deadline.  ``stats`` (a dict, filled at the end):
+    steps, wall time, real-time factor, update times (:attr:`FixedLagStream.update_stats`), and
+    in real time the missed deadlines and the largest lateness behind the recording's clock.
+    """
+    stream = FixedLagStream(model, config, covariance)
+    wall0 = clock()
+    t0_ns: int | None = None
+    missed, late_max, n_parts = 0, 0.0, 0
+    period = 0.0
+    for part in parts:
+        if part.n == 0:
+            continue
+        if t0_ns is None:
+            t0_ns = int(part.t_ns[0])
+        n_parts += 1
+        due = (int(part.t_ns[-1]) - t0_ns) * 1e-9
+        if realtime:
+            wait = due - (clock() - wall0)
+            if wait > 0:
+                sleep(wait)
+            period = part.n * (part.dt or 0.0)
+        est = stream.push(part)
+        if realtime:
+            late = (clock() - wall0) - due
+            late_max = max(late_max, late)
+            if late > period:  # the next part (as long as this one) was due before this one was done
+                missed += 1
+        if est is not None:
+            yield est
+    est = stream.finish()
+    wall = clock() - wall0
+    if stats is not None:
+        span = (stream.n - 1) * stream.first.dt if stream.first is not None and stream.n > 1 else 0.0
+        stats.update({"steps": stream.n, "wall_s": wall, "recording_s": span,
+                      "realtime_factor": span / wall if wall > 0 else None,
+                      "update": stream.update_stats, "parts": n_parts,
+                      "lag_s": stream.lag_steps * (stream.first.dt if stream.first is not None else 0.0)})
+        if realtime:
+            stats.update({"missed_deadlines": missed, "max_late_s": late_max})
+    if est is not None:
+        yield est

@@ -1,0 +1,244 @@
+"""Streaming: messages in time order to parts of a recording, parts to fixed-lag estimates.
+
+The streamed path must give the offline one's answer: the parts joined are the offline import,
+and the streamed estimates are the offline fixed-lag smoother's, whatever the part sizes (the
+same window, factors and update order; only the memory differs).  The bounded memory is
+asserted on the stream's own buffers; the peak RSS of an hour-long log is a benchmark
+(benchmarks/stream_memory.py).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import ICUB_DIR
+
+from flexforce.datasets.recording import Recording, concat_recordings
+from flexforce.datasets.robot import RobotConfig
+from flexforce.datasets.rosimport import import_bag
+from flexforce.datasets.scenario import Scenario
+from flexforce.datasets.simulator import Simulator
+from flexforce.datasets.stream import StreamImporter, stream_bag
+from flexforce.errors import ConfigError, DataError
+from flexforce.factors.effects import AccelBias
+from flexforce.factors.model import ModelConfig
+from flexforce.smoother import FixedLagConfig, run_fixed_lag
+from flexforce.smoother.stream import FixedLagStream, run_stream
+
+WALK = ICUB_DIR / "icub-walk-12s"
+ROBOT = "icub-identified"
+needs_icub = pytest.mark.skipif(not WALK.exists(), reason="iCub recordings not beside the checkout")
+
+EXACT = 1e-9
+"""Streamed against offline: the same floating-point operations in the same order (measured
+difference 0.0); 1e-9 leaves room for a BLAS that splits a product differently by size."""
+
+
+@pytest.fixture(scope="module")
+def pitch():
+    sc = Scenario.load("push-pitch")
+    sc.duration = 3.0
+    return Simulator(sc).run()
+
+
+def _random_parts(rec: Recording, seed: int, largest: int = 80):
+    rng = np.random.default_rng(seed)
+    a = 0
+    while a < rec.n:
+        b = min(rec.n, a + int(rng.integers(1, largest)))
+        yield rec.slice(a, b)
+        a = b
+
+
+def _joined(estimates):
+    return {name: np.concatenate([getattr(e, name) for e in estimates]) for name in ("R", "t", "v", "wrench", "cov")}
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_stream_equals_offline_fixed_lag(pitch, seed):
+    model = ModelConfig.from_recording(pitch)
+    offline = run_fixed_lag(pitch, model)
+    stream = FixedLagStream(model)
+    ests = [e for e in (stream.push(p) for p in _random_parts(pitch, seed)) if e is not None]
+    ests.append(stream.finish())
+    got = _joined(ests)
+    assert got["R"].shape == offline.R.shape
+    for name, ref in (("R", offline.R), ("t", offline.t), ("v", offline.v), ("wrench", offline.wrench),
+                      ("cov", offline.cov)):
+        assert np.max(np.abs(got[name] - ref)) <= EXACT, name
+    # steps leave in order, each once; times are absolute
+    t_ns = np.concatenate([e.t_ns for e in ests])
+    assert np.array_equal(t_ns, pitch.t_ns)
+    # residuals of each part equal the offline ones (but the last integration factor of a part)
+    a = 0
+    for e in ests:
+        ref = offline.residuals["imu"][a:a + e.n]
+        assert np.nanmax(np.abs(e.residuals["imu"] - ref)) <= 1e-6
+        a += e.n
+
+
+def test_stream_with_an_effect_and_without_covariance(pitch):
+    model = dataclasses.replace(ModelConfig.from_recording(pitch), effects=(AccelBias(),))
+    offline = run_fixed_lag(pitch, model)
+    stream = FixedLagStream(model, covariance=False)
+    ests = [e for e in (stream.push(p) for p in _random_parts(pitch, 3)) if e is not None]
+    ests.append(stream.finish())
+    assert all(e.cov is None for e in ests)
+    got = np.concatenate([e.wrench for e in ests])
+    assert np.max(np.abs(got - offline.wrench)) <= EXACT
+    assert all("accel-bias" in e.effects for e in ests)
+
+
+def test_stream_memory_is_bounded(pitch):
+    """The stream keeps the window and the steps not yet reported, however long it runs."""
+    model = ModelConfig.from_recording(pitch)
+    stream = FixedLagStream(model, FixedLagConfig(lag=0.5), covariance=False)
+    size = 25
+    kept = []
+    for _ in range(6):  # the recording six times over (time shifted): 18 s
+        for a in range(0, pitch.n, size):
+            part = pitch.slice(a, min(a + size, pitch.n))
+            shift = (stream.n - a) * 5_000_000 if stream.n else 0
+            part.t_ns = part.t_ns + shift
+            stream.push(part)
+            kept.append(stream.segment.n)
+    fls = stream.fls
+    bound = fls.lag_steps + fls.M + fls.report_every + size + 2
+    assert max(kept[len(kept) // 2:]) <= bound
+    assert stream.n == 6 * pitch.n
+
+
+def test_stream_refuses_what_it_cannot_stream(pitch):
+    model = ModelConfig.from_recording(pitch)
+    with pytest.raises(ConfigError, match="footholds"):
+        FixedLagStream(model, FixedLagConfig(footholds=True))
+    with pytest.raises(ConfigError, match="window"):
+        FixedLagStream(model, FixedLagConfig(backend="gtsam"))
+    stream = FixedLagStream(model)
+    stream.push(pitch.slice(0, 40))
+    with pytest.raises(DataError, match="not after the previous step"):
+        stream.push(pitch.slice(30, 50))
+    with pytest.raises(DataError, match="one period"):
+        stream.push(pitch.slice(45, 60))
+
+
+# ------------------------------------------------------------------------------------------------
+# real bags
+# ------------------------------------------------------------------------------------------------
+def config_default_velocity() -> str:
+    return RobotConfig.load(ROBOT).ros.joint_velocity
+
+
+@pytest.fixture(scope="module")
+def walk_offline():
+    return import_bag(WALK, ROBOT)
+
+
+@needs_icub
+@pytest.mark.parametrize("velocity", ["message", "differentiate"])
+def test_stream_import_equals_offline_import(walk_offline, velocity):
+    config = RobotConfig.load(ROBOT)
+    config = dataclasses.replace(config, ros=dataclasses.replace(config.ros, joint_velocity=velocity))
+    offline = walk_offline if velocity == config_default_velocity() else import_bag(WALK, config)
+    rate = offline.meta["grid"]["rate_hz"]
+    parts = list(stream_bag(WALK, config, rate=rate, part_seconds=0.37))
+    assert len(parts) > 20
+    rec = parts[0]
+    for p in parts[1:]:
+        rec = concat_recordings(rec, p)
+    assert np.array_equal(rec.t_ns, offline.t_ns)
+    assert np.array_equal(rec.contact_active, offline.contact_active)
+    for name in offline.per_step_fields():
+        a, b = getattr(offline, name), getattr(rec, name)
+        if a.dtype == bool:
+            continue
+        assert np.array_equal(np.isnan(a), np.isnan(b)), name
+        assert np.nanmax(np.abs(a - b)) <= 1e-9, name
+
+
+@needs_icub
+def test_streamed_bag_estimate_equals_offline(walk_offline):
+    rec = walk_offline
+    model = ModelConfig.from_recording(rec, robot=RobotConfig.load(ROBOT))
+    offline = run_fixed_lag(rec, model)
+    parts = stream_bag(WALK, ROBOT, rate=rec.meta["grid"]["rate_hz"])
+    stats: dict = {}
+    ests = list(run_stream(parts, model, stats=stats))
+    got = np.concatenate([e.wrench for e in ests])
+    assert got.shape == offline.wrench.shape
+    assert np.max(np.abs(got - offline.wrench)) <= EXACT
+    assert stats["steps"] == rec.n and stats["update"]["updates"] == rec.n
+
+
+def test_stream_importer_bad_messages():
+    imp = StreamImporter("romeo", rate=100.0, contacts="fixed")
+    imp.add_imu(1_000_000_000, (0, 0, 0), (0, 0, 9.8))
+    with pytest.raises(DataError, match="time goes backwards on topic /imu"):
+        imp.add_imu(900_000_000, (0, 0, 0), (0, 0, 9.8))
+    with pytest.raises(DataError, match="NaN or inf"):
+        imp.add_imu(1_100_000_000, (0, np.nan, 0), (0, 0, 9.8))
+    names = imp.joint_names[:3]
+    with pytest.raises(DataError, match="NaN or inf position for joint"):
+        imp.add_joints(1_000_000_000, names, (0.0, np.nan, 0.0))
+    with pytest.raises(Exception, match="does not have"):
+        imp.add_joints(1_000_000_000, ("no_such_joint",), (0.0,))
+    with pytest.raises(DataError, match="no common time"):
+        list(StreamImporter("romeo", rate=100.0, contacts="fixed").finish())
+    with pytest.raises(ConfigError, match="F/T"):
+        StreamImporter("romeo", rate=100.0, contacts="ft", ft_contacts=())
+
+
+# ------------------------------------------------------------------------------------------------
+# command line
+# ------------------------------------------------------------------------------------------------
+def _cli(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "flexforce.cli", *map(str, args)], capture_output=True, text=True,
+                          cwd=cwd)
+
+
+@needs_icub
+def test_cli_streams_a_raw_bag(tmp_path: Path):
+    out = tmp_path / "walk.csv"
+    res = _cli("run", WALK, "--robot", ROBOT, "--estimator", "fixed-lag", "--end", "4", "-o", out, "-q")
+    assert res.returncode == 0, res.stderr
+    assert "streamed" in res.stdout
+    table = np.loadtxt(out, delimiter=",", skiprows=1)
+    header = out.read_text().splitlines()[0].split(",")
+    assert "std_t_z" in header and table.shape[1] == len(header)
+    assert 0.0 <= table[-1, 0] <= 4.0 + 1e-6 and table.shape[0] > 350
+    # bag output: the estimate beside the copied inputs, paced at the bag's clock
+    bag = tmp_path / "walk.mcap"
+    res = _cli("run", WALK, "--robot", ROBOT, "--estimator", "fixed-lag", "--end", "1.5", "--no-cov", "--realtime",
+               "-o", bag, "-q")
+    assert res.returncode == 0, res.stderr
+    assert "missed deadline" in res.stdout
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([bag]) as reader:
+        topics = {c.topic for c in reader.connections}
+    assert "/estimate/fixed_lag/total_wrench" in topics and "/estimate/fixed_lag/flexibility_cov" not in topics
+    assert any(t.startswith("/icub") or "imu" in t.lower() for t in topics - {t for t in topics
+                                                                               if t.startswith("/estimate")})
+    res = _cli("run", WALK, "--robot", ROBOT, "--estimator", "ekf", "--realtime", "-o", tmp_path / "e.csv", "-q")
+    assert res.returncode == 1 and "--realtime" in res.stderr
+
+
+def test_cli_streams_a_flexforce_recording(tmp_path: Path, pitch):
+    from flexforce.datasets.bagio import save_recording
+
+    bag = save_recording(pitch, tmp_path / "pitch")
+    res = _cli("run", bag, "--estimator", "fixed-lag", "-o", tmp_path / "a.csv", "-q")
+    assert res.returncode == 0, res.stderr
+    res = _cli("run", bag, "--estimator", "fixed-lag", "--offline", "-o", tmp_path / "b.csv", "-q")
+    assert res.returncode == 0, res.stderr
+    a = np.loadtxt(tmp_path / "a.csv", delimiter=",", skiprows=1)
+    b = np.loadtxt(tmp_path / "b.csv", delimiter=",", skiprows=1)
+    assert a.shape == b.shape
+    assert np.max(np.abs(a - b)) <= 1e-9
+    json.dumps({"ok": True})
