@@ -132,7 +132,9 @@ def test_stream_refuses_what_it_cannot_stream(pitch):
 # real bags
 # ------------------------------------------------------------------------------------------------
 def config_default_velocity() -> str:
-    return RobotConfig.load(ROBOT).ros.joint_velocity
+    ros = RobotConfig.load(ROBOT).ros
+    assert ros is not None
+    return ros.joint_velocity
 
 
 @pytest.fixture(scope="module")
@@ -144,6 +146,7 @@ def walk_offline():
 @pytest.mark.parametrize("velocity", ["message", "differentiate"])
 def test_stream_import_equals_offline_import(walk_offline, velocity):
     config = RobotConfig.load(ROBOT)
+    assert config.ros is not None
     config = dataclasses.replace(config, ros=dataclasses.replace(config.ros, joint_velocity=velocity))
     offline = walk_offline if velocity == config_default_velocity() else import_bag(WALK, config)
     rate = offline.meta["grid"]["rate_hz"]
