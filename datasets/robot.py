@@ -675,26 +675,35 @@ class RobotModel:
     def _inertia_rate(self) -> np.ndarray:
         r"""dI_l/dt, I_l = sum_i (R_i I_i R_i^T - m_i [c_i]x^2) about the origin (after forwardKinematics).
 
-        d(R I R^T)/dt = [w]x R I R^T - R I R^T [w]x and d(-m [c]x^2)/dt = -m ([dc]x [c]x + [c]x [dc]x).
+        d(R I R^T)/dt = [w]x R I R^T - R I R^T [w]x and d(-m [c]x^2)/dt = -m ([dc]x [c]x + [c]x [dc]x),
+        with ``[a]x [b]x = b a^T - (a . b) 1``; summed over the bodies with mass at once.
         """
         model, data = self.model, self.data
-        dI = np.zeros((3, 3))
-        for i in range(1, model.njoints):
-            Y = model.inertias[i]
-            if Y.mass == 0.0:
-                continue
-            M = data.oMi[i]
-            R = M.rotation
-            vi = data.v[i]
-            w = R @ vi.angular
-            c = M.translation + R @ Y.lever
-            dc = R @ (vi.linear + _skew(vi.angular) @ Y.lever)
-            IR = R @ Y.inertia @ R.T
-            Sw = _skew(w)
-            Sc = _skew(c)
-            Sdc = _skew(dc)
-            dI += Sw @ IR - IR @ Sw - Y.mass * (Sdc @ Sc + Sc @ Sdc)
-        return dI
+        bodies = getattr(self, "_massive", None)
+        if bodies is None:
+            idx = [i for i in range(1, model.njoints) if model.inertias[i].mass != 0.0]
+            bodies = (idx, np.array([model.inertias[i].mass for i in idx]),
+                      np.array([model.inertias[i].lever for i in idx]).reshape(-1, 3),
+                      np.array([model.inertias[i].inertia for i in idx]).reshape(-1, 3, 3))
+            self._massive = bodies
+        idx, m, lever, inertia = bodies
+        if not idx:
+            return np.zeros((3, 3))
+        R = np.array([data.oMi[i].rotation for i in idx])
+        t = np.array([data.oMi[i].translation for i in idx])
+        ang = np.array([data.v[i].angular for i in idx])
+        lin = np.array([data.v[i].linear for i in idx])
+        w = np.einsum("nij,nj->ni", R, ang)
+        c = t + np.einsum("nij,nj->ni", R, lever)
+        dc = np.einsum("nij,nj->ni", R, lin + np.cross(ang, lever))
+        IR = R @ inertia @ R.transpose(0, 2, 1)
+        Sw = np.zeros((len(idx), 3, 3))
+        Sw[:, 0, 1], Sw[:, 0, 2], Sw[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
+        Sw[:, 1, 0], Sw[:, 2, 0], Sw[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
+        rot = (Sw @ IR - IR @ Sw).sum(axis=0)
+        outer = np.einsum("n,ni,nj->ij", m, c, dc)
+        dot = float(np.sum(m * np.sum(c * dc, axis=1)))
+        return rot - (outer + outer.T - 2.0 * dot * np.eye(3))
 
 
 def _skew(v):

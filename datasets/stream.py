@@ -55,9 +55,11 @@ from flexforce.datasets.rosimport import (
 )
 from flexforce.errors import BagError, ConfigError, DataError
 
-__all__ = ["StreamImporter", "stream_bag"]
+__all__ = ["StreamImporter", "pipelined", "stream_bag"]
 
 _NS = 1_000_000_000
+DERIVATIVE_BATCH = 20
+"""Steps differentiated at once (at most a part): the filter runs once per batch, not per message."""
 RATE_MESSAGES = 50
 """IMU messages whose median period sets the grid when no rate is given."""
 
@@ -395,7 +397,9 @@ class StreamImporter:
         h = win // 2
         K = self._k_interp
         stop = K if final else K - h
-        if stop <= self._k_deriv or (not final and K < win):
+        # in batches (the filter's edge fits cost as much as its interior), within a part's length
+        batch = max(1, min(DERIVATIVE_BATCH, int(round(self.part_seconds * self.rate))))
+        if stop <= self._k_deriv or (not final and (K < win or stop - self._k_deriv < batch)):
             return
         if final and K < win:
             raise DataError(f"stream has {K} samples, fewer than the Savitzky-Golay window of {win} samples "
@@ -612,3 +616,48 @@ def stream_bag(path, robot_config, rate: float | None = None, contacts: str = "f
             reader_cm.__exit__(None, None, None)
         except Exception:  # noqa: BLE001, S110 -- closing a reader that already failed
             pass
+
+
+_END = "end"
+
+
+def _produce(queue, factory, args, kwargs) -> None:  # pragma: no cover -- runs in the child process
+    try:
+        for part in factory(*args, **kwargs):
+            queue.put(("part", part))
+        queue.put((_END, None))
+    except KeyboardInterrupt:
+        queue.put(("error", KeyboardInterrupt()))
+    except BaseException as err:  # noqa: BLE001 -- handed to the parent, which raises it
+        queue.put(("error", err))
+
+
+def pipelined(factory: Callable[..., Iterator[Recording]], *args, depth: int = 8, **kwargs) -> Iterator[Recording]:
+    """The parts of ``factory(*args, **kwargs)`` (e.g. :func:`stream_bag`), produced in a child
+    process while the caller consumes them: the import (message decoding, leg odometry,
+    kinematics) and the smoothing run on two cores.  At most ``depth`` parts wait in between
+    (bounded memory).  An error of the import is raised here, as it would be in-process."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("fork") if "fork" in mp.get_all_start_methods() else mp.get_context()
+    queue = ctx.Queue(maxsize=depth)
+    proc = ctx.Process(target=_produce, args=(queue, factory, args, kwargs), daemon=True)
+    proc.start()
+    try:
+        while True:
+            try:
+                kind, value = queue.get(timeout=1.0)
+            except Exception:  # noqa: BLE001 -- queue.Empty: check that the producer is alive
+                if not proc.is_alive() and queue.empty():
+                    raise DataError(f"the import process ended without a result (exit code {proc.exitcode})") \
+                        from None
+                continue
+            if kind == _END:
+                break
+            if kind == "error":
+                raise value
+            yield value
+    finally:
+        if proc.is_alive():
+            proc.terminate()
+        proc.join(timeout=5.0)

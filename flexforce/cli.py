@@ -195,6 +195,10 @@ def _stream_parts(args):
     if not args.robot:
         raise ConfigError(f"{path} is a raw robot bag (no /flexforce/meta): give its robot configuration with "
                           "--robot NAME|CONFIG.toml (e.g. --robot icub)")
+    if args._copy is None and (os.cpu_count() or 1) > 1:  # import and smoothing on two cores
+        from flexforce.datasets.stream import pipelined
+
+        return pipelined(stream_bag, path, args.robot, contacts=args.contacts), None
     return stream_bag(path, args.robot, contacts=args.contacts, on_message=args._copy), None
 
 
