@@ -19,7 +19,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from diagnose_confusion import CASES  # noqa: E402
+from diagnose_confusion import CASES  # type: ignore[import-not-found]  # noqa: E402
 
 from flexforce.datasets.scenario import Scenario  # noqa: E402
 from flexforce.datasets.simulator import Simulator  # noqa: E402
