@@ -145,7 +145,7 @@ def test_diagnose_names_candidates_per_stage_and_survives_a_raising_plugin():
 
     rec = simulate([GYRO])
     messages = []
-    d = diagnose(rec, candidates=["gyro-bias", "accel-bias", Raising], add=["auto"], ekf=False,
+    d = diagnose(rec, candidates=["gyro-bias", "accel-bias", Raising], ekf=False, calibrated=False,
                  progress=lambda label, f, message=None: message and messages.append((label, message)))
     labels = [m[0] for m in messages]
     # one line per stage and per candidate, naming it, with the elapsed time
