@@ -52,10 +52,12 @@ a copy held by its own :class:`Snapshot`.
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import math
+import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy import stats
@@ -66,7 +68,7 @@ from flexforce.errors import ConfigError, FlexforceError
 
 if TYPE_CHECKING:
     from flexforce.datasets.estimate import Estimate
-    from flexforce.smoother.screening import ScoreTest
+    from flexforce.smoother.screening import Identifiability, ScoreTest
 
 ALPHA = 0.01
 """Level of the likelihood-ratio test of an effect (and of the windowed residual tests)."""
@@ -219,6 +221,23 @@ class Candidate:
     """Its score test at the nominal fit (:mod:`flexforce.smoother.screening`), when screened."""
     refitted: bool = True
     """False when the score test did not pass: no refit, no evidence (``score`` is None)."""
+    implausible: str | None = None
+    """Why the estimate is physically implausible (the effect's ``plausible``): then it is not
+    ``significant`` whatever its score -- the effect stands in for something else."""
+    finding: str = ""
+    """The row's one sentence: for a significant effect its size, the evidence and when it acts;
+    an implausible one says so; one that cannot be fitted, why in the recording's terms."""
+
+    @property
+    def status(self) -> str:
+        """``significant``, ``implausible``, ``not significant``, ``not refitted`` or ``cannot be fitted``."""
+        if self.error:
+            return "cannot be fitted"
+        if not self.refitted:
+            return "not refitted"
+        if self.implausible:
+            return "implausible"
+        return "significant" if self.significant else "not significant"
 
     def screen_text(self, level: float | None = None) -> str:
         """``score T = 322.5 (nu 3.0), p = 1.3e-69`` (and the passing windows of a windowed test)."""
@@ -238,13 +257,18 @@ class Candidate:
                 "base": list(self.base), "likelihood_ratio": _clean(self.lr),
                 "effective_dof": _clean(self.effective_dof), "p_value": _clean(self.p_value),
                 "indistinguishable_from": list(self.rivals), "refitted": bool(self.refitted),
+                "status": self.status, "finding": self.finding or self.summary,
+                **({"implausible": self.implausible} if self.implausible else {}),
                 **({"screen": self.screen.to_dict(self.screen_level)} if self.screen is not None else {}),
                 **({"not_refitted": f"not refitted: score p = {self.screen.p_value:.2g}"}
                    if not self.refitted and self.screen is not None else {}),
-                **({"error": self.error} if self.error else {})}
+                **({"error": self.error} if self.error else {}),
+                **({"error_detail": self.error_detail} if self.error_detail else {})}
 
     screen_level: float | None = None
     """Level of the screening (for the passing windows in :meth:`to_dict`)."""
+    error_detail: str | None = None
+    """The solver's own message when the fit failed (``error`` says it in the recording's terms)."""
 
 
 @dataclass
@@ -308,6 +332,30 @@ class Diagnosis:
     """(N, 6) the simulated recording's true external wrench (for the figures), None on real logs."""
     screening: list[ScoreTest] = field(default_factory=list)
     """Every candidate's score test at the nominal fit, most significant first (empty unscreened)."""
+    identifiability: Identifiability | None = None
+    """At the nominal fit, before any refit: which candidates the recording sees and which pairs it
+    cannot tell apart (:func:`flexforce.smoother.screening.identifiability`); None when not computed."""
+    identifiability_error: str | None = None
+    """Why the identifiability table could not be formed."""
+
+    def identifiability_notes(self) -> list[str]:
+        """One sentence per pair that cannot be told apart, with the choice the ranking made between
+        them when it refitted both in one round."""
+        if self.identifiability is None:
+            return []
+        out = []
+        for p in self.identifiability.inseparable():
+            text = p.text()
+            for row in self.rounds:
+                ca = next((c for c in row if c.effect == p.a and c.score is not None), None)
+                cb = next((c for c in row if c.effect == p.b and c.score is not None), None)
+                if ca is not None and cb is not None:
+                    hi, lo = (ca, cb) if ca.score >= cb.score else (cb, ca)  # type: ignore[operator]
+                    text += (f"; round {hi.round} chose {hi.effect} (score {hi.score:.1f}) over {lo.effect} "
+                             f"({lo.score:.1f})")
+                    break
+            out.append(text)
+        return out
 
     def to_json(self) -> dict:
         out = {"recording": _jsonable(self.recording), "criterion": self.criterion,
@@ -316,6 +364,9 @@ class Diagnosis:
                "selected": list(self.selected), "added": list(self.added),
                "ambiguities": self.ambiguities(),
                "screening": [s.to_dict(self.criterion.get("screen_level")) for s in self.screening],
+               "identifiability": ({**self.identifiability.to_dict(), "notes": self.identifiability_notes()}
+                                   if self.identifiability is not None else
+                                   ({"error": self.identifiability_error} if self.identifiability_error else None)),
                "before": self.before.to_dict(), "after": self.after.to_dict() if self.after else None}
         if self.ekf is not None:
             m = self.ekf.metrics
@@ -330,17 +381,24 @@ class Diagnosis:
         level = self.criterion.get("screen_level")
         for i, c in enumerate(self.ranking, 1):
             if c.error:
-                lines.append(f"{i:2d} {c.effect:24s} {'failed':>10s}  {c.error}")
+                lines.append(f"{i:2d} {c.effect:24s} {'-':>10s} {'-':>10s} {'-':>6s} {'-':>9s}  no   "
+                             f"cannot be fitted: {c.error}")
                 continue
             if not c.refitted:
                 lines.append(f"{i:2d} {c.effect:24s} {'-':>10s} {'-':>10s} {'-':>6s} {'-':>9s}  no   "
                              f"not refitted: {c.screen_text(level)}")
                 continue
+            mark = "yes" if c.significant else ("imp" if c.implausible else "no ")
             lines.append(f"{i:2d} {c.effect:24s} {c.score:10.1f} {c.lr:10.1f} {c.effective_dof:6.1f} "
-                         f"{c.p_value:9.2g}  {'yes' if c.significant else 'no ':3s}  {c.summary}")
+                         f"{c.p_value:9.2g}  {mark:3s}  {c.finding or c.summary}")
             if c.screen is not None:
                 lines.append(f"{'':28s}screened: {c.screen_text(level)}")
         lines += [f"   {w}" for w in self.ambiguities()]
+        if self.identifiability is not None:
+            lines.append(self.identifiability.table())
+            lines += [f"   {w}" for w in self.identifiability_notes() if "chose" in w]
+        elif self.identifiability_error:
+            lines.append(f"identifiability: not computed ({self.identifiability_error})")
         return "\n".join(lines)
 
     def ambiguities(self) -> list[str]:
@@ -494,32 +552,140 @@ def _snapshot(rec, fit: Fit, window: float, alpha: float, skip: float, calibrate
                     residual_rms_smoothed=residual_rms(est), raw_residuals=raw)
 
 
+def progress_caller(progress) -> Callable[..., None] | None:
+    """``call(label, fraction, message=None)`` for a ``progress`` callback: the message (which
+    stage or candidate, what it found, the elapsed time) is passed as a third argument to a callback
+    that takes one (a third positional parameter, ``*args`` or a ``message`` keyword), and left out
+    for a two-argument ``progress(label, fraction)``."""
+    if progress is None:
+        return None
+    try:
+        params = list(inspect.signature(progress).parameters.values())
+    except (TypeError, ValueError):  # a builtin without a signature: the two-argument form
+        params = []
+    positional = [p for p in params if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
+    takes = (len(positional) >= 3 or any(p.kind == p.VAR_POSITIONAL for p in params)
+             or any(p.name == "message" for p in params))
+    by_keyword = takes and len(positional) < 3 and not any(p.kind == p.VAR_POSITIONAL for p in params)
+
+    def call(label: str, fraction: float, message: str | None = None) -> None:
+        if not takes:
+            progress(label, fraction)
+        elif by_keyword:
+            progress(label, fraction, message=message)
+        else:
+            progress(label, fraction, message)
+
+    return call
+
+
+def _failure(name: str, err: BaseException, ident: Identifiability | None = None) -> tuple[str, str]:
+    """``(reason in the recording's terms, the solver's own message)`` for a candidate that could
+    not be screened or fitted."""
+    detail = f"{type(err).__name__}: {err}"
+    if not isinstance(err, FlexforceError):  # a user's effect raised: say whose code it was
+        return f"the effect '{name}' raised {detail}", detail
+    info = ident.candidates.get(name) if ident is not None else None
+    if info is not None and not info.seen:
+        return info.unexcited(), detail
+    partner = None
+    if ident is not None:
+        partner = next((p for p in ident.inseparable() if name in (p.a, p.b)), None)
+    if partner is not None:
+        other, mine = (partner.b, partner.direction_a) if partner.a == name else (partner.a, partner.direction_b)
+        return (f"the recording does not tell its {mine} from {other} (correlation {partner.largest:.3f}): "
+                f"{partner.hint or 'more varied motion is needed'}"), detail
+    text = str(err).lower()
+    if "positive definite" in text or "singular" in text:
+        return ("the recording does not determine it: its information at the fit is singular (too short, or "
+                "without the motion that excites it)"), detail
+    return detail, detail
+
+
+def _when(rep: dict, effect) -> str:
+    """When an estimated effect acts: its significant spans, or throughout for a constant."""
+    windows = rep.get("windows") if isinstance(rep, dict) else None
+    if windows:
+        spans = [f"{w['start_s']:.2f}-{w['end_s']:.2f} s" for w in windows[:6]]
+        return "acts " + ", ".join(spans) + (" ..." if len(windows) > 6 else "")
+    if isinstance(rep, dict) and "drift" in rep:
+        return "acts throughout, drifting"
+    if getattr(effect, "constant", False):
+        return "acts throughout (a constant)"
+    return "acts throughout"
+
+
+def finding(c: Candidate, rep: dict, effect) -> str:
+    """The row's sentence, consistent with its status: a significant effect's size, evidence and
+    when it acts; an implausible one flagged as such; a non-significant one never "found"."""
+    summary = c.summary
+    if c.implausible:
+        return f"implausible: {c.implausible} (estimate {summary}); not a finding: another effect in disguise"
+    if c.score is None:
+        return summary
+    evidence = (f"evidence 2ΔE = {c.lr:.1f} for {c.effective_dof:.1f} dof (p = {c.p_value:.2g}), "
+                f"BIC score {c.score:.1f}")
+    null_text = ("consistent with" in summary) or summary.startswith("no significant")
+    if c.significant:
+        if null_text:  # the evidence sees it though no single component is beyond 3 sigma
+            inner = summary[summary.find("(") + 1:summary.rfind(")")] if "(" in summary else summary
+            summary = (f"{inner} (jointly significant; no single component beyond 3σ: the components are "
+                       "correlated)")
+        return f"{summary}; {evidence}; {_when(rep, effect)}"
+    if null_text:
+        return f"not significant: {summary}"
+    return f"not significant ({evidence}); estimate {summary}"
+
+
 def screen(rec, fit: Fit, makers: dict[str, Callable[[], object]], window: float = SCREEN_WINDOW,
-           progress: Callable[[float], None] | None = None) -> dict[str, ScoreTest | str]:
-    """The score test of every candidate at ``fit`` (name -> :class:`ScoreTest`, or the error's
-    text when the test failed): one linearisation each, no refit (:mod:`flexforce.smoother.screening`)."""
+           progress: Callable[..., None] | None = None, problem=None) -> dict[str, ScoreTest | str]:
+    """The score test of every candidate at ``fit`` (name -> :class:`ScoreTest`, or the reason
+    when the test failed): one linearisation each, no refit (:mod:`flexforce.smoother.screening`).
+
+    ``progress(fraction)`` or ``progress(fraction, message)`` (a callable made by
+    :func:`progress_caller` takes the message): one call per candidate, the message naming it
+    with its statistic and time."""
     from flexforce.smoother import NoiseRule, Problem
     from flexforce.smoother.screening import score_test
 
     if fit.trajectory is None or fit.model is None:
         raise ConfigError("screening needs the fitted trajectory (flexforce.smoother.fit returns it)")
-    prob = Problem.build(rec, fit.model, NoiseRule())
+    prob = problem if problem is not None else Problem.build(rec, fit.model, NoiseRule())
     out: dict[str, ScoreTest | str] = {}
     for i, (name, make) in enumerate(makers.items()):
+        t0 = time.perf_counter()
         try:
-            out[name] = score_test(prob, fit.trajectory, make(), window=window)  # type: ignore[arg-type]
-        except FlexforceError as err:
-            out[name] = f"{type(err).__name__}: {err}"
+            res = score_test(prob, fit.trajectory, make(), window=window)  # type: ignore[arg-type]
+            out[name] = res
+            msg = f"{name}: T = {res.statistic:.1f} (ν {res.dof:.1f}), p = {res.p_value:.2g}"
+        except Exception as err:  # a user's effect may raise anything: one line, the others go on
+            out[name] = _failure(name, err)[0]
+            msg = f"{name}: failed ({out[name]})"
         if progress is not None:
-            progress((i + 1) / max(len(makers), 1))
+            frac = (i + 1) / max(len(makers), 1)
+            if _takes_two(progress):
+                progress(frac, f"{msg} [{time.perf_counter() - t0:.1f} s]")
+            else:
+                progress(frac)
     return out
+
+
+def _takes_two(fn) -> bool:
+    """Whether ``fn`` accepts two positional arguments."""
+    try:
+        inspect.signature(fn).bind(0.0, "")
+    except TypeError:
+        return False
+    except ValueError:  # no signature available
+        return False
+    return True
 
 
 def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable = (), *, rank: bool = True,
              max_effects: int = 3, alpha: float = ALPHA, window: float = 0.5, skip: float = 0.5,
              ekf: bool = True, progress: Callable[[str, float], None] | None = None,
              screen_level: float | None = SCREEN_LEVEL, screen_window: float = SCREEN_WINDOW,
-             calibrated: bool = True) -> Diagnosis:
+             calibrated: bool = True, identify: bool = True) -> Diagnosis:
     """Fit the nominal model, rank the candidate effects, and refit with the ``add``-ed ones.
 
     Args:
@@ -536,7 +702,10 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
         window: length of the residual windows, s.
         skip: seconds left out at the start of the error statistics (filter convergence).
         ekf: also run the EKF on the nominal model (innovations, NIS).
-        progress: called with (stage label, fraction done of that stage).
+        progress: called with (stage label, fraction done of that stage) -- and, when it takes a
+            third argument (or a ``message`` keyword), a message naming the stage or candidate
+            with what it found and the elapsed time, once per stage and per candidate
+            (:func:`progress_caller`).
         screen_level: level of the score test at the nominal fit (:func:`screen`): only the
             candidates whose score p-value is below it are refitted and scored by the evidence;
             None refits every candidate (no screening).
@@ -544,6 +713,8 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
         calibrated: the smoother's residuals standardised by their own variance, their tests
             accounting for their correlation in time (:func:`calibrated_view`); False: the
             whitened smoothed residuals tested as if they were innovations (conservative).
+        identify: before any refit, the identifiability table of the candidates at the nominal
+            fit (:attr:`Diagnosis.identifiability`).
     """
     from flexforce.compare.runner import describe
     from flexforce.factors.model import ModelConfig
@@ -569,8 +740,16 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
             add_makers[name] = make
     makers = {**cands, **add_makers}
 
+    call = progress_caller(progress)
+    t_start = time.perf_counter()
+
     def cb(label):
-        return (lambda f: progress(label, f)) if progress else None
+        return (lambda f: call(label, f)) if call else None
+
+    def say(label: str, message: str, t0: float) -> None:
+        if call is not None:
+            call(label, 1.0, f"{message} [{time.perf_counter() - t0:.1f} s, {time.perf_counter() - t_start:.0f} s "
+                             "in all]")
 
     cache: dict[tuple[str, ...], Fit] = {}
 
@@ -579,21 +758,50 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
         if key not in cache:
             effects = tuple(model.effects) + tuple(makers[n]() for n in names)
             label = "nominal" if not names else "+ " + " + ".join(names)
+            t0 = time.perf_counter()
             cache[key] = fit_model(rec, dataclasses.replace(model, effects=effects), progress=cb(label))
+            say(label, f"fitted {label if names else 'the nominal model'}", t0)
         return cache[key]
 
+    if screen_level is not None and not 0.0 < screen_level < 1.0:
+        raise ConfigError(f"screen_level = {screen_level!r}; expected a probability in (0, 1) or None (no screening)")
     nominal = fitted(())
     rounds: list[list[Candidate]] = []
     selected: list[str] = []
     screened: dict[str, ScoreTest | str] = {}
     dropped: list[Candidate] = []
-    if screen_level is not None and not 0.0 < screen_level < 1.0:
-        raise ConfigError(f"screen_level = {screen_level!r}; expected a probability in (0, 1) or None (no screening)")
+    ident: Identifiability | None = None
+    ident_error: str | None = None
+    prob = None
+    if rank and cands and nominal.trajectory is not None and nominal.model is not None:
+        from flexforce.smoother import NoiseRule, Problem
+
+        prob = Problem.build(rec, nominal.model, NoiseRule())
     if rank:
         remaining = list(cands)
         if screen_level is not None and cands:
-            screened = screen(rec, nominal, cands, screen_window, progress=cb("screening"))
+            scb = None
+            if call is not None:
+                def scb(f, message=None):
+                    call("screening", f, message)
+            screened = screen(rec, nominal, cands, screen_window, progress=scb, problem=prob)
+        if identify and cands and prob is not None:
+            t0 = time.perf_counter()
+            ident, ident_error = identify_candidates(prob, nominal, {k: v for k, v in cands.items()
+                                                                     if not isinstance(screened.get(k), str)},
+                                                     screen_window)
+            if ident is not None:
+                msg = (f"identifiability: {len(ident.inseparable())} pairs cannot be told apart, "
+                       f"{len(ident.not_seen())} candidates not fully seen")
+            else:
+                msg = f"identifiability: not computed ({ident_error})"
+            say("identifiability", msg, t0)
+        if screen_level is not None and screened:
             tests = {k: v for k, v in screened.items() if not isinstance(v, str)}
+            for k, v in screened.items():  # a failed test: the reason in the recording's terms
+                if isinstance(v, str) and ident is not None and k in ident.candidates \
+                        and not ident.candidates[k].seen:
+                    screened[k] = ident.candidates[k].unexcited()
             order = sorted(tests, key=lambda k: (tests[k].p_value, -tests[k].statistic))
             # a failed test is refitted (the refit decides); passing ones first, most significant first
             remaining = [k for k in order if tests[k].p_value < screen_level] + \
@@ -606,22 +814,34 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
             base = fitted(tuple(selected))
             row = []
             for name in remaining:
+                t0 = time.perf_counter()
+                label = "+ " + " + ".join(tuple(selected) + (name,))
                 try:
                     f = fitted(tuple(selected) + (name,))
-                except FlexforceError as err:
+                except Exception as err:  # a user's effect may raise anything: one line, the others go on
+                    reason, detail = _failure(name, err, ident)
                     row.append(Candidate(name, tuple(selected), len(rounds) + 1, None, None, None, None, False,
-                                         error=f"{type(err).__name__}: {err}"))
+                                         error=reason, error_detail=detail, finding=f"cannot be fitted: {reason}"))
+                    say(label, f"{name}: cannot be fitted: {reason}", t0)
                     continue
                 s, lr, nu, p, sig = score(base, f, name, alpha)
                 rep = f.estimate.effects.get(name, {})
                 test = screened.get(name)
-                row.append(Candidate(name, tuple(selected), len(rounds) + 1, s, lr, nu, p, sig, rep,
-                                     summarize_effect(rep, makers[name]()),
-                                     screen=None if isinstance(test, str) else test, screen_level=screen_level))
+                eff = makers[name]()
+                c = Candidate(name, tuple(selected), len(rounds) + 1, s, lr, nu, p, sig, rep,
+                              summarize_effect(rep, eff), screen=None if isinstance(test, str) else test,
+                              screen_level=screen_level)
+                c.implausible = _plausibility(eff, rep, prob) if sig else None
+                if c.implausible:
+                    c.significant = False
+                c.finding = finding(c, rep, eff)
+                row.append(c)
+                say(label, f"{name}: score {s:.1f}, {c.status}", t0)
             row.sort(key=lambda c: -math.inf if c.score is None else c.score, reverse=True)
             mark_rivals(row)
             rounds.append(row)
-            best = row[0] if row else None
+            # the best plausible candidate (an implausible one is no finding, whatever its score)
+            best = next((c for c in row if not c.implausible), None)
             if best is None or not best.significant or len(selected) >= max_effects:
                 break
             selected.append(best.effect)
@@ -641,10 +861,12 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
     if ekf:
         from flexforce.compare.ekf import run_ekf
 
+        t0 = time.perf_counter()
         try:
             est = run_ekf(rec, model, progress=cb("ekf"))
         except FlexforceError:
             est = None
+        say("ekf", "EKF on the nominal model" + (" failed" if est is None else ""), t0)
         if est is not None:
             ekf_snap = Snapshot((), est, evaluate(est, rec, skip=skip), flag_windows(est, window=window, alpha=alpha),
                                 consistency(est), residual_rms(est), float("nan"), 0)
@@ -661,7 +883,66 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
     tests_sorted = sorted((v for v in screened.values() if not isinstance(v, str)),
                           key=lambda t: (t.p_value, -t.statistic))
     return Diagnosis(describe(rec), ranking, rounds, selected, added, before, after, ekf_snap, criterion,
-                     None if truth is None else np.asarray(truth.external_wrench, dtype=float), tests_sorted)
+                     None if truth is None else np.asarray(truth.external_wrench, dtype=float), tests_sorted,
+                     ident, ident_error)
+
+
+def _plausibility(effect, report: dict, problem) -> str | None:
+    """The effect's own ``plausible(report, problem)`` verdict (None without the method)."""
+    check = getattr(effect, "plausible", None)
+    if check is None or not isinstance(report, dict):
+        return None
+    try:
+        return check(report, problem)
+    except Exception as err:  # a user's check that fails says so, it does not stop the diagnosis
+        return f"its plausibility check raised {type(err).__name__}: {err}"
+
+
+def identify_candidates(prob, fit: Fit, makers: dict[str, Callable[[], object]], window: float = SCREEN_WINDOW
+                        ) -> tuple[Identifiability | None, str | None]:
+    """The identifiability table of ``makers`` at ``fit`` (:func:`flexforce.smoother.screening.identifiability`),
+    or None and the reason; a candidate that breaks it is left out and named."""
+    from flexforce.smoother.screening import identifiability
+
+    effects: dict[str, Any] = {}
+    errors: dict[str, str] = {}
+    for name, make in makers.items():
+        try:
+            eff: Any = make()
+            eff.prior(prob)
+            effects[name] = eff
+        except Exception as err:
+            errors[name] = _failure(name, err)[0]
+    if not effects:
+        return None, "no candidate to compare"
+    try:
+        ident = identifiability(prob, fit.trajectory, list(effects.values()), window=window,  # type: ignore[arg-type]
+                                n_residuals=fit.n_residuals)
+    except Exception as err:
+        return None, _failure("identifiability", err)[0]
+    ident.errors.update(errors)
+    return ident, None
+
+
+def identifiability(rec, candidates: Iterable | None = None, model=None, window: float = SCREEN_WINDOW,
+                    progress: Callable[[float], None] | None = None) -> Identifiability:
+    """Before any refit: fit the nominal model and say which candidates the recording sees and
+    which pairs it cannot tell apart (:func:`flexforce.smoother.screening.identifiability`)."""
+    from flexforce.factors.model import ModelConfig
+    from flexforce.smoother import NoiseRule, Problem
+
+    rec.validate()
+    if model is None:
+        model = ModelConfig.from_recording(rec)
+    cands = resolve_candidates(candidates)
+    nominal = fit_model(rec, model, progress=progress)
+    if nominal.trajectory is None or nominal.model is None:
+        raise ConfigError("the identifiability table needs the fitted trajectory (flexforce.smoother.fit returns it)")
+    prob = Problem.build(rec, nominal.model, NoiseRule())
+    ident, err = identify_candidates(prob, nominal, cands, window)
+    if ident is None:
+        raise ConfigError(f"identifiability: {err}")
+    return ident
 
 
 def load_plugin(path) -> list:

@@ -148,7 +148,7 @@ def ranking_html(diag) -> str:
     level = diag.criterion.get("screen_level")
     for i, c in enumerate(diag.ranking, 1):
         if c.error:
-            rows.append(f"<tr><td>{i}</td><td>{html.escape(c.effect)}</td><td colspan=10>failed: "
+            rows.append(f"<tr><td>{i}</td><td>{html.escape(c.effect)}</td><td colspan=10>cannot be fitted: "
                         f"{html.escape(c.error)}</td></tr>")
             continue
         windows = ""
@@ -164,11 +164,23 @@ def ranking_html(diag) -> str:
         rows.append(f"<tr><td>{i}</td><td style='text-align:left'>{html.escape(c.effect)}</td>{_screen_cells(c, level)}"
                     f"<td>{c.round}</td>"
                     f"<td>{c.score:.1f}</td><td>{c.lr:.1f}</td><td>{c.effective_dof:.1f}</td><td>{c.p_value:.2g}</td>"
-                    f"<td>{'<b>yes</b>' if c.significant else 'no'}</td>"
-                    f"<td style='text-align:left'>{html.escape(c.summary + windows)}</td></tr>")
+                    f"<td>{'<b>yes</b>' if c.significant else ('implausible' if c.implausible else 'no')}</td>"
+                    f"<td style='text-align:left'>{html.escape((c.finding or c.summary) + windows)}</td></tr>")
     return ("<table><tr><th>#</th><th>effect</th><th>score test T</th><th>ν (T)</th><th>p (T)</th><th>round</th>"
             "<th>score (BIC)</th><th>2ΔC</th><th>ν</th><th>p</th>"
             "<th>significant</th><th>estimate</th></tr>" + "".join(rows) + "</table>")
+
+
+def identifiability_html(diag) -> str:
+    """The candidates the recording does not fully see and the pairs it cannot tell apart."""
+    ident = getattr(diag, "identifiability", None)
+    if ident is None:
+        err = getattr(diag, "identifiability_error", None)
+        return f"<p>Not computed{': ' + html.escape(err) if err else ''}.</p>"
+    items = [f"<li>{html.escape(c.effect)}: {html.escape(c.text())}</li>" for c in ident.not_seen()]
+    items += [f"<li>{html.escape(t)}</li>" for t in diag.identifiability_notes()]
+    return "<ul>" + ("".join(items) or "<li>every candidate seen, no pair correlated above "
+                     f"{ident.threshold}</li>") + "</ul>"
 
 
 def flags_html(flags) -> str:
@@ -281,6 +293,10 @@ td,th{{border:1px solid #ccc;padding:3px 6px;text-align:right}}img{{max-width:10
 <p>Robot <b>{html.escape(str(info.get('robot')))}</b>, {info.get('samples')} samples
 ({_fmt(info.get('duration_s'))} s). {html.escape(info.get('description') or '')}</p>
 <p>Hidden effects in the data (simulated recordings):</p><ul>{hidden_html}</ul>
+<h2>What this recording can tell apart</h2>
+<p>At the nominal fit, before any refit: the candidates with a direction the recording does not excite, and the
+pairs whose score directions correlate above the threshold (docs/diagnostics.md, "Identifiability").</p>
+{identifiability_html(diag)}
 <h2>Which effect is missing</h2>
 <p>{html.escape(_screen_sentence(crit))}</p>
 <p>Each candidate that passes is refitted on top of the effects already selected and scored by the gain in log

@@ -284,6 +284,13 @@ class Effect(Protocol):
         weight (n,))}``: factors of its own on single steps, residuals already whitened, ``weight``
         1 where a factor exists and 0 where not (:class:`flexforce.factors.footholds.Footholds`: the
         leg kinematics at a touch-down and the ground plane).
+
+        For the diagnostics (all optional): ``plausible(report, problem=None) -> str | None``, the
+        reason an estimate (this method's dict) is physically implausible (a stiffness a twentieth
+        of the configured one, a bias beyond the sensor's specification, a push heavier than the
+        robot), None when it is plausible; ``excites`` (one text per unknown: the motion or load
+        that makes the data see it, named when a recording does not); ``hint`` (what a recording
+        should do to tell the effect from those it resembles).
         """
 
 
@@ -363,6 +370,29 @@ class _Constant:
     def units(self) -> tuple[str, ...]:
         return tuple(lab.split("[")[1].rstrip("]") if "[" in lab else "" for lab in self.labels)
 
+    plausible_range: tuple[float, float] | None = None
+    """Range of a plausible reported value (every component), None: no bound of its own."""
+    excites: tuple[str, ...] = ()
+    """Per unknown: the motion or load that makes the data see it (what a recording lacks when
+    the unknown cannot be fitted)."""
+    hint = ""
+    """What a recording should do to tell this effect from the others it resembles."""
+
+    def plausible(self, report: dict, problem: ProblemView | None = None) -> str | None:
+        """None when the estimate in ``report`` (:meth:`report`'s dict) is physically plausible, else
+        the reason in the robot's terms (the value is then no finding: the effect stands in for
+        something else)."""
+        if self.plausible_range is None:
+            return None
+        lo, hi = self.plausible_range
+        v = np.atleast_1d(np.asarray(report.get("value", ()), dtype=float))
+        names, units = self.component_names(), self.units()
+        bad = [i for i in range(min(len(v), self.dim)) if not lo <= v[i] <= hi]
+        if not bad:
+            return None
+        return "; ".join(f"{self.what} {names[i]} = {_fmt(v[i])} {units[i] if units[i] != '-' else ''}".rstrip()
+                         + f" is outside the plausible {_fmt(lo)}-{_fmt(hi)}" for i in bad)
+
     def report(self, values, cov, t=None) -> dict:
         v = np.asarray(values, dtype=float)[-1] + self.offset
         std = (np.sqrt(np.maximum(np.diagonal(np.asarray(cov)[-1]), 0.0)) if cov is not None
@@ -387,11 +417,27 @@ class _ImuBias(_Constant):
     rows = slice(0, 3)
     sensor = 0
 
-    def __init__(self, rw_density: float = 0.0):
+    max_bias = 0.0
+    """Largest plausible bias (the sensor's specification), in the effect's unit."""
+
+    def __init__(self, rw_density: float = 0.0, max_bias: float | None = None):
         self.rw_density = float(rw_density)
         if self.rw_density < 0:
             raise ConfigError(f"{self.name}: rw_density must be >= 0, got {rw_density}")
         self.constant = self.rw_density == 0.0
+        if max_bias is not None:
+            if not max_bias > 0:
+                raise ConfigError(f"{self.name}: max_bias must be positive ({self.unit}), got {max_bias}")
+            self.max_bias = float(max_bias)
+
+    def plausible(self, report: dict, problem: ProblemView | None = None) -> str | None:
+        """A bias beyond the sensor's specification (``max_bias``, per axis) is implausible."""
+        v = np.atleast_1d(np.asarray(report.get("value", ()), dtype=float))
+        bad = [i for i in range(min(len(v), 3)) if abs(v[i]) > self.max_bias]
+        if not bad:
+            return None
+        return "; ".join(f"{self.what} {_AX[i]} = {_fmt(v[i])} {self.unit} is beyond the sensor's specification "
+                         f"(|bias| <= {_fmt(self.max_bias)} {self.unit})" for i in bad)
 
     def prior_sigma(self, problem: ProblemView):
         return 10.0 * problem.sigmas.imu[self.rows]
@@ -430,6 +476,11 @@ class GyroBias(_ImuBias):
     unit = "rad/s"
     what = "gyro bias"
     rows = slice(0, 3)
+    max_bias = 0.05
+    """0.05 rad/s (3 deg/s): an uncalibrated MEMS gyro's turn-on bias (``max_bias=`` for another part)."""
+    excites = ("the gyro's x reading", "the gyro's y reading", "the gyro's z reading")
+    hint = ("hold the robot still for a moment (a bias is the rate read at rest) or rotate about each axis: "
+            "a true rotation tilts the robot and loads the contacts, a bias does neither")
 
 
 class AccelBias(_ImuBias):
@@ -442,6 +493,13 @@ class AccelBias(_ImuBias):
     unit = "m/s^2"
     what = "accel bias"
     rows = slice(3, 6)
+    max_bias = 0.3
+    """0.3 m/s^2: an uncalibrated MEMS accelerometer's offset (``max_bias=`` for another part)."""
+    excites = ("tilting the IMU about y (gravity along x) or accelerating along x",
+               "tilting the IMU about x (gravity along y) or accelerating along y",
+               "accelerating vertically, or tilting far")
+    hint = ("tilt the robot or change its posture: a bias turns with the IMU while gravity does not, and it "
+            "does not move the CoP")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -488,6 +546,12 @@ class Stiffness(_ContactEffect):
     what = "contact"
     offset = 1.0
     null = 1.0
+    plausible_range = (0.2, 5.0)
+    """A stiffness or damping five times off the configured one is a wrong configuration or another
+    effect in disguise, not a worn bush."""
+    excites = ("load changes on the contacts (sway, shifting weight, pushes): the springs' deflection",
+               "fast load changes (quick sway, impacts): the springs' deflection rate")
+    hint = "vary the load on the contacts: sway, shift the weight from foot to foot, push"
 
     def prior_sigma(self, problem: ProblemView):
         return np.array([0.5, 0.5])
@@ -516,6 +580,13 @@ class AnisotropicStiffness(_ContactEffect):
     what = "stiffness factor"
     offset = 1.0
     null = 1.0
+    plausible_range = (0.2, 5.0)
+    """As :attr:`Stiffness.plausible_range`, per axis."""
+    excites = ("shear along the contact's x: a fore-aft force", "shear along the contact's y: a sideways force",
+               "vertical load changes: no change of the vertical force", "a torque about x (roll)",
+               "a torque about y (pitch)", "a torque about z (yaw)")
+    hint = ("load each axis on its own: sway fore-aft and sideways, shift the weight, twist about the vertical; "
+            "a stiffer pitch spring and a CoM offset tilt a robot at rest alike, a varying moment does not")
 
     def prior_sigma(self, problem: ProblemView):
         return np.full(6, 0.5)
@@ -548,6 +619,29 @@ class NonlinearStiffness(_ContactEffect):
     labels = ("beta_f [1/m^2]", "beta_t [1/rad^2]")
     unit = "1/m^2, 1/rad^2"
     what = "cubic stiffening"
+    excites = ("large vertical deflections: large changes of the vertical load",
+               "large tilts of the contacts: large moments")
+    hint = "vary the load over a wide range (deep sways, stepping): a cubic term grows with the deflection"
+
+    def plausible(self, report: dict, problem: ProblemView | None = None) -> str | None:
+        """The stiffness at the reference deflection (the weight's static compression, the tilt
+        that compresses a contact as much) within ``0.2``-``5`` times the linear one, as the
+        stiffness scales: ``1 + (beta + d beta) s_0^2`` (the nominal ``beta`` is left out: zero
+        in the built-in robots)."""
+        if problem is None:
+            return None
+        v = np.atleast_1d(np.asarray(report.get("value", ()), dtype=float))
+        s0, lever = _static_compression(problem)
+        ref = (s0, s0 / lever)
+        out = []
+        for i, (what, unit) in enumerate((("translational", "m"), ("rotational", "rad"))):
+            if i >= len(v):
+                break
+            factor = 1.0 + 3.0 * v[i] * ref[i] ** 2  # tangent stiffness of k s (1 + beta s^2)
+            if not 0.2 <= factor <= 5.0:
+                out.append(f"{what} cubic stiffening {_fmt(v[i])} makes the tangent stiffness {_fmt(factor)} times "
+                           f"the linear one at {_fmt(ref[i])} {unit} (plausible 0.2-5)")
+        return "; ".join(out) or None
 
     def prior_sigma(self, problem: ProblemView):
         s0, lever = _static_compression(problem)
@@ -590,6 +684,20 @@ class ExternalWrench:
     labels = tuple(f"u_F{a} [-]" for a in _AX) + tuple(f"u_T{a} [-]" for a in _AX)
     unit = "N, N m"
     constant = False
+    excites = ("a force along x", "a force along y", "a vertical force (the contacts' total trades against it)",
+               "a moment about x", "a moment about y", "a moment about z")
+    hint = ("a push is transient: quiet spans before and after it separate it from a constant effect; a steady "
+            "wrench is told from a CoM offset only by changing posture")
+
+    def plausible(self, report: dict, problem: ProblemView | None = None) -> str | None:
+        """A force larger than the robot's weight (at its peak) is implausible: the contacts could
+        not hold the robot against it."""
+        weight = self._weight if self._weight else (
+            float(problem.rec.mass) * float(problem.g) if problem is not None else None)
+        peaks = [float(w.get("peak_norm", 0.0)) for w in report.get("windows") or []]
+        if weight is None or not peaks or max(peaks) <= weight:
+            return None
+        return f"external force of {max(peaks):.0f} N exceeds the robot's weight ({weight:.0f} N)"
 
     def __init__(self, tau: float = 0.02, prior_weight_fraction: float = 0.08):
         if not tau > 0:
@@ -763,6 +871,24 @@ class ComOffset(_Constant):
     name = "com-offset"
     unit = "m"
     what = "CoM offset"
+    max_fraction = 0.25
+    """A CoM more than this fraction of its distance from the local origin off the model's is no
+    mass-model error (about 15 cm on Romeo)."""
+    hint = ("change posture or load the robot differently (move the arms, lean, step, carry a load): a CoM offset "
+            "moves with the body and shifts the CoP, an accelerometer bias does not, and a steady push is not "
+            "carried with the posture")
+
+    def plausible(self, report: dict, problem: ProblemView | None = None) -> str | None:
+        """An offset beyond :attr:`max_fraction` of the CoM's distance from the local origin."""
+        if problem is None:
+            return None
+        v = np.atleast_1d(np.asarray(report.get("value", ()), dtype=float))
+        limit = self.max_fraction * max(float(np.linalg.norm(problem.com[0])), 0.1)
+        size = float(np.linalg.norm(v))
+        if size <= limit:
+            return None
+        return (f"CoM offset of {_fmt(size)} m is more than {self.max_fraction:.0%} of the CoM's distance from the "
+                f"feet ({_fmt(limit)} m): no mass-model error is that large")
 
     def __init__(self, mass_fraction: float = 1.0, axes: str = "xy"):
         if not 0 < mass_fraction <= 1:
@@ -775,6 +901,10 @@ class ComOffset(_Constant):
         self.dim = len(axes)
         self.labels = tuple(f"{a} [m]" for a in axes)
         self._sel = np.eye(3)[:, [_AX.index(a) for a in axes]]  # (3, dim): delta = sel e
+        text = {"x": "gravity's moment about y: a fore-aft tilt or sway",
+                "y": "gravity's moment about x: a sideways tilt or sway",
+                "z": "tilts large enough for the height to change gravity's moment"}
+        self.excites = tuple(text[a] for a in axes)
 
     def prior_sigma(self, problem: ProblemView):
         return np.full(self.dim, 0.1 * max(float(np.linalg.norm(problem.com[0])), 0.1))

@@ -247,3 +247,294 @@ def score_test(prob_base: Problem, traj: Trajectory, effect, rule: NoiseRule | N
     best = min(windows, key=lambda x: (x.p_value, -x.statistic))
     p = min(1.0, best.p_value * len(windows))
     return ScoreTest(effect.name, best.statistic, best.dof, p, "windowed", windows, time.perf_counter() - t0)
+
+
+# ----------------------------------------------------------------------------------------------
+# Identifiability: which candidates the nominal fit's information can see and tell apart
+# ----------------------------------------------------------------------------------------------
+
+INSEPARABLE = 0.95
+"""Largest canonical correlation above which two candidates cannot be told apart: the data see one
+direction of each as the same (docs/diagnostics.md, "Identifiability")."""
+
+
+@dataclass
+class CandidateInformation:
+    """What the nominal fit's data say about one candidate's unknowns (states eliminated)."""
+
+    effect: str
+    dim: int
+    labels: tuple[str, ...]
+    kind: str
+    """``"constant"`` or ``"windowed"`` (a per-step effect, taken constant on windows)."""
+    detectability: float
+    """Smallest eigenvalue of the data information scaled by the effect's prior sigmas,
+    ``eig_min(D S D)``: twice the log-likelihood gain an effect of one prior sigma along the worst
+    direction would bring (for a windowed effect, that of one window, the median window)."""
+    weakest: str
+    """The unknown that dominates the worst direction."""
+    weakest_index: int
+    threshold: float
+    """Detection threshold on :attr:`detectability` (BIC's ``ln n``)."""
+    excites: str = ""
+    """What motion excites the weakest unknown (the effect's ``excites``)."""
+    strongest: float = float("inf")
+    """Largest eigenvalue of the same scaled information (the best-seen direction)."""
+
+    @property
+    def seen(self) -> bool:
+        """Every direction seen: a prior-sized value along the worst one pays for its dof."""
+        return bool(self.detectability >= self.threshold)
+
+    @property
+    def status(self) -> str:
+        """``"seen"``, ``"partly seen"`` (some direction is not) or ``"not seen"`` (none is)."""
+        if self.seen:
+            return "seen"
+        return "partly seen" if self.strongest >= self.threshold else "not seen"
+
+    def unexcited(self) -> str:
+        """``the recording does not excite yaw stiffness: no torque about z``-style reason."""
+        what = f": {self.excites}" if self.excites else ""
+        return f"the recording does not excite {self.effect} {self.weakest}{what}"
+
+    def text(self) -> str:
+        if self.seen:
+            return (f"seen (a prior-sized {self.weakest} gains {self.detectability:.3g} in 2 ln L, "
+                    f">= {self.threshold:.1f})")
+        return (f"{self.status}: {self.unexcited()} (a prior-sized value gains {self.detectability:.2g} in 2 ln L, "
+                f"below {self.threshold:.1f})")
+
+    def to_dict(self) -> dict:
+        return {"effect": self.effect, "dim": self.dim, "kind": self.kind, "detectability": _f(self.detectability),
+                "strongest": _f(self.strongest), "threshold": _f(self.threshold), "seen": self.seen,
+                "status": self.status, "weakest": self.weakest, "excites": self.excites, "summary": self.text()}
+
+
+@dataclass
+class PairCorrelation:
+    """The canonical correlations of two candidates' score directions at the nominal fit."""
+
+    a: str
+    b: str
+    correlations: list[float]
+    """Canonical correlations, largest first (``min(dim_a, dim_b)`` of them)."""
+    direction_a: str
+    """The unknown of ``a`` that dominates the most correlated direction."""
+    direction_b: str
+    hint: str = ""
+
+    @property
+    def largest(self) -> float:
+        return self.correlations[0] if self.correlations else 0.0
+
+    @property
+    def inseparable(self) -> bool:
+        return bool(self.largest > INSEPARABLE)
+
+    def text(self) -> str:
+        head = (f"{self.a} ({self.direction_a}) and {self.b} ({self.direction_b}): canonical correlation "
+                f"{self.largest:.3f}")
+        if not self.inseparable:
+            return head
+        return (f"{head} > {INSEPARABLE}: cannot be told apart by this recording"
+                + (f"; to separate them: {self.hint}" if self.hint else ""))
+
+    def to_dict(self) -> dict:
+        return {"a": self.a, "b": self.b, "correlation": _f(self.largest),
+                "canonical_correlations": [_f(c) for c in self.correlations], "direction_a": self.direction_a,
+                "direction_b": self.direction_b, "inseparable": self.inseparable, "hint": self.hint,
+                "summary": self.text()}
+
+
+@dataclass
+class Identifiability:
+    """Per candidate its own information, per pair the correlation of their score directions."""
+
+    candidates: dict[str, CandidateInformation]
+    pairs: list[PairCorrelation]
+    """Every pair, most correlated first."""
+    threshold: float = INSEPARABLE
+    seconds: float = 0.0
+    errors: dict[str, str] = field(default_factory=dict)
+    """Candidates left out (their information could not be formed), with the reason."""
+
+    def inseparable(self) -> list[PairCorrelation]:
+        return [p for p in self.pairs if p.inseparable]
+
+    def not_seen(self) -> list[CandidateInformation]:
+        """Candidates with a direction the recording does not excite (partly or not seen)."""
+        return [c for c in self.candidates.values() if not c.seen]
+
+    def pair(self, a: str, b: str) -> PairCorrelation | None:
+        return next((p for p in self.pairs if {p.a, p.b} == {a, b}), None)
+
+    def to_dict(self) -> dict:
+        return {"threshold": self.threshold, "seconds": _f(self.seconds),
+                "candidates": [c.to_dict() for c in self.candidates.values()],
+                "pairs": [p.to_dict() for p in self.pairs],
+                "inseparable": [[p.a, p.b] for p in self.inseparable()],
+                "not_seen": [c.effect for c in self.not_seen()], "errors": dict(self.errors)}
+
+    def table(self) -> str:
+        """Plain text: the candidates not seen, then the pairs that cannot be told apart."""
+        lines = [f"identifiability at the nominal fit ({len(self.candidates)} candidates):"]
+        lines += [f"  {c.effect}: {c.text()}" for c in self.candidates.values() if not c.seen]
+        lines += [f"  {p.text()}" for p in self.inseparable()]
+        if len(lines) == 1:
+            lines.append(f"  every candidate seen, no pair correlated above {self.threshold}")
+        lines += [f"  {k}: {v}" for k, v in self.errors.items()]
+        return "\n".join(lines)
+
+
+def _pair_hint(ea, eb) -> str:
+    parts = [f"{e.name}: {h}" for e in (ea, eb) if (h := str(getattr(e, "hint", "") or ""))]
+    return "; ".join(parts)
+
+
+def _label(eff, i: int) -> str:
+    labels = tuple(getattr(eff, "labels", ()))
+    return labels[i] if i < len(labels) else f"{eff.name}[{i}]"
+
+
+def _excites(eff, i: int) -> str:
+    ex = tuple(getattr(eff, "excites", ()) or ())
+    return str(ex[i]) if i < len(ex) else ""
+
+
+def _inv_sqrt(A):
+    w, V = np.linalg.eigh(0.5 * (A + A.T))
+    w = np.maximum(w, 1e-12 * max(float(w.max()), 1e-300))
+    return (V / np.sqrt(w)) @ V.T
+
+
+def identifiability(prob_base: Problem, traj: Trajectory, effects, rule: NoiseRule | None = None,
+                    window: float = WINDOW, n_residuals: int | None = None) -> Identifiability:
+    """Which candidates the base fit's information sees, and which pairs it cannot tell apart.
+
+    Every candidate is appended at its prior mean (as in :func:`score_test`, all at once) and one
+    linearisation gives the Gauss-Newton information of the data; eliminating the states and the
+    base model's constants leaves the joint information ``J`` of all candidates' unknowns (a
+    per-step effect taken constant on ``window`` s windows).  Per candidate, the smallest
+    eigenvalue of its block scaled by its prior sigmas (:attr:`CandidateInformation.detectability`;
+    below ``ln n`` a prior-sized effect along that direction would not pay for its own degree of
+    freedom: "not seen").  Per pair, the canonical correlations of the two blocks with the priors'
+    information added (the correlations of their estimates were both fitted): the largest above
+    :data:`INSEPARABLE` means one direction of each explains the data in the same way.
+    """
+    import time
+
+    t0 = time.perf_counter()
+    rule = rule or NoiseRule()
+    effects = list(effects)
+    errors: dict[str, str] = {}
+    model = dataclasses.replace(prob_base.model,  # type: ignore[type-var]
+                                effects=tuple(prob_base.effects) + tuple(effects))
+    prob = Problem.build(prob_base.rec, model, rule, prob_base.rest_p, prob_base.rest_R)
+    n, D = prob.n, prob.state_dim
+    means = []
+    for eff in effects:
+        mean, _ = eff.prior(prob)
+        means.append(np.broadcast_to(np.asarray(mean, dtype=float), (n, int(eff.dim))))
+    tr = Trajectory(traj.R, traj.q, traj.W, np.concatenate([traj.e, *means], axis=1))
+    lin = linearize(prob, tr)
+    own = {f"{kind}/{eff.name}" for eff in effects
+           for kind in ("effect_walk", "effect_level", "effect_prior")}
+    lin = Linearization(unary={k: v for k, v in lin.unary.items() if k not in own},
+                        binary={k: v for k, v in lin.binary.items() if k not in own}, cost=lin.cost)
+    lin = drop_global_walks(prob, lin)
+    Hd, B, g = assemble(lin, n, D)
+    d_new = sum(int(e.dim) for e in effects)
+    first = D - d_new
+    gcols = [int(c) for c in global_columns(prob) if c < first]
+    m0 = len(gcols)
+    w = max(1, int(round(window / prob.dt)))
+    starts = list(range(0, n, w))
+    if len(starts) > 1 and n - starts[-1] < w // 2:
+        starts.pop()
+    bounds = [(s, starts[i + 1] if i + 1 < len(starts) else n) for i, s in enumerate(starts)]
+    # columns: base constants, then each candidate (constant: dim; per-step: dim per window)
+    blocks: list[np.ndarray] = []
+    lam: list[np.ndarray] = []
+    col = first
+    m = m0
+    ecols: list[int] = []
+    layout = []
+    for eff in effects:
+        dim = int(eff.dim)
+        ecols.extend(range(col, col + dim))
+        _, s0 = eff.prior(prob)
+        s0 = np.broadcast_to(np.asarray(s0, dtype=float), (dim,))
+        if is_global(eff, prob):
+            layout.append((eff, "constant", [(0, n)], col))
+            blocks.append(np.arange(m, m + dim))
+            lam.append(1.0 / s0**2)
+            m += dim
+        else:
+            layout.append((eff, "windowed", bounds, col))
+            blocks.append(np.arange(m, m + dim * len(bounds)))
+            step = getattr(eff, "step_prior_sigma", None)
+            ss = np.broadcast_to(np.asarray(step(prob), dtype=float), (dim,)) if step is not None else None
+            for k0, k1 in bounds:
+                lam.append((k1 - k0) / ss**2 if ss is not None else 1.0 / s0**2)
+            m += dim * len(bounds)
+        col += dim
+    cidx = np.asarray(gcols + ecols, dtype=int)
+    aidx = np.setdiff1d(np.arange(D), cidx)
+    T = np.zeros((n, len(cidx), m))
+    T[:, :m0, :m0] = np.eye(m0)
+    row = m0
+    for (eff, _kind, spans, _), blk in zip(layout, blocks):
+        dim = int(eff.dim)
+        for j, (k0, k1) in enumerate(spans):
+            T[k0:k1, row:row + dim, blk[0] + dim * j:blk[0] + dim * (j + 1)] = np.eye(dim)
+        row += dim
+    _, Sc = _border_schur(Hd, B, g, aidx, cidx, T)
+    if m0:
+        S00 = Sc[:m0, :m0]
+        X = np.linalg.pinv(S00, rcond=1e-12, hermitian=True) @ Sc[:m0, m0:]
+        J = Sc[m0:, m0:] - Sc[m0:, :m0] @ X
+    else:
+        J = Sc
+    J = 0.5 * (J + J.T)
+    blocks = [b - m0 for b in blocks]
+    Lam = np.concatenate(lam) if lam else np.zeros(0)
+    thr = float(np.log(max(n_residuals or n * 6, 2)))
+    cands: dict[str, CandidateInformation] = {}
+    for (eff, kind, spans, _), blk in zip(layout, blocks):
+        dim = int(eff.dim)
+        _, s0 = eff.prior(prob)
+        s0 = np.broadcast_to(np.asarray(s0, dtype=float), (dim,))
+        if kind == "constant":
+            Sb = J[np.ix_(blk, blk)]
+        else:  # the median window's information: how well a push lasting one window is seen
+            per = [J[np.ix_(blk[dim * j:dim * (j + 1)], blk[dim * j:dim * (j + 1)])] for j in range(len(spans))]
+            mins = [float(np.linalg.eigvalsh(s0[:, None] * P * s0[None, :])[0]) for P in per]
+            Sb = per[int(np.argsort(mins)[len(mins) // 2])]
+        wv, V = np.linalg.eigh(s0[:, None] * Sb * s0[None, :])
+        i = int(np.argmax(np.abs(V[:, 0])))
+        cands[eff.name] = CandidateInformation(eff.name, dim, tuple(getattr(eff, "labels", ())), kind,
+                                               float(max(wv[0], 0.0)), _label(eff, i).split(" [")[0], i, thr,
+                                               _excites(eff, i), float(max(wv[-1], 0.0)))
+    sig = []
+    for (eff, _kind, _spans, _), blk in zip(layout, blocks):
+        _, s0 = eff.prior(prob)
+        sig.append(np.tile(np.broadcast_to(np.asarray(s0, dtype=float), (int(eff.dim),)), len(blk) // int(eff.dim)))
+    pairs: list[PairCorrelation] = []
+    P = J + np.diag(Lam)
+    for ia in range(len(layout)):
+        for ib in range(ia + 1, len(layout)):
+            ea, eb = layout[ia][0], layout[ib][0]
+            A, Bb = blocks[ia], blocks[ib]
+            Wa, Wb = _inv_sqrt(P[np.ix_(A, A)]), _inv_sqrt(P[np.ix_(Bb, Bb)])
+            U, sv, Vt = np.linalg.svd(Wa @ P[np.ix_(A, Bb)] @ Wb)
+            # the canonical directions in multiples of each unknown's prior sigma
+            ua = (Wa @ U[:, 0]) / sig[ia]
+            vb = (Wb @ Vt[0]) / sig[ib]
+            ia_ = int(np.argmax(np.abs(ua))) % int(ea.dim)
+            ib_ = int(np.argmax(np.abs(vb))) % int(eb.dim)
+            pairs.append(PairCorrelation(ea.name, eb.name, [float(min(x, 1.0)) for x in sv[:min(len(A), len(Bb), 6)]],
+                                         _label(ea, ia_).split(" [")[0], _label(eb, ib_).split(" [")[0],
+                                         _pair_hint(ea, eb)))
+    pairs.sort(key=lambda p: -p.largest)
+    return Identifiability(cands, pairs, INSEPARABLE, time.perf_counter() - t0, errors)
