@@ -22,6 +22,9 @@ Method (docs/real-logs.md has the long form):
 * **Grid.** Uniform, from the latest first stamp to the earliest last stamp of the IMU and joint
   topics, at ``rate`` (argument, else ``ros.rate``, else the IMU's median message rate; the
   period is rounded to whole ns).
+* **Missing IMU readings.** A NaN or inf IMU component is a missing reading: the grid points its
+  message brackets are NaN on that axis, which the estimators skip (``meta['imu_missing_messages']``
+  counts the messages; a recording missing more than 10 % is refused when validated).
 * **Resampling.** Linear interpolation onto the grid of the IMU readings, joint positions (and
   message velocities), F/T components; motion-capture positions linearly and orientations by
   normalised linear interpolation of sign-aligned quaternions (nlerp; at 100 Hz it differs from
@@ -321,8 +324,11 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
     gyro_src = np.array([(m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z) for m in imu.msgs])
     acc_src = np.array([(m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z)
                         for m in imu.msgs])
-    _require_finite(imu, gyro_src, "angular_velocity", t_first, "xyz")
-    _require_finite(imu, acc_src, "linear_acceleration", t_first, "xyz")
+    # A NaN or inf reading is a missing one: the grid points it brackets are NaN on that axis, and
+    # the estimators skip them (Recording.validate refuses more than 10 % missing).
+    imu_missing = int(np.sum((~np.isfinite(np.concatenate([gyro_src, acc_src], axis=1))).any(axis=1)))
+    gyro_src = np.where(np.isfinite(gyro_src), gyro_src, np.nan)
+    acc_src = np.where(np.isfinite(acc_src), acc_src, np.nan)
     check_gaps(imu, fatal=True)
     gyro = _interp(imu.t_ns, gyro_src, grid)
     accel = _interp(imu.t_ns, acc_src, grid)
@@ -513,6 +519,7 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
                    "duplicate_stamps": {t: tp.duplicates for t, tp in topics.items() if tp.duplicates}},
         "grid": {"rate_hz": 1.0 / dt, "period_ns": period, "n": n,
                  "method": "linear interpolation (IMU, joints, F/T); nlerp (mocap orientation)"},
+        "imu_missing_messages": imu_missing,
         "joint_velocity": velocity_source,
         "derivative_filter": {"method": "savgol", "window_s": ros.savgol_window, "order": ros.savgol_order},
         "joints_not_measured": [nm for nm, ok in zip(model_names, measured) if not ok],

@@ -231,11 +231,12 @@ class StreamImporter:
             known = "a frame of the URDF" if self.model.model.existFrame(frame_id) else "unknown to the URDF"
             raise BagError(f"topic {self.imu.name} is in frame '{frame_id}' ({known}); expected the IMU frame "
                            f"'{self.config.imu_frame}' of robot config '{self.config.name}'")
-        value = np.concatenate([np.asarray(gyro, float), np.asarray(accel, float)])
-        if value.shape != (6,) or not np.all(np.isfinite(value)):
+        value = np.concatenate([np.asarray(gyro, float).ravel(), np.asarray(accel, float).ravel()])
+        if value.shape != (6,):
             raise DataError(f"topic {self.imu.name} message {self.imu.count} (t = {self._rel(t_ns):.3f} s) has "
-                            f"{'NaN or inf in' if value.shape == (6,) else 'a malformed'} angular_velocity or "
-                            "linear_acceleration; expected finite values")
+                            f"{value.size} angular velocity and linear acceleration components; expected 3 + 3")
+        # a NaN or inf component is a missing reading (as offline): the estimators skip it
+        value = np.where(np.isfinite(value), value, np.nan)
         self._seen(t_ns)
         if self.imu.add(int(t_ns), value, self._t0()) and self.period is None:
             self._imu_first.append(int(t_ns))

@@ -412,11 +412,21 @@ def test_imu_in_another_frame(romeo, tmp_path, good_topics):
         import_bag(write_bag(tmp_path / "i", "mcap", good_topics), romeo)
 
 
-def test_nan_in_a_message(romeo, tmp_path, good_topics):
+def test_nan_imu_reading_is_missing_not_refused(romeo, tmp_path, good_topics):
+    """A NaN IMU component is a missing reading: NaN on that axis at the grid points its message
+    brackets (at most two), the other axes and samples untouched; too many is refused."""
+    clean = import_bag(write_bag(tmp_path / "c", "mcap", good_topics), romeo)
     good_topics["/imu"][1][42][1]["accel"] = np.array([0.0, np.nan, 9.8])
-    with pytest.raises(DataError,
-                       match=r"topic /imu message 42 \(t = 0\.\d+ s\) has NaN or inf in linear_acceleration \(y\)"):
-        import_bag(write_bag(tmp_path / "n", "mcap", good_topics), romeo)
+    rec = import_bag(write_bag(tmp_path / "n", "mcap", good_topics), romeo)
+    assert rec.meta["imu_missing_messages"] == 1
+    bad = np.isnan(rec.accel)
+    assert 1 <= bad[:, 1].sum() <= 2 and not bad[:, [0, 2]].any() and not np.isnan(rec.gyro).any()
+    ok = ~bad[:, 1]
+    assert np.array_equal(rec.accel[ok], clean.accel[ok])
+    for k in range(10, 60):
+        good_topics["/imu"][1][k][1]["gyro"] = np.array([np.inf, 0.0, 0.0])
+    with pytest.raises(DataError, match="missing"):
+        import_bag(write_bag(tmp_path / "m", "mcap", good_topics), romeo)
 
 
 def test_nan_joint_position(romeo, tmp_path, good_topics):
