@@ -32,6 +32,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -48,7 +49,7 @@ def _read_source(path: Path) -> dict:
     with AnyReader([path]) as reader:
         t0 = None
         for conn, t, raw in reader.messages():
-            msg = reader.deserialize(raw, conn.msgtype)
+            msg: Any = reader.deserialize(raw, conn.msgtype)
             stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec or t
             t0 = stamp if t0 is None else min(t0, stamp)
             if conn.msgtype == "sensor_msgs/msg/Imu":
@@ -168,9 +169,9 @@ def stream_run(bag: Path, out: Path, no_cov: bool) -> dict:
         raise RuntimeError(f"{' '.join(cmd)} failed: {stderr.strip()}")
     found = re.search(r"(\d+) steps streamed in ([\d.]+) s \(([\d.]+)x real time\), update ([\d.]+) ms median, "
                       r"([\d.]+) ms p99", stdout)
-    rss = np.array([r for _, r in samples]) if samples else np.zeros(1)
-    tenths = [float(rss[min(len(rss) - 1, int(f * len(rss)))]) for f in np.linspace(0.1, 1.0, 10)]
-    return {"command": " ".join(cmd[2:]), "wall_s": wall, "peak_rss_mb": float(rss.max()),
+    curve = np.array([r for _, r in samples]) if samples else np.zeros(1)
+    tenths = [float(curve[min(len(curve) - 1, int(f * len(curve)))]) for f in np.linspace(0.1, 1.0, 10)]
+    return {"command": " ".join(cmd[2:]), "wall_s": wall, "peak_rss_mb": float(curve.max()),
             "rss_at_tenths_mb": tenths,
             "rss_growth_second_half_mb": float(tenths[-1] - tenths[4]),
             "steps": int(found[1]) if found else None, "stream_wall_s": float(found[2]) if found else None,
