@@ -232,6 +232,11 @@ def test_cli_streams_a_raw_bag(tmp_path: Path):
                                                                                if t.startswith("/estimate")})
     res = _cli("run", WALK, "--robot", ROBOT, "--estimator", "ekf", "--realtime", "-o", tmp_path / "e.csv", "-q")
     assert res.returncode == 1 and "--realtime" in res.stderr
+    # an error of the import (which runs in a child process for a .csv): one line, no output
+    bad = tmp_path / "bad.csv"
+    res = _cli("run", WALK, "--robot", "romeo", "--contacts", "fixed", "--estimator", "fixed-lag", "-o", bad, "-q")
+    assert res.returncode == 1 and "topic /imu is in frame" in res.stderr
+    assert "Traceback" not in res.stderr and len(res.stderr.strip().splitlines()) == 1 and not bad.exists()
 
 
 def test_cli_streams_a_flexforce_recording(tmp_path: Path, pitch):
