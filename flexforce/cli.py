@@ -40,25 +40,57 @@ FILE_SUFFIXES = (".npz", ".csv", ".json", ".html", ".toml", ".txt", ".png", ".py
 """Suffixes refused for an output folder (a bag directory, a report): they name files."""
 
 
-class Progress:
-    """A one-line progress bar on stderr (silent when stderr is not a terminal, unless forced)."""
+PROGRESS_ORIGIN = time.time()
+"""Wall-clock start of the command: the elapsed time of the progress lines counts from it (main()
+sets it; worker processes of --jobs are given the parent's)."""
 
-    def __init__(self, label: str, enabled: bool | None = None, width: int = 30):
+
+def set_progress_origin(origin: float) -> None:
+    """Count the elapsed time of progress lines from ``origin`` (``time.time()`` of the command's start)."""
+    global PROGRESS_ORIGIN
+    PROGRESS_ORIGIN = origin
+
+
+class Progress:
+    """Progress of one stage on stderr.
+
+    On a terminal, a one-line bar redrawn in place; off a terminal (a log file, CI, a pipe), one line
+    when the stage is done, with the elapsed time of the command (``[  12.3 s] fixed-lag: done
+    (4.1 s)``), since a redrawn bar would fill the log with carriage returns.
+
+    Args:
+        enabled: ``None`` chooses by stderr (bar on a terminal, lines elsewhere), ``False`` is silent,
+            ``True`` forces the bar, ``"lines"`` forces the lines.
+    """
+
+    def __init__(self, label: str, enabled: bool | str | None = None, width: int = 30):
         self.label = label
         self.width = width
-        self.enabled = sys.stderr.isatty() if enabled is None else enabled
+        if enabled is None:
+            self.mode = "bar" if sys.stderr.isatty() else "lines"
+        elif enabled == "lines":
+            self.mode = "lines"
+        else:
+            self.mode = "bar" if enabled else "off"
+        self.enabled = self.mode != "off"
         self.start = time.perf_counter()
         self._last = -1
 
     def __call__(self, fraction: float) -> None:
-        if not self.enabled:
+        if self.mode == "off":
             return
         pct = int(100 * min(max(fraction, 0.0), 1.0))
         if pct == self._last:
             return
         self._last = pct
-        filled = int(self.width * pct / 100)
         elapsed = time.perf_counter() - self.start
+        if self.mode == "lines":
+            if pct >= 100:
+                since = time.time() - PROGRESS_ORIGIN
+                sys.stderr.write(f"[{since:7.1f} s] {self.label.strip()}: done ({elapsed:.1f} s)\n")
+                sys.stderr.flush()
+            return
+        filled = int(self.width * pct / 100)
         sys.stderr.write(f"\r{self.label:<24s} [{'#' * filled}{'.' * (self.width - filled)}] {pct:3d}% {elapsed:6.1f}s")
         if pct >= 100:
             sys.stderr.write("\n")
@@ -481,6 +513,27 @@ def _diagnose(args) -> int:
     return 0
 
 
+def _cmd_layout(args) -> int:
+    from flexforce.datasets.safeio import check_output, output_lock, safe_output
+    from flexforce.datasets.viewers import KINDS, layout_topics, layout_topics_of_bag, render_layout
+
+    out = check_output(args.output, f"{args.kind} layout", suffixes=(KINDS[args.kind],))
+    with output_lock(out):
+        if args.bag is not None:
+            if args.estimator or args.truth:
+                raise ConfigError("--bag reads the estimator and the truth topics from the bag itself; expected "
+                                  "--bag alone (or --robot with --estimator/--truth, without --bag)")
+            topics = layout_topics_of_bag(args.bag, args.robot)
+        else:
+            topics = layout_topics(args.robot, args.estimator or "ekf", ft=not args.no_ft, truth=args.truth)
+        text = render_layout(args.kind, topics)
+        with safe_output(out) as tmp:
+            tmp.write_text(text)
+    print(f"wrote {out}: {args.kind} layout for /estimate/{topics.estimator}/, contacts {', '.join(topics.contacts)}"
+          + (f", F/T {', '.join(topics.ft.values())}" if topics.ft else "") + (", truth" if topics.truth else ""))
+    return 0
+
+
 def _apply_urdf(args) -> None:
     """``--urdf``: the robot configuration of ``--robot`` with that URDF (args.robot becomes the
     configuration itself, which every reader of ``--robot`` takes as well as a name)."""
@@ -601,6 +654,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ft", action="store_true", help="fuse the recording's F/T readings as measurements")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_cmd_diagnose)
+
+    p = sub.add_parser("layout", help="a Foxglove (.json) or PlotJuggler (.xml) layout for the bag of "
+                                      "'flexforce run REC -o OUT.mcap'")
+    p.add_argument("kind", choices=("foxglove", "plotjuggler"), help="the viewer")
+    p.add_argument("-o", "--output", required=True, type=Path, help="layout file: .json (foxglove), .xml (plotjuggler)")
+    p.add_argument("--robot", help="robot name or .toml configuration: its contacts, and for raw robot bags its "
+                                   "[ros] F/T and IMU topics (default romeo)")
+    p.add_argument("--bag", type=Path, help="the exported bag: take the estimator, contacts, F/T and truth topics "
+                                            "from it")
+    p.add_argument("--estimator", help="the estimator of 'flexforce run' (default ekf)")
+    p.add_argument("--truth", action="store_true", help="draw the ground truth (bags of 'flexforce simulate')")
+    p.add_argument("--no-ft", action="store_true", help="do not draw the F/T readings")
+    p.set_defaults(func=_cmd_layout)
     return parser
 
 
@@ -655,6 +721,7 @@ def _show_warning(command: str):
 
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; return its exit status (:data:`EXIT_STATUSES`)."""
+    set_progress_origin(time.time())
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
