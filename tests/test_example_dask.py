@@ -31,7 +31,7 @@ def test_example_dask_on_a_local_cluster(tmp_path):
     paths = []
     for seed in (1, 2):
         sc = Scenario.load("push-pitch")
-        sc.duration = 0.4
+        sc.duration = 0.6
         sc.seed = seed
         paths.append(save_recording(Simulator(sc).run(), tmp_path / f"push-{seed}"))
     # one in-process worker thread: the test's own interpreter (processes=False)
