@@ -137,3 +137,20 @@ def test_a_bag_without_an_estimate_is_refused(exported, tmp_path):
     bag = exported.parent / "rec"
     with pytest.raises(BagError, match="no /estimate/<estimator>/ topics"):
         layout_topics_of_bag(bag)
+
+
+def test_layout_of_a_streamed_fixed_lag_run(exported, tmp_path, capsys):
+    """`flexforce run --estimator fixed-lag -o OUT.mcap` streams its estimates into the bag: the
+    layout made for the robot and estimator names only topics that bag holds."""
+    rec_bag = exported.parent / "rec"
+    out = tmp_path / "fl.mcap"
+    assert main(["run", str(rec_bag), "--estimator", "fixed-lag", "--lag", "0.2", "-o", str(out), "-q"]) == 0, \
+        capsys.readouterr().err
+    topics = layout_topics_of_bag(out)
+    assert topics.estimator == "fixed_lag" and topics.contacts == ("left_foot", "right_foot")
+    for kind in KINDS:
+        text = render_layout(kind, topics)
+        assert "/estimate/fixed_lag/tilt" in check_layout(kind, text, out)
+        # the streamed run writes the sensor topics of a flexforce bag (no /truth/...)
+        if not topics.truth:
+            assert text == render_layout(kind, layout_topics("romeo", "fixed-lag"))
