@@ -578,7 +578,8 @@ def write_index(out: str | Path, entries: list[tuple[str, dict]], aggregate: dic
                      "failures": summary.get("failures") or {},
                      "cells": [_fmt((both.get(k) or {}).get("rmse", {}).get(c[0]), c[2]) for k, c in keys]})
     page = environment().get_template("index.html.j2").render(
-        title=f"{title} — {len(entries)} recordings", what="EKF vs fixed-lag vs batch", entries=view,
+        title=f"{title} — {len(entries)} recordings",
+        what="estimators " + ", ".join(k for k, _, baseline in rows if not baseline), entries=view,
         numbers="summary.json", aggregate_rows=rows, columns=columns,
         entry_columns=[f"{k}: {c[1]}" for k, c in keys])
     (out / "index.html").write_text(page)
