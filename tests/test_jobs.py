@@ -102,6 +102,13 @@ def test_bad_jobs_is_one_line(bags, tmp_path, capsys):
         assert err == f"flexforce {command}: error: --jobs 0; expected a positive number of worker processes " \
                       "(1: one at a time, here)\n"
         assert not (tmp_path / "r").exists()
+    # a worker's error is the command's one line, and no report folder is left
+    missing = tmp_path / "missing-bag"
+    assert main(["compare", str(bags[0]), str(missing), "--estimators", "ekf", "--jobs", "2", "-o",
+                 str(tmp_path / "r"), "-q"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("flexforce compare: error:") and "missing-bag" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "r").exists()
 
 
 def test_progress_off_a_terminal_is_one_line_per_stage(bags, tmp_path, capsys):
