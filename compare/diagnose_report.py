@@ -218,7 +218,7 @@ def _write_diagnosis(diag, out: Path, title: str) -> None:
     ident = getattr(diag, "identifiability", None)
     if ident is None:
         err = getattr(diag, "identifiability_error", None)
-        identifiability = {"computed": False, "error": err, "items": []}
+        identifiability: dict = {"computed": False, "error": err, "items": []}
     else:
         identifiability = {"computed": True, "threshold": ident.threshold,
                            "items": [f"{c.effect}: {c.text()}" for c in ident.not_seen()]

@@ -1,6 +1,6 @@
 """Compare the estimators on many recordings over a Dask cluster (docs/many-logs.md).
 
-Each recording is one task: the worker reads the bag, runs the estimators, writes the recording's
+Each recording is one unit of work: the worker reads the bag, runs the estimators, writes the recording's
 report where every worker can reach it (a shared file system) and sends back its Comparison
 without the per-step estimates (a few kB); the client aggregates them as ``flexforce compare``
 does for several recordings (:func:`flexforce.compare.runner.aggregate`) and writes the index.

@@ -455,17 +455,17 @@ def _compare(args) -> int:
 
         with safe_output(out, folder=True) as staging:
             staging.mkdir()
-            tasks = [(label, src, seed, staging / label) for label, src, seed in _unique_labels(sources)]
+            jobs = [(label, src, seed, staging / label) for label, src, seed in _unique_labels(sources)]
             comps = []
-            results = run_jobs(functools.partial(_compare_task, args), tasks, args.jobs, _worker_init,
+            results = run_jobs(functools.partial(_compare_job, args), jobs, args.jobs, _worker_init,
                                (PROGRESS_ORIGIN,))
-            for (label, _, _, _), comp in zip(tasks, results):
+            for (label, _, _, _), comp in zip(jobs, results):
                 comps.append(comp)
                 print(f"{label}:")
                 _print_table(comp)
             agg = aggregate(comps)
             (staging / "summary.json").write_text(json.dumps(agg, indent=2, allow_nan=False))
-            write_index(staging, [(label, comp.summary()) for (label, _, _, _), comp in zip(tasks, comps)], agg)
+            write_index(staging, [(label, comp.summary()) for (label, _, _, _), comp in zip(jobs, comps)], agg)
     print(f"report: {out / 'index.html'}")
     return 0
 
@@ -487,11 +487,11 @@ def _unique_labels(sources: list) -> list:
     return out
 
 
-def _compare_task(args, task):
+def _compare_job(args, job):
     """One recording of a multi-recording comparison (here or in a worker process of --jobs): its
     report in its folder; returns the Comparison without its estimates (they stay in the report)."""
     global PROGRESS_PREFIX
-    label, src, seed, out = task
+    label, src, seed, out = job
     PROGRESS_PREFIX = f"{label}: "
     try:
         rec = _window(_load_or_simulate(src, seed, args.quiet, args.robot, args.contacts), args)
@@ -534,7 +534,7 @@ def _diagnose(args) -> int:
     sources = _unique_labels([(Path(src).stem or str(src), src) for src in args.recording])
     out = Path(args.output)
     if len(sources) == 1:
-        _print_diagnosis(_diagnose_task(args, (None, sources[0][1], out)))
+        _print_diagnosis(_diagnose_job(args, (None, sources[0][1], out)))
     else:
         import json
 
@@ -544,9 +544,9 @@ def _diagnose(args) -> int:
 
         with safe_output(out, folder=True) as staging:  # built aside, swapped in whole
             staging.mkdir()
-            tasks = [(label, src, staging / label) for label, src in sources]
+            jobs = [(label, src, staging / label) for label, src in sources]
             results = []
-            for (label, _, _), result in zip(tasks, run_jobs(functools.partial(_diagnose_task, args), tasks,
+            for (label, _, _), result in zip(jobs, run_jobs(functools.partial(_diagnose_job, args), jobs,
                                                              args.jobs, _worker_init, (PROGRESS_ORIGIN,))):
                 print(f"{label}:")
                 _print_diagnosis(result)
@@ -558,14 +558,14 @@ def _diagnose(args) -> int:
     return 0
 
 
-def _diagnose_task(args, task) -> dict:
+def _diagnose_job(args, job) -> dict:
     """Diagnose one recording (here or in a worker process of --jobs) and write its report; returns
     what the terminal shows and the index lists."""
     global PROGRESS_PREFIX
     from flexforce.compare.diagnose import diagnose, load_plugin, registered_effects
     from flexforce.compare.diagnose_report import diagnosis_summary, write_diagnosis
 
-    label, source, out = task
+    label, source, out = job
     PROGRESS_PREFIX = f"{label}: " if label else ""
     try:
         rec = _window(_load_or_simulate(str(source), args.seed, args.quiet, args.robot, args.contacts), args)
