@@ -6,7 +6,6 @@ given ``Axes`` and never show anything (like :mod:`flexforce.compare.report`).
 
 from __future__ import annotations
 
-import html
 import json
 from pathlib import Path
 
@@ -17,7 +16,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy import stats  # noqa: E402
 
-from flexforce.compare.report import LABELS, report_folder  # noqa: E402
+from flexforce.compare.report import LABELS, environment, report_folder  # noqa: E402
 
 BEFORE, AFTER = "tab:red", "tab:green"
 
@@ -136,83 +135,6 @@ def _fmt(x, digits: int = 3) -> str:
     return f"{x:.{digits}g}"
 
 
-def _screen_cells(c, level) -> str:
-    s = getattr(c, "screen", None)
-    if s is None:
-        return "<td>–</td><td>–</td><td>–</td>"
-    return f"<td>{s.statistic:.1f}</td><td>{s.dof:.1f}</td><td>{s.p_value:.2g}</td>"
-
-
-def ranking_html(diag) -> str:
-    rows = []
-    level = diag.criterion.get("screen_level")
-    for i, c in enumerate(diag.ranking, 1):
-        if c.error:
-            rows.append(f"<tr><td>{i}</td><td>{html.escape(c.effect)}</td><td colspan=10>cannot be fitted: "
-                        f"{html.escape(c.error)}</td></tr>")
-            continue
-        windows = ""
-        if c.screen is not None and c.screen.kind == "windowed" and level is not None:
-            spans = [f"{w.start_s:.2f}–{w.end_s:.2f} s" for w in c.screen.passing_windows(level)]
-            windows = f" (score windows passing: {', '.join(spans) or 'none'})"
-        if not c.refitted:
-            rows.append(f"<tr><td>{i}</td><td style='text-align:left'>{html.escape(c.effect)}</td>"
-                        f"{_screen_cells(c, level)}<td>–</td><td colspan=4 style='text-align:left'>not refitted: "
-                        f"score p = {c.screen.p_value:.2g} ≥ {level}</td><td>no</td>"
-                        f"<td style='text-align:left'>{html.escape(windows)}</td></tr>")
-            continue
-        rows.append(f"<tr><td>{i}</td><td style='text-align:left'>{html.escape(c.effect)}</td>{_screen_cells(c, level)}"
-                    f"<td>{c.round}</td>"
-                    f"<td>{c.score:.1f}</td><td>{c.lr:.1f}</td><td>{c.effective_dof:.1f}</td><td>{c.p_value:.2g}</td>"
-                    f"<td>{'<b>yes</b>' if c.significant else ('implausible' if c.implausible else 'no')}</td>"
-                    f"<td style='text-align:left'>{html.escape((c.finding or c.summary) + windows)}</td></tr>")
-    return ("<table><tr><th>#</th><th>effect</th><th>score test T</th><th>ν (T)</th><th>p (T)</th><th>round</th>"
-            "<th>score (BIC)</th><th>2ΔC</th><th>ν</th><th>p</th>"
-            "<th>significant</th><th>estimate</th></tr>" + "".join(rows) + "</table>")
-
-
-def identifiability_html(diag) -> str:
-    """The candidates the recording does not fully see and the pairs it cannot tell apart."""
-    ident = getattr(diag, "identifiability", None)
-    if ident is None:
-        err = getattr(diag, "identifiability_error", None)
-        return f"<p>Not computed{': ' + html.escape(err) if err else ''}.</p>"
-    items = [f"<li>{html.escape(c.effect)}: {html.escape(c.text())}</li>" for c in ident.not_seen()]
-    items += [f"<li>{html.escape(t)}</li>" for t in diag.identifiability_notes()]
-    return "<ul>" + ("".join(items) or "<li>every candidate seen, no pair correlated above "
-                     f"{ident.threshold}</li>") + "</ul>"
-
-
-def flags_html(flags) -> str:
-    if not flags:
-        return "<p>None: every window is consistent with its noise.</p>"
-    rows = "".join(
-        f"<tr><td style='text-align:left'>{html.escape(f.estimator)}</td><td style='text-align:left'>"
-        f"{html.escape(f.family)}</td><td style='text-align:left'>{html.escape(f.axis)}</td>"
-        f"<td>{f.start_s:.2f}–{f.end_s:.2f}</td><td>{_fmt(f.size)} {html.escape(f.unit)}</td>"
-        f"<td>{_fmt(f.mean)} {html.escape(f.unit)}</td><td>{f.rms_sigma:.1f}</td>"
-        f"<td>{f.chi2:.0f} &gt; {f.bound:.0f}</td></tr>"
-        for f in flags)
-    return ("<table><tr><th>estimator</th><th>family</th><th>axis</th><th>time [s]</th><th>RMS size</th><th>mean</th>"
-            "<th>RMS [σ]</th><th>χ² &gt; bound</th></tr>" + rows + "</table>")
-
-
-def comparison_html(diag) -> str:
-    b, a = diag.before, diag.after
-    head = "<tr><th></th><th>before</th>" + ("<th>after</th>" if a else "") + "</tr>"
-    rows = []
-    for k in b.rmse:
-        if b.rmse.get(k) is None and (a is None or a.rmse.get(k) is None):
-            continue
-        rows.append(f"<tr><th>RMSE {LABELS.get(k, k)}</th><td>{_fmt(b.rmse.get(k))}</td>"
-                    + (f"<td>{_fmt(a.rmse.get(k))}</td>" if a else "") + "</tr>")
-    rows.append(f"<tr><th>flagged windows</th><td>{len(b.flags)}</td>" + (f"<td>{len(a.flags)}</td>" if a else "")
-                + "</tr>")
-    rows.append(f"<tr><th>data cost C</th><td>{b.cost_data:.1f}</td>" + (f"<td>{a.cost_data:.1f}</td>" if a else "")
-                + "</tr>")
-    return "<table>" + head + "".join(rows) + "</table>"
-
-
 def figure_wrench(diag):
     """The external wrench estimated with the added effects, ±2σ, over the true one when known."""
     if diag.after is None:
@@ -276,49 +198,73 @@ def _write_diagnosis(diag, out: Path, title: str) -> None:
         fig.savefig(out / name, dpi=90)
         plt.close(fig)
         written.append(name)
-    info = diag.recording
-    hidden = info.get("hidden_effects") or []
-    hidden_html = "".join(f"<li>{html.escape(json.dumps(h))}</li>" for h in hidden) or "<li>none known</li>"
     crit = diag.criterion
-    ekf_flags = diag.ekf.flags if diag.ekf is not None else []
-    nis = ""
+    level = crit.get("screen_level")
+    ranking = []
+    for c in diag.ranking:
+        windows = ""
+        if c.screen is not None and c.screen.kind == "windowed" and level is not None:
+            spans = [f"{w.start_s:.2f}–{w.end_s:.2f} s" for w in c.screen.passing_windows(level)]
+            windows = f" (score windows passing: {', '.join(spans) or 'none'})"
+        ranking.append({"candidate": c, "screen": getattr(c, "screen", None), "windows": windows})
+    b, a = diag.before, diag.after
+    comparison = [(f"RMSE {LABELS.get(k, k)}", _fmt(b.rmse.get(k)), _fmt(a.rmse.get(k)) if a else None)
+                  for k in b.rmse if b.rmse.get(k) is not None or (a is not None and a.rmse.get(k) is not None)]
+    comparison.append(("flagged windows", str(len(b.flags)), str(len(a.flags)) if a else None))
+    comparison.append(("data cost C", f"{b.cost_data:.1f}", f"{a.cost_data:.1f}" if a else None))
+    nis = None
     if diag.ekf is not None and diag.ekf.metrics.nis is not None:
-        lo, hi = diag.ekf.metrics.nis_bounds
-        nis = f"<p>EKF mean NIS {diag.ekf.metrics.nis:.2f} (95% band for a consistent filter {lo:.2f}–{hi:.2f}).</p>"
-    page = f"""<!DOCTYPE html>
-<html><head><meta charset="utf-8"><title>{html.escape(title)}</title>
-<style>body{{font-family:sans-serif;max-width:1100px;margin:auto}}table{{border-collapse:collapse}}
-td,th{{border:1px solid #ccc;padding:3px 6px;text-align:right}}img{{max-width:100%}}</style></head>
-<body><h1>{html.escape(title)}</h1>
-<p>Robot <b>{html.escape(str(info.get('robot')))}</b>, {info.get('samples')} samples
-({_fmt(info.get('duration_s'))} s). {html.escape(info.get('description') or '')}</p>
-<p>Hidden effects in the data (simulated recordings):</p><ul>{hidden_html}</ul>
-<h2>What this recording can tell apart</h2>
-<p>At the nominal fit, before any refit: the candidates with a direction the recording does not excite, and the
-pairs whose score directions correlate above the threshold (docs/diagnostics.md, "Identifiability").</p>
-{identifiability_html(diag)}
-<h2>Which effect is missing</h2>
-<p>{html.escape(_screen_sentence(crit))}</p>
-<p>Each candidate that passes is refitted on top of the effects already selected and scored by the gain in log
-marginal likelihood (Laplace: the data cost, the priors of the per-step states and their Occam factor),
-2ΔE, less ν ln n for each of its constant unknowns (BIC), with n = {crit.get('n_residuals')} scalar residuals
-(ln n = {_fmt(crit.get('penalty_per_dof'))}); 2ΔE is in the column 2ΔC and ν is the effective degrees of freedom
-the effect adds (docs/diagnostics.md, "The scoring"). Significant: score &gt; 0 and likelihood-ratio p &lt;
-{crit.get('alpha')}. Selected (greedy forward selection): <b>{html.escape(', '.join(diag.selected) or 'none')}</b>.</p>
-{ranking_html(diag)}
-{''.join(f"<p><b>Not told apart:</b> {html.escape(a)}.</p>" for a in diag.ambiguities())}
-<h2>Where the nominal model fails</h2>
-<p>Windows where a whitened residual exceeds its χ² bound (Bonferroni-corrected over all windows and axes);
-sizes are the RMS and mean of the residual in its physical unit.</p>
-{flags_html(diag.before.flags + ekf_flags)}
-{nis}
-<h2>Before and after{(' adding ' + html.escape(', '.join(diag.added))) if diag.added else ''}</h2>
-{comparison_html(diag)}
-{('<h3>Flagged windows after</h3>' + flags_html(diag.after.flags)) if diag.after is not None else
- '<p>Nothing added: rerun with <code>--add NAME</code> (or <code>--add auto</code>) to compare.</p>'}
-{''.join(f'<h2>{html.escape(f[:-4])}</h2><img src="{f}" alt="{f}">' for f in written)}
-<p><small>Numbers: <a href="diagnosis.json">diagnosis.json</a>. Fitted with {html.escape(str(crit.get('fit')))}.
-</small></p>
-</body></html>
-"""
+        nis = (diag.ekf.metrics.nis, *diag.ekf.metrics.nis_bounds)
+    ident = getattr(diag, "identifiability", None)
+    if ident is None:
+        err = getattr(diag, "identifiability_error", None)
+        identifiability: dict = {"computed": False, "error": err, "items": []}
+    else:
+        identifiability = {"computed": True, "threshold": ident.threshold,
+                           "items": [f"{c.effect}: {c.text()}" for c in ident.not_seen()]
+                           + list(diag.identifiability_notes())}
+    page = environment().get_template("diagnosis.html.j2").render(
+        identifiability=identifiability,
+        title=title, info=diag.recording, crit=crit, level=level,
+        hidden=[json.dumps(h) for h in diag.recording.get("hidden_effects") or []],
+        screen_sentence=_screen_sentence(crit), selected=diag.selected, ranking=ranking,
+        ambiguities=diag.ambiguities(), flags_before=diag.before.flags + (diag.ekf.flags if diag.ekf else []),
+        nis=nis, added=diag.added, after=a, comparison=comparison, figures=written)
     (out / "index.html").write_text(page)
+
+
+def diagnosis_summary(diag) -> dict:
+    """The headline of a diagnosis (JSON): the recording, the effects selected and added, the flagged
+    windows before and after, the errors before and after, each candidate's verdict."""
+    data = diag.to_json()
+    after = data.get("after")
+    return {"recording": data["recording"], "selected": data["selected"], "added": data["added"],
+            "flags_before": len(data["before"]["flagged_windows"]),
+            "flags_after": len(after["flagged_windows"]) if after else None,
+            "rmse_before": data["before"]["rmse"], "rmse_after": after["rmse"] if after else None,
+            "ranking": [{"effect": c["effect"], "significant": c["significant"],
+                         "summary": c.get("finding") or c["summary"]} for c in data["ranking"]]}
+
+
+def write_diagnosis_index(out: str | Path, entries: list[tuple[str, dict]],
+                          title: str = "flexforce diagnosis") -> Path:
+    """Write ``out``/index.html for several recordings, each diagnosed in ``out``/<label>/.
+
+    Args:
+        entries: (label, :func:`diagnosis_summary` of its diagnosis) per recording, in order.
+    """
+    out = Path(out)
+    view = []
+    for label, s in entries:
+        best = next((c for c in s["ranking"] if c["significant"]), None)
+        view.append({"label": label, "link": f"{label}/index.html", "info": s["recording"], "failures": {},
+                     "cells": [", ".join(s["selected"]) or "none", best["summary"] if best else "–",
+                               ", ".join(s["added"]) or "–",
+                               f"{s['flags_before']}" + (f" → {s['flags_after']}" if s["flags_after"] is not None
+                                                         else "")]})
+    page = environment().get_template("index.html.j2").render(
+        title=f"{title} — {len(entries)} recordings", what="which effect the nominal model misses", entries=view,
+        numbers="summary.json", aggregate_rows=[], columns=[],
+        entry_columns=["significant effects", "first significant: estimate", "added", "flagged windows"])
+    (out / "index.html").write_text(page)
+    return out

@@ -7,7 +7,7 @@ Figures are drawn from result objects (:class:`~flexforce.compare.runner.Compari
 
 from __future__ import annotations
 
-import html
+import functools
 import json
 import math
 from contextlib import AbstractContextManager
@@ -442,50 +442,32 @@ def _references(summary: dict) -> dict:
     return refs
 
 
-def summary_table_html(summary: dict) -> str:
-    """The summary table, from the very numbers of summary.json (estimators, then baselines)."""
-    refs = _references(summary)
-    cols = [c for c in TABLE_COLUMNS
+@functools.cache
+def environment():
+    """The jinja2 environment of the report templates (``compare/templates``, shipped with the package).
+
+    Autoescaped HTML; the filter ``fmt`` formats a number like the tables do (:func:`_fmt`).
+    """
+    import jinja2
+
+    env = jinja2.Environment(loader=jinja2.PackageLoader("flexforce.compare", "templates"), autoescape=True,
+                             undefined=jinja2.StrictUndefined, trim_blocks=True, lstrip_blocks=True)
+    env.filters["fmt"] = _fmt
+    return env
+
+
+def _summary_columns(summary: dict) -> list:
+    return [c for c in TABLE_COLUMNS
             if any(m["rmse"].get(c[0]) is not None for _, m, _ in _table_rows(summary))] or list(TABLE_COLUMNS[:1])
 
-    def th(c):
-        ref = refs.get(c[0])
-        return f"<th>{html.escape(c[1])}" + (f"<br><small>{html.escape(ref)}</small>" if ref else "") + "</th>"
 
-    head = "".join(th(c) for c in cols)
-    head += ("<th>NEES (18)</th><th>NIS (6)</th><th>median step [µs]</th><th>p99 step [µs]</th>"
-             "<th>amortized step [µs]</th><th>total [s]</th>")
-    head += "<th>peak memory [MB]</th>"
-    rows = []
-    for key, m, baseline in _table_rows(summary):
-        cells = "".join(f"<td>{_fmt(m['rmse'].get(c[0]), c[2])}</td>" for c in cols)
-        if baseline:
-            cells += ('<td colspan="7" style="text-align:center">'
-                      '<i>baseline: no estimation (no NEES, no timing)</i></td>')
-            label = f"{html.escape(key)} <small>(baseline)</small>"
-        else:
-            nb = m.get("nees_bounds")
-            nees = _fmt(m.get("nees")) + (f" <small>[{nb[0]:.1f}, {nb[1]:.1f}]</small>" if nb else "")
-            nib = m.get("nis_bounds")
-            nis = _fmt(m.get("nis")) + (f" <small>[{nib[0]:.2f}, {nib[1]:.2f}]</small>" if nib else "")
-            tps = m.get("time_per_step_s") or {}
-            cells += (f"<td>{nees}</td><td>{nis}</td><td>{_fmt(tps.get('median'), 1e6)}</td>"
-                      f"<td>{_fmt(tps.get('p99'), 1e6)}</td><td>{_fmt(tps.get('amortized'), 1e6)}</td>"
-                      f"<td>{_fmt(m.get('total_time_s'))}</td><td>{_fmt(m.get('peak_memory_mb'))}</td>")
-            label = html.escape(key)
-        rows.append(f'<tr class="{"baseline" if baseline else "estimator"}"><th>{label}</th>{cells}</tr>')
-    return f'<table class="summary"><tr><th>estimator</th>{head}</tr>{"".join(rows)}</table>'
-
-
-def per_contact_table_html(summary: dict) -> str:
-    """Per-contact errors (contact frame, like an F/T sensor): one column group per contact."""
-    contacts = []
+def _contact_groups(summary: dict) -> list:
+    """(contact, its columns with a number in some row) for the per-contact table."""
+    contacts: list[str] = []
     for _, m, _ in _table_rows(summary):
         for c in (m.get("per_contact") or {}):
             if c not in contacts:
                 contacts.append(c)
-    if not contacts:
-        return ""
     groups = []
     for c in contacts:
         keys = [col for col in PER_CONTACT_COLUMNS
@@ -493,18 +475,23 @@ def per_contact_table_html(summary: dict) -> str:
                        for _, m, _ in _table_rows(summary))]
         if keys:
             groups.append((c, keys))
+    return groups
+
+
+def summary_table_html(summary: dict) -> str:
+    """The summary table, from the very numbers of summary.json (estimators, then baselines)."""
+    tables = environment().get_template("_tables.html.j2").module
+    return str(tables.summary_table(list(_table_rows(summary)), _summary_columns(summary),
+                                    _references(summary)))
+
+
+def per_contact_table_html(summary: dict) -> str:
+    """Per-contact errors (contact frame, like an F/T sensor): one column group per contact."""
+    groups = _contact_groups(summary)
     if not groups:
         return ""
-    top = "".join(f'<th colspan="{len(k)}">{html.escape(c)}</th>' for c, k in groups)
-    sub = "".join(f"<th>{html.escape(col[1])}</th>" for _, k in groups for col in k)
-    rows = []
-    for key, m, baseline in _table_rows(summary):
-        pc = m.get("per_contact") or {}
-        cells = "".join(f"<td>{_fmt(pc.get(c, {}).get(col[0]), col[2])}</td>" for c, k in groups for col in k)
-        label = html.escape(key) + (" <small>(baseline)</small>" if baseline else "")
-        rows.append(f"<tr><th>{label}</th>{cells}</tr>")
-    return (f'<table class="per-contact"><tr><th rowspan="2">estimator</th>{top}</tr><tr>{sub}</tr>'
-            f'{"".join(rows)}</table>')
+    tables = environment().get_template("_tables.html.j2").module
+    return str(tables.per_contact_table(list(_table_rows(summary)), groups))
 
 
 def write_report(comp, rec, out_dir: str | Path, title: str | None = None) -> Path:
@@ -543,70 +530,57 @@ def _write_report(comp, rec, out: Path, title: str | None) -> None:
         plt.close(fig)
         figures.append(name)
     info = summary["recording"]
-    title = title or f"flexforce comparison — {info.get('scenario') or info.get('robot')}"
-    effects = info.get("hidden_effects") or []
-    eff_html = "".join(f"<li><code>{html.escape(json.dumps(e))}</code></li>" for e in effects) or "<li>none</li>"
-    fail_html = "".join(f"<li><b>{html.escape(k)}</b>: {html.escape(v)}</li>" for k, v in comp.failures.items())
-    rel = summary.get("rmse_relative_to_ekf", {})
-    rel_rows = "".join(
-        f"<tr><th>{html.escape(k)}</th>" + "".join(f"<td>{_fmt(v.get(c))}</td>" for c in RMSE_KEYS) + "</tr>"
-        for k, v in rel.items())
-    rel_html = (f"<h2>RMSE relative to the EKF</h2><table><tr><th></th>{''.join(f'<th>{c}</th>' for c in RMSE_KEYS)}"
-                f"</tr>{rel_rows}</table>") if rel_rows else ""
-    crb_html = ""
-    crb = summary.get("cramer_rao")
-    if crb:
-        bound = crb["rmse_bound"]
-        cells = "".join(f"<td>{_fmt(bound.get(c))}</td>" for c in RMSE_KEYS)
-        rows = "".join(f"<tr><th>{html.escape(k)} / bound</th>"
-                       + "".join(f"<td>{_fmt(v.get(c))}</td>" for c in RMSE_KEYS)
-                       + "</tr>" for k, v in crb["rmse_relative_to_bound"].items())
-        crb_html = (f"<h2>Cramér–Rao bound</h2><p>RMSE lower bounds of the batch problem's model (its information "
-                    f"matrix at the ground truth), SI units, and each estimator's RMSE relative to them.</p>"
-                    f"<table><tr><th></th>{''.join(f'<th>{c}</th>' for c in RMSE_KEYS)}</tr>"
-                    f"<tr><th>bound</th>{cells}</tr>{rows}</table>")
     extra = []
     for _key, m in comp.metrics.items():
         d = m.extra.get("hand_displacement_by_flexibility_max_m")
         if d is not None:
             extra.append(f"Uncompensated, the flexibility moves the hands by up to {d * 1000:.1f} mm.")
             break
-    per_contact_html = per_contact_table_html(summary)
     win = info.get("window")
-    window_text = (f", the window {win['start_s']:.3f}–{win['end_s']:.3f} s of a {win['of_duration_s']:.3f} s "
-                   f"recording" if win else "")
-    refs = sorted({v for v in _references(summary).values() if v != "truth"})
-    if info.get("has_truth"):
-        ref_text = "Errors against the simulator's ground truth."
-    else:
-        ref_text = ("Errors against reference sensors (" + ", ".join(html.escape(r) for r in refs) + "): references, "
-                    "not ground truth; their own noise, offsets and calibration are part of each error.") if refs else \
-            "No reference sensor in this recording: no errors."
-    baseline_text = ""
-    if summary.get("baselines"):
-        baseline_text = ("<i>leg_odometry</i> is the baseline without estimation: the rigid robot (flexibility = "
-                         "identity: the base orientation of the leg-odometry frame), the weight split between the "
-                         "contacts in force by the static CoM, zero velocity.")
-    page = f"""<!DOCTYPE html>
-<html><head><meta charset="utf-8"><title>{html.escape(title)}</title>
-<style>body{{font-family:sans-serif;max-width:1100px;margin:auto}}table{{border-collapse:collapse}}
-td,th{{border:1px solid #ccc;padding:3px 6px;text-align:right}}img{{max-width:100%}}</style></head>
-<body><h1>{html.escape(title)}</h1>
-<p>Robot <b>{html.escape(str(info.get('robot')))}</b>, {info.get('samples')} samples at {_fmt(info.get('rate_hz'))} Hz
-({_fmt(info.get('duration_s'))} s{window_text}). {html.escape(info.get('description') or '')}</p>
-<p>Hidden effects in the data (not in the estimators' nominal model):</p><ul>{eff_html}</ul>
-<h2>Summary</h2>{summary_table_html(summary)}
-<p>{ref_text} Statistics skip the first 0.5 s (convergence). NEES and NIS are run means with their 95% band
-for a consistent estimator. {baseline_text} {' '.join(extra)}</p>
-{'<h2>Per-contact errors</h2>' + per_contact_html + '<p>Each contact in its sole frame about its origin, as '
- 'an F/T sensor reads it; F_z over every step (zero when the contact is released), the CoP while the foot '
- 'carries more than 5% of the weight in both the estimate and the ' + ('truth' if info.get('has_truth') else
- 'reference') + '.</p>' if per_contact_html else ''}
-{rel_html}
-{crb_html}
-{'<h2>Failures</h2><ul>' + fail_html + '</ul>' if fail_html else ''}
-{''.join(f'<h2>{html.escape(f[:-4])}</h2><img src="{f}" alt="{f}">' for f in figures)}
-<p><small>Numbers: <a href="summary.json">summary.json</a>.</small></p>
-</body></html>
-"""
+    page = environment().get_template("comparison.html.j2").render(
+        title=title or f"flexforce comparison — {info.get('scenario') or info.get('robot')}",
+        info=info,
+        window_text=(f", the window {win['start_s']:.3f}–{win['end_s']:.3f} s of a {win['of_duration_s']:.3f} s "
+                     "recording" if win else ""),
+        effects=[json.dumps(e) for e in info.get("hidden_effects") or []],
+        rows=list(_table_rows(summary)), columns=_summary_columns(summary), refs=_references(summary),
+        references=sorted({v for v in _references(summary).values() if v != "truth"}),
+        has_baselines=bool(summary.get("baselines")), extra=extra,
+        contact_groups=_contact_groups(summary), relative=summary.get("rmse_relative_to_ekf") or {},
+        rmse_keys=RMSE_KEYS, crb=summary.get("cramer_rao"), failures=comp.failures, figures=figures)
     (out / "index.html").write_text(page)
+
+
+INDEX_COLUMNS = (("force_N", "force RMSE [N]", 1), ("vertical_force_N", "F_z RMSE [N]", 1),
+                 ("cop_m", "CoP RMSE [mm]", 1e3), ("rotation_rad", "rotation RMSE [mrad]", 1e3))
+"""Columns of the recordings table of the index (per estimator)."""
+
+
+def write_index(out: str | Path, entries: list[tuple[str, dict]], aggregate: dict,
+                title: str = "flexforce comparison") -> Path:
+    """Write ``out``/index.html for several recordings, each compared in ``out``/<label>/.
+
+    Args:
+        entries: (label, summary of its comparison: :meth:`Comparison.summary`) per recording, in order.
+        aggregate: :func:`flexforce.compare.runner.aggregate` of the comparisons (the mean and spread
+            of every number, written as summary.json beside the index).
+    """
+    out = Path(out)
+    rows = list(_table_rows(aggregate))
+    columns = [c for c in TABLE_COLUMNS if any(m["rmse"].get(c[0]) is not None for _, m, _ in rows)]
+    keys = [(k, c) for k, _, _ in rows for c in INDEX_COLUMNS
+            if any(((s.get("estimators") or {}).get(k) or (s.get("baselines") or {}).get(k) or {})
+                   .get("rmse", {}).get(c[0]) is not None for _, s in entries)]
+    view = []
+    for label, summary in entries:
+        both = {**(summary.get("estimators") or {}), **(summary.get("baselines") or {})}
+        view.append({"label": label, "link": f"{label}/index.html", "info": summary.get("recording") or {},
+                     "failures": summary.get("failures") or {},
+                     "cells": [_fmt((both.get(k) or {}).get("rmse", {}).get(c[0]), c[2]) for k, c in keys]})
+    page = environment().get_template("index.html.j2").render(
+        title=f"{title} — {len(entries)} recordings",
+        what="estimators " + ", ".join(k for k, _, baseline in rows if not baseline), entries=view,
+        numbers="summary.json", aggregate_rows=rows, columns=columns,
+        entry_columns=[f"{k}: {c[1]}" for k, c in keys])
+    (out / "index.html").write_text(page)
+    return out

@@ -5,14 +5,14 @@ from __future__ import annotations
 import os
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from flexforce.compare.metrics import RMSE_KEYS, Metrics, evaluate
-from flexforce.errors import FlexforceError
+from flexforce.errors import ConfigError, FlexforceError
 
 if TYPE_CHECKING:
     from flexforce.compare.crb import CramerRao
@@ -189,6 +189,38 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
         except FlexforceError as err:
             result.failures["cramer_rao"] = f"{type(err).__name__}: {err}"
     return result
+
+
+def run_jobs(fn: Callable[[Any], Any], items: list, jobs: int = 1, initializer: Callable[..., None] | None = None,
+             initargs: tuple = ()) -> Iterator[Any]:
+    """``fn(item)`` for every item, yielded in the items' order; in ``jobs`` worker processes when
+    ``jobs`` > 1 (:class:`concurrent.futures.ProcessPoolExecutor`, fresh interpreters: ``spawn``).
+
+    ``fn`` and the items must pickle (a module-level function, ``functools.partial`` of one).  Each
+    result is computed exactly as with ``jobs=1``, only elsewhere; a worker's exception is raised
+    here, for the first item that failed, and the items not started yet are cancelled.
+
+    Raises:
+        ConfigError: ``jobs`` is not a positive integer.
+    """
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+        raise ConfigError(f"jobs = {jobs!r}; expected a positive number of worker processes (1: in this process)")
+    if jobs == 1 or len(items) <= 1:
+        for item in items:
+            yield fn(item)
+        return
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(max_workers=min(jobs, len(items)), mp_context=multiprocessing.get_context("spawn"),
+                             initializer=initializer, initargs=initargs) as pool:
+        futures = [pool.submit(fn, item) for item in items]
+        try:
+            for future in futures:
+                yield future.result()
+        finally:
+            for future in futures:
+                future.cancel()
 
 
 def aggregate(comparisons: list[Comparison]) -> dict:

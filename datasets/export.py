@@ -27,12 +27,15 @@ topic                     message                                   frame_id
 ``wrench/<contact>``      geometry_msgs/WrenchStamped               ``world``
 ``total_wrench``          geometry_msgs/WrenchStamped               ``world``
 ``cop``                   geometry_msgs/PointStamped                ``world``
+``tilt``                  geometry_msgs/Vector3Stamped: rotation    ``world``
+                          vector of R, rad (x, y: the tilt, z: yaw)
 ========================  ========================================  ==========
 
 Every topic of the input is copied unchanged beside them (ROS 1 messages converted to ROS 2
 CDR); given a :class:`Recording` instead of a bag, its ``/imu``, ``/joint_states``,
 ``/ft/<contact>`` and ``/mocap/<link>`` are written on its grid.  Stamps are the input's
-absolute times, so estimates and measurements line up.
+absolute times, so estimates and measurements line up.  :mod:`flexforce.datasets.viewers` writes
+Foxglove and PlotJuggler layouts for these topics (``flexforce layout``).
 """
 
 from __future__ import annotations
@@ -330,7 +333,8 @@ def _estimate_streams(ts, est: Estimate) -> list[tuple[str, str, Callable[..., A
     M = _Msgs(ts)
     T = M.T
     base = f"/estimate/{_token(est.estimator)}"
-    quat = Rotation.from_matrix(est.R).as_quat()
+    rot = Rotation.from_matrix(est.R)
+    quat, rotvec = rot.as_quat(), rot.as_rotvec()
     pose = np.concatenate([est.t, quat], axis=1)
     streams: list[tuple[str, str, Callable[..., Any]]] = [
         (f"{base}/flexibility", "geometry_msgs/msg/PoseStamped",
@@ -345,6 +349,8 @@ def _estimate_streams(ts, est: Estimate) -> list[tuple[str, str, Callable[..., A
          lambda k, h: T["geometry_msgs/msg/WrenchStamped"](header=h, wrench=M.wrench(est.total_wrench[k]))),
         (f"{base}/cop", "geometry_msgs/msg/PointStamped",
          lambda k, h: T["geometry_msgs/msg/PointStamped"](header=h, point=M.point(est.cop[k]))),
+        (f"{base}/tilt", "geometry_msgs/msg/Vector3Stamped",
+         lambda k, h: T["geometry_msgs/msg/Vector3Stamped"](header=h, vector=M.vec(rotvec[k]))),
     ]
     for i, name in enumerate(est.contact_names):
         streams.append((f"{base}/wrench/{_token(name)}", "geometry_msgs/msg/WrenchStamped",

@@ -17,6 +17,7 @@ locked for the whole command, written aside and moved into place when complete.
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import sys
 import time
@@ -40,25 +41,72 @@ FILE_SUFFIXES = (".npz", ".csv", ".json", ".html", ".toml", ".txt", ".png", ".py
 """Suffixes refused for an output folder (a bag directory, a report): they name files."""
 
 
-class Progress:
-    """A one-line progress bar on stderr (silent when stderr is not a terminal, unless forced)."""
+PROGRESS_ORIGIN = time.time()
+"""Wall-clock start of the command: the elapsed time of the progress lines counts from it (main()
+sets it; worker processes of --jobs are given the parent's)."""
 
-    def __init__(self, label: str, enabled: bool | None = None, width: int = 30):
-        self.label = label
+
+PROGRESS_WORKER = False
+"""In a worker process of --jobs: progress as lines, whatever stderr is (bars of several processes
+would overwrite each other), each prefixed with its recording (:data:`PROGRESS_PREFIX`)."""
+PROGRESS_PREFIX = ""
+
+
+def set_progress_origin(origin: float) -> None:
+    """Count the elapsed time of progress lines from ``origin`` (``time.time()`` of the command's start)."""
+    global PROGRESS_ORIGIN
+    PROGRESS_ORIGIN = origin
+
+
+def _worker_init(origin: float) -> None:
+    """Initialiser of the worker processes of --jobs: the parent's clock, progress as lines."""
+    global PROGRESS_WORKER
+    set_progress_origin(origin)
+    PROGRESS_WORKER = True
+
+
+class Progress:
+    """Progress of one stage on stderr.
+
+    On a terminal, a one-line bar redrawn in place; off a terminal (a log file, CI, a pipe), one line
+    when the stage is done, with the elapsed time of the command (``[  12.3 s] fixed-lag: done
+    (4.1 s)``), since a redrawn bar would fill the log with carriage returns.
+
+    Args:
+        enabled: ``None`` chooses by stderr (bar on a terminal, lines elsewhere), ``False`` is silent,
+            ``True`` forces the bar, ``"lines"`` forces the lines.
+    """
+
+    def __init__(self, label: str, enabled: bool | str | None = None, width: int = 30):
+        self.label = f"{PROGRESS_PREFIX}{label.strip()}" if PROGRESS_PREFIX else label
         self.width = width
-        self.enabled = sys.stderr.isatty() if enabled is None else enabled
+        if PROGRESS_WORKER and enabled is not False:
+            self.mode = "lines"
+        elif enabled is None:
+            self.mode = "bar" if sys.stderr.isatty() else "lines"
+        elif enabled == "lines":
+            self.mode = "lines"
+        else:
+            self.mode = "bar" if enabled else "off"
+        self.enabled = self.mode != "off"
         self.start = time.perf_counter()
         self._last = -1
 
     def __call__(self, fraction: float) -> None:
-        if not self.enabled:
+        if self.mode == "off":
             return
         pct = int(100 * min(max(fraction, 0.0), 1.0))
         if pct == self._last:
             return
         self._last = pct
-        filled = int(self.width * pct / 100)
         elapsed = time.perf_counter() - self.start
+        if self.mode == "lines":
+            if pct >= 100:
+                since = time.time() - PROGRESS_ORIGIN
+                sys.stderr.write(f"[{since:7.1f} s] {self.label.strip()}: done ({elapsed:.1f} s)\n")
+                sys.stderr.flush()
+            return
+        filled = int(self.width * pct / 100)
         sys.stderr.write(f"\r{self.label:<24s} [{'#' * filled}{'.' * (self.width - filled)}] {pct:3d}% {elapsed:6.1f}s")
         if pct >= 100:
             sys.stderr.write("\n")
@@ -376,6 +424,7 @@ def _cmd_compare(args) -> int:
         raise ConfigError(f"--estimators {args.estimators!r} names no estimator; expected a comma-separated list "
                           "such as ekf,fixed-lag,batch")
     args.estimators = [estimator_key(e) for e in names]  # the message of 'run' for an unknown one
+    _check_jobs(args)
     out = _check_report_output(args.output)
     with output_lock(out):
         return _compare(args)
@@ -401,23 +450,56 @@ def _compare(args) -> int:
     else:
         # one folder of reports, built aside and swapped in whole: an interrupted comparison leaves
         # the previous folder (or none), never new reports beside an old index
+        from flexforce.compare.report import write_index
+        from flexforce.compare.runner import run_jobs
+
         with safe_output(out, folder=True) as staging:
             staging.mkdir()
+            jobs = [(label, src, seed, staging / label) for label, src, seed in _unique_labels(sources)]
             comps = []
-            for label, src, seed in sources:
-                rec = _window(_load_or_simulate(src, seed, args.quiet, args.robot, args.contacts), args)
-                comp = _compare_one(rec, args, staging / label)
+            results = run_jobs(functools.partial(_compare_job, args), jobs, args.jobs, _worker_init,
+                               (PROGRESS_ORIGIN,))
+            for (label, _, _, _), comp in zip(jobs, results):
                 comps.append(comp)
                 print(f"{label}:")
                 _print_table(comp)
             agg = aggregate(comps)
             (staging / "summary.json").write_text(json.dumps(agg, indent=2, allow_nan=False))
-            index = "".join(f'<li><a href="{label}/index.html">{label}</a></li>' for label, _, _ in sources)
-            (staging / "index.html").write_text(
-                f"<!DOCTYPE html><html><body><h1>flexforce comparison</h1><ul>{index}</ul>"
-                f"<pre>{json.dumps(agg['estimators'], indent=1)}</pre></body></html>")
+            write_index(staging, [(label, comp.summary()) for (label, _, _, _), comp in zip(jobs, comps)], agg)
     print(f"report: {out / 'index.html'}")
     return 0
+
+
+def _check_jobs(args) -> None:
+    jobs = getattr(args, "jobs", 1)
+    if jobs < 1:
+        raise ConfigError(f"--jobs {jobs}; expected a positive number of worker processes (1: one at a time, here)")
+
+
+def _unique_labels(sources: list) -> list:
+    """The sources with their labels (first item) made unique: recordings of the same name in two
+    folders get their own report folders (``walk``, ``walk-2``)."""
+    seen: dict[str, int] = {}
+    out = []
+    for label, *rest in sources:
+        seen[label] = seen.get(label, 0) + 1
+        out.append((label if seen[label] == 1 else f"{label}-{seen[label]}", *rest))
+    return out
+
+
+def _compare_job(args, job):
+    """One recording of a multi-recording comparison (here or in a worker process of --jobs): its
+    report in its folder; returns the Comparison without its estimates (they stay in the report)."""
+    global PROGRESS_PREFIX
+    label, src, seed, out = job
+    PROGRESS_PREFIX = f"{label}: "
+    try:
+        rec = _window(_load_or_simulate(src, seed, args.quiet, args.robot, args.contacts), args)
+        comp = _compare_one(rec, args, out)
+    finally:
+        PROGRESS_PREFIX = ""
+    comp.estimates, comp.baseline_estimates = {}, {}
+    return comp
 
 
 def _cmd_demo(args) -> int:
@@ -430,6 +512,7 @@ def _cmd_demo(args) -> int:
     args.contacts = "ft"
     args.start = args.end = None
     args.estimators = "ekf,fixed-lag,batch"
+    args.jobs = 1
     print(f"flexforce demo: simulate '{args.recordings[0]}' (Romeo, pushed on the torso then the hand), "
           f"run the EKF, the fixed-lag and the batch smoothers, compare them against ground truth")
     return _cmd_compare(args)
@@ -438,46 +521,109 @@ def _cmd_demo(args) -> int:
 def _cmd_diagnose(args) -> int:
     from flexforce.datasets.safeio import output_lock
 
+    _check_jobs(args)
     out = _check_report_output(args.output)
     with output_lock(out):
         return _diagnose(args)
 
 
 def _diagnose(args) -> int:
-    from flexforce.compare.diagnose import diagnose, load_plugin, registered_effects
-    from flexforce.compare.diagnose_report import write_diagnosis
-
-    rec = _window(_load_or_simulate(str(args.recording), args.seed, args.quiet, args.robot, args.contacts), args)
-    model = _model(rec, args)
-    plugins = [eff for path in args.plugin for eff in load_plugin(path)]
-    if args.candidates:
-        names = [c.strip() for c in args.candidates.split(",") if c.strip()]
-    else:
-        names = list(registered_effects())
-    candidates = names + plugins
-    bars = {}
-
-    def progress(label, fraction):
-        if label not in bars:
-            bars[label] = Progress(f"  {label}"[:24], enabled=not args.quiet and None)
-        bars[label](fraction)
-
     level = None if args.no_screen else args.screen_level
     if level is not None and not 0.0 < level < 1.0:
         raise ConfigError(f"--screen-level {level}; expected a probability in (0, 1) (or --no-screen)")
-    diag = diagnose(rec, model, candidates=candidates, add=args.add, rank=not args.no_rank,
-                    max_effects=args.max_effects, ekf=not args.no_ekf, progress=progress, screen_level=level)
-    out = write_diagnosis(diag, args.output)
-    if diag.ranking:
-        print(diag.ranking_table())
-    print(f"significant: {', '.join(diag.selected) or 'none'}")
-    if diag.after is not None:
-        print(f"added {', '.join(diag.added)}: flagged windows {len(diag.before.flags)} -> {len(diag.after.flags)}")
-        for key, b in diag.before.rmse.items():
-            a = diag.after.rmse.get(key)
+    sources = _unique_labels([(Path(src).stem or str(src), src) for src in args.recording])
+    out = Path(args.output)
+    if len(sources) == 1:
+        _print_diagnosis(_diagnose_job(args, (None, sources[0][1], out)))
+    else:
+        import json
+
+        from flexforce.compare.diagnose_report import write_diagnosis_index
+        from flexforce.compare.runner import run_jobs
+        from flexforce.datasets.safeio import safe_output
+
+        with safe_output(out, folder=True) as staging:  # built aside, swapped in whole
+            staging.mkdir()
+            jobs = [(label, src, staging / label) for label, src in sources]
+            results = []
+            for (label, _, _), result in zip(jobs, run_jobs(functools.partial(_diagnose_job, args), jobs,
+                                                             args.jobs, _worker_init, (PROGRESS_ORIGIN,))):
+                print(f"{label}:")
+                _print_diagnosis(result)
+                results.append((label, result))
+            summary = {"recordings": [{"label": label, **result["summary"]} for label, result in results]}
+            (staging / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=False))
+            write_diagnosis_index(staging, [(label, result["summary"]) for label, result in results])
+    print(f"report: {out / 'index.html'}")
+    return 0
+
+
+def _diagnose_job(args, job) -> dict:
+    """Diagnose one recording (here or in a worker process of --jobs) and write its report; returns
+    what the terminal shows and the index lists."""
+    global PROGRESS_PREFIX
+    from flexforce.compare.diagnose import diagnose, load_plugin, registered_effects
+    from flexforce.compare.diagnose_report import diagnosis_summary, write_diagnosis
+
+    label, source, out = job
+    PROGRESS_PREFIX = f"{label}: " if label else ""
+    try:
+        rec = _window(_load_or_simulate(str(source), args.seed, args.quiet, args.robot, args.contacts), args)
+        model = _model(rec, args)
+        plugins = [eff for path in args.plugin for eff in load_plugin(path)]
+        if args.candidates:
+            names = [c.strip() for c in args.candidates.split(",") if c.strip()]
+        else:
+            names = list(registered_effects())
+        candidates = names + plugins
+        bars = {}
+
+        def progress(label, fraction):
+            if label not in bars:
+                bars[label] = Progress(f"  {label}"[:24], enabled=not args.quiet and None)
+            bars[label](fraction)
+
+        level = None if args.no_screen else args.screen_level
+        diag = diagnose(rec, model, candidates=candidates, add=args.add, rank=not args.no_rank,
+                        max_effects=args.max_effects, ekf=not args.no_ekf, progress=progress, screen_level=level)
+        write_diagnosis(diag, out)
+    finally:
+        PROGRESS_PREFIX = ""
+    rmse = [(key, b, diag.after.rmse.get(key)) for key, b in diag.before.rmse.items()] if diag.after else []
+    return {"ranking_table": diag.ranking_table() if diag.ranking else None, "summary": diagnosis_summary(diag),
+            "rmse": rmse}
+
+
+def _print_diagnosis(result: dict) -> None:
+    s = result["summary"]
+    if result["ranking_table"]:
+        print(result["ranking_table"])
+    print(f"significant: {', '.join(s['selected']) or 'none'}")
+    if s["flags_after"] is not None:
+        print(f"added {', '.join(s['added'])}: flagged windows {s['flags_before']} -> {s['flags_after']}")
+        for key, b, a in result["rmse"]:
             if b is not None and a is not None:
                 print(f"  RMSE {key:14s} {b:10.4g} -> {a:10.4g}")
-    print(f"report: {out / 'index.html'}")
+
+
+def _cmd_layout(args) -> int:
+    from flexforce.datasets.safeio import check_output, output_lock, safe_output
+    from flexforce.datasets.viewers import KINDS, layout_topics, layout_topics_of_bag, render_layout
+
+    out = check_output(args.output, f"{args.kind} layout", suffixes=(KINDS[args.kind],))
+    with output_lock(out):
+        if args.bag is not None:
+            if args.estimator or args.truth:
+                raise ConfigError("--bag reads the estimator and the truth topics from the bag itself; expected "
+                                  "--bag alone (or --robot with --estimator/--truth, without --bag)")
+            topics = layout_topics_of_bag(args.bag, args.robot)
+        else:
+            topics = layout_topics(args.robot, args.estimator or "ekf", ft=not args.no_ft, truth=args.truth)
+        text = render_layout(args.kind, topics)
+        with safe_output(out) as tmp:
+            tmp.write_text(text)
+    print(f"wrote {out}: {args.kind} layout for /estimate/{topics.estimator}/, contacts {', '.join(topics.contacts)}"
+          + (f", F/T {', '.join(topics.ft.values())}" if topics.ft else "") + (", truth" if topics.truth else ""))
     return 0
 
 
@@ -572,6 +718,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ft", action="store_true", help="fuse the recording's F/T readings as measurements")
     p.add_argument("--footholds", action="store_true",
                    help="smoothers: estimate every contact episode's foothold (docs/smoother.md)")
+    p.add_argument("--jobs", "-j", type=int, default=1, metavar="N",
+                   help="compare N recordings at a time, in worker processes (default 1); the results are the same")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_cmd_compare)
 
@@ -583,8 +731,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("diagnose",
                        help="where the nominal model fails, which effect is missing, before/after adding it")
-    p.add_argument("recording", help="bag, or a built-in scenario name / scenario file to simulate")
+    p.add_argument("recording", nargs="+", help="bags, or built-in scenario names / scenario files to simulate "
+                                                "(several: one report folder each, and an index)")
     p.add_argument("-o", "--output", required=True, type=Path, help="report folder (index.html, diagnosis.json)")
+    p.add_argument("--jobs", "-j", type=int, default=1, metavar="N",
+                   help="diagnose N recordings at a time, in worker processes (default 1); the results are the same")
     p.add_argument("--add", action="append", default=[], metavar="NAME",
                    help="refit with this effect and compare before/after (repeatable; 'auto': the significant ones)")
     p.add_argument("--candidates", help="comma-separated effect names to rank (default: every built-in effect)")
@@ -601,6 +752,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ft", action="store_true", help="fuse the recording's F/T readings as measurements")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_cmd_diagnose)
+
+    p = sub.add_parser("layout", help="a Foxglove (.json) or PlotJuggler (.xml) layout for the bag of "
+                                      "'flexforce run REC -o OUT.mcap'")
+    p.add_argument("kind", choices=("foxglove", "plotjuggler"), help="the viewer")
+    p.add_argument("-o", "--output", required=True, type=Path, help="layout file: .json (foxglove), .xml (plotjuggler)")
+    p.add_argument("--robot", help="robot name or .toml configuration: its contacts, and for raw robot bags its "
+                                   "[ros] F/T and IMU topics (default romeo)")
+    p.add_argument("--bag", type=Path, help="the exported bag: take the estimator, contacts, F/T and truth topics "
+                                            "from it")
+    p.add_argument("--estimator", help="the estimator of 'flexforce run' (default ekf)")
+    p.add_argument("--truth", action="store_true", help="draw the ground truth (bags of 'flexforce simulate')")
+    p.add_argument("--no-ft", action="store_true", help="do not draw the F/T readings")
+    p.set_defaults(func=_cmd_layout)
     return parser
 
 
@@ -655,6 +819,7 @@ def _show_warning(command: str):
 
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; return its exit status (:data:`EXIT_STATUSES`)."""
+    set_progress_origin(time.time())
     parser = build_parser()
     try:
         args = parser.parse_args(argv)

@@ -73,7 +73,7 @@ def test_mcap_beside_the_input_topics(tmp_path, kind):
     got = read_bag(out)
     base = "/estimate/fixed_lag"
     assert {"/imu", "/left/wrench", f"{base}/flexibility", f"{base}/flexibility_cov", f"{base}/velocity",
-            f"{base}/acceleration", f"{base}/total_wrench", f"{base}/cop", f"{base}/wrench/left_foot",
+            f"{base}/acceleration", f"{base}/total_wrench", f"{base}/cop", f"{base}/tilt", f"{base}/wrench/left_foot",
             f"{base}/wrench/right_foot"} == set(got)
     assert all(len(v) == 30 for v in got.values())
     imu = got["/imu"][5][1]
@@ -83,6 +83,8 @@ def test_mcap_beside_the_input_topics(tmp_path, kind):
     quat = np.array([(m.pose.orientation.x, m.pose.orientation.y, m.pose.orientation.z, m.pose.orientation.w)
                      for m in flex])
     np.testing.assert_allclose(Rotation.from_quat(quat).as_matrix(), est.R, atol=1e-12)
+    tilt = np.array([(m.vector.x, m.vector.y, m.vector.z) for _, m in got[f"{base}/tilt"]])
+    np.testing.assert_allclose(tilt, Rotation.from_matrix(est.R).as_rotvec(), atol=1e-12)
     stamps = [m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in flex]
     assert stamps == t.tolist() and [tt for tt, _ in got[f"{base}/flexibility"]] == t.tolist()
     wr = np.array([(m.wrench.force.z, m.wrench.torque.x) for _, m in got[f"{base}/wrench/right_foot"]])

@@ -1,0 +1,254 @@
+"""Foxglove and PlotJuggler layouts for the bags that :func:`flexforce.datasets.export.export_mcap` writes.
+
+A layout shows the estimate beside the inputs it was computed from, one tab per question:
+
+========  ==================================================================================
+tab       plots
+========  ==================================================================================
+feet      per contact, the estimated normal force F_z beside the F/T reading (when the robot
+          has F/T sensors) and the ground truth (simulated bags); the total F_z
+cop       centre of pressure x and y, estimated and true
+tilt      the flexibility's tilt (rotation vector x, y, rad) and sinking (t_z, m), estimated
+          and true (t_z)
+imu       the gyrometer and accelerometer readings the estimators were given
+========  ==================================================================================
+
+The curves depend on the robot (its contact names, its F/T topics) and on the estimator
+(``/estimate/<estimator>/...``), so the layouts are rendered from templates shipped with the
+package (``datasets/layouts/*.j2``) for one robot and estimator (:func:`render_layout`), or for
+the topics of an exported bag (:func:`layout_topics_of_bag`); ``flexforce layout`` is the command
+line face.  The F/T readings are in each sensor's frame, the estimate in the world: for a flat
+foot both F_z are the normal force.
+
+Topic names follow :mod:`flexforce.datasets.bagio` (``/imu``, ``/ft/<contact>``,
+``/truth/...``) for flexforce bags, and the robot configuration's ``[ros]`` table
+(``ft_topics``, ``imu_topic``) for raw robot bags.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from flexforce.errors import BagError, ConfigError
+
+__all__ = ["KINDS", "Curve", "LayoutTopics", "Plot", "layout_topics", "layout_topics_of_bag", "panels",
+           "render_layout", "topics_of_layout"]
+
+KINDS = {"foxglove": ".json", "plotjuggler": ".xml"}
+"""Layout kind -> suffix of its file."""
+
+COLORS = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f")
+
+
+def _token(name: str) -> str:
+    """A name as a topic token (the rule of :mod:`flexforce.datasets.export`)."""
+    token = re.sub(r"[^A-Za-z0-9_]", "_", name)
+    return token if re.match(r"^[A-Za-z]", token) else f"e_{token}"
+
+
+@dataclass(frozen=True)
+class LayoutTopics:
+    """The topics a layout draws from."""
+
+    estimator: str
+    """Estimator name as a topic token (``ekf``, ``fixed_lag``, ``batch``)."""
+    contacts: tuple[str, ...]
+    """Contact names as topic tokens."""
+    ft: dict[str, str] = field(default_factory=dict)
+    """Contact token -> geometry_msgs/WrenchStamped topic of its F/T sensor."""
+    imu: str | None = "/imu"
+    """sensor_msgs/Imu topic of the readings, or None."""
+    truth: bool = False
+    """Whether the bag holds the simulator's ``/truth/...`` topics."""
+
+    @property
+    def base(self) -> str:
+        return f"/estimate/{self.estimator}"
+
+
+@dataclass(frozen=True)
+class Curve:
+    topic: str
+    field: tuple[str, ...]
+    """Path of a numeric field in the message (``("wrench", "force", "z")``)."""
+    label: str
+
+
+@dataclass(frozen=True)
+class Plot:
+    title: str
+    curves: tuple[Curve, ...]
+
+
+def layout_topics(robot=None, estimator: str = "ekf", ft: bool = True, truth: bool = False,
+                  raw: bool | None = None) -> LayoutTopics:
+    """The topics of an exported bag of ``robot`` (name, .toml path or RobotConfig).
+
+    Args:
+        estimator: the estimator of ``flexforce run`` (``ekf``, ``fixed-lag``, ``batch``).
+        ft: draw the F/T readings.
+        truth: draw the ground truth (bags of ``flexforce simulate``).
+        raw: the input was a raw robot bag, whose F/T and IMU topics are the robot configuration's
+            ``[ros]`` table; default: when the configuration has one with F/T topics and ``truth``
+            is not asked (simulated bags use ``/imu`` and ``/ft/<contact>``).
+    """
+    from flexforce.datasets.robot import RobotConfig
+    from flexforce.estimators import estimator_key
+
+    config = RobotConfig.load(robot or "romeo")
+    contacts = tuple(_token(c.name) for c in config.contacts)
+    ros = config.ros
+    if raw is None:
+        raw = ros is not None and bool(ros.ft_topics) and not truth
+    if raw and ros is None:
+        raise ConfigError(f"robot {config.name} has no [ros] table: its raw bags' topics are unknown; expected a "
+                          "configuration with [ros] (or the topics of a flexforce bag)")
+    imu = ros.imu_topic if raw and ros is not None else "/imu"
+    ft_topics: dict[str, str] = {}
+    if ft:
+        if raw and ros is not None:
+            ft_topics = {_token(c): t for c, t in ros.ft_topics.items() if _token(c) in contacts}
+        else:
+            ft_topics = {c: f"/ft/{c}" for c in contacts}
+    return LayoutTopics(estimator=_token(estimator_key(estimator)), contacts=contacts, ft=ft_topics, imu=imu,
+                        truth=truth)
+
+
+def bag_topics(path) -> dict[str, str]:
+    """Topic -> message type of a bag (ROS 1 or 2)."""
+    from rosbags.highlevel import AnyReader
+
+    path = Path(path)
+    if not path.exists():
+        raise BagError(f"bag {path} does not exist; expected the output of 'flexforce run ... -o OUT.mcap'")
+    try:
+        with AnyReader([path]) as reader:
+            return {c.topic: c.msgtype for c in reader.connections}
+    except Exception as err:  # noqa: BLE001 -- an unreadable bag: one line
+        raise BagError(f"cannot read bag {path}: {' '.join(str(err).split()) or type(err).__name__}") from err
+
+
+def layout_topics_of_bag(path, robot=None) -> LayoutTopics:
+    """The topics of a bag written by ``flexforce run ... -o OUT.mcap``, read from the bag itself.
+
+    The estimator and the contacts come from its ``/estimate/<estimator>/wrench/<contact>`` topics;
+    F/T readings are ``/ft/<contact>`` topics, or those of ``robot``'s ``[ros] ft_topics`` when given.
+    """
+    topics = bag_topics(path)
+    found = sorted({m[1] for t in topics if (m := re.match(r"^/estimate/([^/]+)/", t))})
+    if not found:
+        raise BagError(f"bag {path} holds no /estimate/<estimator>/ topics; expected a bag written by "
+                       "'flexforce run REC -o OUT.mcap'")
+    if len(found) > 1:
+        raise BagError(f"bag {path} holds the estimates of {', '.join(found)}; expected one estimator per bag")
+    est = found[0]
+    contacts = tuple(m[1] for t in sorted(topics) if (m := re.match(rf"^/estimate/{est}/wrench/([^/]+)$", t)))
+    wrench = "geometry_msgs/msg/WrenchStamped"
+    ft = {c: f"/ft/{c}" for c in contacts if topics.get(f"/ft/{c}") == wrench}
+    imu: str | None = "/imu"
+    if robot is not None:
+        from flexforce.datasets.robot import RobotConfig
+
+        ros = RobotConfig.load(robot).ros
+        if ros is not None:
+            ft.update({_token(c): t for c, t in ros.ft_topics.items() if _token(c) in contacts
+                       and topics.get(t) == wrench})
+            if ros.imu_topic in topics:
+                imu = ros.imu_topic
+    if topics.get(imu or "") != "sensor_msgs/msg/Imu":
+        imu = None
+    truth = "/truth/cop" in topics
+    return LayoutTopics(estimator=est, contacts=contacts, ft=ft, imu=imu, truth=truth)
+
+
+def panels(topics: LayoutTopics) -> list[tuple[str, list[Plot]]]:
+    """The tabs of a layout: (tab name, plots), each plot a list of curves."""
+    b = topics.base
+    feet = []
+    for c in topics.contacts:
+        curves = [Curve(f"{b}/wrench/{c}", ("wrench", "force", "z"), f"{c} F_z estimated")]
+        if c in topics.ft:
+            curves.append(Curve(topics.ft[c], ("wrench", "force", "z"), f"{c} F_z F/T (sensor frame)"))
+        if topics.truth:
+            curves.append(Curve(f"/truth/wrench/{c}", ("wrench", "force", "z"), f"{c} F_z truth"))
+        feet.append(Plot(f"{c}: normal force [N]", tuple(curves)))
+    # the simulator writes per-contact truth wrenches only: the total is the estimate's
+    feet.append(Plot("total normal force [N]", (Curve(f"{b}/total_wrench", ("wrench", "force", "z"),
+                                                      "total F_z estimated"),)))
+    cop = []
+    for ax in "xy":
+        curves = [Curve(f"{b}/cop", ("point", ax), f"CoP {ax} estimated")]
+        if topics.truth:
+            curves.append(Curve("/truth/cop", ("point", ax), f"CoP {ax} truth"))
+        cop.append(Plot(f"centre of pressure {ax} [m]", tuple(curves)))
+    tilt = [Plot("tilt: rotation vector [rad]", (Curve(f"{b}/tilt", ("vector", "x"), "tilt x (roll) estimated"),
+                                                 Curve(f"{b}/tilt", ("vector", "y"), "tilt y (pitch) estimated")))]
+    sink = [Curve(f"{b}/flexibility", ("pose", "position", "z"), "t_z estimated")]
+    if topics.truth:
+        sink.append(Curve("/truth/flexibility", ("pose", "position", "z"), "t_z truth"))
+    tilt.append(Plot("sinking t_z [m]", tuple(sink)))
+    tilt.append(Plot("angular velocity [rad/s]", tuple(Curve(f"{b}/velocity", ("twist", "angular", ax),
+                                                             f"w_{ax} estimated") for ax in "xyz")))
+    tabs = [("feet", feet), ("cop", cop), ("tilt", tilt)]
+    if topics.imu:
+        tabs.append(("imu", [
+            Plot("gyrometer [rad/s]", tuple(Curve(topics.imu, ("angular_velocity", ax), f"gyro {ax}") for ax in "xyz")),
+            Plot("accelerometer [m/s^2]", tuple(Curve(topics.imu, ("linear_acceleration", ax), f"accel {ax}")
+                                                for ax in "xyz"))]))
+    return tabs
+
+
+def _environment():
+    import jinja2
+
+    return jinja2.Environment(loader=jinja2.PackageLoader("flexforce.datasets", "layouts"),
+                              autoescape=jinja2.select_autoescape(enabled_extensions=("xml",),
+                                                                  default_for_string=False),
+                              undefined=jinja2.StrictUndefined, keep_trailing_newline=True)
+
+
+def render_layout(kind: str, topics: LayoutTopics) -> str:
+    """The text of a ``kind`` layout (:data:`KINDS`) for ``topics``."""
+    if kind not in KINDS:
+        raise ConfigError(f"unknown layout kind {kind!r}; expected one of {', '.join(KINDS)}")
+    tabs = []
+    n = 0
+    for name, plots in panels(topics):
+        entries = []
+        for plot in plots:
+            n += 1
+            entries.append({"id": f"Plot!ff{n}", "title": plot.title,
+                            "curves": [{"topic": c.topic, "field": c.field, "label": c.label,
+                                        "color": COLORS[i % len(COLORS)]} for i, c in enumerate(plot.curves)]})
+        tabs.append({"name": name, "plots": entries})
+    template = _environment().get_template(f"{kind}{KINDS[kind]}.j2")
+    return template.render(tabs=tabs, estimator=topics.estimator)
+
+
+def topics_of_layout(kind: str, text: str, known: set[str] | dict | None = None) -> set[tuple[str, tuple[str, ...]]]:
+    """(topic, field path) of every curve a rendered layout names, read back from its text.
+
+    A PlotJuggler curve is one string (``/topic/field/...``): it is split after the longest of the
+    ``known`` topics it starts with (the whole string is the topic when none does).
+    """
+    import json
+    import xml.etree.ElementTree as ET
+
+    out = set()
+    if kind == "foxglove":
+        data = json.loads(text)
+        for config in data["configById"].values():
+            for path in config.get("paths", []):
+                topic, *fields = path["value"].split(".")
+                out.add((topic, tuple(fields)))
+    elif kind == "plotjuggler":
+        for curve in ET.fromstring(text).iter("curve"):
+            name = curve.attrib["name"]
+            topic = max((t for t in (known or ()) if name.startswith(t + "/")), key=len, default=name)
+            out.add((topic, tuple(name[len(topic) + 1:].split("/")) if topic != name else ()))
+    else:
+        raise ConfigError(f"unknown layout kind {kind!r}; expected one of {', '.join(KINDS)}")
+    return out
+

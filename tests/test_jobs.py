@@ -1,0 +1,130 @@
+"""Many recordings: compare and diagnose with --jobs give the results of one process; the index of
+several recordings links each report; progress off a terminal is one line per stage."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import pytest
+
+from flexforce.cli import Progress, main
+from flexforce.compare.runner import run_jobs
+from flexforce.datasets.bagio import save_recording
+from flexforce.datasets.scenario import Scenario
+from flexforce.datasets.simulator import Simulator
+from flexforce.errors import ConfigError
+
+TIMING = {"time_per_step_s", "total_time_s", "peak_memory_mb", "seconds"}
+"""Numbers that measure the machine, not the estimate: they differ between any two runs."""
+
+
+def without_timing(value):
+    if isinstance(value, dict):
+        return {k: without_timing(v) for k, v in value.items() if k not in TIMING}
+    if isinstance(value, list):
+        return [without_timing(v) for v in value]
+    return value
+
+
+@pytest.fixture(scope="module")
+def bags(tmp_path_factory):
+    """Two small simulated recordings (0.6 s of the pushed Romeo, two noise seeds), as bags of one name
+    in two folders (their reports must not overwrite each other)."""
+    tmp = tmp_path_factory.mktemp("jobs")
+    out = []
+    for seed in (1, 2):
+        sc = Scenario.load("push-pitch")
+        sc.duration = 0.6
+        sc.seed = seed
+        (tmp / f"seed{seed}").mkdir()
+        out.append(save_recording(Simulator(sc).run(), tmp / f"seed{seed}" / "push"))
+    return out
+
+
+def test_run_jobs_keeps_the_order_and_raises_the_workers_error():
+    assert list(run_jobs(abs, [-3, 2, -1], jobs=2)) == [3, 2, 1]
+    assert list(run_jobs(abs, [-3], jobs=4)) == [3]
+    with pytest.raises(TypeError):
+        list(run_jobs(abs, [-1, "x"], jobs=2))
+    with pytest.raises(ConfigError, match="jobs = 0; expected a positive number"):
+        list(run_jobs(abs, [1], jobs=0))
+
+
+@pytest.mark.slow
+def test_compare_jobs_gives_the_results_of_one_process(bags, tmp_path, capsys):
+    reports = {}
+    for jobs in (1, 2):
+        out = tmp_path / f"jobs{jobs}"
+        assert main(["compare", *map(str, bags), "--estimators", "ekf,fixed-lag", "--jobs", str(jobs), "-o", str(out),
+                     "-q"]) == 0, capsys.readouterr().err
+        reports[jobs] = out
+    printed = capsys.readouterr().out
+    assert printed.count("push:") == 2 and printed.count("push-2:") == 2
+    for name in ("summary.json", "push/summary.json", "push-2/summary.json"):
+        one, two = (json.loads((reports[j] / name).read_text()) for j in (1, 2))
+        assert without_timing(one) == without_timing(two), name
+    per = [json.loads((reports[2] / f"{label}/summary.json").read_text()) for label in ("push", "push-2")]
+    assert per[0]["estimators"]["ekf"]["rmse"]["force_N"] != per[1]["estimators"]["ekf"]["rmse"]["force_N"]
+    agg = json.loads((reports[2] / "summary.json").read_text())
+    assert agg["estimators"]["fixed_lag"]["count"] == 2
+    # the index links each report and shows the aggregate table with the summary's mean
+    page = (reports[2] / "index.html").read_text()
+    assert 'href="push/index.html"' in page and 'href="push-2/index.html"' in page
+    mean = agg["estimators"]["fixed_lag"]["rmse"]["force_N"]
+    row = re.search(r'<tr class="estimator"><th>fixed_lag</th><td>2</td><td>(.*?) ± ', page)
+    assert row and row.group(1) == f"{mean:.3g}"
+    assert f"{per[1]['estimators']['ekf']['rmse']['force_N']:.3g}" in page
+
+
+@pytest.mark.slow
+def test_diagnose_jobs_gives_the_results_of_one_process(bags, tmp_path, capsys):
+    reports = {}
+    for jobs in (1, 2):
+        out = tmp_path / f"jobs{jobs}"
+        assert main(["diagnose", *map(str, bags), "--candidates", "gyro-bias", "--no-ekf", "--jobs", str(jobs),
+                     "-o", str(out), "-q"]) == 0, capsys.readouterr().err
+        reports[jobs] = out
+    for name in ("summary.json", "push/diagnosis.json", "push-2/diagnosis.json"):
+        one, two = (json.loads((reports[j] / name).read_text()) for j in (1, 2))
+        assert without_timing(one) == without_timing(two), name
+    summary = json.loads((reports[2] / "summary.json").read_text())
+    assert [r["label"] for r in summary["recordings"]] == ["push", "push-2"]
+    page = (reports[2] / "index.html").read_text()
+    assert 'href="push/index.html"' in page and 'href="push-2/index.html"' in page
+    assert (reports[2] / "push-2" / "index.html").is_file()
+
+
+def test_bad_jobs_is_one_line(bags, tmp_path, capsys):
+    for command in ("compare", "diagnose"):
+        assert main([command, str(bags[0]), "--jobs", "0", "-o", str(tmp_path / "r"), "-q"]) == 1
+        err = capsys.readouterr().err
+        assert err == f"flexforce {command}: error: --jobs 0; expected a positive number of worker processes " \
+                      "(1: one at a time, here)\n"
+        assert not (tmp_path / "r").exists()
+    # a worker's error is the command's one line, and no report folder is left
+    missing = tmp_path / "missing-bag"
+    assert main(["compare", str(bags[0]), str(missing), "--estimators", "ekf", "--jobs", "2", "-o",
+                 str(tmp_path / "r"), "-q"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("flexforce compare: error:") and "missing-bag" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "r").exists()
+
+
+def test_progress_off_a_terminal_is_one_line_per_stage(bags, tmp_path, capsys):
+    bar = Progress("stage")  # pytest's stderr is not a terminal
+    for f in (0.0, 0.3, 0.7, 1.0, 1.0):
+        bar(f)
+    err = capsys.readouterr().err
+    assert re.fullmatch(r"\[ *\d+\.\d s\] stage: done \(\d+\.\d s\)\n", err), err
+    Progress("quiet", enabled=False)(1.0)
+    forced = Progress("bar", enabled=True)
+    forced(0.5)
+    forced(1.0)
+    err = capsys.readouterr().err
+    assert "quiet" not in err and err.startswith("\rbar") and "100%" in err and err.endswith("\n")
+    # a whole command: one line per stage, none redrawn
+    assert main(["compare", str(bags[0]), "--estimators", "ekf", "-o", str(tmp_path / "r")]) == 0
+    lines = capsys.readouterr().err.splitlines()
+    assert lines and "\r" not in "".join(lines)
+    assert any(re.fullmatch(r"\[ *\d+\.\d s\] ekf: done \(\d+\.\d s\)", line) for line in lines), lines

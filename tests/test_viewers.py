@@ -1,0 +1,156 @@
+"""Foxglove and PlotJuggler layouts name only topics and fields that the exported bag holds."""
+
+from __future__ import annotations
+
+import json
+import math
+import xml.etree.ElementTree as ET
+
+import pytest
+
+from flexforce.cli import main
+from flexforce.datasets.bagio import save_recording
+from flexforce.datasets.export import export_mcap
+from flexforce.datasets.scenario import Scenario
+from flexforce.datasets.simulator import Simulator
+from flexforce.datasets.viewers import (
+    KINDS,
+    bag_topics,
+    layout_topics,
+    layout_topics_of_bag,
+    render_layout,
+    topics_of_layout,
+)
+from flexforce.estimators import run_estimator
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    """A 0.4 s simulated recording saved as a bag (with its truth), the EKF run on it and exported."""
+    tmp = tmp_path_factory.mktemp("viewers")
+    sc = Scenario.load("push-pitch")
+    sc.duration = 0.4
+    rec = Simulator(sc).run()
+    bag = save_recording(rec, tmp / "rec")
+    est = run_estimator("ekf", rec)
+    return export_mcap(est, bag, tmp / "rec-ekf.mcap")
+
+
+def first_messages(bag) -> dict:
+    """Topic -> its first message, deserialised."""
+    from rosbags.highlevel import AnyReader
+
+    out: dict = {}
+    with AnyReader([bag]) as reader:
+        for conn, _, raw in reader.messages():
+            if conn.topic not in out:
+                out[conn.topic] = reader.deserialize(raw, conn.msgtype)
+    return out
+
+
+def check_layout(kind, text, bag) -> set[str]:
+    """Every curve of the layout is a numeric field of a topic of ``bag``; returns the topics named."""
+    topics = bag_topics(bag)
+    messages = first_messages(bag)
+    curves = topics_of_layout(kind, text, topics)
+    assert curves
+    for topic, fields in curves:
+        assert topic in topics, f"{kind} layout names {topic}, which the export does not write"
+        value = messages[topic]
+        for name in fields:
+            assert hasattr(value, name), f"{topic}: no field {'.'.join(fields)}"
+            value = getattr(value, name)
+        assert isinstance(value, float) and math.isfinite(value), (topic, fields, value)
+    return {t for t, _ in curves}
+
+
+@pytest.mark.parametrize("kind", list(KINDS))
+def test_layouts_name_only_exported_topics(exported, kind):
+    from_bag = render_layout(kind, layout_topics_of_bag(exported))
+    from_robot = render_layout(kind, layout_topics("romeo", "ekf", truth=True))
+    assert from_bag == from_robot
+    named = check_layout(kind, from_bag, exported)
+    # the estimate beside the inputs: forces per foot with F/T and truth, CoP, tilt, IMU
+    for topic in ("/estimate/ekf/wrench/left_foot", "/estimate/ekf/wrench/right_foot", "/ft/left_foot",
+                  "/truth/wrench/right_foot", "/estimate/ekf/cop", "/truth/cop", "/estimate/ekf/tilt", "/imu"):
+        assert topic in named, topic
+    # a layout for another estimator's export names that estimator's topics, which this bag lacks
+    topics = bag_topics(exported)
+    other = topics_of_layout(kind, render_layout(kind, layout_topics("romeo", "batch")), topics)
+    missing = {t for t, _ in other if t not in topics}
+    assert missing and all(t.startswith("/estimate/batch/") for t in missing), missing
+    with pytest.raises(AssertionError, match="which the export does not write"):
+        check_layout(kind, render_layout(kind, layout_topics("romeo", "batch")), exported)
+
+
+def test_layout_files_parse_and_hold_one_tab_per_question(exported):
+    fox = json.loads(render_layout("foxglove", layout_topics_of_bag(exported)))
+    tabs = fox["configById"][fox["layout"]]["tabs"]
+    assert [t["title"] for t in tabs] == ["feet", "cop", "tilt", "imu"]
+    plots = [k for k in fox["configById"] if k.startswith("Plot!")]
+
+    def leaves(node):
+        return [node] if isinstance(node, str) else leaves(node["first"]) + leaves(node["second"])
+
+    assert sorted(p for t in tabs for p in leaves(t["layout"])) == sorted(plots)
+    pj = ET.fromstring(render_layout("plotjuggler", layout_topics_of_bag(exported)))
+    assert [t.attrib["tab_name"] for t in pj.iter("Tab")] == ["feet", "cop", "tilt", "imu"]
+    for splitter in pj.iter("DockSplitter"):
+        assert int(splitter.attrib["count"]) == len(splitter.findall("DockArea"))
+
+
+def test_raw_robot_layout_takes_the_ros_topics():
+    topics = layout_topics("icub", "fixed-lag")
+    assert topics.estimator == "fixed_lag"
+    assert topics.ft == {"left_foot": "/left_foot/wrench", "right_foot": "/right_foot/wrench"}
+    text = render_layout("plotjuggler", topics)
+    assert 'name="/left_foot/wrench/wrench/force/z"' in text and "/truth/" not in text
+    assert "/ft/" not in render_layout("foxglove", layout_topics("icub", truth=True, ft=False))
+
+
+def test_cli_layout(exported, tmp_path, capsys):
+    out = tmp_path / "view.json"
+    assert main(["layout", "foxglove", "--bag", str(exported), "-o", str(out)]) == 0
+    assert "left_foot, right_foot" in capsys.readouterr().out
+    check_layout("foxglove", out.read_text(), exported)
+    out = tmp_path / "view.xml"
+    assert main(["layout", "plotjuggler", "--robot", "romeo", "--truth", "-o", str(out)]) == 0
+    check_layout("plotjuggler", out.read_text(), exported)
+    # bad input: one line, status 1
+    assert main(["layout", "foxglove", "--bag", str(tmp_path / "none.mcap"), "-o", str(tmp_path / "a.json")]) == 1
+    assert "does not exist" in capsys.readouterr().err
+    assert main(["layout", "foxglove", "--robot", "romeo", "-o", str(tmp_path / "a.xml")]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("flexforce layout: error:") and ".json" in err and err.count("\n") == 1
+    assert main(["layout", "plotjuggler", "--bag", str(exported), "--truth", "-o", str(tmp_path / "b.xml")]) == 1
+    assert "--bag reads" in capsys.readouterr().err
+    assert main(["layout", "plotjuggler", "--robot", "nobody", "-o", str(tmp_path / "b.xml")]) == 1
+    assert "unknown robot 'nobody'" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_:
+        main(["layout", "rviz", "-o", str(tmp_path / "c.json")])
+    assert exit_.value.code == 2
+
+
+def test_a_bag_without_an_estimate_is_refused(exported, tmp_path):
+    from flexforce.errors import BagError
+
+    bag = exported.parent / "rec"
+    with pytest.raises(BagError, match="no /estimate/<estimator>/ topics"):
+        layout_topics_of_bag(bag)
+
+
+def test_layout_of_a_streamed_fixed_lag_run(exported, tmp_path, capsys):
+    """`flexforce run --estimator fixed-lag -o OUT.mcap` streams its estimates into the bag: the
+    layout made for the robot and estimator names only topics that bag holds."""
+    rec_bag = exported.parent / "rec"
+    out = tmp_path / "fl.mcap"
+    assert main(["run", str(rec_bag), "--estimator", "fixed-lag", "--lag", "0.2", "-o", str(out), "-q"]) == 0, \
+        capsys.readouterr().err
+    topics = layout_topics_of_bag(out)
+    assert topics.estimator == "fixed_lag" and topics.contacts == ("left_foot", "right_foot")
+    for kind in KINDS:
+        text = render_layout(kind, topics)
+        assert "/estimate/fixed_lag/tilt" in check_layout(kind, text, out)
+        # the streamed run writes the sensor topics of a flexforce bag (no /truth/...)
+        if not topics.truth:
+            assert text == render_layout(kind, layout_topics("romeo", "fixed-lag"))
