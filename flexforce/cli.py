@@ -269,7 +269,7 @@ def _run_stream(args) -> int:
     """The streaming fixed-lag run (:func:`flexforce.smoother.stream.run_stream`)."""
     import itertools
 
-    from flexforce.datasets.export import EstimateWriter, _write_recording
+    from flexforce.datasets.export import EstimateWriter, _copy_bag
     from flexforce.smoother import FixedLagConfig
     from flexforce.smoother.stream import run_stream
 
@@ -280,9 +280,9 @@ def _run_stream(args) -> int:
         args._copy = (lambda reader, conn, t, raw: writer.copy(reader, conn, t, raw)) if out.suffix == ".mcap" \
             else None
         parts, rec = _stream_parts(args)
-        if rec is not None:  # a flexforce bag: its inputs into the .mcap from the recording
+        if rec is not None:  # a flexforce bag: every topic of it (inputs, truth) into the .mcap
             if out.suffix == ".mcap":
-                _write_recording(writer._writer, writer._ts, rec)
+                _copy_bag(writer._writer, writer._ts, Path(args.recording))
         elif args.start is not None or args.end is not None:
             parts = _window_parts(parts, args.start, args.end)
         parts = iter(parts)

@@ -10,7 +10,6 @@ asserted on the stream's own buffers; the peak RSS of an hour-long log is a benc
 from __future__ import annotations
 
 import dataclasses
-import json
 import subprocess
 import sys
 from pathlib import Path
@@ -251,4 +250,14 @@ def test_cli_streams_a_flexforce_recording(tmp_path: Path, pitch):
     b = np.loadtxt(tmp_path / "b.csv", delimiter=",", skiprows=1)
     assert a.shape == b.shape
     assert np.max(np.abs(a - b)) <= 1e-9
-    json.dumps({"ok": True})
+    # into a bag: the estimate beside every topic of the input, ground truth included
+    res = _cli("run", bag, "--estimator", "fixed-lag", "-o", tmp_path / "c.mcap", "-q")
+    assert res.returncode == 0, res.stderr
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([tmp_path / "c.mcap"]) as reader:
+        out_topics = {c.topic for c in reader.connections}
+    with AnyReader([bag]) as reader:
+        in_topics = {c.topic for c in reader.connections}
+    assert in_topics <= out_topics and any(t.startswith("/truth") for t in in_topics)
+    assert "/estimate/fixed_lag/total_wrench" in out_topics
