@@ -20,6 +20,10 @@ if TYPE_CHECKING:
 DEFAULT_ESTIMATORS = ("ekf", "fixed-lag", "batch")
 
 
+REJECTED_LISTED = 200
+"""Sensor samples left out or down-weighted listed per estimator in summary.json (all are counted)."""
+
+
 def summary_key(name: str) -> str:
     """``fixed-lag`` -> ``fixed_lag`` (the keys of summary.json)."""
     return name.replace("-", "_")
@@ -170,6 +174,13 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
                                                     for k, v in chosen.items()}
         if "foothold" in est.effects:
             result.metrics[key].extra["footholds"] = est.effects["foothold"].get("summary")
+        rejected = est.meta.get("rejected")
+        if rejected is not None:
+            from flexforce.datasets.faults import summarize
+
+            result.metrics[key].extra["rejected"] = {
+                "count": len(rejected), "summary": summarize(rejected) if rejected else "",
+                "samples": rejected[:REJECTED_LISTED], "listed": min(len(rejected), REJECTED_LISTED)}
     if baseline:
         from flexforce.compare.baseline import NAME, leg_odometry
 

@@ -164,3 +164,24 @@ def test_contact_detection_holds_across_nan_force():
     assert schmitt_trigger(f, on=150.0, off=100.0).all()
     f[:5] = np.nan  # a log starting with a gap: the first finite sample decides
     assert schmitt_trigger(f, on=150.0, off=100.0).all()
+
+
+def test_rejected_samples_reach_summary_json(clean, tmp_path):
+    """A comparison's summary.json lists, per estimator, the samples left out (here a NaN accelerometer
+    axis and a NaN gyrometer reading, each a missing entry) with the count and the one-line summary."""
+    import json
+
+    from flexforce.compare.report import write_report
+    from flexforce.compare.runner import compare
+
+    rec, model = _fault(clean, "nan")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        comp = compare(rec, estimators=["ekf", "fixed-lag"], model=model)
+    write_report(comp, rec, tmp_path / "report")
+    summary = json.loads((tmp_path / "report" / "summary.json").read_text())
+    for key in ("ekf", "fixed_lag"):
+        rejected = summary["estimators"][key]["extra"]["rejected"]
+        missing = [e for e in rejected["samples"] if e["reason"] == "missing"]
+        assert {e["step"] for e in missing} == {K0, K0 + 3}, key
+        assert rejected["count"] == len(rejected["samples"]) and "missing" in rejected["summary"]
