@@ -92,6 +92,15 @@ class Progress:
         self.start = time.perf_counter()
         self._last = -1
 
+    def note(self, message: str) -> None:
+        """Off a terminal, one line with the stage's news (which candidate, its statistic); on a
+        terminal the bar says enough."""
+        if self.mode != "lines" or not message:
+            return
+        since = time.time() - PROGRESS_ORIGIN
+        sys.stderr.write(f"[{since:7.1f} s] {self.label.strip()}: {message}\n")
+        sys.stderr.flush()
+
     def __call__(self, fraction: float) -> None:
         if self.mode == "off":
             return
@@ -578,9 +587,11 @@ def _diagnose_job(args, job) -> dict:
         candidates = names + plugins
         bars = {}
 
-        def progress(label, fraction):
+        def progress(label, fraction, message=None):
             if label not in bars:
                 bars[label] = Progress(f"  {label}"[:24], enabled=not args.quiet and None)
+            if message:
+                bars[label].note(message)
             bars[label](fraction)
 
         level = None if args.no_screen else args.screen_level
