@@ -14,9 +14,11 @@ It is written message by message, then run through the command line as a user wo
 
     flexforce run LONG.mcap --robot icub-identified --estimator fixed-lag -o OUT.csv [--no-cov]
 
-in a child process whose resident memory (``VmRSS``) is sampled every second: the peak, and the
-memory at each tenth of the run (flat = bounded).  The throughput and update times are the
-command's own report.  The batch smoother is timed on the first 5, 10, 20, 40, 80 s of the same
+in a child process whose memory is sampled every second: the proportional set size (PSS) of the
+command and of its own child (the import runs in a forked process; PSS shares their common pages
+between them, so the sum is what the run takes) -- the peak, and the memory at each tenth of the
+run (flat = bounded) -- and the command's resident set (RSS, shared pages counted in full).  The
+throughput and update times are the command's own report.  The batch smoother is timed on the first 5, 10, 20, 40, 80 s of the same
 log (imported offline), each in a fresh process (peak RSS from ``ru_maxrss``).
 """
 
@@ -142,13 +144,32 @@ def make_long_bag(out: Path, seconds: float, rate: float, source: Path = SOURCE)
     return out
 
 
-def _rss_mb(pid: int) -> float | None:
-    try:
-        text = Path(f"/proc/{pid}/status").read_text()
-    except OSError:
-        return None
-    found = re.search(r"VmRSS:\s+(\d+) kB", text)
-    return int(found[1]) / 1024.0 if found else None
+def _children(pid: int) -> list[int]:
+    out = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            out += [int(c) for c in (task / "children").read_text().split()]
+        except OSError:
+            continue
+    return out
+
+
+def _memory_mb(pid: int) -> tuple[float, float] | None:
+    """(PSS of the process and its children, RSS of the process), MB.  PSS counts a page shared by
+    n processes (the import's child is forked: the libraries' pages are shared) as 1/n in each, so
+    the sum is the memory the run takes; RSS counts shared pages in full in every process."""
+    total, rss = 0.0, None
+    for p in [pid] + _children(pid):
+        try:
+            text = Path(f"/proc/{p}/smaps_rollup").read_text()
+        except OSError:
+            continue
+        pss = re.search(r"^Pss:\s+(\d+) kB", text, re.M)
+        total += int(pss[1]) / 1024.0 if pss else 0.0
+        if p == pid:
+            found = re.search(r"^Rss:\s+(\d+) kB", text, re.M)
+            rss = int(found[1]) / 1024.0 if found else None
+    return (total, rss) if rss is not None else None
 
 
 def stream_run(bag: Path, out: Path, no_cov: bool) -> dict:
@@ -159,9 +180,9 @@ def stream_run(bag: Path, out: Path, no_cov: bool) -> dict:
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     samples = []
     while proc.poll() is None:
-        rss = _rss_mb(proc.pid)
-        if rss is not None:
-            samples.append((time.perf_counter() - t0, rss))
+        mem = _memory_mb(proc.pid)
+        if mem is not None:
+            samples.append((time.perf_counter() - t0, *mem))
         time.sleep(1.0)
     stdout, stderr = proc.communicate()
     wall = time.perf_counter() - t0
@@ -169,11 +190,12 @@ def stream_run(bag: Path, out: Path, no_cov: bool) -> dict:
         raise RuntimeError(f"{' '.join(cmd)} failed: {stderr.strip()}")
     found = re.search(r"(\d+) steps streamed in ([\d.]+) s \(([\d.]+)x real time\), update ([\d.]+) ms median, "
                       r"([\d.]+) ms p99", stdout)
-    curve = np.array([r for _, r in samples]) if samples else np.zeros(1)
+    curve = np.array([m for _, m, _ in samples]) if samples else np.zeros(1)
+    rss = np.array([r for _, _, r in samples]) if samples else np.zeros(1)
     tenths = [float(curve[min(len(curve) - 1, int(f * len(curve)))]) for f in np.linspace(0.1, 1.0, 10)]
-    return {"command": " ".join(cmd[2:]), "wall_s": wall, "peak_rss_mb": float(curve.max()),
-            "rss_at_tenths_mb": tenths,
-            "rss_growth_second_half_mb": float(tenths[-1] - tenths[4]),
+    return {"command": " ".join(cmd[2:]), "wall_s": wall, "peak_pss_mb": float(curve.max()),
+            "pss_at_tenths_mb": tenths, "pss_growth_second_half_mb": float(tenths[-1] - tenths[4]),
+            "peak_rss_main_process_mb": float(rss.max()),
             "steps": int(found[1]) if found else None, "stream_wall_s": float(found[2]) if found else None,
             "realtime_factor": float(found[3]) if found else None,
             "update_median_ms": float(found[4]) if found else None,
