@@ -45,7 +45,7 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from flexforce.errors import EstimatorError
+from flexforce.errors import ConfigError, EstimatorError
 from flexforce.factors import core
 from flexforce.factors import gtsam_factors as gf
 from flexforce.options import (
@@ -114,6 +114,10 @@ class GtsamFixedLagSmoother:
         check_positive("GtsamFixedLagSmoother", "relinearize_threshold", relinearize_threshold, "",
                        "a positive number or None", optional=True)
         check_int("GtsamFixedLagSmoother", "relinearize_skip", relinearize_skip, 1, "updates", "an integer >= 1")
+        if prob.effects:
+            raise ConfigError("the gtsam fixed-lag backend does not take effects (got "
+                              + ", ".join(e.name for e in prob.effects) + "); use backend='window', or the "
+                              "batch graph of flexforce.smoother.to_gtsam")
         self.prob = prob
         self.builder = GraphBuilder(prob)
         self.lag_steps = max(1, int(round(lag / prob.dt)))
