@@ -106,10 +106,19 @@ def predict_step(R_prev, q_prev, dt: float):
 
 class GtsamFixedLagSmoother:
     """gtsam's IncrementalFixedLagSmoother on the CustomFactors (reference backend, no effects):
-    call :meth:`step` once per sample (in order), then :meth:`finish`."""
+    call :meth:`step` once per sample (in order), then :meth:`finish`.
+
+    ``kind="batch"``: gtsam's BatchFixedLagSmoother instead (Levenberg-Marquardt over the whole
+    window at every update, ``lm_params`` default gtsam's; no marginal covariances: ``covariance``
+    must be False), for comparison (benchmarks/smoother_speed.py)."""
 
     def __init__(self, prob: Problem, lag: float = 1.0, relinearize_threshold: float | None = None,
-                 relinearize_skip: int = 10, covariance: bool = True):
+                 relinearize_skip: int = 10, covariance: bool = True, kind: str = "incremental",
+                 lm_params: gtsam.LevenbergMarquardtParams | None = None):
+        check_choice("GtsamFixedLagSmoother", "kind", kind, ("incremental", "batch"))
+        if kind == "batch" and covariance:
+            raise ConfigError("GtsamFixedLagSmoother: gtsam's BatchFixedLagSmoother gives no marginal covariances; "
+                              "expected covariance=False with kind='batch'")
         check_positive("GtsamFixedLagSmoother", "lag", lag, "s", "a positive duration")
         check_positive("GtsamFixedLagSmoother", "relinearize_threshold", relinearize_threshold, "",
                        "a positive number or None", optional=True)
@@ -122,8 +131,14 @@ class GtsamFixedLagSmoother:
         self.builder = GraphBuilder(prob)
         self.lag_steps = max(1, int(round(lag / prob.dt)))
         # Half a step of margin: step j stays while t_j >= t_k - lag, without float ties.
-        self.smoother = gtsam.IncrementalFixedLagSmoother((self.lag_steps + 0.5) * prob.dt,
-                                                          _isam_params(relinearize_threshold, relinearize_skip))
+        self.smoother: gtsam.IncrementalFixedLagSmoother | gtsam.BatchFixedLagSmoother
+        if kind == "batch":
+            self.smoother = gtsam.BatchFixedLagSmoother((self.lag_steps + 0.5) * prob.dt,
+                                                        gtsam.LevenbergMarquardtParams() if lm_params is None
+                                                        else lm_params)
+        else:
+            self.smoother = gtsam.IncrementalFixedLagSmoother((self.lag_steps + 0.5) * prob.dt,
+                                                              _isam_params(relinearize_threshold, relinearize_skip))
         self.covariance = covariance
         n, nc = prob.n, prob.nc
         self.traj = Trajectory(np.zeros((n, 3, 3)), np.zeros((n, 15)), np.zeros((n, nc, 6)), np.zeros((n, 0)))
