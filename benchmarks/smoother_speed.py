@@ -91,8 +91,13 @@ def update_stats(seconds_per_update: np.ndarray) -> dict:
 def accuracy(est, rec) -> dict:
     """RMSE against the simulator's truth (rad -> mrad, m -> mm)."""
     r = evaluate(est, rec).rmse
-    return {"rotation_mrad": 1e3 * r["rotation_rad"], "translation_mm": 1e3 * r["translation_m"],
-            "force_N": r["force_N"], "contact_force_N": r["contact_force_N"], "cop_mm": 1e3 * r["cop_m"]}
+
+    def scaled(key: str, factor: float = 1.0) -> float | None:
+        value = r.get(key)
+        return None if value is None else factor * value
+
+    return {"rotation_mrad": scaled("rotation_rad", 1e3), "translation_mm": scaled("translation_m", 1e3),
+            "force_N": scaled("force_N"), "contact_force_N": scaled("contact_force_N"), "cop_mm": scaled("cop_m", 1e3)}
 
 
 def difference(a, b) -> dict:

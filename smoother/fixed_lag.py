@@ -182,6 +182,7 @@ class GtsamFixedLagSmoother:
         if self.covariance:
             t0 = time.perf_counter()
             assert self.P is not None  # allocated when covariance is set
+            assert isinstance(sm, gtsam.IncrementalFixedLagSmoother)  # kind="batch" refuses covariances
             P = self.P[j]
             Cx = sm.marginalCovariance(gf.X(j))
             Ad = np.zeros((6, 6))
