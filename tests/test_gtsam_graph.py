@@ -21,9 +21,13 @@ from flexforce.factors import gtsam_factors as gf
 from flexforce.factors.effects import EFFECTS, make_effect
 from flexforce.factors.model import ModelConfig
 from flexforce.smoother import from_gtsam, run_batch, to_gtsam
-from flexforce.smoother.batch import initial_trajectory
+from flexforce.smoother.batch import BatchConfig, initial_trajectory
 from flexforce.smoother.graph import GraphBuilder, GtsamKeys
 from flexforce.smoother.problem import NoiseRule, Problem, with_footholds
+
+# Largest differences gtsam's LM vs the batch smoother, measured (the thresholds are 10x these).
+MEASURED_BIAS, MEASURED_T = 4.9e-7, 2.5e-8  # rad/s, m: gyro bias, 0.6 s of push-pitch
+MEASURED_FT, MEASURED_FW, MEASURED_FF = 3.1e-6, 5.8e-3, 3.1e-6  # m, N, m: footholds, step scenario
 
 
 @pytest.fixture(scope="module")
@@ -226,3 +230,43 @@ def test_gtsam_fixed_lag_refuses_effects_clearly(rec, model):
     m = dataclasses.replace(model, effects=(make_effect("gyro-bias"),))
     with pytest.raises(ConfigError, match="gtsam fixed-lag backend does not take effects.*gyro-bias"):
         run_fixed_lag(rec.slice(0, 10), m, backend="gtsam")
+
+
+def test_constant_effect_matches_the_joint_map(rec, model):
+    """A constant effect (gyro bias) in the graph is the joint MAP with its stated prior, which is
+    ``run_batch(..., global_constants=False)``.  Measured on 0.6 s with a hidden bias: the
+    estimated biases agree to 4.9e-7 rad/s, translations to 2.5e-8 m; thresholds 10x."""
+    short = rec.slice(0, 121)
+    short.gyro = short.gyro + np.array([0.01, -0.02, 0.005])
+    m = dataclasses.replace(model, effects=(make_effect("gyro-bias"),))
+    est = run_batch(short, m, BatchConfig(global_constants=False))
+    graph, values, keys = to_gtsam(short, m)
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-10)
+    mine = from_gtsam(gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize(), keys)
+    d_bias = np.abs(np.subtract(mine.effects["gyro-bias"]["value"], est.effects["gyro-bias"]["value"])).max()
+    d_t = np.abs(mine.t - est.t).max()
+    assert d_bias < 10 * MEASURED_BIAS and d_t < 10 * MEASURED_T
+
+
+def test_footholds_at_a_touch_down_match_the_batch_smoother():
+    """``to_gtsam(..., footholds=True)``: the episodes' footholds as unknowns (the effect's own
+    factors: leg kinematics at the touch-down, ground plane) around the right foot's landing of
+    the ``step`` scenario (0.3 s either side).  Measured: translation 3.1e-6 m, contact wrench
+    5.8e-3 N (of 401 N), foothold corrections 3.1e-6 m (largest 17 mm); thresholds 10x."""
+    sc = Scenario.load("step")
+    sc.duration = 4.6
+    full = Simulator(sc).run()
+    change = np.flatnonzero(np.any(np.diff(full.contact_active.astype(int), axis=0) != 0, axis=1))[-1]
+    rec = full.slice(change - 60, change + 60)
+    assert not rec.contact_active[0].all() and rec.contact_active[-1].all()  # the landing is inside
+    model = ModelConfig.from_recording(rec)
+    est = run_batch(rec, model, BatchConfig(footholds=True))
+    graph, values, keys = to_gtsam(rec, model, footholds=True)
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-10)
+    mine = from_gtsam(gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize(), keys)
+    d_t = np.abs(mine.t - est.t).max()
+    d_w = np.abs(mine.wrench - est.wrench).max()
+    d_f = np.abs(np.subtract(mine.effects["foothold"]["value"], est.effects["foothold"]["value"])).max()
+    assert d_t < 10 * MEASURED_FT and d_w < 10 * MEASURED_FW and d_f < 10 * MEASURED_FF
