@@ -3,8 +3,11 @@
 Public API: :func:`run_batch` and :func:`run_fixed_lag` (both return an Estimate) with their
 frozen options :class:`BatchConfig` and :class:`FixedLagConfig`, :func:`fit` (batch smoothing for
 the diagnostics: ``(Estimate, FitStatistics)``), the noise rule :class:`NoiseRule` and
-:class:`Problem`.  The effect protocol :class:`Effect` and the :class:`ProblemView` it is written
-against live in :mod:`flexforce.factors.effects`; they are re-exported here under their old path.
+:class:`Problem`.  The gtsam export: :func:`to_gtsam` (the problem as a ``gtsam.NonlinearFactorGraph``,
+its initial ``gtsam.Values`` and the :class:`GtsamKeys` that name every key) and :func:`from_gtsam`
+(gtsam Values back to an Estimate), from :mod:`flexforce.smoother.graph`.  The effect protocol
+:class:`Effect` and the :class:`ProblemView` it is written against live in
+:mod:`flexforce.factors.effects`; they are re-exported here under their old path.
 """
 
 from __future__ import annotations
@@ -17,10 +20,13 @@ from flexforce.smoother.problem import FAMILIES, Effect, NoiseRule, Problem, Pro
 
 if TYPE_CHECKING:
     from flexforce.smoother.fixed_lag import FixedLagConfig
+    from flexforce.smoother.graph import GtsamKeys, from_gtsam, to_gtsam
 
 __all__ = ["fit", "FitStatistics", "run_batch", "run_fixed_lag", "BatchConfig", "FixedLagConfig", "Effect",
            "ProblemView", "NoiseRule", "Problem",
-           "derive_sigmas", "FAMILIES"]
+           "derive_sigmas", "FAMILIES", "to_gtsam", "from_gtsam", "GtsamKeys"]
+
+_GTSAM = ("to_gtsam", "from_gtsam", "GtsamKeys")
 
 
 def __getattr__(name: str) -> Any:
@@ -30,6 +36,10 @@ def __getattr__(name: str) -> Any:
         from flexforce.smoother.fixed_lag import FixedLagConfig
 
         return FixedLagConfig
+    if name in _GTSAM:
+        from flexforce.smoother import graph
+
+        return getattr(graph, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 

@@ -45,7 +45,7 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from flexforce.errors import EstimatorError
+from flexforce.errors import ConfigError, EstimatorError
 from flexforce.factors import core
 from flexforce.factors import gtsam_factors as gf
 from flexforce.options import (
@@ -106,20 +106,39 @@ def predict_step(R_prev, q_prev, dt: float):
 
 class GtsamFixedLagSmoother:
     """gtsam's IncrementalFixedLagSmoother on the CustomFactors (reference backend, no effects):
-    call :meth:`step` once per sample (in order), then :meth:`finish`."""
+    call :meth:`step` once per sample (in order), then :meth:`finish`.
+
+    ``kind="batch"``: gtsam's BatchFixedLagSmoother instead (Levenberg-Marquardt over the whole
+    window at every update, ``lm_params`` default gtsam's; no marginal covariances: ``covariance``
+    must be False), for comparison (benchmarks/smoother_speed.py)."""
 
     def __init__(self, prob: Problem, lag: float = 1.0, relinearize_threshold: float | None = None,
-                 relinearize_skip: int = 10, covariance: bool = True):
+                 relinearize_skip: int = 10, covariance: bool = True, kind: str = "incremental",
+                 lm_params: gtsam.LevenbergMarquardtParams | None = None):
+        check_choice("GtsamFixedLagSmoother", "kind", kind, ("incremental", "batch"))
+        if kind == "batch" and covariance:
+            raise ConfigError("GtsamFixedLagSmoother: gtsam's BatchFixedLagSmoother gives no marginal covariances; "
+                              "expected covariance=False with kind='batch'")
         check_positive("GtsamFixedLagSmoother", "lag", lag, "s", "a positive duration")
         check_positive("GtsamFixedLagSmoother", "relinearize_threshold", relinearize_threshold, "",
                        "a positive number or None", optional=True)
         check_int("GtsamFixedLagSmoother", "relinearize_skip", relinearize_skip, 1, "updates", "an integer >= 1")
+        if prob.effects:
+            raise ConfigError("the gtsam fixed-lag backend does not take effects (got "
+                              + ", ".join(e.name for e in prob.effects) + "); use backend='window', or the "
+                              "batch graph of flexforce.smoother.to_gtsam")
         self.prob = prob
         self.builder = GraphBuilder(prob)
         self.lag_steps = max(1, int(round(lag / prob.dt)))
         # Half a step of margin: step j stays while t_j >= t_k - lag, without float ties.
-        self.smoother = gtsam.IncrementalFixedLagSmoother((self.lag_steps + 0.5) * prob.dt,
-                                                          _isam_params(relinearize_threshold, relinearize_skip))
+        self.smoother: gtsam.IncrementalFixedLagSmoother | gtsam.BatchFixedLagSmoother
+        if kind == "batch":
+            self.smoother = gtsam.BatchFixedLagSmoother((self.lag_steps + 0.5) * prob.dt,
+                                                        gtsam.LevenbergMarquardtParams() if lm_params is None
+                                                        else lm_params)
+        else:
+            self.smoother = gtsam.IncrementalFixedLagSmoother((self.lag_steps + 0.5) * prob.dt,
+                                                              _isam_params(relinearize_threshold, relinearize_skip))
         self.covariance = covariance
         n, nc = prob.n, prob.nc
         self.traj = Trajectory(np.zeros((n, 3, 3)), np.zeros((n, 15)), np.zeros((n, nc, 6)), np.zeros((n, 0)))
@@ -163,6 +182,7 @@ class GtsamFixedLagSmoother:
         if self.covariance:
             t0 = time.perf_counter()
             assert self.P is not None  # allocated when covariance is set
+            assert isinstance(sm, gtsam.IncrementalFixedLagSmoother)  # kind="batch" refuses covariances
             P = self.P[j]
             Cx = sm.marginalCovariance(gf.X(j))
             Ad = np.zeros((6, 6))
