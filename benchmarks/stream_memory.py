@@ -18,8 +18,9 @@ in a child process whose memory is sampled every second: the proportional set si
 command and of its own child (the import runs in a forked process; PSS shares their common pages
 between them, so the sum is what the run takes) -- the peak, and the memory at each tenth of the
 run (flat = bounded) -- and the command's resident set (RSS, shared pages counted in full).  The
-throughput and update times are the command's own report.  The batch smoother is timed on the first 5, 10, 20, 40, 80 s of the same
-log (imported offline), each in a fresh process (peak RSS from ``ru_maxrss``).
+throughput and update times are the command's own report.  The batch smoother is timed on the
+first 5, 10, 20, 40, 80 s of the same log (imported offline), each in a fresh process (peak RSS
+from ``ru_maxrss``).
 """
 
 from __future__ import annotations
