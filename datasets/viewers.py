@@ -95,7 +95,6 @@ def layout_topics(robot=None, estimator: str = "ekf", ft: bool = True, truth: bo
             is not asked (simulated bags use ``/imu`` and ``/ft/<contact>``).
     """
     from flexforce.datasets.robot import RobotConfig
-    from flexforce.estimators import estimator_key
 
     config = RobotConfig.load(robot or "romeo")
     contacts = tuple(_token(c.name) for c in config.contacts)
@@ -112,7 +111,7 @@ def layout_topics(robot=None, estimator: str = "ekf", ft: bool = True, truth: bo
             ft_topics = {_token(c): t for c, t in ros.ft_topics.items() if _token(c) in contacts}
         else:
             ft_topics = {c: f"/ft/{c}" for c in contacts}
-    return LayoutTopics(estimator=_token(estimator_key(estimator)), contacts=contacts, ft=ft_topics, imu=imu,
+    return LayoutTopics(estimator=_token(str(estimator).replace("-", "_").lower()), contacts=contacts, ft=ft_topics, imu=imu,
                         truth=truth)
 
 

@@ -629,7 +629,10 @@ def _cmd_layout(args) -> int:
                                   "--bag alone (or --robot with --estimator/--truth, without --bag)")
             topics = layout_topics_of_bag(args.bag, args.robot)
         else:
-            topics = layout_topics(args.robot, args.estimator or "ekf", ft=not args.no_ft, truth=args.truth)
+            from flexforce.estimators import estimator_key
+
+            topics = layout_topics(args.robot, estimator_key(args.estimator or "ekf"), ft=not args.no_ft,
+                                   truth=args.truth)
         text = render_layout(args.kind, topics)
         with safe_output(out) as tmp:
             tmp.write_text(text)
