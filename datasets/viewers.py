@@ -111,8 +111,8 @@ def layout_topics(robot=None, estimator: str = "ekf", ft: bool = True, truth: bo
             ft_topics = {_token(c): t for c, t in ros.ft_topics.items() if _token(c) in contacts}
         else:
             ft_topics = {c: f"/ft/{c}" for c in contacts}
-    return LayoutTopics(estimator=_token(str(estimator).replace("-", "_").lower()), contacts=contacts, ft=ft_topics, imu=imu,
-                        truth=truth)
+    return LayoutTopics(estimator=_token(str(estimator).replace("-", "_").lower()), contacts=contacts, ft=ft_topics,
+                        imu=imu, truth=truth)
 
 
 def bag_topics(path) -> dict[str, str]:
