@@ -62,6 +62,8 @@ Priors and random walks: one rule, no per-scenario tuning
     ``Omega_0 = s_0 / l``, the rotation that compresses the spring by as much at the contact
     lever ``l`` (the largest horizontal distance of a contact from the local origin, >= 5 cm).
   * CoM offset: 10 % of the CoM's distance from the local origin (first sample) per axis.
+  * IMU mounting rotation: 0.05 rad (3 deg) per axis; IMU time offset: 0.02 s (a few samples of
+    unsynchronised clocks); mass scale ``kappa``: 0.2 (a model's mass off by a fifth).
 - ``external-wrench`` (time-varying): prior sigma of the robot's weight (force) and weight
   times the CoM distance from the origin (moment); random walk per step
   ``sigma_NE dt / tau`` with ``sigma_NE`` the Newton-Euler family's per-sample sigma (the

@@ -180,3 +180,78 @@ def test_time_offset_twin_and_its_first_order_term():
     # measured: the term leaves 0.041 (gyro x) and 0.48 (accel y): the flexibility's jerk (its
     # vibration, which the accelerometer sees) is not in one step's state; margin 10 % of the ratio
     assert after[gx] / before[gx] < 0.041 * 1.1 and after[ay] / before[ay] < 0.48 * 1.1, (before, after)
+
+
+# ----------------------------------------------------------------------------------------------
+# The diagnosis: the twin hidden, then none
+# ----------------------------------------------------------------------------------------------
+
+# Per effect: the candidates it is ranked among (itself and those it resembles), whether the F/T
+# sensors are fused, and the RMSE ratios after / before adding the selected effect, as measured
+# (3 s sway, seed 0); the margin is 10 % of the ratio (where the fit stops moves it).
+DIAGNOSED = {
+    "imu-mounting": (["imu-mounting", "accel-bias", "com-offset", "gyro-bias"], False,
+                     {"force_N": 0.200, "cop_m": 0.0851, "rotation_rad": 0.0736}),
+    "time-offset": (["time-offset", "gyro-bias", "accel-bias", "imu-mounting"], False,
+                    {"force_N": 0.895, "cop_m": 0.636, "rotation_rad": 0.655}),
+    "mass-scale": (["mass-scale", "stiffness", "com-offset"], True,
+                   {"force_N": 0.0670, "cop_m": 0.383}),
+}
+
+
+def _model(rec, ft: bool):
+    import dataclasses
+
+    model = ModelConfig.from_recording(rec)
+    return dataclasses.replace(model, use_ft=True) if ft else model
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", NEW)
+def test_diagnosis_finds_the_hidden_twin(name):
+    """The twin hidden in a 3 s sway: the effect ranked first and selected, its estimate at the
+    truth within 4 of its sigmas (the time offset: as measured, its first order leaves the
+    flexibility's jerk out), and the errors against the truth falling as measured."""
+    from flexforce.compare.diagnose import diagnose
+
+    candidates, ft, ratios = DIAGNOSED[name]
+    rec = simulate(TWIN[name][0], 3.0)
+    d = diagnose(rec, _model(rec, ft), candidates=candidates, add=["auto"], ekf=False, identify=False)
+    first = d.ranking[0]
+    assert first.effect == name and first.significant and d.selected[0] == name, d.ranking_table()
+    v = np.asarray(first.parameters["value"], dtype=float)
+    s = np.asarray(first.parameters["std"], dtype=float)
+    truth = np.asarray(TWIN[name][1], dtype=float) + (1.0 if name == "mass-scale" else 0.0)
+    if name == "time-offset":
+        # measured 12.1 +- 3.4 ms for the true 20 ms (2.3 sigma low: the first order from one step
+        # leaves the flexibility's jerk out, and the states take part of the delay); margin 10 %
+        assert abs(v[0] - 0.0121) <= 0.1 * 0.0121 and abs(v[0] - truth[0]) < 3 * s[0], (v, s)
+    else:
+        assert np.all(np.abs(v - truth) < 4 * s), (v, s)
+    for key, measured in ratios.items():
+        ratio = d.after.rmse[key] / d.before.rmse[key]
+        assert ratio < 1.0 and ratio <= measured * 1.1, (key, ratio)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("ft", [False, True])
+def test_diagnosis_of_a_clean_recording_finds_none_of_them(ft):
+    """No hidden effect (3 s sway): none of the three is significant (F/T fused or not)."""
+    from flexforce.compare.diagnose import diagnose
+
+    rec = simulate(None, 3.0)
+    d = diagnose(rec, _model(rec, ft), candidates=list(NEW), add=(), ekf=False, identify=False)
+    # measured: none passes the score test (smallest p 0.26 without F/T, mass-scale; 0.52 with)
+    assert not d.selected and not any(c.significant for c in d.ranking), d.ranking_table()
+
+
+@pytest.mark.parametrize("name, good, bad, words", [
+    ("imu-mounting", [0.02, -0.01, 0.05], [0.08, 0.0, 0.08], "beyond 0.1 rad"),
+    ("time-offset", [-0.03], [0.08], "beyond 0.05 s"),
+    ("mass-scale", [1.3], [2.4], "outside the plausible 0.5-2"),
+])
+def test_each_new_effect_says_when_its_estimate_is_implausible(name, good, bad, words):
+    eff = make_effect(name)
+    assert eff.plausible({"value": good}) is None
+    reason = eff.plausible({"value": bad})
+    assert reason is not None and words in reason, reason
