@@ -1216,7 +1216,7 @@ class MassScale(_Constant):
 
     name = "mass-scale"
     dim = 1
-    labels = ("mass scale [-]",)
+    labels = ("scale [-]",)
     unit = "-"
     what = "mass"
     offset = 1.0
