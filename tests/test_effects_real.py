@@ -209,13 +209,17 @@ def _model(rec, ft: bool):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", NEW)
 def test_diagnosis_finds_the_hidden_twin(name):
-    """The twin hidden in a 3 s sway: the effect ranked first and selected, its estimate at the
-    truth within 4 of its sigmas (the time offset: as measured, its first order leaves the
-    flexibility's jerk out), and the errors against the truth falling as measured."""
+    """The twin hidden in a 3 s sway (the scenarios ``sway-<name>``): the effect ranked first and
+    selected, its estimate at the truth within 4 of its sigmas (the time offset: as measured, its
+    first order leaves the flexibility's jerk out), and the errors against the truth falling as
+    measured."""
     from flexforce.compare.diagnose import diagnose
 
     candidates, ft, ratios = DIAGNOSED[name]
-    rec = simulate(TWIN[name][0], 3.0)
+    sc = Scenario.load(f"sway-{name}")  # the built-in scenario of the twin: this test's recording
+    assert sc.effects == [TWIN[name][0]] and sc.duration == 3.0 and sc.seed == 0
+    assert sc.imu_noise == {"gyro_bias_rw": 0.0, "accel_bias_rw": 0.0}
+    rec = Simulator(sc).run()
     d = diagnose(rec, _model(rec, ft), candidates=candidates, add=["auto"], ekf=False, identify=False)
     first = d.ranking[0]
     assert first.effect == name and first.significant and d.selected[0] == name, d.ranking_table()
