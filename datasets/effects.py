@@ -23,6 +23,16 @@ type                       parameters (SI units)
                            vector (local-frame axes at the reference posture) by moving the
                            centre of mass of its heaviest body; the recording's inputs are
                            still computed with the nominal mass model.
+``imu-mounting``           ``rotation`` [rad]: rotation vector (IMU-frame axes) by which the
+                           simulated IMU frame is turned against the URDF's
+                           (``imu_R_true = imu_R exp(rotation)``); the recording's IMU
+                           placement is still the URDF's.
+``time-offset``            ``delay`` [s]: the IMU samples are late by this much: the reading
+                           stamped ``t`` is the simulated sensor's at ``t - delay`` (negative:
+                           early); the encoders are on time.
+``mass-scale``             ``scale`` [-]: every body's mass and rotational inertia (about its
+                           own CoM, which stays put) times this factor; the recording's inputs
+                           are still computed with the nominal mass model.
 =========================  ==================================================================
 """
 
@@ -37,7 +47,7 @@ from flexforce.datasets.scenario import minjerk
 from flexforce.errors import ConfigError
 
 EFFECT_TYPES = ("external-wrench", "gyro-bias", "accel-bias", "stiffness", "anisotropic-stiffness",
-                "nonlinear-stiffness", "com-offset")
+                "nonlinear-stiffness", "com-offset", "imu-mounting", "time-offset", "mass-scale")
 
 _PARAMS = {
     "external-wrench": {"link", "force", "torque", "start", "duration", "profile", "ramp"},
@@ -47,6 +57,9 @@ _PARAMS = {
     "anisotropic-stiffness": {"k_fs", "k_ts"},
     "nonlinear-stiffness": {"beta_f", "beta_t"},
     "com-offset": {"offset"},
+    "imu-mounting": {"rotation"},
+    "time-offset": {"delay"},
+    "mass-scale": {"scale"},
 }
 
 

@@ -30,6 +30,11 @@ name                       dim   unknowns (unit)              family and term
                                  (x, y; ``axes="xyz"`` for    with ``c_l + delta`` (and ``I_l``,
                                  all three)                   ``sigma_l`` accordingly), minus the
                                                               nominal one
+``imu-mounting``           3     ``delta`` rad, rotation      ``imu``: ``(exp(delta)^T - I) y(s)``,
+                                 vector, IMU frame            both sensors
+``time-offset``            1     ``tau`` s (IMU late)         ``imu``: ``-tau dy/dt`` (first order)
+``mass-scale``             1     ``kappa``: mass and inertia  ``newton_euler``: ``kappa`` times the
+                                 times ``1 + kappa``          required wrench
 =========================  ====  ==========================  ======================================
 
 ``f(K_fs, K_fd, K_ts, K_td)`` is the contact law (eq. 6-12) evaluated with those matrices
@@ -57,6 +62,8 @@ Priors and random walks: one rule, no per-scenario tuning
     ``Omega_0 = s_0 / l``, the rotation that compresses the spring by as much at the contact
     lever ``l`` (the largest horizontal distance of a contact from the local origin, >= 5 cm).
   * CoM offset: 10 % of the CoM's distance from the local origin (first sample) per axis.
+  * IMU mounting rotation: 0.05 rad (3 deg) per axis; IMU time offset: 0.02 s (a few samples of
+    unsynchronised clocks); mass scale ``kappa``: 0.2 (a model's mass off by a fifth).
 - ``external-wrench`` (time-varying): prior sigma of the robot's weight (force) and weight
   times the CoM distance from the origin (moment); random walk per step
   ``sigma_NE dt / tau`` with ``sigma_NE`` the Newton-Euler family's per-sample sigma (the
@@ -174,6 +181,26 @@ class ProblemView(Protocol):
     @property
     def contact_R(self) -> np.ndarray:
         """(N, C, 3, 3) contact orientations in the local frame."""
+
+    @property
+    def imu_R(self) -> np.ndarray:
+        """(N, 3, 3) IMU orientation in the local frame (the robot's model of it)."""
+
+    @property
+    def imu_p(self) -> np.ndarray:
+        """(N, 3) IMU position in the local frame, m."""
+
+    @property
+    def imu_v(self) -> np.ndarray:
+        """(N, 3) its velocity in the local frame, m/s."""
+
+    @property
+    def imu_a(self) -> np.ndarray:
+        """(N, 3) its acceleration in the local frame, m/s^2."""
+
+    @property
+    def imu_w(self) -> np.ndarray:
+        """(N, 3) the IMU frame's angular velocity in the local frame, rad/s."""
 
     @property
     def active(self) -> np.ndarray:
@@ -500,6 +527,212 @@ class AccelBias(_ImuBias):
                "accelerating vertically, or tilting far")
     hint = ("tilt the robot or change its posture: a bias turns with the IMU while gravity does not, and it "
             "does not move the CoP")
+
+
+def _imu_prediction(problem: ProblemView, steps, R, q) -> tuple[np.ndarray, np.ndarray]:
+    """The nominal IMU prediction (eq. 26-28, IMU frame) ``y`` (n, 6) and ``dy/ds`` (n, 6, 18) at the
+    given states, with the recording's IMU placement and motion at ``steps``."""
+    from flexforce.factors import core
+
+    steps = np.asarray(steps)
+    n = len(steps)
+    cc = np.ascontiguousarray
+    y, J = np.empty((n, 6)), np.empty((n, 6, core.STATE_DIM))
+    core.imu_all(cc(R, dtype=float), cc(q, dtype=float), np.zeros((n, 6)), cc(problem.imu_R[steps], dtype=float),
+                 cc(problem.imu_p[steps], dtype=float), cc(problem.imu_v[steps], dtype=float),
+                 cc(problem.imu_a[steps], dtype=float), cc(problem.imu_w[steps], dtype=float), float(problem.g), y, J)
+    return y, J
+
+
+def _exp_jl(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``exp(phi)`` and the left Jacobian ``J_l(phi)`` for (n, 3) rotation vectors."""
+    from flexforce.factors import core
+
+    phi = np.ascontiguousarray(phi, dtype=float)
+    E = np.array([core.so3_exp(p) for p in phi]).reshape(-1, 3, 3)
+    Jl = np.array([core.so3_jl(p) for p in phi]).reshape(-1, 3, 3)
+    return E, Jl
+
+
+class ImuMounting(_Constant):
+    r"""Small rotation ``delta`` (rad, a rotation vector in the IMU frame) of the IMU frame against
+    the robot's model of it: the sensor's true axes are the model's turned by ``exp(delta)``
+    (``imu_R_true = imu_R exp(delta)``), the simulator's ``imu-mounting`` (it turns the IMU frame
+    of its own copy of the URDF).  Both readings are then the nominal ones seen in the turned axes,
+    ``y' = exp(delta)^T y``, so the term on the ``imu`` family (gyro and accelerometer rows alike)
+    is::
+
+        dr     = (exp(delta)^T - I) y(s)
+        dr/ds  = (exp(delta)^T - I) dy/ds
+        dr/dd  = exp(delta)^T [y]x J_l(delta)        (exp(-d - e) = exp(-d) exp(-J_l(d) e) to first order)
+
+    with ``y(s)`` the nominal prediction of eq. 26-28.  Other IMU effects (biases) add to the
+    prediction unrotated (first order in the product of the two).  A rotation about a horizontal
+    axis turns gravity into the horizontal axes (``g delta`` m/s^2: an accelerometer bias at rest);
+    what tells it from a bias is that it turns every other reading too: the gyro's rates, the
+    horizontal accelerations of a sway (``delta_z a_y`` on x), the vertical ones.
+    """
+
+    name = "imu-mounting"
+    dim = 3
+    labels = tuple(f"{a} [rad]" for a in _AX)
+    unit = "rad"
+    what = "IMU mounting rotation"
+    max_angle = 0.1
+    """0.1 rad (6 deg): a URDF's IMU frame or a sensor's mounting is not that far off unless it is
+    wrong altogether (an axis swapped or flipped: fix the model, do not fit it)."""
+    excites = ("rotation rates about y or z, or accelerations along y or z of the IMU (gravity along z "
+               "reads as a bias on y)",
+               "rotation rates about x or z, or accelerations along x or z of the IMU (gravity along z "
+               "reads as a bias on x)",
+               "rotation rates about x or y, or horizontal accelerations of the IMU (a sway)")
+    hint = ("move the IMU: sway or step briskly (a mounting rotation turns the horizontal accelerations and the "
+            "rotation rates, an accelerometer bias and a CoM offset do not); at rest a tilt of the mounting "
+            "reads like an accelerometer bias")
+
+    def prior_sigma(self, problem: ProblemView):
+        """0.05 rad (3 deg) per axis: a mounting or URDF error of a few degrees."""
+        return np.full(3, 0.05)
+
+    def plausible(self, report: dict, problem: ProblemView | None = None) -> str | None:
+        """A rotation beyond :attr:`max_angle` is implausible."""
+        v = np.atleast_1d(np.asarray(report.get("value", ()), dtype=float))
+        angle = float(np.linalg.norm(v))
+        if angle <= self.max_angle:
+            return None
+        return (f"IMU mounting rotation of {_fmt(angle)} rad ({np.degrees(angle):.1f} deg) is beyond "
+                f"{_fmt(self.max_angle)} rad: an IMU frame that far off is a wrong model (axes swapped), "
+                f"not a mounting error")
+
+    def residual_terms(self, family, problem: ProblemView, steps, R, q, W, e):
+        if family != "imu":
+            return None
+        y, Jy = _imu_prediction(problem, steps, R, q)
+        d = np.asarray(e, dtype=float)
+        E, Jl = _exp_jl(d)
+        Et = E.transpose(0, 2, 1)
+        n = len(y)
+        M = Et - np.eye(3)
+        dr = np.empty((n, 6))
+        dr_ds = np.empty((n, 6, 18))
+        dr_de = np.empty((n, 6, 3))
+        for rows in (slice(0, 3), slice(3, 6)):
+            dr[:, rows] = np.einsum("nij,nj->ni", M, y[:, rows])
+            dr_ds[:, rows] = M @ Jy[:, rows]
+            dr_de[:, rows] = Et @ _skew(y[:, rows]) @ Jl
+        return dr, dr_ds, dr_de
+
+    def report(self, values, cov, t=None):
+        out = super().report(values, cov, t)
+        v = np.asarray(out["value"], dtype=float)
+        out["angle_deg"] = float(np.degrees(np.linalg.norm(v)))
+        return out
+
+
+def _propagate(R, q, h):
+    """The state ``h`` seconds on (``h`` (n,), signed) at constant acceleration, and its Jacobian.
+
+    ``R' = exp(w h + dw h^2 / 2) R``, ``t' = t + v h + a h^2 / 2``, ``w' = w + dw h``,
+    ``v' = v + a h``, accelerations unchanged (jerk taken as zero).  Returns ``R'`` (n, 3, 3), ``q'``
+    (n, 15) and ``P = ds'/ds`` (n, 18, 18) in world-frame increments
+    (``d theta' = exp(phi) d theta + J_l(phi) d phi``)."""
+    R = np.asarray(R, dtype=float)
+    q = np.asarray(q, dtype=float)
+    h = np.asarray(h, dtype=float)
+    n = len(h)
+    t, w, v, dw, a = q[:, 0:3], q[:, 3:6], q[:, 6:9], q[:, 9:12], q[:, 12:15]
+    h1, h2 = h[:, None], 0.5 * h[:, None] ** 2
+    E, Jl = _exp_jl(w * h1 + dw * h2)
+    Rp = E @ R
+    qp = np.concatenate([t + v * h1 + a * h2, w + dw * h1, v + a * h1, dw, a], axis=1)
+    P = np.zeros((n, 18, 18))
+    P[:, 0:3, 0:3] = E
+    P[:, 0:3, 6:9] = Jl * h[:, None, None]
+    P[:, 0:3, 12:15] = Jl * (0.5 * h**2)[:, None, None]
+    eye = np.eye(3)
+    for blk in range(1, 6):
+        P[:, 3 * blk:3 * blk + 3, 3 * blk:3 * blk + 3] = eye
+    P[:, 3:6, 9:12] = eye * h[:, None, None]           # t' <- v
+    P[:, 3:6, 15:18] = eye * (0.5 * h**2)[:, None, None]  # t' <- a
+    P[:, 6:9, 12:15] = eye * h[:, None, None]           # w' <- dw
+    P[:, 9:12, 15:18] = eye * h[:, None, None]          # v' <- a
+    return Rp, np.ascontiguousarray(qp), P
+
+
+class TimeOffset(_Constant):
+    r"""Time offset ``tau`` (s) of the IMU against the joint encoders: the IMU sample stamped ``t``
+    was taken at ``t - tau`` (``tau > 0``: the IMU is late), the simulator's ``time-offset``
+    (which really delays the IMU: its readings are those of the simulated sensor ``tau`` earlier).
+
+    First order, ``y(t - tau) = y(t) - tau dy/dt``: the term on the ``imu`` family is
+    ``-tau dy/dt`` (gyro and accelerometer rows).  The derivative of the prediction is a central
+    difference over one sample on each side, ``dy/dt = (y(s+, in_k+1) - y(s-, in_k-1)) / (2 dt)``
+    (one-sided at the ends), where ``in_k+-1`` are the recording's IMU placement and motion at the
+    neighbouring samples (the robot's own motion, from the encoders) and ``s+-`` the step's
+    flexibility state carried ``+-dt`` on at constant acceleration (:func:`_propagate`: the state of
+    one step has no jerk, and an effect's term sees one step at a time, as in the fixed-lag
+    smoother).  So ``dy/dt`` is exact for the robot's own motion up to the difference's
+    ``O(dt^2)`` and for the flexibility's motion up to its jerk, which the sensor sees as
+    ``dt jerk`` on the accelerometer: the flexibility's own vibration is underestimated.
+    Jacobians: ``dr/dtau = -dy/dt``, ``dr/ds = -tau (dy/ds(s+) P+ - dy/ds(s-) P-) / (2 dt)``.
+
+    The neglected second order is ``tau^2 / 2 d^2y/dt^2``: relative to the first-order term
+    ``tau omega / 2`` at a frequency ``omega``, 6 % for 20 ms at 1 Hz.
+    """
+
+    name = "time-offset"
+    dim = 1
+    labels = ("tau [s]",)
+    unit = "s"
+    what = "IMU time offset"
+    max_offset = 0.05
+    """0.05 s: beyond that the first-order model fails on the motion of a robot (``tau omega / 2``
+    over 15 % at 1 Hz), and no sensor on the robot's own bus is that late; resynchronise the logs."""
+    excites = ("changing readings: the rate at which the IMU's accelerations and rotation rates change "
+               "(brisk motion, impacts)",)
+    hint = ("move briskly, with changes of acceleration (quick sways, steps, impacts): a delay shows where the "
+            "readings change, a bias or a mounting rotation where they are large")
+
+    def prior_sigma(self, problem: ProblemView):
+        """0.02 s: unsynchronised clocks a few samples apart."""
+        return np.array([0.02])
+
+    def plausible(self, report: dict, problem: ProblemView | None = None) -> str | None:
+        """An offset beyond :attr:`max_offset` is implausible."""
+        v = np.atleast_1d(np.asarray(report.get("value", ()), dtype=float))
+        if v.size == 0 or abs(float(v[0])) <= self.max_offset:
+            return None
+        return (f"IMU time offset of {_fmt(float(v[0]))} s is beyond {_fmt(self.max_offset)} s: the first-order "
+                f"model does not hold so far; resynchronise the logs")
+
+    def rate(self, problem: ProblemView, steps, R, q) -> tuple[np.ndarray, np.ndarray]:
+        """``dy/dt`` (n, 6) of the IMU prediction and its Jacobian (n, 6, 18) (class documentation)."""
+        steps = np.asarray(steps)
+        N = len(problem.imu_p)
+        kp = np.minimum(steps + 1, N - 1)
+        km = np.maximum(steps - 1, 0)
+        hp = (kp - steps) * float(problem.dt)
+        hm = (km - steps) * float(problem.dt)
+        span = np.where(hp - hm > 0, hp - hm, 1.0)
+        Rp, qp, Pp = _propagate(R, q, hp)
+        Rm, qm, Pm = _propagate(R, q, hm)
+        yp, Jp = _imu_prediction(problem, kp, Rp, qp)
+        ym, Jm = _imu_prediction(problem, km, Rm, qm)
+        ydot = (yp - ym) / span[:, None]
+        J = (Jp @ Pp - Jm @ Pm) / span[:, None, None]
+        return ydot, J
+
+    def residual_terms(self, family, problem: ProblemView, steps, R, q, W, e):
+        if family != "imu":
+            return None
+        ydot, J = self.rate(problem, steps, R, q)
+        tau = np.asarray(e, dtype=float)[:, 0]
+        return -tau[:, None] * ydot, -tau[:, None, None] * J, -ydot[:, :, None]
+
+    def report(self, values, cov, t=None):
+        out = super().report(values, cov, t)
+        out["ms"] = 1e3 * float(out["value"][0])
+        return out
 
 
 # ----------------------------------------------------------------------------------------------
@@ -964,6 +1197,62 @@ class ComOffset(_Constant):
         return r1 - r0, J1 - J0, dr_de
 
 
+class MassScale(_Constant):
+    r"""Scale ``1 + kappa`` of the robot's mass and inertia: every body's mass and rotational inertia
+    times ``1 + kappa``, the CoMs where they were (the simulator's ``mass-scale``, which scales the
+    bodies of its own copy of the URDF).  The inputs that carry the mass, ``m``, ``I_l``, ``dI_l``,
+    ``sigma_l``, ``dsigma_l``, scale with it, ``c_l`` and its derivatives do not, and the required
+    wrench (eq. 16, 23) is linear in those five jointly, so the term on the ``newton_euler`` family
+    is exactly::
+
+        dr = kappa w_req(s),   dr/ds = kappa dw_req/ds,   dr/dkappa = w_req(s)
+
+    with ``w_req`` the nominal required wrench (:func:`flexforce.factors.physics.required_wrench`).
+
+    Seen through the motion alone it is a stiffness and damping scale by ``1 / (1 + kappa)`` (the
+    flexibility moves as ``K / m`` dictates): only a measurement of force tells them apart -- the
+    F/T sensors (``model.use_ft``), or an external wrench of known size.  Reported as the scale.
+    """
+
+    name = "mass-scale"
+    dim = 1
+    labels = ("scale [-]",)
+    unit = "-"
+    what = "mass"
+    offset = 1.0
+    null = 1.0
+    plausible_range = (0.5, 2.0)
+    """A robot half or twice as heavy as its model is a wrong model (a missing battery, the wrong
+    URDF), not a mass-model error: weigh it."""
+    excites = ("the contact forces measured (F/T sensors); without them it is a stiffness and damping scale",)
+    hint = ("fuse the F/T sensors (--ft): the forces scale with the mass and not with the stiffness; from the "
+            "motion alone a heavier robot and softer contacts are the same")
+
+    def prior_sigma(self, problem: ProblemView):
+        """0.2: a model's mass off by a fifth (cables, batteries, covers left out of the URDF)."""
+        return np.array([0.2])
+
+    def feasible(self, values) -> bool:
+        """A positive mass."""
+        return bool(float(np.asarray(values, dtype=float).ravel()[0]) + self.offset > 0.05)
+
+    def residual_terms(self, family, problem: ProblemView, steps, R, q, W, e):
+        if family != "newton_euler":
+            return None
+        from flexforce.factors import core
+
+        steps = np.asarray(steps)
+        n = len(steps)
+        cc = np.ascontiguousarray
+        r, J = np.empty((n, 6)), np.empty((n, 6, 18))
+        core.newton_euler_all(cc(R, dtype=float), cc(q, dtype=float), np.zeros((n, 6)), float(problem.rec.mass),
+                              cc(problem.com[steps]), cc(problem.com_vel[steps]), cc(problem.com_acc[steps]),
+                              cc(problem.inertia[steps]), cc(problem.inertia_dot[steps]), cc(problem.sigma_l[steps]),
+                              cc(problem.sigma_dot[steps]), float(problem.g), r, J)
+        kappa = np.asarray(e, dtype=float)[:, 0]
+        return kappa[:, None] * r, kappa[:, None, None] * J, r[:, :, None]
+
+
 # ----------------------------------------------------------------------------------------------
 # Registry
 # ----------------------------------------------------------------------------------------------
@@ -976,6 +1265,9 @@ EFFECTS: dict[str, type] = {
     "anisotropic-stiffness": AnisotropicStiffness,
     "nonlinear-stiffness": NonlinearStiffness,
     "com-offset": ComOffset,
+    "imu-mounting": ImuMounting,
+    "time-offset": TimeOffset,
+    "mass-scale": MassScale,
 }
 """Effect name -> class (the names are the simulator's hidden-effect types)."""
 
