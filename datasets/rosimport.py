@@ -474,31 +474,8 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
     footholds = config.footholds  # terrain "none": zero weights, the touch-downs still measured
     lf = anchored_local_frame(model, q_grid, v_grid, a_grid, active, load, anchor,
                               progress=lambda f: report(0.3 + 0.3 * f), footholds=footholds)
-    if footholds.terrain != "none":
-        bound_tilt = FOOTHOLD_BOUND * footholds.kinematics_sigma_tilt
-        bound_height = FOOTHOLD_BOUND * footholds.kinematics_sigma_height
-        for k, i, tilt, height in lf.footholds:
-            if tilt > bound_tilt or abs(height) > bound_height:
-                raise DataError(
-                    f"at t = {(grid[k] - grid[0]) * 1e-9:.3f} s contact '{names_c[i]}' lands "
-                    f"{np.degrees(tilt):.2f} deg off the floor "
-                    f"plane and {1000 * height:.1f} mm above it by the leg kinematics; the ground prior "
-                    f"(footholds.terrain = '{footholds.terrain}') allows {FOOTHOLD_BOUND:g} sigma of the kinematics, "
-                    f"{np.degrees(bound_tilt):.2f} deg and {1000 * bound_height:.1f} mm: the floor is not that plane "
-                    "(set footholds.terrain = 'plane' or 'none') or the kinematics is wrong (joint offsets, "
-                    "footholds.kinematics_sigma_tilt/height)")
-    fields: dict[str, list] = {k: [] for k in ("com", "com_vel", "com_acc", "inertia", "inertia_dot", "sigma",
-                                               "sigma_dot", "imu_R", "imu_p", "imu_v", "imu_a", "imu_w")}
-    for k in range(n):
-        kin = model.kinematics(lf.q[k], lf.v[k], lf.a[k])
-        inp, im = kin.inputs, kin.imu
-        for key, value in (("com", inp.c), ("com_vel", inp.dc), ("com_acc", inp.ddc), ("inertia", inp.I),
-                           ("inertia_dot", inp.dI), ("sigma", inp.sigma), ("sigma_dot", inp.dsigma),
-                           ("imu_R", im.R), ("imu_p", im.p), ("imu_v", im.v), ("imu_a", im.a), ("imu_w", im.w)):
-            fields[key].append(value)
-        if k % 50 == 0:
-            report(0.6 + 0.35 * k / n)
-    arrays: dict[str, Any] = {k: np.array(v) for k, v in fields.items()}
+    check_touch_downs(lf.footholds, footholds, names_c, lambda k: (grid[k] - grid[0]) * 1e-9)
+    arrays = local_inputs(model, lf, progress=lambda f: report(0.6 + 0.35 * f))
 
     # ---- motion capture ----
     mocap = {}
@@ -544,6 +521,44 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
         gravity=config.gravity, meta=meta, **arrays)
     report(1.0)
     return rec.validate()
+
+
+def check_touch_downs(landed, footholds, contact_names, time_of) -> None:
+    """Refuse a touch-down the ground prior contradicts: a landing sole further from the floor plane
+    than :data:`FOOTHOLD_BOUND` leg-kinematics sigmas (``landed``: the local frame's ``footholds``
+    rows; ``time_of(step)``: its time, s)."""
+    if footholds.terrain == "none":
+        return
+    bound_tilt = FOOTHOLD_BOUND * footholds.kinematics_sigma_tilt
+    bound_height = FOOTHOLD_BOUND * footholds.kinematics_sigma_height
+    for k, i, tilt, height in landed:
+        if tilt > bound_tilt or abs(height) > bound_height:
+            raise DataError(
+                f"at t = {time_of(k):.3f} s contact '{contact_names[i]}' lands "
+                f"{np.degrees(tilt):.2f} deg off the floor "
+                f"plane and {1000 * height:.1f} mm above it by the leg kinematics; the ground prior "
+                f"(footholds.terrain = '{footholds.terrain}') allows {FOOTHOLD_BOUND:g} sigma of the kinematics, "
+                f"{np.degrees(bound_tilt):.2f} deg and {1000 * bound_height:.1f} mm: the floor is not that plane "
+                "(set footholds.terrain = 'plane' or 'none') or the kinematics is wrong (joint offsets, "
+                "footholds.kinematics_sigma_tilt/height)")
+
+
+def local_inputs(model, lf, progress=None) -> dict[str, Any]:
+    """The paper's inputs and the IMU placement per step (the Recording fields ``com`` ... ``imu_w``)
+    from the local frame ``lf`` (:meth:`RobotModel.kinematics` at each step)."""
+    fields: dict[str, list] = {k: [] for k in ("com", "com_vel", "com_acc", "inertia", "inertia_dot", "sigma",
+                                               "sigma_dot", "imu_R", "imu_p", "imu_v", "imu_a", "imu_w")}
+    n = len(lf.q)
+    for k in range(n):
+        kin = model.kinematics(lf.q[k], lf.v[k], lf.a[k])
+        inp, im = kin.inputs, kin.imu
+        for key, value in (("com", inp.c), ("com_vel", inp.dc), ("com_acc", inp.ddc), ("inertia", inp.I),
+                           ("inertia_dot", inp.dI), ("sigma", inp.sigma), ("sigma_dot", inp.dsigma),
+                           ("imu_R", im.R), ("imu_p", im.p), ("imu_v", im.v), ("imu_a", im.a), ("imu_w", im.w)):
+            fields[key].append(value)
+        if progress is not None and k % 50 == 0:
+            progress(k / n)
+    return {k: np.array(v) for k, v in fields.items()}
 
 
 def _merge_gaps(gaps: list[dict]) -> list[dict]:

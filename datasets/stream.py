@@ -37,14 +37,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pinocchio as pin
 from scipy.signal import savgol_filter
 
 from flexforce.datasets.localframe import LocalFrameTracker
 from flexforce.datasets.recording import Recording
 from flexforce.datasets.robot import RobotConfig, RobotModel, RosConfig
 from flexforce.datasets.rosimport import (
-    FOOTHOLD_BOUND,
     T_IMU,
     T_JOINTS,
     T_WRENCH,
@@ -52,6 +50,9 @@ from flexforce.datasets.rosimport import (
     _reader_error,
     _stamp,
     _typestore,
+    _wrench_to_contact_frame,
+    check_touch_downs,
+    local_inputs,
 )
 from flexforce.errors import BagError, ConfigError, DataError
 
@@ -202,7 +203,6 @@ class StreamImporter:
         if contacts == "fixed":
             from flexforce.datasets.contacts import fixed_contacts
             self._fixed = fixed_contacts(1, names_c, ros.fixed_contacts)[0]
-        self._wrench_data = pmodel.createData()
         self.steps_out = 0
         self.ever_active = np.zeros(len(names_c), dtype=bool)
         self.finished = False
@@ -482,33 +482,13 @@ class StreamImporter:
         for i, frame in self.ft_frames.items():
             contact_frame = self.config.contacts[i].frame
             if frame != contact_frame:
-                ft[:, i] = self._to_contact_frame(q, frame, contact_frame, ft[:, i])
+                ft[:, i] = _wrench_to_contact_frame(self.model, q, frame, contact_frame, ft[:, i])
         active = self._contacts(ft)
         self.ever_active |= active.any(axis=0)
         load = ft[:, :, 2] if self.ft else None
         lf = self.tracker.run(q, v, a, active, load)
-        fh = self.config.footholds
-        if fh.terrain != "none":
-            for k, i, tilt, height in lf.footholds:
-                if tilt > FOOTHOLD_BOUND * fh.kinematics_sigma_tilt or \
-                        abs(height) > FOOTHOLD_BOUND * fh.kinematics_sigma_height:
-                    raise DataError(
-                        f"at t = {k * self.period * 1e-9:.3f} s contact '{self.names_c[i]}' lands "
-                        f"{np.degrees(tilt):.2f} deg off the floor plane and {1000 * height:.1f} mm above it by the "
-                        f"leg kinematics; the ground prior (footholds.terrain = '{fh.terrain}') allows "
-                        f"{FOOTHOLD_BOUND:g} sigma of the kinematics: the floor is not that plane or the kinematics "
-                        "is wrong (see the offline import's message)")
-        fields: dict[str, list] = {k: [] for k in ("com", "com_vel", "com_acc", "inertia", "inertia_dot", "sigma",
-                                                   "sigma_dot", "imu_R", "imu_p", "imu_v", "imu_a", "imu_w")}
-        for k in range(n):
-            kin = self.model.kinematics(lf.q[k], lf.v[k], lf.a[k])
-            inp, im = kin.inputs, kin.imu
-            for key, value in (("com", inp.c), ("com_vel", inp.dc), ("com_acc", inp.ddc), ("inertia", inp.I),
-                               ("inertia_dot", inp.dI), ("sigma", inp.sigma), ("sigma_dot", inp.dsigma),
-                               ("imu_R", im.R), ("imu_p", im.p), ("imu_v", im.v), ("imu_a", im.a),
-                               ("imu_w", im.w)):
-                fields[key].append(value)
-        arrays: dict[str, Any] = {k: np.array(val) for k, val in fields.items()}
+        check_touch_downs(lf.footholds, self.config.footholds, self.names_c, lambda k: k * self.period * 1e-9)
+        arrays = local_inputs(self.model, lf)
         meta = {"stream": {"first_step": int(ks[0]), "steps": n, "rate_hz": 1e9 / self.period,
                            "period_ns": self.period, "t0_ns": int(self.grid0),
                            "joint_velocity": self.velocity_source,
@@ -521,18 +501,6 @@ class StreamImporter:
             gyro=np.array([s["gyro"] for s in steps]), accel=np.array([s["accel"] for s in steps]),
             joint_names=self.joint_names, joint_q=q, joint_v=v, ft=ft if self.ft else None, mocap={},
             base_pose=lf.base_pose, gravity=self.config.gravity, meta=meta, **arrays)
-
-    def _to_contact_frame(self, q_joints, sensor_frame, contact_frame, wrench):
-        pmodel, data = self.model.model, self._wrench_data
-        fs, fc = pmodel.getFrameId(sensor_frame), pmodel.getFrameId(contact_frame)
-        q = pin.neutral(pmodel)
-        out = np.empty_like(wrench)
-        for k in range(len(wrench)):
-            q[7:] = q_joints[k]
-            pin.framesForwardKinematics(pmodel, data, q)
-            c_T_s = data.oMf[fc].inverse() * data.oMf[fs]
-            out[k] = c_T_s.act(pin.Force(wrench[k, :3], wrench[k, 3:])).vector
-        return out
 
 
 # ------------------------------------------------------------------------------------------------
