@@ -13,6 +13,7 @@ import dataclasses
 import gtsam
 import numpy as np
 import pytest
+from test_factors import check_factor_jacobians  # the numerical Jacobian check (factorTesting)
 
 from flexforce.datasets.scenario import Scenario
 from flexforce.datasets.simulator import Simulator
@@ -46,40 +47,6 @@ def model(rec):
 # ----------------------------------------------------------------------------------------------
 # Jacobians through Values.retract
 # ----------------------------------------------------------------------------------------------
-
-
-def _tangent_dim(values, key):
-    try:
-        values.atPose3(key)
-        return 6
-    except RuntimeError:
-        return values.atVector(key).shape[0]
-
-
-def _check_jacobians(factor, values, h=1e-6, rtol=1e-5, atol=1e-6):
-    """Analytic whitened Jacobian of ``factor`` against central differences, key by key."""
-    keys = list(factor.keys())
-    dims = {key: _tangent_dim(values, key) for key in keys}
-    A, _ = factor.linearize(values).jacobian()
-    col = 0
-    for key in keys:
-        Jn = np.empty((factor.dim(), dims[key]))
-        for j in range(dims[key]):
-            out = []
-            for sign in (1.0, -1.0):
-                delta = gtsam.VectorValues()
-                for other in keys:
-                    d = np.zeros(dims[other])
-                    if other == key:
-                        d[j] = sign * h
-                    delta.insert(other, d)
-                out.append(-factor.linearize(values.retract(delta)).jacobian()[1])
-            Jn[:, j] = (out[0] - out[1]) / (2 * h)
-        Ja = A[:, col:col + dims[key]]
-        col += dims[key]
-        scale = max(1.0, float(np.abs(Jn).max()))
-        np.testing.assert_allclose(Ja, Jn, rtol=rtol, atol=atol * scale,
-                                   err_msg=f"{type(factor).__name__}: block of key {gtsam.DefaultKeyFormatter(key)}")
 
 
 def _perturbed_values(builder, rng, k0, k1):
@@ -119,7 +86,7 @@ def test_factor_jacobians_with_every_effect(rec, model, k):
            and any(gtsam.Symbol(key).chr() == ord("e") for key in f.keys())]
     assert len(own) >= 4  # Newton-Euler, IMU, two contacts (+ footholds' own at k = 0)
     for f in factors:
-        _check_jacobians(f, values)
+        check_factor_jacobians(f, values)
 
 
 def test_imu_factor_skips_missing_axes(rec, model):
@@ -132,7 +99,7 @@ def test_imu_factor_skips_missing_axes(rec, model):
                       p.imu_a[1], p.imu_w[1], p.g, use=use)
     err = f.unwhitenedError(values)
     assert err[1] == 0.0 and err[5] == 0.0 and abs(err[0]) > 50
-    _check_jacobians(f, values)
+    check_factor_jacobians(f, values)
 
 
 # ----------------------------------------------------------------------------------------------
