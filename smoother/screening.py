@@ -112,15 +112,12 @@ def _f(x):
     return x if np.isfinite(x) else None
 
 
-def _border_schur(Hd, B, g, aidx, sel, T):
-    """Eliminate the per-step columns ``aidx`` of a block-tridiagonal system whose columns ``sel``
-    are tied to ``m`` border unknowns by ``x_k[sel] = T_k c`` (``T`` (N, len(sel), m)).
-
-    Returns the reduced gradient ``gbar`` (m,) and the Schur complement ``S`` (m, m).
-    """
+def _border_terms(Hd, B, g, aidx, sel, T):
+    """The border terms of a block-tridiagonal system whose columns ``sel`` are tied to ``m``
+    border unknowns by ``x_k[sel] = T_k c`` (``T`` (N, len(sel), m)): the coupling ``F`` (N,
+    len(aidx), m) of the remaining per-step columns ``aidx`` to the border, the border's own
+    information ``G`` (m, m) and gradient ``gc`` (m,)."""
     n = Hd.shape[0]
-    Ad = Hd[:, aidx][:, :, aidx]
-    AB = B[:, aidx][:, :, aidx]
     F = Hd[:, aidx][:, :, sel] @ T
     G = np.einsum("kai,kab,kbj->ij", T, Hd[:, sel][:, :, sel], T)
     gc = np.einsum("kai,ka->i", T, g[:, sel])
@@ -129,18 +126,131 @@ def _border_schur(Hd, B, g, aidx, sel, T):
         F[1:] += B[:, sel][:, :, aidx].transpose(0, 2, 1) @ T[:-1]
         X = np.einsum("kai,kab,kbj->ij", T[:-1], B[:, sel][:, :, sel], T[1:])
         G += X + X.T
+    return F, G, gc
+
+
+def _scaled_states(Hd, B, aidx):
+    """The per-step columns' blocks, Jacobi-scaled: ``s``, ``As`` (N, a, a), ``ABs`` (N-1, a, a)."""
+    Ad = Hd[:, aidx][:, :, aidx]
+    AB = B[:, aidx][:, :, aidx]
     s = 1.0 / np.sqrt(np.maximum(np.diagonal(Ad, axis1=1, axis2=2), 1e-300))
     As = np.ascontiguousarray(Ad * s[:, :, None] * s[:, None, :])
     ABs = np.ascontiguousarray(AB * s[:-1, :, None] * s[1:, None, :])
-    rhs = np.concatenate([(g[:, aidx] * s)[:, :, None], F * s[:, :, None]], axis=2)
+    return s, As, ABs
+
+
+def _solve_states(As, ABs, rhs):
     try:
         X, _, _ = solvers.block_tridiag_solve_multi(As, ABs, np.ascontiguousarray(rhs), False)
     except np.linalg.LinAlgError as exc:
         raise EstimatorError("screening: the information of the states is not positive definite") from exc
+    return X
+
+
+def _border_schur(Hd, B, g, aidx, sel, T):
+    """Eliminate the per-step columns ``aidx`` of a block-tridiagonal system whose columns ``sel``
+    are tied to ``m`` border unknowns by ``x_k[sel] = T_k c`` (``T`` (N, len(sel), m)).
+
+    Returns the reduced gradient ``gbar`` (m,) and the Schur complement ``S`` (m, m).
+    """
+    F, G, gc = _border_terms(Hd, B, g, aidx, sel, T)
+    s, As, ABs = _scaled_states(Hd, B, aidx)
+    rhs = np.concatenate([(g[:, aidx] * s)[:, :, None], F * s[:, :, None]], axis=2)
+    X = _solve_states(As, ABs, rhs)
     Fs = F * s[:, :, None]
     Sc = G - np.einsum("kai,kaj->ij", Fs, X[:, :, 1:])
     gbar = gc - np.einsum("kai,ka->i", Fs, X[:, :, 0])
     return gbar, 0.5 * (Sc + Sc.T)
+
+
+@dataclass
+class _WindowedSchur:
+    """States eliminated from a system bordered by constant columns and by columns constant on
+    time windows, each window on its own: the constant border's ``gc`` (mc,), ``Scc`` (mc, mc);
+    per window ``gw`` (W, dw), ``Sww`` (W, dw, dw) and the cross block ``Scw`` (W, mc, dw)."""
+
+    gc: np.ndarray
+    Scc: np.ndarray
+    gw: np.ndarray
+    Sww: np.ndarray
+    Scw: np.ndarray
+
+    def joint(self, j: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(gbar, S)`` over the constant columns then window ``j``'s columns."""
+        S = np.block([[self.Scc, self.Scw[j]], [self.Scw[j].T, self.Sww[j]]])
+        return np.concatenate([self.gc, self.gw[j]]), 0.5 * (S + S.T)
+
+
+def _windowed_schur(Hd, B, g, aidx, ccols, wcols, bounds) -> _WindowedSchur:
+    r"""Eliminate the per-step columns ``aidx`` with the columns ``ccols`` tied to one constant
+    and the columns ``wcols`` tied to one value per window of ``bounds`` ((k0, k1) pairs), each
+    window's border taken alone (the others at zero).
+
+    Linear in the length: one elimination for the constant columns; for a window, ``F_w^T
+    A^{-1} F_w`` needs ``A^{-1}`` only on the steps ``a = k0 - 1 .. b = k1`` its columns touch,
+    which is the inverse of ``A`` restricted to them with the first diagonal block replaced by the
+    forward elimination's pivot at ``a`` (the steps before eliminated) and the last by the
+    backward elimination's pivot at ``b``.
+    """
+    n = Hd.shape[0]
+    ccols = np.asarray(ccols, dtype=int)
+    wcols = np.asarray(wcols, dtype=int)
+    mc, dw = len(ccols), len(wcols)
+    Tc = np.broadcast_to(np.eye(mc), (n, mc, mc))
+    Fc, Gcc, gcc = _border_terms(Hd, B, g, aidx, ccols, np.ascontiguousarray(Tc))
+    s, As, ABs = _scaled_states(Hd, B, aidx)
+    rhs = np.concatenate([(g[:, aidx] * s)[:, :, None], Fc * s[:, :, None]], axis=2)
+    X = _solve_states(As, ABs, rhs)
+    Fcs = Fc * s[:, :, None]
+    Scc = Gcc - np.einsum("kai,kaj->ij", Fcs, X[:, :, 1:])
+    gc = gcc - np.einsum("kai,ka->i", Fcs, X[:, :, 0])
+    # forward and backward pivots of the scaled states' system
+    try:
+        Lf, _ = solvers._block_cholesky(As, ABs)
+        Lb, _ = solvers._block_cholesky(np.ascontiguousarray(As[::-1]),
+                                        np.ascontiguousarray(ABs[::-1].transpose(0, 2, 1)))
+    except np.linalg.LinAlgError as exc:
+        raise EstimatorError("screening: the information of the states is not positive definite") from exc
+    Pf = Lf @ Lf.transpose(0, 2, 1)
+    Pb = (Lb @ Lb.transpose(0, 2, 1))[::-1]
+    # the blocks a window's columns touch
+    H_aw, H_ww, H_cw = Hd[:, aidx][:, :, wcols], Hd[:, wcols][:, :, wcols], Hd[:, ccols][:, :, wcols]
+    B_aw, B_wa = B[:, aidx][:, :, wcols], B[:, wcols][:, :, aidx]
+    B_ww, B_cw, B_wc = B[:, wcols][:, :, wcols], B[:, ccols][:, :, wcols], B[:, wcols][:, :, ccols]
+    W = len(bounds)
+    gw = np.zeros((W, dw))
+    Sww = np.zeros((W, dw, dw))
+    Scw = np.zeros((W, mc, dw))
+    for j, (k0, k1) in enumerate(bounds):
+        a, b = max(k0 - 1, 0), min(k1, n - 1)
+        L = b - a + 1
+        F = np.zeros((L, len(aidx), dw))
+        F[k0 - a:k1 - a] += H_aw[k0:k1]
+        if k0 >= 1:  # step k takes B_k T_k+1: steps k0-1 .. k1-2
+            F[k0 - 1 - a:k1 - 1 - a] += B_aw[k0 - 1:k1 - 1]
+        else:
+            F[0:k1 - 1 - a] += B_aw[0:k1 - 1]
+        hi = min(k1, n - 1)  # step k takes B_k-1^T T_k-1: steps k0+1 .. k1
+        F[k0 + 1 - a:hi + 1 - a] += B_wa[k0:hi].transpose(0, 2, 1)
+        G = H_ww[k0:k1].sum(axis=0)
+        Gcw = H_cw[k0:k1].sum(axis=0) + B_cw[max(k0 - 1, 0):k1 - 1].sum(axis=0) + \
+            B_wc[k0:min(k1, n - 1)].sum(axis=0).T
+        if k1 - k0 > 1:
+            Xw = B_ww[k0:k1 - 1].sum(axis=0)
+            G = G + Xw + Xw.T
+        Dl = As[a:b + 1].copy()
+        if L == 1:
+            Dl[0] = Pf[a] + Pb[a] - As[a]
+        else:
+            Dl[0] = Pf[a]
+            Dl[-1] = Pb[b]
+        Fs = F * s[a:b + 1, :, None]
+        Y = _solve_states(np.ascontiguousarray(Dl), np.ascontiguousarray(ABs[a:b]), Fs)
+        S = G - np.einsum("kai,kaj->ij", Fs, Y)
+        Sww[j] = 0.5 * (S + S.T)
+        Scw[j] = Gcw - np.einsum("kai,kaj->ij", X[a:b + 1, :, 1:], Fs)
+        gw[j] = g[k0:k1][:, wcols].sum(axis=0) - np.einsum("kai,ka->i", Fs, X[a:b + 1, :, 0])
+    return _WindowedSchur(gc, 0.5 * (Scc + Scc.T), gw, Sww, Scw)
 
 
 def _quad(g, S, idx):
@@ -225,25 +335,16 @@ def score_test(prob_base: Problem, traj: Trajectory, effect, rule: NoiseRule | N
     m0 = len(gcols)
     cidx = np.asarray(gcols + list(ecols), dtype=int)
     aidx = np.setdiff1d(np.arange(D), cidx)
-    batch = 16
-    for b0 in range(0, len(bounds), batch):
-        part = bounds[b0:b0 + batch]
-        m = m0 + dim * len(part)
-        T = np.zeros((n, len(cidx), m))
-        T[:, :m0, :m0] = np.eye(m0)
-        for j, (k0, k1) in enumerate(part):
-            T[k0:k1, m0:, m0 + dim * j:m0 + dim * (j + 1)] = np.eye(dim)
-        gbar, Sc = _border_schur(Hd, B, g, aidx, cidx, T)
-        held, _ = _quad(gbar, Sc, np.arange(m0))
-        for j, (k0, k1) in enumerate(part):
-            idx = np.concatenate([np.arange(m0), m0 + dim * j + np.arange(dim)])
-            Sw = Sc[np.ix_(idx, idx)].copy()
-            Sw[m0:, m0:] += np.diag(lam0)
-            Si = np.linalg.pinv(Sw, rcond=1e-12, hermitian=True)
-            full = float(gbar[idx] @ Si @ gbar[idx])
-            stat = max(full - held, 0.0)
-            dof = float(max(dim - np.sum(np.diagonal(Si[m0:, m0:]) * lam0), 1e-6))
-            windows.append(ScoreWindow(float(t[k0]), float(t[k1 - 1]), stat, dof, float(stats.chi2.sf(stat, dof))))
+    ws = _windowed_schur(Hd, B, g, aidx, gcols, ecols, bounds)
+    for j, (k0, k1) in enumerate(bounds):
+        gbar, Sw = ws.joint(j)
+        held, _ = _quad(gbar, Sw, np.arange(m0))
+        Sw[m0:, m0:] += np.diag(lam0)
+        Si = np.linalg.pinv(Sw, rcond=1e-12, hermitian=True)
+        full = float(gbar @ Si @ gbar)
+        stat = max(full - held, 0.0)
+        dof = float(max(dim - np.sum(np.diagonal(Si[m0:, m0:]) * lam0), 1e-6))
+        windows.append(ScoreWindow(float(t[k0]), float(t[k1 - 1]), stat, dof, float(stats.chi2.sf(stat, dof))))
     best = min(windows, key=lambda x: (x.p_value, -x.statistic))
     p = min(1.0, best.p_value * len(windows))
     return ScoreTest(effect.name, best.statistic, best.dof, p, "windowed", windows, time.perf_counter() - t0)
@@ -402,6 +503,19 @@ def _excites(eff, i: int) -> str:
     return str(ex[i]) if i < len(ex) else ""
 
 
+def _canonical(P, A, Bb, sa, sb, ea, eb) -> PairCorrelation:
+    """The canonical correlations of the blocks ``A`` and ``Bb`` of the information ``P``."""
+    Wa, Wb = _inv_sqrt(P[np.ix_(A, A)]), _inv_sqrt(P[np.ix_(Bb, Bb)])
+    U, sv, Vt = np.linalg.svd(Wa @ P[np.ix_(A, Bb)] @ Wb)
+    # the canonical directions in multiples of each unknown's prior sigma
+    ua = (Wa @ U[:, 0]) / sa
+    vb = (Wb @ Vt[0]) / sb
+    ia_ = int(np.argmax(np.abs(ua))) % int(ea.dim)
+    ib_ = int(np.argmax(np.abs(vb))) % int(eb.dim)
+    return PairCorrelation(ea.name, eb.name, [float(min(x, 1.0)) for x in sv[:min(len(A), len(Bb), 6)]],
+                           _label(ea, ia_).split(" [")[0], _label(eb, ib_).split(" [")[0], _pair_hint(ea, eb))
+
+
 def _inv_sqrt(A):
     w, V = np.linalg.eigh(0.5 * (A + A.T))
     w = np.maximum(w, 1e-12 * max(float(w.max()), 1e-300))
@@ -415,12 +529,15 @@ def identifiability(prob_base: Problem, traj: Trajectory, effects, rule: NoiseRu
     Every candidate is appended at its prior mean (as in :func:`score_test`, all at once) and one
     linearisation gives the Gauss-Newton information of the data; eliminating the states and the
     base model's constants leaves the joint information ``J`` of all candidates' unknowns (a
-    per-step effect taken constant on ``window`` s windows).  Per candidate, the smallest
+    per-step effect taken constant on ``window`` s windows, each window on its own, as its score
+    test takes it: linear in the recording's length).  Per candidate, the smallest
     eigenvalue of its block scaled by its prior sigmas (:attr:`CandidateInformation.detectability`;
     below ``ln n`` a prior-sized effect along that direction would not pay for its own degree of
     freedom: "not seen").  Per pair, the canonical correlations of the two blocks with the priors'
     information added (the correlations of their estimates were both fitted): the largest above
-    :data:`INSEPARABLE` means one direction of each explains the data in the same way.
+    :data:`INSEPARABLE` means one direction of each explains the data in the same way; a per-step
+    candidate is compared with another window by window and the most alike window is kept (a
+    push over one window against a constant bias: can that push be told from the bias).
     """
     import time
 
@@ -453,88 +570,81 @@ def identifiability(prob_base: Problem, traj: Trajectory, effects, rule: NoiseRu
     if len(starts) > 1 and n - starts[-1] < w // 2:
         starts.pop()
     bounds = [(s, starts[i + 1] if i + 1 < len(starts) else n) for i, s in enumerate(starts)]
-    # columns: base constants, then each candidate (constant: dim; per-step: dim per window)
-    blocks: list[np.ndarray] = []
-    lam: list[np.ndarray] = []
+    # columns: base constants, the constant candidates, then the per-step candidates (each taken
+    # constant on a window, every window on its own)
+    const: list = []  # (effect, index range in the constant border, prior sigma)
+    windowed: list = []  # (effect, index range in a window's columns, prior sigma, step sigma or None)
+    ccols: list[int] = list(gcols)
+    wcols: list[int] = []
     col = first
-    m = m0
-    ecols: list[int] = []
-    layout = []
     for eff in effects:
         dim = int(eff.dim)
-        ecols.extend(range(col, col + dim))
         _, s0 = eff.prior(prob)
         s0 = np.broadcast_to(np.asarray(s0, dtype=float), (dim,))
         if is_global(eff, prob):
-            layout.append((eff, "constant", [(0, n)], col))
-            blocks.append(np.arange(m, m + dim))
-            lam.append(1.0 / s0**2)
-            m += dim
+            const.append((eff, np.arange(len(ccols) - m0, len(ccols) - m0 + dim), s0))
+            ccols.extend(range(col, col + dim))
         else:
-            layout.append((eff, "windowed", bounds, col))
-            blocks.append(np.arange(m, m + dim * len(bounds)))
             step = getattr(eff, "step_prior_sigma", None)
             ss = np.broadcast_to(np.asarray(step(prob), dtype=float), (dim,)) if step is not None else None
-            for k0, k1 in bounds:
-                lam.append((k1 - k0) / ss**2 if ss is not None else 1.0 / s0**2)
-            m += dim * len(bounds)
+            windowed.append((eff, np.arange(len(wcols), len(wcols) + dim), s0, ss))
+            wcols.extend(range(col, col + dim))
         col += dim
-    cidx = np.asarray(gcols + ecols, dtype=int)
+    cidx = np.asarray(ccols + wcols, dtype=int)
     aidx = np.setdiff1d(np.arange(D), cidx)
-    T = np.zeros((n, len(cidx), m))
-    T[:, :m0, :m0] = np.eye(m0)
-    row = m0
-    for (eff, _kind, spans, _), blk in zip(layout, blocks):
-        dim = int(eff.dim)
-        for j, (k0, k1) in enumerate(spans):
-            T[k0:k1, row:row + dim, blk[0] + dim * j:blk[0] + dim * (j + 1)] = np.eye(dim)
-        row += dim
-    _, Sc = _border_schur(Hd, B, g, aidx, cidx, T)
-    if m0:
-        S00 = Sc[:m0, :m0]
-        X = np.linalg.pinv(S00, rcond=1e-12, hermitian=True) @ Sc[:m0, m0:]
-        J = Sc[m0:, m0:] - Sc[m0:, :m0] @ X
-    else:
-        J = Sc
-    J = 0.5 * (J + J.T)
-    blocks = [b - m0 for b in blocks]
-    Lam = np.concatenate(lam) if lam else np.zeros(0)
+    ws = _windowed_schur(Hd, B, g, aidx, ccols, wcols, bounds if wcols else [])
+
+    def without_base(S):
+        """The information on the candidates, the base model's constants eliminated."""
+        if not m0:
+            return 0.5 * (S + S.T)
+        X = np.linalg.pinv(S[:m0, :m0], rcond=1e-12, hermitian=True) @ S[:m0, m0:]
+        J = S[m0:, m0:] - S[m0:, :m0] @ X
+        return 0.5 * (J + J.T)
+
+    Jc = without_base(ws.Scc)
+    nc_ = Jc.shape[0]
+    lam_c = np.concatenate([1.0 / s0**2 for _, _, s0 in const]) if const else np.zeros(0)
+    Jw = [without_base(ws.joint(j)[1]) for j in range(len(ws.gw))]
+    lam_w = []
+    for k0, k1 in (bounds if wcols else []):
+        lam_w.append(np.concatenate([(k1 - k0) / ss**2 if ss is not None else 1.0 / s0**2
+                                     for _, _, s0, ss in windowed]))
     thr = float(np.log(max(n_residuals or n * 6, 2)))
     cands: dict[str, CandidateInformation] = {}
-    for (eff, kind, spans, _), blk in zip(layout, blocks):
-        dim = int(eff.dim)
-        _, s0 = eff.prior(prob)
-        s0 = np.broadcast_to(np.asarray(s0, dtype=float), (dim,))
-        if kind == "constant":
-            Sb = J[np.ix_(blk, blk)]
-        else:  # the median window's information: how well a push lasting one window is seen
-            per = [J[np.ix_(blk[dim * j:dim * (j + 1)], blk[dim * j:dim * (j + 1)])] for j in range(len(spans))]
-            mins = [float(np.linalg.eigvalsh(s0[:, None] * P * s0[None, :])[0]) for P in per]
-            Sb = per[int(np.argsort(mins)[len(mins) // 2])]
+
+    def info(eff, kind, Sb, s0):
         wv, V = np.linalg.eigh(s0[:, None] * Sb * s0[None, :])
         i = int(np.argmax(np.abs(V[:, 0])))
-        cands[eff.name] = CandidateInformation(eff.name, dim, tuple(getattr(eff, "labels", ())), kind,
+        cands[eff.name] = CandidateInformation(eff.name, int(eff.dim), tuple(getattr(eff, "labels", ())), kind,
                                                float(max(wv[0], 0.0)), _label(eff, i).split(" [")[0], i, thr,
                                                _excites(eff, i), float(max(wv[-1], 0.0)))
-    sig = []
-    for (eff, _kind, _spans, _), blk in zip(layout, blocks):
-        _, s0 = eff.prior(prob)
-        sig.append(np.tile(np.broadcast_to(np.asarray(s0, dtype=float), (int(eff.dim),)), len(blk) // int(eff.dim)))
+
+    for eff, blk, s0 in const:
+        info(eff, "constant", Jc[np.ix_(blk, blk)], s0)
+    for eff, blk, s0, _ in windowed:
+        # the median window's information: how well a push lasting one window is seen
+        per = [J[np.ix_(nc_ + blk, nc_ + blk)] for J in Jw]
+        mins = [float(np.linalg.eigvalsh(s0[:, None] * P * s0[None, :])[0]) for P in per]
+        info(eff, "windowed", per[int(np.argsort(mins)[len(mins) // 2])], s0)
     pairs: list[PairCorrelation] = []
-    P = J + np.diag(Lam)
-    for ia in range(len(layout)):
-        for ib in range(ia + 1, len(layout)):
-            ea, eb = layout[ia][0], layout[ib][0]
-            A, Bb = blocks[ia], blocks[ib]
-            Wa, Wb = _inv_sqrt(P[np.ix_(A, A)]), _inv_sqrt(P[np.ix_(Bb, Bb)])
-            U, sv, Vt = np.linalg.svd(Wa @ P[np.ix_(A, Bb)] @ Wb)
-            # the canonical directions in multiples of each unknown's prior sigma
-            ua = (Wa @ U[:, 0]) / sig[ia]
-            vb = (Wb @ Vt[0]) / sig[ib]
-            ia_ = int(np.argmax(np.abs(ua))) % int(ea.dim)
-            ib_ = int(np.argmax(np.abs(vb))) % int(eb.dim)
-            pairs.append(PairCorrelation(ea.name, eb.name, [float(min(x, 1.0)) for x in sv[:min(len(A), len(Bb), 6)]],
-                                         _label(ea, ia_).split(" [")[0], _label(eb, ib_).split(" [")[0],
-                                         _pair_hint(ea, eb)))
+    Pc = Jc + np.diag(lam_c)
+    for ia in range(len(const)):
+        for ib in range(ia + 1, len(const)):
+            (ea, A, sa), (eb, Bb, sb) = const[ia], const[ib]
+            pairs.append(_canonical(Pc, A, Bb, sa, sb, ea, eb))
+    # a per-step candidate against another: window by window, the window where they are most alike
+    for iw, (ea, A, sa, _) in enumerate(windowed):
+        others = [(eb, Bb, sb) for eb, Bb, sb in const] + \
+            [(eb, nc_ + Bb, sb) for eb, Bb, sb, _ in windowed[iw + 1:]]
+        for eb, Bb, sb in others:
+            best = None
+            for J, lw in zip(Jw, lam_w):
+                P = J + np.diag(np.concatenate([lam_c, lw]))
+                pc = _canonical(P, nc_ + A, Bb, sa, sb, ea, eb)
+                if best is None or pc.largest > best.largest:
+                    best = pc
+            if best is not None:
+                pairs.append(best)
     pairs.sort(key=lambda p: -p.largest)
     return Identifiability(cands, pairs, INSEPARABLE, time.perf_counter() - t0, errors)
