@@ -311,24 +311,102 @@ def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True) -> Linea
     return lin
 
 
+@core.njit
+def _support(J):
+    """The columns of ``J`` (m, rows, D) that are nonzero at some step (int64 array)."""
+    m, rows, D = J.shape
+    mark = np.zeros(D, dtype=np.bool_)
+    for k in range(m):  # in memory order
+        for i in range(rows):
+            for c in range(D):
+                if J[k, i, c] != 0.0:
+                    mark[c] = True
+    return np.nonzero(mark)[0]
+
+
+@core.njit
+def _gather(buf, Jk, cols):
+    """``buf[:, :rows] = Jk[:, cols]^T`` (columns as contiguous rows)."""
+    for ia in range(cols.shape[0]):
+        c = cols[ia]
+        for i in range(Jk.shape[0]):
+            buf[ia, i] = Jk[i, c]
+
+
+@core.njit
+def _gram_into(H, k, A, Bt, ca, cb, sym):
+    """``H[k][ca, cb] += A Bt^T`` for the gathered ``A`` (len(ca), rows), ``Bt`` (len(cb), rows)
+    (the upper triangle mirrored when ``sym``)."""
+    rows = A.shape[1]
+    for ia in range(ca.shape[0]):
+        a = ca[ia]
+        for ib in range(ia if sym else 0, cb.shape[0]):
+            b = cb[ib]
+            acc = 0.0
+            for i in range(rows):
+                acc += A[ia, i] * Bt[ib, i]
+            H[k, a, b] += acc
+            if sym and ib != ia:
+                H[k, b, a] += acc
+
+
+@core.njit
+def _grad_into(g, k, A, r, cols):
+    """``g[k][cols] -= A r`` for the gathered ``A`` (len(cols), rows)."""
+    rows = A.shape[1]
+    for ia in range(cols.shape[0]):
+        acc = 0.0
+        for i in range(rows):
+            acc += A[ia, i] * r[i]
+        g[k, cols[ia]] -= acc
+
+
+@core.njit
+def _add_unary(Hd, g, r, J, first, shift):
+    """Step ``k`` (``first`` <= k < len(r)) of a unary family into ``Hd[k + shift]``, ``g[k + shift]``."""
+    if r.shape[0] <= first:
+        return
+    cols = _support(J[first:])
+    A = np.empty((cols.shape[0], J.shape[1]))
+    for k in range(first, r.shape[0]):
+        _gather(A, J[k], cols)
+        _gram_into(Hd, k + shift, A, A, cols, cols, True)
+        _grad_into(g, k + shift, A, r[k], cols)
+
+
+@core.njit
+def _add_binary(H0, H1, B, g0, g1, r, J0, J1):
+    """A binary family: ``J0^T J0`` into ``H0[k]``, ``J1^T J1`` into ``H1[k + 1]``, ``J0^T J1``
+    into ``B[k]``; the gradients into ``g0[k]`` and ``g1[k + 1]``."""
+    c0 = _support(J0)
+    c1 = _support(J1)
+    A0 = np.empty((c0.shape[0], J0.shape[1]))
+    A1 = np.empty((c1.shape[0], J1.shape[1]))
+    for k in range(r.shape[0]):
+        _gather(A0, J0[k], c0)
+        _gather(A1, J1[k], c1)
+        _gram_into(H0, k, A0, A0, c0, c0, True)
+        _gram_into(H1, k + 1, A1, A1, c1, c1, True)
+        _gram_into(B, k, A0, A1, c0, c1, False)
+        _grad_into(g0, k, A0, r[k], c0)
+        _grad_into(g1, k + 1, A1, r[k], c1)
+
+
+def _f64(a):
+    return a if a.dtype == np.float64 else a.astype(np.float64)
+
+
 def assemble(lin: Linearization, n: int, D: int):
-    """Gauss-Newton blocks: diagonal ``Hd`` (N, D, D), upper ``B`` (N-1, D, D) and ``g = -J^T r`` (N, D)."""
+    """Gauss-Newton blocks: diagonal ``Hd`` (N, D, D), upper ``B`` (N-1, D, D) and ``g = -J^T r`` (N, D).
+
+    Compiled: each family's products are formed on the columns its Jacobian touches."""
     Hd = np.zeros((n, D, D))
     B = np.zeros((max(n - 1, 0), D, D))
     g = np.zeros((n, D))
     for r, J in lin.unary.values():
-        m = r.shape[0]
-        Jt = J.transpose(0, 2, 1)
-        Hd[:m] += Jt @ J
-        g[:m] -= (Jt @ r[:, :, None])[:, :, 0]
+        _add_unary(Hd, g, _f64(r), _f64(J), 0, 0)
     for r, J0, J1 in lin.binary.values():
-        J0t = J0.transpose(0, 2, 1)
-        J1t = J1.transpose(0, 2, 1)
-        Hd[:-1] += J0t @ J0
-        Hd[1:] += J1t @ J1
-        B += J0t @ J1
-        g[:-1] -= (J0t @ r[:, :, None])[:, :, 0]
-        g[1:] -= (J1t @ r[:, :, None])[:, :, 0]
+        _add_binary(Hd, Hd, B, g, g, _f64(r), _f64(J0), _f64(J1))
     return Hd, B, g
 
 
@@ -346,20 +424,9 @@ def assemble_split(lin: Linearization, n: int, D: int, skip_first_unary: bool = 
     gF = np.zeros((n, D))
     first = 1 if skip_first_unary else 0
     for r, J in lin.unary.values():
-        m = r.shape[0]
-        if m <= first:
-            continue
-        Jt = J[first:].transpose(0, 2, 1)
-        U[first:m] += Jt @ J[first:]
-        gU[first:m] -= (Jt @ r[first:, :, None])[:, :, 0]
+        _add_unary(U, gU, _f64(r), _f64(J), first, 0)
     for r, J0, J1 in lin.binary.values():
-        J0t = J0.transpose(0, 2, 1)
-        J1t = J1.transpose(0, 2, 1)
-        Fw[:-1] += J0t @ J0
-        U[1:] += J1t @ J1
-        B += J0t @ J1
-        gF[:-1] -= (J0t @ r[:, :, None])[:, :, 0]
-        gU[1:] -= (J1t @ r[:, :, None])[:, :, 0]
+        _add_binary(Fw, U, B, gF, gU, _f64(r), _f64(J0), _f64(J1))
     return U, gU, Fw, gF, B
 
 
