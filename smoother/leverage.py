@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from flexforce.factors.core import njit
 from flexforce.smoother.linearize import Trajectory, assemble, drop_global_walks, global_columns, linearize, solve_arrow
 
 VAR_FLOOR = 1e-12
@@ -98,6 +99,35 @@ def _chain_gains(Hd, B):
     return s, P, G
 
 
+@njit
+def _lag_covariances(Jall, G, PJ, L, out):
+    """``out[k, i, h] = -J_k,i G_k .. G_k+h-1 P_k+h J_k+h,i^T`` for ``h = 1 .. L`` (the rows
+    ``Jall`` (N, r, d), the gains ``G`` (N-1, d, d), ``PJ[k] = P_k J_k^T`` (N, d, r))."""
+    n, r, d = Jall.shape
+    A = np.empty((r, d))
+    T = np.empty((r, d))
+    for k in range(n - 1):
+        for i in range(r):
+            for e in range(d):
+                A[i, e] = Jall[k, i, e]
+        for h in range(1, min(L, n - 1 - k) + 1):
+            Gm = G[k + h - 1]
+            for i in range(r):
+                for e in range(d):
+                    T[i, e] = 0.0
+                for f in range(d):
+                    a = A[i, f]
+                    if a != 0.0:
+                        for e in range(d):
+                            T[i, e] += a * Gm[f, e]
+            for i in range(r):
+                acc = 0.0
+                for e in range(d):
+                    A[i, e] = T[i, e]
+                    acc += T[i, e] * PJ[k + h, e, i]
+                out[k, i, h] = -acc
+
+
 def residual_lag_correlations(prob, traj: Trajectory, variances: dict[str, np.ndarray], max_lag: int,
                               residuals: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """Correlation of each standardised residual row with the same axis ``h`` steps later,
@@ -132,12 +162,11 @@ def residual_lag_correlations(prob, traj: Trajectory, variances: dict[str, np.nd
         Jall = np.concatenate(Js, axis=1)  # (N, k, d)
         c = np.full((n, Jall.shape[1], L + 1), np.nan)
         c[:, :, 0] = 1.0
-        Q = None
-        for h in range(1, L + 1):
-            Q = G[:n - h] if Q is None else G[:n - h] @ Q[1:]
-            # cov(r_k, r_k+h) = -J_k Q_h[k] P_k+h J_k+h^T (same axis)
-            A = np.einsum("kid,kde->kie", Jall[:n - h], Q)
-            c[:n - h, :, h] = -np.einsum("kie,kef,kif->ki", A, P[h:], Jall[h:])
+        # cov(r_k, r_k+h) = -J_k Q_h[k] P_k+h J_k+h^T (same axis), Q_h[k] = G_k .. G_k+h-1
+        if L:
+            Jc = np.ascontiguousarray(Jall)
+            PJ = np.ascontiguousarray(np.einsum("kde,kie->kdi", P, Jc))
+            _lag_covariances(Jc, np.ascontiguousarray(G), PJ, L, c)
         out[fam] = c
     # to correlations of the standardised rows
     for fam, c in out.items():
