@@ -218,7 +218,8 @@ class Candidate:
     """For the best of a round: the other significant candidates within :data:`TIE` of its score,
     which the data do not tell apart from it."""
     screen: ScoreTest | None = None
-    """Its score test at the nominal fit (:mod:`flexforce.smoother.screening`), when screened."""
+    """Its score test (:mod:`flexforce.smoother.screening`), when screened: at the nominal fit, or, for
+    a candidate dropped in a later round, at that round's base (:attr:`base`)."""
     refitted: bool = True
     """False when the score test did not pass: no refit, no evidence (``score`` is None)."""
     implausible: str | None = None
@@ -245,6 +246,8 @@ class Candidate:
         if s is None:
             return ""
         out = f"score T = {s.statistic:.1f} (nu {s.dof:.1f}), p = {s.p_value:.2g}"
+        if self.base and not self.refitted:
+            out += " at + " + " + ".join(self.base)
         if s.kind == "windowed" and level is not None:
             spans = [f"{w.start_s:.2f}-{w.end_s:.2f} s" for w in s.passing_windows(level)]
             shown = ", ".join(spans[:6]) + (" ..." if len(spans) > 6 else "")
@@ -812,6 +815,26 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                                              screen_level=screen_level))
         while remaining:
             base = fitted(tuple(selected))
+            if selected and screen_level is not None and base.trajectory is not None and base.model is not None:
+                # screen the remaining candidates again at the new base: an effect that only stood in
+                # for the one just selected stops passing, and is not refitted
+                from flexforce.smoother import NoiseRule, Problem
+
+                scb2 = None
+                if call is not None:
+                    label2 = "screening at + " + " + ".join(selected)
+
+                    def scb2(f, message=None, label2=label2):
+                        call(label2, f, message)
+                again = screen(rec, base, {k: makers[k] for k in remaining}, screen_window, progress=scb2,
+                               problem=Problem.build(rec, base.model, NoiseRule()))
+                for k, v in again.items():
+                    if not isinstance(v, str) and v.p_value >= screen_level:
+                        remaining.remove(k)
+                        dropped.append(Candidate(k, tuple(selected), len(rounds) + 1, None, None, None, None, False,
+                                                 screen=v, refitted=False, screen_level=screen_level))
+                if not remaining:
+                    break
             row = []
             for name in remaining:
                 t0 = time.perf_counter()
@@ -842,10 +865,18 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
             rounds.append(row)
             # the best plausible candidate (an implausible one is no finding, whatever its score)
             best = next((c for c in row if not c.implausible), None)
-            if best is None or not best.significant or len(selected) >= max_effects:
+            stop = best is None or not best.significant or len(selected) >= max_effects
+            if not stop:
+                assert best is not None
+                selected.append(best.effect)
+                remaining.remove(best.effect)
+            # the round's other fits are done with (their rows keep what they found): free their
+            # estimates, so that memory does not grow with the number of candidates
+            keep = {(), tuple(sorted(selected))}
+            for key in [k for k in cache if k not in keep]:
+                del cache[key]
+            if stop:
                 break
-            selected.append(best.effect)
-            remaining.remove(best.effect)
     ranking: list[Candidate] = []
     for i, name in enumerate(selected):
         ranking.append(next(c for c in rounds[i] if c.effect == name))
@@ -876,8 +907,9 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                  "n_residuals": nominal.n_residuals, "penalty_per_dof": math.log(max(nominal.n_residuals, 2)),
                  "fit": "flexforce.smoother.fit",
                  "screen_level": screen_level, "screen_window_s": screen_window if screen_level is not None else None,
-                 "screen": ("score (Lagrange-multiplier) test at the nominal fit: g^T S^-1 g against chi-square "
-                            "with the effect's effective dof; only candidates with p < screen_level are refitted")
+                 "screen": ("score (Lagrange-multiplier) test at the nominal fit, and again at each round's base once "
+                            "an effect is selected: g^T S^-1 g against chi-square with the effect's effective dof; "
+                            "only candidates with p < screen_level are refitted")
                  if screen_level is not None else "none: every candidate refitted"}
     truth = getattr(rec, "truth", None)
     tests_sorted = sorted((v for v in screened.values() if not isinstance(v, str)),

@@ -170,7 +170,8 @@ def _screen_sentence(crit) -> str:
             f"(g the cost's gradient in the effect's unknowns at zero, S their information with the states "
             f"eliminated) against χ² with the effect's effective dof ν; per-step effects are tested on "
             f"{crit.get('screen_window_s')} s windows (Bonferroni over the windows). Only candidates with "
-            f"p < {level} are refitted (docs/diagnostics.md, \"Screening\").")
+            f"p < {level} are refitted; once an effect is selected, the remaining candidates are screened again "
+            f"with it in the model (docs/diagnostics.md, \"Screening\").")
 
 
 def write_diagnosis(diag, out: str | Path, title: str = "flexforce diagnosis") -> Path:
