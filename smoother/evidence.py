@@ -21,8 +21,10 @@ The Laplace approximation of the states' integral gives the marginal likelihood:
 with ``x*`` the states' optimum for ``theta``, ``H_post`` the Gauss-Newton Hessian of ``J`` in the
 per-step states (the constant parameters held) and ``H_model`` that of the model factors alone
 (``ln Z = -1/2 ln det H_model`` + const: the model factors have as many rows as the states have
-unknowns, so their minimum is zero).  Both are block tridiagonal: their log-determinants are the
-block Cholesky pivots' (:func:`flexforce.factors.solvers.block_tridiag_logdet`).
+unknowns, so their minimum is zero).  Both are block tridiagonal; their log-determinants come
+from the factors' rows by a step-by-step QR (a square-root information filter, :func:`_qr_logdet`),
+not from a Cholesky factorisation of ``H``: the trajectory prior's per-step blocks span 1e15 in
+eigenvalue, and squaring that left its log-determinant's derivative in a parameter to noise.
 
 :func:`flexforce.smoother.batch.optimize` estimates ``theta`` by minimising this (type-II maximum
 likelihood, with ``theta``'s own prior), the states by MAP given it; the diagnostics score an
@@ -34,6 +36,7 @@ from __future__ import annotations
 import numpy as np
 
 from flexforce.errors import EstimatorError
+from flexforce.factors.core import njit
 from flexforce.smoother import solvers
 from flexforce.smoother.linearize import Linearization, assemble, drop_global_walks, is_global, linearize
 
@@ -50,29 +53,105 @@ def theta_prior_keys(prob) -> set[str]:
     return {f"effect_prior/{eff.name}" for eff in prob.effects if is_global(eff, prob)}
 
 
+@njit
+def _qr_logdet(Ju, J0, J1, Jf):
+    """``ln det (J^T J)`` of the stacked rows of a chain, by a square-root information filter:
+    ``Ju`` (N, ru, d) each step's own rows, ``J0``/``J1`` (N-1, rb, d) the rows linking steps
+    ``k`` and ``k+1``, ``Jf`` (rf, d) rows on the first step only (its priors).  Step by step,
+    the rows on ``x_k`` (carried from the previous step, own, first-step, link) are reduced by QR;
+    ``R_kk``'s diagonal gives the determinant.  Unlike a Cholesky
+    factorisation of ``J^T J`` this does not square the rows' condition number (the trajectory
+    prior's blocks span 1e15 in eigenvalue).  Returns -inf when a pivot vanishes."""
+    n, ru, d = Ju.shape
+    rb = J0.shape[1]
+    carry = np.zeros((d, d))
+    total = 0.0
+    rf = Jf.shape[0]
+    for k in range(n):
+        last = k == n - 1
+        cols = d if last else 2 * d
+        top = d + ru + (rf if k == 0 else 0)
+        M = np.zeros((top + (0 if last else rb), cols))
+        M[:d, :d] = carry
+        M[d:d + ru, :d] = Ju[k]
+        if k == 0:
+            M[d + ru:top, :d] = Jf
+        if not last:
+            M[top:, :d] = J0[k]
+            M[top:, d:] = J1[k]
+        R = np.linalg.qr(M)[1]
+        for i in range(d):
+            v = abs(R[i, i])
+            if v == 0.0:
+                return -np.inf
+            total += np.log(v)
+        if not last:
+            carry = np.zeros((d, d))
+            m = min(R.shape[0], 2 * d) - d
+            if m > 0:
+                carry[:m] = R[d:d + m, d:]
+    return 2.0 * total
+
+
+def _stacked(lin: Linearization, keys_u, keys_b, n: int, aidx, s):
+    """The rows of the families ``keys_u`` (unary) and ``keys_b`` (binary), on the columns ``aidx``
+    scaled by ``s``: ``(Ju, J0, J1, Jf)`` for :func:`_qr_logdet`."""
+    d = len(aidx)
+    first = [k for k in keys_u if lin.unary[k][1].shape[0] == 1 and n > 1]  # the first step's priors
+    keys_u = [k for k in keys_u if k not in first]
+    ru = sum(lin.unary[k][1].shape[1] for k in keys_u)
+    Ju = np.zeros((n, ru, d))
+    row = 0
+    for k in keys_u:
+        J = lin.unary[k][1]
+        Ju[:J.shape[0], row:row + J.shape[1]] = J[:, :, aidx] * s[:J.shape[0], None, :]
+        row += J.shape[1]
+    Jf = np.concatenate([lin.unary[k][1][0][:, aidx] * s[0] for k in first], axis=0) if first else np.zeros((0, d))
+    rb = sum(lin.binary[k][1].shape[1] for k in keys_b)
+    J0 = np.zeros((max(n - 1, 0), rb, d))
+    J1 = np.zeros((max(n - 1, 0), rb, d))
+    row = 0
+    for k in keys_b:
+        _, A0, A1 = lin.binary[k]
+        J0[:, row:row + A0.shape[1]] = A0[:, :, aidx] * s[:-1, None, :]
+        J1[:, row:row + A1.shape[1]] = A1[:, :, aidx] * s[1:, None, :]
+        row += A0.shape[1]
+    return Ju, J0, J1, np.ascontiguousarray(Jf)
+
+
 def log_dets(prob, lin: Linearization, cidx: np.ndarray) -> tuple[float, float]:
-    """``(ln det H_post, ln det H_model)`` over the per-step states (the columns ``cidx`` held)."""
+    """``(ln det H_post, ln det H_model)`` over the per-step states (the columns ``cidx`` held):
+    ``H_post``'s by its block Cholesky pivots, ``H_model``'s from the model factors' rows by QR
+    (:func:`_qr_logdet`); the columns Jacobi-scaled by ``H_post``'s diagonal (the scale cancels
+    in the difference)."""
     lin = drop_global_walks(prob, lin) if cidx.size else lin
     n, D = prob.n, prob.state_dim
     aidx = np.setdiff1d(np.arange(D), cidx)
-    Hd, B, _ = assemble(lin, n, D)
-    model = Linearization(unary={k: v for k, v in lin.unary.items() if _family(k) not in MEASUREMENT_FAMILIES},
-                          binary=lin.binary)
-    Hm, Bm, _ = assemble(model, n, D)
-    Hd, B = Hd[:, aidx][:, :, aidx], B[:, aidx][:, :, aidx]
-    Hm, Bm = Hm[:, aidx][:, :, aidx], Bm[:, aidx][:, :, aidx]
-    # one Jacobi scaling for both (it cancels in the difference, and conditions the pivots)
-    s = 1.0 / np.sqrt(np.maximum(np.diagonal(Hd, axis1=1, axis2=2), 1e-300))
+    diag = np.zeros((n, D))
+    for _, J in lin.unary.values():
+        diag[:J.shape[0]] += np.einsum("kic,kic->kc", J, J)
+    for _, J0, J1 in lin.binary.values():
+        diag[:-1] += np.einsum("kic,kic->kc", J0, J0)
+        diag[1:] += np.einsum("kic,kic->kc", J1, J1)
+    s = 1.0 / np.sqrt(np.maximum(diag[:, aidx], 1e-300))
     shift = -2.0 * float(np.sum(np.log(s)))
+    # the posterior (the measurements make it well conditioned) by the block Cholesky pivots of
+    # H; the trajectory prior by QR of its rows
+    Hd, B, _ = assemble(lin, n, D)
+    Hs = np.ascontiguousarray(Hd[:, aidx][:, :, aidx] * s[:, :, None] * s[:, None, :])
+    Bs = np.ascontiguousarray(B[:, aidx][:, :, aidx] * s[:-1, :, None] * s[1:, None, :])
+    try:
+        post = float(solvers.block_tridiag_logdet(Hs, Bs))
+    except np.linalg.LinAlgError:
+        post = -np.inf
+    model_u = [k for k in lin.unary if _family(k) not in MEASUREMENT_FAMILIES]
+    prior = float(_qr_logdet(*_stacked(lin, model_u, list(lin.binary), n, aidx, s)))
     out = []
-    for H, Bk, what in ((Hd, B, "posterior"), (Hm, Bm, "trajectory prior")):
-        Hs = np.ascontiguousarray(H * s[:, :, None] * s[:, None, :])
-        Bs = np.ascontiguousarray(Bk * s[:-1, :, None] * s[1:, None, :])
-        try:
-            out.append(float(solvers.block_tridiag_logdet(Hs, Bs)) + shift)
-        except np.linalg.LinAlgError as exc:
+    for val, what in ((post, "posterior"), (prior, "trajectory prior")):
+        if not np.isfinite(val):
             raise EstimatorError(f"smoother: the {what} information of the states is not positive definite "
-                                 "(an unobservable direction: check contacts and stiffness)") from exc
+                                 "(an unobservable direction: check contacts and stiffness)")
+        out.append(val + shift)
     return out[0], out[1]
 
 
