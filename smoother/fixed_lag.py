@@ -264,6 +264,14 @@ class FixedLagSmoother:
         self.rp = np.zeros((cap, D))
         self.dx = np.zeros((cap, D))
         self.Pw = np.zeros((cap, D, D))
+        # marginals: the final steps' recursion factors and block maps (window_marginals_blocked)
+        self.nblk = cap // self.report_every + 2
+        shape = (cap, D, D) if covariance else (0, D, D)
+        self.Af, self.Gf = np.zeros(shape), np.zeros(shape)
+        bshape = (self.nblk, D, D) if covariance else (0, D, D)
+        self.Ab, self.Phib = np.zeros(bshape), np.zeros(bshape)
+        self._final_next = 0
+        self._block_next = 0
         # outputs (the Estimate, not the smoother's memory); a sink takes them instead
         self.sink = sink
         n_out = 0 if sink is not None else n
@@ -411,10 +419,34 @@ class FixedLagSmoother:
         self.k += 1
 
     def _covariances(self, k: int, j0: int, j1: int) -> None:
-        """Window marginals (timed apart); kept for steps ``j0 .. j1-1``."""
+        """Window marginals (timed apart); kept for steps ``j0 .. j1-1``.
+
+        At a read-out (the ``report_every`` steps ``j0 .. j1-1`` of one block, all final: their
+        elimination no longer changes) the recursion from the newest step crosses the final steps
+        by the maps of whole blocks, each composed once (:func:`solvers.window_marginals_blocked`);
+        otherwise (the last read-out, a lag shorter than ``relinearize``) step by step."""
         t0 = time.perf_counter()
-        order = np.arange(k, j0 - 1, -1) % self.cap
-        solvers.window_marginals(self.Ld, self.C, order, self.Pw)
+        R, cap = self.report_every, self.cap
+        hi = k - self.M  # the newest step whose elimination is final
+        if j1 - j0 == R and j0 % R == 0 and j1 - 1 <= hi:
+            start = max(self._final_next, j0)
+            if hi >= start:
+                solvers.window_final_factors(self.Ld, self.C, np.arange(start, hi + 1) % cap, self.Af, self.Gf)
+            self._final_next = hi + 1
+            b = j0 // R
+            newest_block = (hi + 1) // R - 1
+            for bb in range(max(self._block_next, b + 1), newest_block + 1):
+                solvers.window_block_map(self.Af, self.Gf, np.arange(bb * R, bb * R + R) % cap, self.Ab, self.Phib,
+                                         bb % self.nblk)
+            self._block_next = max(self._block_next, newest_block + 1)
+            top = max(newest_block, b)
+            solvers.window_marginals_blocked(self.Ld, self.C, np.arange(k, hi, -1) % cap, self.Af, self.Gf,
+                                             np.arange(hi, (top + 1) * R - 1, -1) % cap, self.Ab, self.Phib,
+                                             np.arange(top, b, -1) % self.nblk, np.arange(j1 - 1, j0 - 1, -1) % cap,
+                                             self.Pw)
+        else:
+            order = np.arange(k, j0 - 1, -1) % cap
+            solvers.window_marginals(self.Ld, self.C, order, self.Pw)
         self.last_cov_time = time.perf_counter() - t0
         if self.sink is None:
             self.cov_time[k] = self.last_cov_time

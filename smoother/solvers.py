@@ -228,3 +228,63 @@ def window_marginals(Ld, C, order, P):
         else:
             Pn = M.T @ (eye + C[p].T @ Pn @ C[p]) @ M
         P[p] = Pn
+
+
+@njit
+def window_final_factors(Ld, C, positions, A, G):
+    """For steps whose elimination is final (ring positions ``positions``): ``A[p] = M^T M`` and
+    ``G[p] = C[p] M`` with ``M = Ld[p]^-1``, so that the marginal recursion of
+    :func:`window_marginals` reads ``P_k = A_k + G_k^T P_k+1 G_k``."""
+    d = Ld.shape[1]
+    eye = np.eye(d)
+    for kk in range(positions.shape[0]):
+        p = positions[kk]
+        M = _trsm_lower(Ld[p], eye)
+        A[p] = M.T @ M
+        G[p] = C[p] @ M
+
+
+@njit
+def window_block_map(A, G, positions, Ab, Phib, slot):
+    """The affine map ``P_first = Ab + Phib^T P_next Phib`` across the final steps at ring
+    positions ``positions`` (oldest first; ``P_next`` the marginal of the step after the last),
+    composed from their ``A``, ``G`` (:func:`window_final_factors`) into ``Ab[slot]``, ``Phib[slot]``."""
+    n = positions.shape[0]
+    p = positions[n - 1]
+    Acc = A[p].copy()
+    Phi = G[p].copy()
+    for kk in range(n - 2, -1, -1):
+        p = positions[kk]
+        Acc = A[p] + G[p].T @ Acc @ G[p]
+        Phi = Phi @ G[p]
+    Ab[slot] = Acc
+    Phib[slot] = Phi
+
+
+@njit
+def window_marginals_blocked(Ld, C, newest, A, G, singles, Ab, Phib, blocks, reported, P):
+    """:func:`window_marginals` for the ``reported`` steps only (ring positions, newest first),
+    written to ``P[p]``: the recursion from the newest step runs through the steps not yet final
+    (``newest``, newest first, from ``Ld``, ``C``), the final steps one by one (``singles``, from
+    ``A``, ``G``), then whole blocks of final steps at once (``blocks``: slots of ``Ab``, ``Phib``,
+    :func:`window_block_map`), then the reported steps one by one (from ``A``, ``G``)."""
+    d = Ld.shape[1]
+    eye = np.eye(d)
+    Pn = np.empty((d, d))
+    for k in range(newest.shape[0]):
+        p = newest[k]
+        M = _trsm_lower(Ld[p], eye)
+        if k == 0:
+            Pn = M.T @ M
+        else:
+            Pn = M.T @ (eye + C[p].T @ Pn @ C[p]) @ M
+    for k in range(singles.shape[0]):
+        p = singles[k]
+        Pn = A[p] + G[p].T @ Pn @ G[p]
+    for k in range(blocks.shape[0]):
+        s = blocks[k]
+        Pn = Ab[s] + Phib[s].T @ Pn @ Phib[s]
+    for k in range(reported.shape[0]):
+        p = reported[k]
+        Pn = A[p] + G[p].T @ Pn @ G[p]
+        P[p] = Pn

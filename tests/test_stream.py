@@ -82,6 +82,27 @@ def test_stream_equals_offline_fixed_lag(pitch, seed):
         a += e.n
 
 
+@pytest.mark.parametrize("lag", [1.0, 0.13])
+def test_blocked_marginals_equal_the_step_by_step_recursion(pitch, monkeypatch, lag):
+    """The read-outs' covariances by block maps across the final steps equal the marginal
+    recursion through every step of the window (the former computation) to rounding."""
+    from flexforce.smoother import solvers
+    from flexforce.smoother.fixed_lag import FixedLagSmoother
+
+    model = ModelConfig.from_recording(pitch)
+    fast = run_fixed_lag(pitch, model, lag=lag, report_every=7)
+
+    def step_by_step(self, k, j0, j1):
+        solvers.window_marginals(self.Ld, self.C, np.arange(k, j0 - 1, -1) % self.cap, self.Pw)
+        self.last_cov_time = 0.0
+
+    monkeypatch.setattr(FixedLagSmoother, "_covariances", step_by_step)
+    ref = run_fixed_lag(pitch, model, lag=lag, report_every=7)
+    assert np.array_equal(fast.wrench, ref.wrench)
+    scale = np.abs(ref.cov).max(axis=(1, 2), keepdims=True)
+    assert np.max(np.abs(fast.cov - ref.cov) / scale) <= 1e-11
+
+
 def test_stream_with_an_effect_and_without_covariance(pitch):
     model = dataclasses.replace(ModelConfig.from_recording(pitch), effects=(AccelBias(),))
     offline = run_fixed_lag(pitch, model)
