@@ -103,6 +103,27 @@ def test_blocked_marginals_equal_the_step_by_step_recursion(pitch, monkeypatch, 
     assert np.max(np.abs(fast.cov - ref.cov) / scale) <= 1e-11
 
 
+@pytest.mark.parametrize("block", [4, 13])
+def test_stream_in_blocks_equals_offline_in_blocks(pitch, block):
+    """Several samples per update: the stream equals the offline smoother run the same way (the
+    part boundaries fall anywhere in a block), and stays close to one update per sample."""
+    model = ModelConfig.from_recording(pitch)
+    config = FixedLagConfig(block=block)
+    offline = run_fixed_lag(pitch, model, config)
+    stream = FixedLagStream(model, config)
+    ests = [e for e in (stream.push(p) for p in _random_parts(pitch, 5)) if e is not None]
+    ests.append(stream.finish())
+    got = _joined(ests)
+    for name, ref in (("R", offline.R), ("t", offline.t), ("v", offline.v), ("wrench", offline.wrench),
+                      ("cov", offline.cov)):
+        assert np.max(np.abs(got[name] - ref)) <= EXACT, name
+    stats = stream.update_stats
+    assert stats["updates"] == -(-pitch.n // block) and stats["samples_per_update"] == block
+    assert len(stream.update_time) == pitch.n
+    single = run_fixed_lag(pitch, model)
+    assert np.max(np.abs(offline.wrench - single.wrench)) < 0.05 * np.max(np.abs(single.wrench))
+
+
 def test_stream_with_an_effect_and_without_covariance(pitch):
     model = dataclasses.replace(ModelConfig.from_recording(pitch), effects=(AccelBias(),))
     offline = run_fixed_lag(pitch, model)
