@@ -207,6 +207,38 @@ def test_stream_import_equals_offline_import(walk_offline, velocity):
 
 
 @needs_icub
+def test_cdr_decoder_equals_rosbags():
+    """The fixed-layout decoder of the Imu, JointState and WrenchStamped messages gives rosbags'
+    fields for every message of a raw bag; other types and big-endian data are left to rosbags."""
+    from rosbags.highlevel import AnyReader
+
+    from flexforce.datasets.rosimport import T_IMU, T_JOINTS, T_WRENCH, _typestore
+    from flexforce.datasets.stream import _CdrDecoder, _fields
+
+    dec = _CdrDecoder()
+    seen = set()
+    with AnyReader([WALK], default_typestore=_typestore()) as reader:
+        for conn, _, raw in reader.messages():
+            got = dec.decode(conn.msgtype, raw)
+            if conn.msgtype not in (T_IMU, T_JOINTS, T_WRENCH):
+                assert got is None
+                continue
+            ref = _fields(reader.deserialize(raw, conn.msgtype), conn.msgtype)
+            assert got is not None and got[:2] == ref[:2]
+            if conn.msgtype == T_JOINTS:
+                assert got[2][0] == tuple(ref[2][0])
+                for a, b in zip(got[2][1:], ref[2][1:]):
+                    assert np.array_equal(a, b, equal_nan=True) and a.dtype == float
+            else:
+                assert np.array_equal(np.ravel(got[2]), np.ravel(ref[2]), equal_nan=True)
+            seen.add(conn.msgtype)
+            big = bytes([0, 0]) + bytes(raw[2:])
+            assert dec.decode(conn.msgtype, big) is None
+            assert dec.decode(conn.msgtype, bytes(raw[:20])) is None
+    assert seen == {T_IMU, T_JOINTS, T_WRENCH}
+
+
+@needs_icub
 def test_streamed_bag_estimate_equals_offline(walk_offline):
     rec = walk_offline
     model = ModelConfig.from_recording(rec, robot=RobotConfig.load(ROBOT))
