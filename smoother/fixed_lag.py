@@ -41,13 +41,12 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
-import gtsam
 import numpy as np
 
 from flexforce.errors import ConfigError, EstimatorError
 from flexforce.factors import core
-from flexforce.factors import gtsam_factors as gf
 from flexforce.options import (
     check_bool,
     check_choice,
@@ -58,12 +57,26 @@ from flexforce.options import (
     with_options,
 )
 from flexforce.smoother import solvers
-from flexforce.smoother.graph import GraphBuilder
 from flexforce.smoother.linearize import Trajectory, assemble_split, linearize
 from flexforce.smoother.problem import NoiseRule, Problem, with_footholds
 from flexforce.smoother.result import make_estimate
 
+if TYPE_CHECKING:
+    import gtsam
+
+    from flexforce.factors import gtsam_factors as gf
+
 S = core.STATE_DIM
+
+
+def _load_gtsam() -> None:
+    """Import gtsam and the CustomFactors for the gtsam backend, on first use: the window
+    backend (the stream) runs without them (~65 MB of libraries)."""
+    if "gtsam" not in globals():
+        import gtsam as gtsam_module
+
+        from flexforce.factors import gtsam_factors
+        globals().update(gtsam=gtsam_module, gf=gtsam_factors)
 
 
 RELINEARIZE_THRESHOLD = {
@@ -78,6 +91,7 @@ relinearisation re-eliminates the chain back to that step (p99 update > 0.5 s)."
 
 
 def _isam_params(relinearize_threshold, relinearize_skip: int) -> gtsam.ISAM2Params:
+    _load_gtsam()
     params = gtsam.ISAM2Params()
     if relinearize_threshold is None:
         thresholds = gtsam.ISAM2ThresholdMap()
@@ -127,6 +141,9 @@ class GtsamFixedLagSmoother:
             raise ConfigError("the gtsam fixed-lag backend does not take effects (got "
                               + ", ".join(e.name for e in prob.effects) + "); use backend='window', or the "
                               "batch graph of flexforce.smoother.to_gtsam")
+        _load_gtsam()
+        from flexforce.smoother.graph import GraphBuilder
+
         self.prob = prob
         self.builder = GraphBuilder(prob)
         self.lag_steps = max(1, int(round(lag / prob.dt)))
