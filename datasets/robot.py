@@ -651,10 +651,11 @@ class RobotModel:
         pin.forwardKinematics(model, data, q, v, a)
         pin.updateFramePlacements(model, data)
         m = self.mass
-        c = pin.centerOfMass(model, data, q, v, a, False).copy()
+        # the centre of mass and the centroidal momentum from the kinematics just computed
+        c = pin.centerOfMass(model, data, pin.KinematicLevel.ACCELERATION, False).copy()
         dc = data.vcom[0].copy()
         ddc = data.acom[0].copy()
-        pin.computeCentroidalMomentumTimeVariation(model, data, q, v, a)
+        pin.computeCentroidalMomentumTimeVariation(model, data)
         hg_ang = data.hg.angular.copy()
         dhg_ang = data.dhg.angular.copy()
         pin.ccrba(model, data, q, v)
@@ -679,8 +680,9 @@ class RobotModel:
     def _inertia_rate(self, q: np.ndarray, v: np.ndarray) -> np.ndarray:
         r"""dI_l/dt, I_l = sum_i (R_i I_i R_i^T - m_i [c_i]x^2) about the origin, moving at ``v``.
 
-        ``I_l(q)`` is pinocchio's composite inertia (``ccrba``, on a Data of its own): its
-        derivative along the motion by the five-point central difference
+        ``I_l(q)`` is the whole robot's composite inertia about the origin (``oYcrb[0]`` of
+        pinocchio's ``ccrba``, on a Data of its own); its derivative along the motion by the
+        five-point central difference
         ``(I(-2h) - 8 I(-h) + 8 I(h) - I(2h)) / 12h`` with ``I(s) = I_l(q (+) s v)``, the step
         ``h |v|_inf = INERTIA_RATE_STEP``.  Truncation ``O(h^4)`` and rounding ``O(eps / h)``:
         within ~1e-11 of the analytic per-body sum
@@ -695,13 +697,10 @@ class RobotModel:
             data = self._rate_data = model.createData()
         h = INERTIA_RATE_STEP / speed
         zero = np.zeros(model.nv)
-        m = self.mass
         out = np.zeros((3, 3))
         for s, weight in ((-2.0, 1.0), (-1.0, -8.0), (1.0, 8.0), (2.0, -1.0)):
             pin.ccrba(model, data, pin.integrate(model, q, (s * h) * v), zero)
-            c = data.com[0]
-            Sc = _skew(c)
-            out += weight * (data.Ig.inertia - m * Sc @ Sc)
+            out += weight * data.oYcrb[0].matrix()[3:, 3:]  # the whole robot's rotational inertia about the origin
         return out / (12.0 * h)
 
     def _inertia_rate_bodies(self) -> np.ndarray:

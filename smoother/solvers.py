@@ -192,7 +192,8 @@ def window_eliminate(Sp0, rp0, first_partial, U, gU, Fw, gF, B, Cprev, yprev, ha
 @njit
 def window_back_substitute(Ld, C, y, order, x):
     """Back substitution over ring-buffer positions ``order`` (newest first): ``x[p]`` for each
-    (``x_k = Ld_k^-T (y_k - C_k^T x_k+1)``), without temporaries."""
+    (``x_k = Ld_k^-T (y_k - C_k^T x_k+1)``), without temporaries; the rows of ``C_k`` and
+    ``Ld_k`` are read in memory order."""
     d = y.shape[1]
     b = np.empty(d)
     for kk in range(order.shape[0]):
@@ -207,10 +208,11 @@ def window_back_substitute(Ld, C, y, order, x):
                     for i in range(d):
                         b[i] -= C[p, j, i] * xj
         for i in range(d - 1, -1, -1):
-            acc = b[i]
-            for m in range(i + 1, d):
-                acc -= Ld[p, m, i] * x[p, m]
-            x[p, i] = acc / Ld[p, i, i]
+            xi = b[i] / Ld[p, i, i]
+            x[p, i] = xi
+            if xi != 0.0:
+                for m in range(i):
+                    b[m] -= Ld[p, i, m] * xi
 
 
 @njit
