@@ -398,11 +398,8 @@ class FixedLagSmoother:
         frozen_first = k0 - M >= 0
         f = max(k0 - M, 0)
         # relinearise the unfrozen steps at their current estimate; the new ones at their prediction
-        for i in range(f + 1 if frozen_first else f, k0):
-            pi = i % cap
-            R_, q, W, e = self._state(i)
-            self.Rb[pi], self.qb[pi], self.Wb[pi], self.eb[pi] = R_, q, W, e
-            self.dx[pi] = 0.0
+        solvers.window_retract(self.Rb, self.qb, self.Wb, self.eb, self.dx,
+                               np.arange(f + 1 if frozen_first else f, k0) % cap, S)
         for k in range(k0, k1):
             pk = k % cap
             self.Rb[pk], self.qb[pk], self.Wb[pk], self.eb[pk] = self._predict(k)

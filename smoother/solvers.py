@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from flexforce.factors.core import njit, trsv_lower_inplace, trsv_upper_t_inplace
+from flexforce.factors.core import njit, so3_exp, trsv_lower_inplace, trsv_upper_t_inplace
 
 # ----------------------------------------------------------------------------------------------
 # Block-tridiagonal solver (the Gauss-Newton system of a chain)
@@ -155,6 +155,45 @@ def block_tridiag_logdet(D, B):
 
 
 @njit
+def window_retract(Rb, qb, Wb, eb, dx, positions, S):
+    """Move the linearisation points at ring positions ``positions`` to the current estimate
+    (``R <- exp(dx_rot) R``, the rest ``+ dx``; ``S`` the state dimension) and zero ``dx``."""
+    nc = Wb.shape[1]
+    for kk in range(positions.shape[0]):
+        p = positions[kk]
+        Rb[p] = so3_exp(dx[p, :3]) @ Rb[p]
+        for i in range(S - 3):
+            qb[p, i] += dx[p, 3 + i]
+        for c in range(nc):
+            for j in range(6):
+                Wb[p, c, j] += dx[p, S + 6 * c + j]
+        for i in range(eb.shape[1]):
+            eb[p, i] += dx[p, S + 6 * nc + i]
+        dx[p, :] = 0.0
+
+
+@njit
+def _trsm_lower_rows_t(L, B, X, out):
+    """``out = (L^-1 B)^T`` for lower-triangular ``L`` (d, d), by rows of ``B`` (memory order;
+    each entry the same operations as :func:`_trsm_lower`'s); ``X`` (d, d) scratch."""
+    d = L.shape[0]
+    ncol = B.shape[1]
+    for i in range(d):
+        for j in range(ncol):
+            X[i, j] = B[i, j]
+        for k in range(i):
+            lik = L[i, k]
+            for j in range(ncol):
+                X[i, j] -= lik * X[k, j]
+        inv = L[i, i]
+        for j in range(ncol):
+            X[i, j] = X[i, j] / inv
+    for i in range(d):
+        for j in range(ncol):
+            out[j, i] = X[i, j]
+
+
+@njit
 def window_eliminate(Sp0, rp0, first_partial, U, gU, Fw, gF, B, Cprev, yprev, has_prev, Ld, C, y, Sp, rp):
     """Forward (oldest-first) block Cholesky of the newest steps of a chain.
 
@@ -168,6 +207,7 @@ def window_eliminate(Sp0, rp0, first_partial, U, gU, Fw, gF, B, Cprev, yprev, ha
     not positive definite.
     """
     m = U.shape[0]
+    X = np.empty((U.shape[1], U.shape[1]))
     for i in range(m):
         if i == 0:
             if first_partial:
@@ -185,7 +225,7 @@ def window_eliminate(Sp0, rp0, first_partial, U, gU, Fw, gF, B, Cprev, yprev, ha
         S = Sp[i] + Fw[i]
         Ld[i] = np.linalg.cholesky(S)
         if i < m - 1:
-            C[i] = _trsm_lower(Ld[i], B[i]).T.copy()
+            _trsm_lower_rows_t(Ld[i], B[i], X, C[i])
         y[i] = _trsv_lower(Ld[i], rp[i] + gF[i])
 
 
