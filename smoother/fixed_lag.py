@@ -16,8 +16,11 @@ Two backends share the factors and the noise of :class:`Problem`:
     every ``report_every`` updates the whole window is back-substituted and the steps that have
     left it since are read out, each smoothed with at least ``lag`` of future data (output
     latency ``lag`` plus up to ``report_every - 1`` samples).  Covariances: the window's
-    marginals at the same moments, by the recursion of
-    :func:`flexforce.factors.solvers.window_marginals`, timed apart from the updates.
+    marginals of the steps read out, at the same moments, by the recursion of
+    :func:`flexforce.smoother.solvers.window_marginals` through the steps not yet final and by
+    block maps across the final ones (:func:`flexforce.smoother.solvers.window_marginals_blocked`),
+    timed apart from the updates.  ``block`` > 1 (:attr:`FixedLagConfig.block`): one update per
+    ``block`` samples, adding them together.
 
 ``gtsam`` (:class:`GtsamFixedLagSmoother`)
     gtsam's IncrementalFixedLagSmoother (iSAM2) on the CustomFactors of

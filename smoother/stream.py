@@ -10,7 +10,8 @@ stream keeps only the steps still needed (the window and the steps not yet repor
 
 The estimate of a step is the offline fixed-lag smoother's (same window, factors, noise and
 update order; the part boundaries change nothing, tested to 1e-9): each step is reported once
-``lag`` of later data has been smoothed in (plus up to ``report_every - 1`` samples).  The
+``lag`` of later data has been smoothed in (plus up to ``report_every - 1`` samples, and with
+``config.block`` > 1 up to ``block - 1`` samples more: the samples wait for their block).  The
 noise is derived from the stream's first sample, as offline from the recording's first.
 
 Differences from the offline :class:`Estimate`: each returned estimate holds its own steps only,
