@@ -403,9 +403,14 @@ class FixedLagSmoother:
         # relinearise the unfrozen steps at their current estimate; the new ones at their prediction
         solvers.window_retract(self.Rb, self.qb, self.Wb, self.eb, self.dx,
                                np.arange(f + 1 if frozen_first else f, k0) % cap, S)
-        for k in range(k0, k1):
+        # the block's later samples start where its first is predicted (its state held): a
+        # constant-acceleration prediction over several samples runs off (the iCub walk diverged)
+        pk0 = k0 % cap
+        self.Rb[pk0], self.qb[pk0], self.Wb[pk0], self.eb[pk0] = self._predict(k0)
+        self.dx[pk0] = 0.0
+        for k in range(k0 + 1, k1):
             pk = k % cap
-            self.Rb[pk], self.qb[pk], self.Wb[pk], self.eb[pk] = self._predict(k)
+            self.Rb[pk], self.qb[pk], self.Wb[pk], self.eb[pk] = self.Rb[pk0], self.qb[pk0], self.Wb[pk0], self.eb[pk0]
             self.dx[pk] = 0.0
         k = k1 - 1
         pk = k % cap
@@ -543,12 +548,14 @@ class FixedLagConfig:
     samples).  Output latency: ``lag`` plus up to ``report_every - 1`` samples."""
     block: int = 1
     """Window backend: samples added per update (count, >= 1).  1: one update per sample.  B > 1:
-    the samples wait until B have come, then one update adds them together, relinearising them
-    with the ``relinearize`` steps before them (the per-update cost -- the linearisation's
-    fixed overhead above all -- is paid once per B samples).  The estimate changes: each step
-    takes part in about ``relinearize / B + 1`` Gauss-Newton passes instead of ``relinearize``,
-    and the newest samples are predicted up to B steps ahead; latency grows by up to
-    ``B - 1`` samples.  ``Estimate.time_per_step``: each update's time shared among its samples."""
+    the samples wait until B have come, then one update adds them together (the first predicted
+    from the previous estimate, the others starting at that prediction), relinearising them with
+    the ``relinearize`` steps before them (the per-update cost -- the linearisation's fixed
+    overhead above all -- is paid once per B samples).  The estimate changes: each step takes
+    part in about ``relinearize / B + 1`` Gauss-Newton passes instead of ``relinearize`` (the
+    iCub walk's per-foot F_z error against the F/T: 34.2 / 34.7 N with B = 1, 42.8 / 40.8 N with
+    B = 10); latency grows by up to ``B - 1`` samples.  ``Estimate.time_per_step``: each
+    update's time shared among its samples."""
     relinearize_threshold: float | None = None
     """Gtsam backend: iSAM2's relinearisation threshold on every variable's tangent delta (rad, m,
     m/s, N mixed; > 0).  None: the per-type thresholds of :data:`RELINEARIZE_THRESHOLD`."""
