@@ -173,10 +173,13 @@ def _memory_mb(pid: int) -> tuple[float, float] | None:
     return (total, rss) if rss is not None else None
 
 
-def stream_run(bag: Path, out: Path, no_cov: bool) -> dict:
-    """The command-line streaming run in a child process, its RSS sampled every second."""
+def stream_run(bag: Path, out: Path, no_cov: bool, block: int = 1) -> dict:
+    """The command-line streaming run in a child process, its RSS sampled every second; ``block``
+    samples per update (``--block``)."""
     cmd = [sys.executable, "-m", "flexforce.cli", "run", str(bag), "--robot", ROBOT, "--estimator", "fixed-lag",
-           "-o", str(out), "-q", "--force"] + (["--no-cov"] if no_cov else [])
+           "-o", str(out), "-q", "--force"] + (["--no-cov"] if no_cov else []) + \
+        (["--block", str(block)] if block != 1 else [])
+    load0 = os.getloadavg()
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     samples = []
@@ -191,6 +194,7 @@ def stream_run(bag: Path, out: Path, no_cov: bool) -> dict:
         raise RuntimeError(f"{' '.join(cmd)} failed: {stderr.strip()}")
     found = re.search(r"(\d+) steps streamed in ([\d.]+) s \(([\d.]+)x real time\), update ([\d.]+) ms median, "
                       r"([\d.]+) ms p99", stdout)
+    per_sample = re.search(r"([\d.]+) ms per sample", stdout)
     curve = np.array([m for _, m, _ in samples]) if samples else np.zeros(1)
     rss = np.array([r for _, _, r in samples]) if samples else np.zeros(1)
     tenths = [float(curve[min(len(curve) - 1, int(f * len(curve)))]) for f in np.linspace(0.1, 1.0, 10)]
@@ -200,7 +204,11 @@ def stream_run(bag: Path, out: Path, no_cov: bool) -> dict:
             "steps": int(found[1]) if found else None, "stream_wall_s": float(found[2]) if found else None,
             "realtime_factor": float(found[3]) if found else None,
             "update_median_ms": float(found[4]) if found else None,
-            "update_p99_ms": float(found[5]) if found else None, "stdout": stdout.strip()}
+            "update_p99_ms": float(found[5]) if found else None,
+            "samples_per_update": block,
+            "update_per_sample_ms": float(per_sample[1]) if per_sample else (float(found[4]) if found and block == 1
+                                                                             else None),
+            "loadavg_at_start": load0, "loadavg_at_end": os.getloadavg(), "stdout": stdout.strip()}
 
 
 BATCH_CHILD = """
@@ -247,6 +255,9 @@ def main(argv=None) -> dict:
                         help="the run without covariances on the first this many minutes (default 10)")
     parser.add_argument("--batch", default="5,10,20,40,80", help="batch lengths, s (comma-separated; '' for none)")
     parser.add_argument("--quick", action="store_true", help="2 minutes, batch 5,10 s")
+    parser.add_argument("--blocks", default="1,10",
+                        help="samples per update of the runs with covariances (comma-separated; the run without "
+                             "covariances takes the last)")
     parser.add_argument("--keep", type=Path, help="keep the long bag at this path (reused when it exists)")
     parser.add_argument("--batch-only", action="store_true",
                         help="only the batch runs, replacing them in the committed JSON")
@@ -275,13 +286,18 @@ def main(argv=None) -> dict:
             "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()},
             "log": {"minutes": args.minutes, "rate_hz": args.rate, "source": SOURCE.name, "bag_mb": size / 2**20,
                     "write_s": made},
-            "stream": {"with_covariance": stream_run(bag, Path(tmp) / "cov.csv", no_cov=False)},
+            "stream": {},
         }
+        blocks = [int(b) for b in args.blocks.split(",") if b.strip()] or [1]
+        for b in blocks:
+            key = "with_covariance" if b == 1 else f"with_covariance_block{b}"
+            result["stream"][key] = stream_run(bag, Path(tmp) / "cov.csv", no_cov=False, block=b)
         short = bag
         if args.no_cov_minutes < args.minutes:
             short = Path(tmp) / "short.mcap"
             make_long_bag(short, args.no_cov_minutes * 60.0, args.rate)
-        result["stream"]["without_covariance"] = stream_run(short, Path(tmp) / "nocov.csv", no_cov=True)
+        result["stream"]["without_covariance"] = stream_run(short, Path(tmp) / "nocov.csv", no_cov=True,
+                                                            block=blocks[-1])
         result["stream"]["without_covariance"]["minutes"] = min(args.no_cov_minutes, args.minutes)
         result["load"] = {"loadavg_at_end": os.getloadavg()}
         lengths = [float(x) for x in args.batch.split(",") if x.strip()]

@@ -32,12 +32,14 @@ capture (a reference, not an input; compare offline).
 from __future__ import annotations
 
 import re
+import struct
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.signal import savgol_filter
+from scipy.ndimage import convolve1d
+from scipy.signal import savgol_coeffs, savgol_filter
 
 from flexforce.datasets.localframe import LocalFrameTracker
 from flexforce.datasets.recording import Recording
@@ -48,7 +50,6 @@ from flexforce.datasets.rosimport import (
     T_WRENCH,
     _check_path,
     _reader_error,
-    _stamp,
     _typestore,
     _wrench_to_contact_frame,
     check_touch_downs,
@@ -188,6 +189,7 @@ class StreamImporter:
         self._k_interp = 0  # next step to interpolate
         self._k_deriv = 0  # next step to differentiate
         self._ready: list[dict] = []  # steps with every input final, not yet handed out
+        self._savgol_coeffs: dict[tuple, np.ndarray] = {}  # the derivative filters, by (window, derivative, step)
         win = int(round(ros.savgol_window * self.rate)) | 1 if self.rate else None
         self._win = win
         self.tracker = LocalFrameTracker(model, self._anchor(), config.footholds)
@@ -416,18 +418,18 @@ class StreamImporter:
         # keep the outputs k_deriv .. stop: the filter's interior, or its end fits at the ends
         s = a
         seg = q
+        lo, hi = self._k_deriv - s, stop - s
         if self.velocity_source == "message":
             v_seg = np.array(rows["v"])
             v_seg[:, ~self.measured] = 0.0
-            acc = savgol_filter(v_seg, win, ros.savgol_order, deriv=1, delta=dt, axis=0, mode="interp")
+            acc = self._savgol(v_seg, win, 1, dt, lo, hi)
             vel = v_seg
         else:
-            vel = savgol_filter(seg, win, ros.savgol_order, deriv=1, delta=dt, axis=0, mode="interp")
-            acc = savgol_filter(seg, win, ros.savgol_order, deriv=2, delta=dt, axis=0, mode="interp")
+            vel = self._savgol(seg, win, 1, dt, lo, hi)
+            acc = self._savgol(seg, win, 2, dt, lo, hi)
         vel = vel.copy()
         vel[:, ~self.measured] = 0.0
         acc[:, ~self.measured] = 0.0
-        lo, hi = self._k_deriv - s, stop - s
         for j in range(lo, hi):
             k = s + j
             r = k - a
@@ -441,6 +443,22 @@ class StreamImporter:
             for key in rows:
                 del rows[key][:cut]
             self._rows_first = keep_from
+
+    def _savgol(self, x: np.ndarray, win: int, deriv: int, dt: float, lo: int, hi: int) -> np.ndarray:
+        """``savgol_filter(x, win, order, deriv, delta=dt, axis=0, mode="interp")`` at rows
+        ``lo .. hi-1`` (the other rows undefined).  Rows at least half a window from both ends
+        are the filter's interior, the convolution with its coefficients (computed once, the
+        same operations as scipy's); the end fits only when the rows reach an end."""
+        h = win // 2
+        if lo < h or hi > len(x) - h:
+            return savgol_filter(x, win, self.ros.savgol_order, deriv=deriv, delta=dt, axis=0, mode="interp")
+        key = (win, deriv, dt)
+        coeffs = self._savgol_coeffs.get(key)
+        if coeffs is None:
+            coeffs = self._savgol_coeffs[key] = savgol_coeffs(win, self.ros.savgol_order, deriv=deriv, delta=dt)
+        out = np.empty_like(x)
+        out[lo - h:hi + h] = convolve1d(x[lo - h:hi + h], coeffs, axis=0, mode="constant")
+        return out
 
     def _hand_out(self, final: bool) -> Iterator[Recording]:
         assert self.rate is not None or not self._ready
@@ -504,6 +522,111 @@ class StreamImporter:
 
 
 # ------------------------------------------------------------------------------------------------
+_U32 = struct.Struct("<I")
+_STAMP = struct.Struct("<iI")
+_D3 = struct.Struct("<3d")
+_D6 = struct.Struct("<6d")
+
+
+class _CdrDecoder:
+    """The fields the import reads from the little-endian CDR of ROS 2's Imu, JointState and
+    WrenchStamped messages, by their fixed layout (offsets computed from the raw bytes): what
+    rosbags' deserialisation gives, without building the message objects.  ``decode`` returns
+    None for anything else (another type, big-endian, a malformed message): the caller
+    deserialises with rosbags then.  Tested equal to rosbags' deserialisation (tests/test_stream.py).
+
+    Returned: ``(stamp_ns, frame_id, (gyro, accel))`` for an Imu, ``(stamp_ns, frame_id, wrench)``
+    for a WrenchStamped, ``(stamp_ns, frame_id, (names, position, velocity))`` for a JointState
+    (``names`` the same tuple while the names' bytes repeat), ``stamp_ns`` 0 when unset."""
+
+    def __init__(self):
+        self._names_raw = b""
+        self._names: tuple[str, ...] = ()
+
+    @staticmethod
+    def _header(raw) -> tuple[int, str, int]:
+        if raw[0] != 0 or raw[1] != 1:  # CDR_LE (0x0001) only
+            raise ValueError("not little-endian CDR")
+        sec, nsec = _STAMP.unpack_from(raw, 4)
+        (n,) = _U32.unpack_from(raw, 12)
+        if n < 1 or 16 + n > len(raw) or raw[15 + n] != 0:
+            raise ValueError("bad frame_id")
+        frame = raw[16:15 + n].decode()
+        return sec * _NS + nsec, frame, 16 + n
+
+    @staticmethod
+    def _align(pos: int, size: int) -> int:
+        return 4 + (-(-(pos - 4) // size)) * size  # alignment counts from after the 4-byte encapsulation
+
+    def _doubles(self, raw, pos: int) -> tuple[np.ndarray, int]:
+        pos = self._align(pos, 4)
+        (n,) = _U32.unpack_from(raw, pos)
+        pos += 4
+        if n:
+            pos = self._align(pos, 8)
+        end = pos + 8 * n
+        if end > len(raw):
+            raise ValueError("truncated sequence")
+        return np.frombuffer(raw, dtype="<f8", count=n, offset=pos).astype(float), end
+
+    def decode(self, msgtype: str, raw):
+        if not isinstance(raw, bytes):
+            raw = bytes(raw)
+        try:
+            if msgtype == T_IMU:
+                t, frame, pos = self._header(raw)
+                o = self._align(pos, 8)
+                if o + 296 > len(raw):
+                    return None
+                return t, frame, (_D3.unpack_from(raw, o + 104), _D3.unpack_from(raw, o + 200))
+            if msgtype == T_WRENCH:
+                t, frame, pos = self._header(raw)
+                o = self._align(pos, 8)
+                if o + 48 > len(raw):
+                    return None
+                return t, frame, _D6.unpack_from(raw, o)
+            if msgtype == T_JOINTS:
+                t, frame, pos = self._header(raw)
+                start = pos = self._align(pos, 4)
+                (count,) = _U32.unpack_from(raw, pos)
+                pos += 4
+                for _ in range(count):
+                    pos = self._align(pos, 4)
+                    (n,) = _U32.unpack_from(raw, pos)
+                    pos += 4 + n
+                if pos > len(raw):
+                    return None
+                block = bytes(raw[start:pos])
+                if block != self._names_raw:
+                    names, p = [], start + 4
+                    for _ in range(count):
+                        p = self._align(p, 4)
+                        (n,) = _U32.unpack_from(raw, p)
+                        if n < 1 or raw[p + 3 + n] != 0:
+                            return None
+                        names.append(raw[p + 4:p + 3 + n].decode())
+                        p += 4 + n
+                    self._names_raw, self._names = block, tuple(names)
+                position, pos = self._doubles(raw, pos)
+                velocity, pos = self._doubles(raw, pos)
+                return t, frame, (self._names, position, velocity)
+        except (ValueError, struct.error, IndexError, UnicodeDecodeError):
+            return None
+        return None
+
+
+def _fields(msg: Any, msgtype: str):
+    """:meth:`_CdrDecoder.decode`'s fields from a message deserialised by rosbags."""
+    stamp = int(msg.header.stamp.sec) * _NS + int(msg.header.stamp.nanosec)
+    if msgtype == T_IMU:
+        av, la = msg.angular_velocity, msg.linear_acceleration
+        return stamp, msg.header.frame_id, ((av.x, av.y, av.z), (la.x, la.y, la.z))
+    if msgtype == T_JOINTS:
+        return stamp, msg.header.frame_id, (msg.name, msg.position, msg.velocity)
+    w = msg.wrench
+    return stamp, msg.header.frame_id, (w.force.x, w.force.y, w.force.z, w.torque.x, w.torque.y, w.torque.z)
+
+
 def stream_bag(path, robot_config, rate: float | None = None, contacts: str = "ft", part_seconds: float = 0.5,
                on_message: Callable | None = None) -> Iterator[Recording]:
     """Parts of the recording of a raw robot bag, read message by message (bounded memory).
@@ -557,23 +680,24 @@ def stream_bag(path, robot_config, rate: float | None = None, contacts: str = "f
         present = tuple(ft_topics[t] for t in ft_topics if t in types and counts.get(t, 1) > 0)
         imp = StreamImporter(model, rate, contacts, part_seconds, ft_contacts=present)
         read = [c for c in reader.connections if c.topic in wanted] if on_message is None else reader.connections
+        cdr = _CdrDecoder() if getattr(reader, "is2", False) else None  # ROS 2 bags: CDR messages
         for conn, log_ns, raw in reader.messages(connections=read):
             if on_message is not None:
                 on_message(reader, conn, log_ns, raw)
             topic = conn.topic
             if topic not in wanted:
                 continue
-            msg: Any = reader.deserialize(raw, conn.msgtype)
-            t = _stamp(msg, log_ns)
+            got = cdr.decode(conn.msgtype, raw) if cdr is not None else None
+            if got is None:
+                got = _fields(reader.deserialize(raw, conn.msgtype), conn.msgtype)
+            stamp, frame, values = got
+            t = stamp if stamp != 0 else int(log_ns)
             if topic == ros.imu_topic:
-                av, la = msg.angular_velocity, msg.linear_acceleration
-                imp.add_imu(t, (av.x, av.y, av.z), (la.x, la.y, la.z), msg.header.frame_id)
+                imp.add_imu(t, values[0], values[1], frame)
             elif topic == ros.joint_states_topic:
-                imp.add_joints(t, msg.name, msg.position, msg.velocity)
+                imp.add_joints(t, *values)
             else:
-                w = msg.wrench
-                imp.add_ft(ft_topics[topic], t, (w.force.x, w.force.y, w.force.z, w.torque.x, w.torque.y, w.torque.z),
-                           msg.header.frame_id)
+                imp.add_ft(ft_topics[topic], t, values, frame)
             yield from imp.parts()
         yield from imp.finish()
     except (BagError, DataError, ConfigError):

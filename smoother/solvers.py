@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from flexforce.factors.core import njit, trsv_lower_inplace, trsv_upper_t_inplace
+from flexforce.factors.core import njit, so3_exp, trsv_lower_inplace, trsv_upper_t_inplace
 
 # ----------------------------------------------------------------------------------------------
 # Block-tridiagonal solver (the Gauss-Newton system of a chain)
@@ -155,6 +155,45 @@ def block_tridiag_logdet(D, B):
 
 
 @njit
+def window_retract(Rb, qb, Wb, eb, dx, positions, S):
+    """Move the linearisation points at ring positions ``positions`` to the current estimate
+    (``R <- exp(dx_rot) R``, the rest ``+ dx``; ``S`` the state dimension) and zero ``dx``."""
+    nc = Wb.shape[1]
+    for kk in range(positions.shape[0]):
+        p = positions[kk]
+        Rb[p] = so3_exp(dx[p, :3]) @ Rb[p]
+        for i in range(S - 3):
+            qb[p, i] += dx[p, 3 + i]
+        for c in range(nc):
+            for j in range(6):
+                Wb[p, c, j] += dx[p, S + 6 * c + j]
+        for i in range(eb.shape[1]):
+            eb[p, i] += dx[p, S + 6 * nc + i]
+        dx[p, :] = 0.0
+
+
+@njit
+def _trsm_lower_rows_t(L, B, X, out):
+    """``out = (L^-1 B)^T`` for lower-triangular ``L`` (d, d), by rows of ``B`` (memory order;
+    each entry the same operations as :func:`_trsm_lower`'s); ``X`` (d, d) scratch."""
+    d = L.shape[0]
+    ncol = B.shape[1]
+    for i in range(d):
+        for j in range(ncol):
+            X[i, j] = B[i, j]
+        for k in range(i):
+            lik = L[i, k]
+            for j in range(ncol):
+                X[i, j] -= lik * X[k, j]
+        inv = L[i, i]
+        for j in range(ncol):
+            X[i, j] = X[i, j] / inv
+    for i in range(d):
+        for j in range(ncol):
+            out[j, i] = X[i, j]
+
+
+@njit
 def window_eliminate(Sp0, rp0, first_partial, U, gU, Fw, gF, B, Cprev, yprev, has_prev, Ld, C, y, Sp, rp):
     """Forward (oldest-first) block Cholesky of the newest steps of a chain.
 
@@ -168,6 +207,7 @@ def window_eliminate(Sp0, rp0, first_partial, U, gU, Fw, gF, B, Cprev, yprev, ha
     not positive definite.
     """
     m = U.shape[0]
+    X = np.empty((U.shape[1], U.shape[1]))
     for i in range(m):
         if i == 0:
             if first_partial:
@@ -185,14 +225,15 @@ def window_eliminate(Sp0, rp0, first_partial, U, gU, Fw, gF, B, Cprev, yprev, ha
         S = Sp[i] + Fw[i]
         Ld[i] = np.linalg.cholesky(S)
         if i < m - 1:
-            C[i] = _trsm_lower(Ld[i], B[i]).T.copy()
+            _trsm_lower_rows_t(Ld[i], B[i], X, C[i])
         y[i] = _trsv_lower(Ld[i], rp[i] + gF[i])
 
 
 @njit
 def window_back_substitute(Ld, C, y, order, x):
     """Back substitution over ring-buffer positions ``order`` (newest first): ``x[p]`` for each
-    (``x_k = Ld_k^-T (y_k - C_k^T x_k+1)``), without temporaries."""
+    (``x_k = Ld_k^-T (y_k - C_k^T x_k+1)``), without temporaries; the rows of ``C_k`` and
+    ``Ld_k`` are read in memory order."""
     d = y.shape[1]
     b = np.empty(d)
     for kk in range(order.shape[0]):
@@ -207,10 +248,11 @@ def window_back_substitute(Ld, C, y, order, x):
                     for i in range(d):
                         b[i] -= C[p, j, i] * xj
         for i in range(d - 1, -1, -1):
-            acc = b[i]
-            for m in range(i + 1, d):
-                acc -= Ld[p, m, i] * x[p, m]
-            x[p, i] = acc / Ld[p, i, i]
+            xi = b[i] / Ld[p, i, i]
+            x[p, i] = xi
+            if xi != 0.0:
+                for m in range(i):
+                    b[m] -= Ld[p, i, m] * xi
 
 
 @njit
@@ -227,4 +269,64 @@ def window_marginals(Ld, C, order, P):
             Pn = M.T @ M
         else:
             Pn = M.T @ (eye + C[p].T @ Pn @ C[p]) @ M
+        P[p] = Pn
+
+
+@njit
+def window_final_factors(Ld, C, positions, A, G):
+    """For steps whose elimination is final (ring positions ``positions``): ``A[p] = M^T M`` and
+    ``G[p] = C[p] M`` with ``M = Ld[p]^-1``, so that the marginal recursion of
+    :func:`window_marginals` reads ``P_k = A_k + G_k^T P_k+1 G_k``."""
+    d = Ld.shape[1]
+    eye = np.eye(d)
+    for kk in range(positions.shape[0]):
+        p = positions[kk]
+        M = _trsm_lower(Ld[p], eye)
+        A[p] = M.T @ M
+        G[p] = C[p] @ M
+
+
+@njit
+def window_block_map(A, G, positions, Ab, Phib, slot):
+    """The affine map ``P_first = Ab + Phib^T P_next Phib`` across the final steps at ring
+    positions ``positions`` (oldest first; ``P_next`` the marginal of the step after the last),
+    composed from their ``A``, ``G`` (:func:`window_final_factors`) into ``Ab[slot]``, ``Phib[slot]``."""
+    n = positions.shape[0]
+    p = positions[n - 1]
+    Acc = A[p].copy()
+    Phi = G[p].copy()
+    for kk in range(n - 2, -1, -1):
+        p = positions[kk]
+        Acc = A[p] + G[p].T @ Acc @ G[p]
+        Phi = Phi @ G[p]
+    Ab[slot] = Acc
+    Phib[slot] = Phi
+
+
+@njit
+def window_marginals_blocked(Ld, C, newest, A, G, singles, Ab, Phib, blocks, reported, P):
+    """:func:`window_marginals` for the ``reported`` steps only (ring positions, newest first),
+    written to ``P[p]``: the recursion from the newest step runs through the steps not yet final
+    (``newest``, newest first, from ``Ld``, ``C``), the final steps one by one (``singles``, from
+    ``A``, ``G``), then whole blocks of final steps at once (``blocks``: slots of ``Ab``, ``Phib``,
+    :func:`window_block_map`), then the reported steps one by one (from ``A``, ``G``)."""
+    d = Ld.shape[1]
+    eye = np.eye(d)
+    Pn = np.empty((d, d))
+    for k in range(newest.shape[0]):
+        p = newest[k]
+        M = _trsm_lower(Ld[p], eye)
+        if k == 0:
+            Pn = M.T @ M
+        else:
+            Pn = M.T @ (eye + C[p].T @ Pn @ C[p]) @ M
+    for k in range(singles.shape[0]):
+        p = singles[k]
+        Pn = A[p] + G[p].T @ Pn @ G[p]
+    for k in range(blocks.shape[0]):
+        s = blocks[k]
+        Pn = Ab[s] + Phib[s].T @ Pn @ Phib[s]
+    for k in range(reported.shape[0]):
+        p = reported[k]
+        Pn = A[p] + G[p].T @ Pn @ G[p]
         P[p] = Pn

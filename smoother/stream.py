@@ -10,7 +10,8 @@ stream keeps only the steps still needed (the window and the steps not yet repor
 
 The estimate of a step is the offline fixed-lag smoother's (same window, factors, noise and
 update order; the part boundaries change nothing, tested to 1e-9): each step is reported once
-``lag`` of later data has been smoothed in (plus up to ``report_every - 1`` samples).  The
+``lag`` of later data has been smoothed in (plus up to ``report_every - 1`` samples, and with
+``config.block`` > 1 up to ``block - 1`` samples more: the samples wait for their block).  The
 noise is derived from the stream's first sample, as offline from the recording's first.
 
 Differences from the offline :class:`Estimate`: each returned estimate holds its own steps only,
@@ -82,7 +83,10 @@ class FixedLagStream:
         """Steps pushed so far."""
         self.t0_ns: int | None = None
         self.update_time = array("d")
-        """Wall-clock time of each update, s (8 bytes a step)."""
+        """Wall-clock time of the update of each step, s (8 bytes a step; with ``config.block``
+        > 1 each update's time shared among its samples)."""
+        self.update_times = array("d")
+        """Wall-clock time of each update, s (one per ``config.block`` samples)."""
         self.cov_time = 0.0
         self.rejected: list[dict] = []
         self._rows: list[tuple] = []
@@ -129,7 +133,7 @@ class FixedLagStream:
             self.first = prob
             self.fls = FixedLagSmoother(prob, self.config.lag, relinearize=self.config.relinearize,
                                         covariance=self.covariance, report_every=self.config.report_every,
-                                        sink=self._sink)
+                                        sink=self._sink, block=self.config.block)
             start = 0
         else:
             prob = Problem.build(segment, self.model, self.config.rule, part_of=self.first,
@@ -155,6 +159,7 @@ class FixedLagStream:
             self.segment.require_samples()  # raises: fewer samples than the estimators need
         assert self.fls is not None
         self.fls.finish()
+        self._record()
         est = self._collect()
         faults.warn_summary("fixed_lag", self.rejected, stacklevel=3)
         return est
@@ -182,9 +187,18 @@ class FixedLagStream:
         assert fls is not None
         for _ in range(k0, k1):
             fls.step()
-            self.update_time.append(fls.last_update_time)
-            self.cov_time += fls.last_cov_time
-            fls.last_cov_time = 0.0
+            self._record()
+
+    def _record(self) -> None:
+        fls = self.fls
+        assert fls is not None
+        if fls.last_updated:
+            self.update_times.append(fls.last_update_time)
+            share = fls.last_update_time / fls.last_updated
+            self.update_time.extend([share] * fls.last_updated)
+            fls.last_updated = 0
+        self.cov_time += fls.last_cov_time
+        fls.last_cov_time = 0.0
 
     def _collect(self) -> Estimate | None:
         """The Estimate of the rows reported since the last call (consecutive steps)."""
@@ -218,7 +232,7 @@ class FixedLagStream:
         """Drop the steps neither relinearised again nor still to be reported."""
         fls = self.fls
         assert fls is not None and self.segment is not None
-        keep = min(fls.k - fls.M - 1, fls.next_report)
+        keep = min(fls.k_done - fls.M - 1, fls.next_report)
         keep = max(keep, self.segment_offset)
         if keep > self.segment_offset:
             self.segment = self.segment.slice(keep - self.segment_offset, self.segment.n)
@@ -227,12 +241,15 @@ class FixedLagStream:
 
     @property
     def update_stats(self) -> dict:
-        """Median, p99 and max of the update times, ms, and the updates counted."""
-        t = 1e3 * np.frombuffer(self.update_time, dtype=float)
+        """Median, p99, max and mean of the update times, ms, the updates counted, and the mean
+        time per sample, ms (the same as the mean update time with one update per sample)."""
+        t = 1e3 * np.frombuffer(self.update_times, dtype=float)
         if t.size == 0:
             return {"updates": 0}
         return {"updates": int(t.size), "median_ms": float(np.median(t)), "p99_ms": float(np.percentile(t, 99)),
-                "max_ms": float(t.max()), "mean_ms": float(t.mean())}
+                "max_ms": float(t.max()), "mean_ms": float(t.mean()),
+                "per_sample_ms": float(t.sum() / max(len(self.update_time), 1)),
+                "samples_per_update": self.config.block}
 
 
 def run_stream(parts, model, config: FixedLagConfig | None = None, *, covariance: bool | None = None,
