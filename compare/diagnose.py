@@ -749,6 +749,10 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
     def cb(label):
         return (lambda f: call(label, f)) if call else None
 
+    def cb_message(label):
+        """A stage's progress that also takes a message (the screening's, one per candidate)."""
+        return (lambda f, message=None: call(label, f, message)) if call else None
+
     def say(label: str, message: str, t0: float) -> None:
         if call is not None:
             call(label, 1.0, f"{message} [{time.perf_counter() - t0:.1f} s, {time.perf_counter() - t_start:.0f} s "
@@ -783,11 +787,7 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
     if rank:
         remaining = list(cands)
         if screen_level is not None and cands:
-            scb = None
-            if call is not None:
-                def scb(f, message=None):
-                    call("screening", f, message)
-            screened = screen(rec, nominal, cands, screen_window, progress=scb, problem=prob)
+            screened = screen(rec, nominal, cands, screen_window, progress=cb_message("screening"), problem=prob)
         if identify and cands and prob is not None:
             t0 = time.perf_counter()
             ident, ident_error = identify_candidates(prob, nominal, {k: v for k, v in cands.items()
@@ -820,13 +820,8 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                 # for the one just selected stops passing, and is not refitted
                 from flexforce.smoother import NoiseRule, Problem
 
-                scb2 = None
-                if call is not None:
-                    label2 = "screening at + " + " + ".join(selected)
-
-                    def scb2(f, message=None, label2=label2):
-                        call(label2, f, message)
-                again = screen(rec, base, {k: makers[k] for k in remaining}, screen_window, progress=scb2,
+                again = screen(rec, base, {k: makers[k] for k in remaining}, screen_window,
+                               progress=cb_message("screening at + " + " + ".join(selected)),
                                problem=Problem.build(rec, base.model, NoiseRule()))
                 for k, v in again.items():
                     if not isinstance(v, str) and v.p_value >= screen_level:

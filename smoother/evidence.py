@@ -127,19 +127,14 @@ def log_dets(prob, lin: Linearization, cidx: np.ndarray) -> tuple[float, float]:
     lin = drop_global_walks(prob, lin) if cidx.size else lin
     n, D = prob.n, prob.state_dim
     aidx = np.setdiff1d(np.arange(D), cidx)
-    diag = np.zeros((n, D))
-    for _, J in lin.unary.values():
-        diag[:J.shape[0]] += np.einsum("kic,kic->kc", J, J)
-    for _, J0, J1 in lin.binary.values():
-        diag[:-1] += np.einsum("kic,kic->kc", J0, J0)
-        diag[1:] += np.einsum("kic,kic->kc", J1, J1)
-    s = 1.0 / np.sqrt(np.maximum(diag[:, aidx], 1e-300))
+    Hd, B, _ = assemble(lin, n, D)
+    Ha, Ba = Hd[:, aidx][:, :, aidx], B[:, aidx][:, :, aidx]
+    s = 1.0 / np.sqrt(np.maximum(np.diagonal(Ha, axis1=1, axis2=2), 1e-300))
     shift = -2.0 * float(np.sum(np.log(s)))
     # the posterior (the measurements make it well conditioned) by the block Cholesky pivots of
     # H; the trajectory prior by QR of its rows
-    Hd, B, _ = assemble(lin, n, D)
-    Hs = np.ascontiguousarray(Hd[:, aidx][:, :, aidx] * s[:, :, None] * s[:, None, :])
-    Bs = np.ascontiguousarray(B[:, aidx][:, :, aidx] * s[:-1, :, None] * s[1:, None, :])
+    Hs = np.ascontiguousarray(Ha * s[:, :, None] * s[:, None, :])
+    Bs = np.ascontiguousarray(Ba * s[:-1, :, None] * s[1:, None, :])
     try:
         post = float(solvers.block_tridiag_logdet(Hs, Bs))
     except np.linalg.LinAlgError:

@@ -153,6 +153,13 @@ def _border_schur(Hd, B, g, aidx, sel, T):
 
     Returns the reduced gradient ``gbar`` (m,) and the Schur complement ``S`` (m, m).
     """
+    gbar, Sc, _ = _eliminate_border(Hd, B, g, aidx, sel, T)
+    return gbar, Sc
+
+
+def _eliminate_border(Hd, B, g, aidx, sel, T):
+    """:func:`_border_schur`'s ``(gbar, S)`` and the scaled elimination it ran: ``(s, As, ABs, X)``
+    with ``X`` (N, len(aidx), 1 + m) the scaled states' solution for ``[g, F]``."""
     F, G, gc = _border_terms(Hd, B, g, aidx, sel, T)
     s, As, ABs = _scaled_states(Hd, B, aidx)
     rhs = np.concatenate([(g[:, aidx] * s)[:, :, None], F * s[:, :, None]], axis=2)
@@ -160,7 +167,7 @@ def _border_schur(Hd, B, g, aidx, sel, T):
     Fs = F * s[:, :, None]
     Sc = G - np.einsum("kai,kaj->ij", Fs, X[:, :, 1:])
     gbar = gc - np.einsum("kai,ka->i", Fs, X[:, :, 0])
-    return gbar, 0.5 * (Sc + Sc.T)
+    return gbar, 0.5 * (Sc + Sc.T), (s, As, ABs, X)
 
 
 @dataclass
@@ -196,14 +203,8 @@ def _windowed_schur(Hd, B, g, aidx, ccols, wcols, bounds) -> _WindowedSchur:
     ccols = np.asarray(ccols, dtype=int)
     wcols = np.asarray(wcols, dtype=int)
     mc, dw = len(ccols), len(wcols)
-    Tc = np.broadcast_to(np.eye(mc), (n, mc, mc))
-    Fc, Gcc, gcc = _border_terms(Hd, B, g, aidx, ccols, np.ascontiguousarray(Tc))
-    s, As, ABs = _scaled_states(Hd, B, aidx)
-    rhs = np.concatenate([(g[:, aidx] * s)[:, :, None], Fc * s[:, :, None]], axis=2)
-    X = _solve_states(As, ABs, rhs)
-    Fcs = Fc * s[:, :, None]
-    Scc = Gcc - np.einsum("kai,kaj->ij", Fcs, X[:, :, 1:])
-    gc = gcc - np.einsum("kai,ka->i", Fcs, X[:, :, 0])
+    Tc = np.ascontiguousarray(np.broadcast_to(np.eye(mc), (n, mc, mc)))
+    gc, Scc, (s, As, ABs, X) = _eliminate_border(Hd, B, g, aidx, ccols, Tc)
     # forward and backward pivots of the scaled states' system
     try:
         Lf, _ = solvers._block_cholesky(As, ABs)
@@ -250,7 +251,7 @@ def _windowed_schur(Hd, B, g, aidx, ccols, wcols, bounds) -> _WindowedSchur:
         Sww[j] = 0.5 * (S + S.T)
         Scw[j] = Gcw - np.einsum("kai,kaj->ij", X[a:b + 1, :, 1:], Fs)
         gw[j] = g[k0:k1][:, wcols].sum(axis=0) - np.einsum("kai,ka->i", Fs, X[a:b + 1, :, 0])
-    return _WindowedSchur(gc, 0.5 * (Scc + Scc.T), gw, Sww, Scw)
+    return _WindowedSchur(gc, Scc, gw, Sww, Scw)
 
 
 def _quad(g, S, idx):

@@ -263,13 +263,18 @@ def window_marginals(Ld, C, order, P):
     eye = np.eye(d)
     Pn = np.empty((d, d))
     for k in range(order.shape[0]):
-        p = order[k]
-        M = _trsm_lower(Ld[p], eye)
-        if k == 0:
-            Pn = M.T @ M
-        else:
-            Pn = M.T @ (eye + C[p].T @ Pn @ C[p]) @ M
-        P[p] = Pn
+        Pn = _marginal_step(Ld[order[k]], C[order[k]], Pn, k == 0, eye)
+        P[order[k]] = Pn
+
+
+@njit
+def _marginal_step(Ldp, Cp, Pn, first, eye):
+    """One step of the window's marginal recursion, ``P_k`` from ``P_k+1`` (``Pn``; unused for the
+    newest step, ``first``): ``M^T M`` or ``M^T (I + C^T P_k+1 C) M``, ``M = Ld^-1``."""
+    M = _trsm_lower(Ldp, eye)
+    if first:
+        return M.T @ M
+    return M.T @ (eye + Cp.T @ Pn @ Cp) @ M
 
 
 @njit
@@ -314,12 +319,7 @@ def window_marginals_blocked(Ld, C, newest, A, G, singles, Ab, Phib, blocks, rep
     eye = np.eye(d)
     Pn = np.empty((d, d))
     for k in range(newest.shape[0]):
-        p = newest[k]
-        M = _trsm_lower(Ld[p], eye)
-        if k == 0:
-            Pn = M.T @ M
-        else:
-            Pn = M.T @ (eye + C[p].T @ Pn @ C[p]) @ M
+        Pn = _marginal_step(Ld[newest[k]], C[newest[k]], Pn, k == 0, eye)
     for k in range(singles.shape[0]):
         p = singles[k]
         Pn = A[p] + G[p].T @ Pn @ G[p]
