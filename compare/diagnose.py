@@ -79,6 +79,10 @@ SCREEN_LEVEL = 0.01
 SCREEN_WINDOW = 0.25
 """Window of the score test of a per-step effect (the external wrench taken constant within it), s."""
 
+REFIT_BEST = 3
+"""Candidates refitted per selection round at most, besides those inseparable from them
+(:func:`diagnose`'s ``refit_best``)."""
+
 AUTO = "auto"
 """``add=["auto"]``: add the effects the greedy selection found significant."""
 
@@ -263,13 +267,17 @@ class Candidate:
                 "status": self.status, "finding": self.finding or self.summary,
                 **({"implausible": self.implausible} if self.implausible else {}),
                 **({"screen": self.screen.to_dict(self.screen_level)} if self.screen is not None else {}),
-                **({"not_refitted": f"not refitted: score p = {self.screen.p_value:.2g}"}
+                **({"not_refitted": f"not refitted: {self.deferred}" if self.deferred else
+                    f"not refitted: score p = {self.screen.p_value:.2g}"}
                    if not self.refitted and self.screen is not None else {}),
                 **({"error": self.error} if self.error else {}),
                 **({"error_detail": self.error_detail} if self.error_detail else {})}
 
     screen_level: float | None = None
     """Level of the screening (for the passing windows in :meth:`to_dict`)."""
+    deferred: str | None = None
+    """Why a candidate whose score test passed was not refitted: stronger ones filled the round's
+    refits (``diagnose(refit_best=...)``) until the selection stopped."""
     error_detail: str | None = None
     """The solver's own message when the fit failed (``error`` says it in the recording's terms)."""
 
@@ -388,8 +396,9 @@ class Diagnosis:
                              f"cannot be fitted: {c.error}")
                 continue
             if not c.refitted:
+                why = f"{c.deferred}; " if c.deferred else ""
                 lines.append(f"{i:2d} {c.effect:24s} {'-':>10s} {'-':>10s} {'-':>6s} {'-':>9s}  no   "
-                             f"not refitted: {c.screen_text(level)}")
+                             f"not refitted: {why}{c.screen_text(level)}")
                 continue
             mark = "yes" if c.significant else ("imp" if c.implausible else "no ")
             lines.append(f"{i:2d} {c.effect:24s} {c.score:10.1f} {c.lr:10.1f} {c.effective_dof:6.1f} "
@@ -673,6 +682,28 @@ def screen(rec, fit: Fit, makers: dict[str, Callable[[], object]], window: float
     return out
 
 
+def _strength(test) -> float:
+    """The chi-square tail of a score test, in logs (more negative: stronger)."""
+    return float(stats.chi2.logsf(max(test.statistic, 0.0), max(test.dof, 1e-6)))
+
+
+def _refit_choice(remaining: list[str], tests: dict, ident, best: int | None) -> list[str]:
+    """The candidates of ``remaining`` a round refits: the ``best`` strongest by their latest score
+    test, every one whose test failed (the refit decides), and every one the identifiability
+    table cannot tell apart from a chosen one (the refit must choose between them, not the
+    screening); all of them when ``best`` is None."""
+    failed = [k for k in remaining if isinstance(tests.get(k), str) or tests.get(k) is None]
+    ranked = sorted((k for k in remaining if k not in failed), key=lambda k: _strength(tests[k]))
+    if best is None or len(ranked) <= best:
+        return list(remaining)
+    chosen = ranked[:best] + failed
+    if ident is not None:
+        for k in ranked[best:]:
+            if any((p := ident.pair(k, c)) is not None and p.inseparable for c in list(chosen)):
+                chosen.append(k)
+    return [k for k in remaining if k in chosen]
+
+
 def _takes_two(fn) -> bool:
     """Whether ``fn`` accepts two positional arguments."""
     try:
@@ -688,7 +719,7 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
              max_effects: int = 3, alpha: float = ALPHA, window: float = 0.5, skip: float = 0.5,
              ekf: bool = True, progress: Callable[[str, float], None] | None = None,
              screen_level: float | None = SCREEN_LEVEL, screen_window: float = SCREEN_WINDOW,
-             calibrated: bool = True, identify: bool = True) -> Diagnosis:
+             calibrated: bool = True, identify: bool = True, refit_best: int | None = REFIT_BEST) -> Diagnosis:
     """Fit the nominal model, rank the candidate effects, and refit with the ``add``-ed ones.
 
     Args:
@@ -718,6 +749,11 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
             whitened smoothed residuals tested as if they were innovations (conservative).
         identify: before any refit, the identifiability table of the candidates at the nominal
             fit (:attr:`Diagnosis.identifiability`).
+        refit_best: per round, refit only this many of the candidates that pass the screening,
+            the strongest first (the chi-square tail of their score test), together with every
+            candidate the identifiability table cannot tell apart from one of them; the others
+            wait for the next round (screened again at its base).  None refits every one that
+            passes.  On real logs every candidate passes (the model is never exact).
     """
     from flexforce.compare.runner import describe
     from flexforce.factors.model import ModelConfig
@@ -772,6 +808,10 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
 
     if screen_level is not None and not 0.0 < screen_level < 1.0:
         raise ConfigError(f"screen_level = {screen_level!r}; expected a probability in (0, 1) or None (no screening)")
+    if refit_best is not None and (isinstance(refit_best, bool) or not isinstance(refit_best, int)
+                                   or refit_best < 1):
+        raise ConfigError(f"refit_best = {refit_best!r}; expected an integer >= 1 (candidates refitted per round) "
+                          "or None (every candidate that passes the screening)")
     nominal = fitted(())
     rounds: list[list[Candidate]] = []
     selected: list[str] = []
@@ -813,6 +853,8 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                 if tests[k].p_value >= screen_level:
                     dropped.append(Candidate(k, (), 1, None, None, None, None, False, screen=tests[k], refitted=False,
                                              screen_level=screen_level))
+        latest: dict[str, ScoreTest | str] = dict(screened)
+        this_round: list[str] = []
         while remaining:
             base = fitted(tuple(selected))
             if selected and screen_level is not None and base.trajectory is not None and base.model is not None:
@@ -830,8 +872,10 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                                                  screen=v, refitted=False, screen_level=screen_level))
                 if not remaining:
                     break
+                latest.update(again)
+            this_round = _refit_choice(remaining, latest, ident, refit_best if screen_level is not None else None)
             row = []
-            for name in remaining:
+            for name in this_round:
                 t0 = time.perf_counter()
                 label = "+ " + " + ".join(tuple(selected) + (name,))
                 try:
@@ -871,6 +915,16 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
             for key in [k for k in cache if k not in keep]:
                 del cache[key]
             if stop:
+                # those that passed the screening but waited behind stronger ones
+                for k in remaining:
+                    if k in this_round:
+                        continue
+                    t = latest.get(k)
+                    dropped.append(Candidate(
+                        k, tuple(selected), len(rounds), None, None, None, None, False,
+                        screen=None if isinstance(t, str) else t, refitted=False, screen_level=screen_level,
+                        deferred=f"its score test passed, but the round refitted the {refit_best} strongest "
+                                 "(refit_best) and stopped"))
                 break
     ranking: list[Candidate] = []
     for i, name in enumerate(selected):
@@ -902,6 +956,7 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                  "n_residuals": nominal.n_residuals, "penalty_per_dof": math.log(max(nominal.n_residuals, 2)),
                  "fit": "flexforce.smoother.fit",
                  "screen_level": screen_level, "screen_window_s": screen_window if screen_level is not None else None,
+                 "refit_best": refit_best if screen_level is not None else None,
                  "screen": ("score (Lagrange-multiplier) test at the nominal fit, and again at each round's base once "
                             "an effect is selected: g^T S^-1 g against chi-square with the effect's effective dof; "
                             "only candidates with p < screen_level are refitted")

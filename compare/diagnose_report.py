@@ -170,8 +170,16 @@ def _screen_sentence(crit) -> str:
             f"(g the cost's gradient in the effect's unknowns at zero, S their information with the states "
             f"eliminated) against χ² with the effect's effective dof ν; per-step effects are tested on "
             f"{crit.get('screen_window_s')} s windows (Bonferroni over the windows). Only candidates with "
-            f"p < {level} are refitted; once an effect is selected, the remaining candidates are screened again "
-            f"with it in the model (docs/diagnostics.md, \"Screening\").")
+            f"p < {level} are refitted{_refit_clause(crit)}; once an effect is selected, the remaining candidates "
+            f"are screened again with it in the model (docs/diagnostics.md, \"Screening\").")
+
+
+def _refit_clause(crit) -> str:
+    best = crit.get("refit_best")
+    if not best:
+        return ""
+    return (f", at most the {best} with the strongest test per round (with those the identifiability table "
+            f"cannot tell from them; the others wait for the next round)")
 
 
 def write_diagnosis(diag, out: str | Path, title: str = "flexforce diagnosis") -> Path:

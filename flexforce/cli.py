@@ -550,6 +550,9 @@ def _diagnose(args) -> int:
     level = None if args.no_screen else args.screen_level
     if level is not None and not 0.0 < level < 1.0:
         raise ConfigError(f"--screen-level {level}; expected a probability in (0, 1) (or --no-screen)")
+    if args.refit_best < 0:
+        raise ConfigError(f"--refit-best {args.refit_best}; expected an integer >= 1 (candidates refitted per round), "
+                          "or 0 for every candidate that passes the screening")
     sources = _unique_labels([(Path(src).stem or str(src), src) for src in args.recording])
     out = Path(args.output)
     if len(sources) == 1:
@@ -606,7 +609,8 @@ def _diagnose_job(args, job) -> dict:
 
         level = None if args.no_screen else args.screen_level
         diag = diagnose(rec, model, candidates=candidates, add=args.add, rank=not args.no_rank,
-                        max_effects=args.max_effects, ekf=not args.no_ekf, progress=progress, screen_level=level)
+                        max_effects=args.max_effects, ekf=not args.no_ekf, progress=progress, screen_level=level,
+                        refit_best=args.refit_best or None)
         write_diagnosis(diag, out)
     finally:
         PROGRESS_PREFIX = ""
@@ -773,6 +777,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--screen-level", type=float, default=0.01, metavar="P",
                    help="refit only the candidates whose score test at the nominal fit has p < P (default 0.01)")
     p.add_argument("--no-screen", action="store_true", help="refit every candidate (no score-test screening)")
+    p.add_argument("--refit-best", type=int, default=3, metavar="N",
+                   help="per selection round, refit the N candidates with the strongest score test (and those the "
+                        "identifiability table cannot tell from them); the others wait for the next round "
+                        "(default 3; 0: every candidate that passes)")
     p.add_argument("--no-ekf", action="store_true", help="do not run the EKF (innovations, NIS)")
     p.add_argument("--seed", type=int, help="noise seed when simulating a scenario")
     _add_input_options(p)

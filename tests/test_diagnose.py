@@ -268,3 +268,40 @@ def test_hidden_push_ranks_the_external_wrench_first():
     assert_errors_fall("push", d, ("cop_m", "rotation_rad", "moment_Nm"))
     ratio = d.after.rmse["force_N"] / d.before.rmse["force_N"]
     assert ratio <= upper("diagnose.push.force_N_after_over_before", ratio, rel=FIT), ratio
+
+
+def test_refit_choice_takes_the_strongest_and_their_inseparable_partners():
+    """Per round, the refit_best strongest by their score test's chi-square tail (not by T: the dof
+    differ), every failed test (the refit decides), and whatever the identifiability table
+    cannot tell from a chosen one."""
+    from types import SimpleNamespace
+
+    from flexforce.compare.diagnose import _refit_choice
+    from flexforce.smoother.screening import ScoreTest
+
+    tests = {"a": ScoreTest("a", 50.0, 1.0, 0.0, "constant", [], 0.0),
+             "b": ScoreTest("b", 40.0, 6.0, 0.0, "constant", [], 0.0),  # larger T than c, weaker on 6 dof
+             "c": ScoreTest("c", 30.0, 1.0, 0.0, "constant", [], 0.0),
+             "d": ScoreTest("d", 8.0, 1.0, 0.0, "constant", [], 0.0),
+             "e": "not excited"}
+    remaining = ["a", "b", "c", "d", "e"]
+    assert _refit_choice(remaining, tests, None, 2) == ["a", "c", "e"]
+    assert _refit_choice(remaining, tests, None, None) == remaining
+    pairs = {frozenset(("c", "d")): SimpleNamespace(inseparable=True),
+             frozenset(("a", "b")): SimpleNamespace(inseparable=False)}
+    ident = SimpleNamespace(pair=lambda x, y: pairs.get(frozenset((x, y))))
+    assert _refit_choice(remaining, tests, ident, 2) == ["a", "c", "d", "e"]
+
+
+def test_refit_best_defers_the_weaker_candidates_to_the_next_round():
+    """Two hidden effects, one refit per round: the weaker waits for round 2 (screened again at
+    the new base) and both are still found; a candidate left waiting when the selection stops
+    is listed as not refitted, with the reason."""
+    d = diagnose(simulate([GYRO, ACCEL]), candidates=CANDIDATES, ekf=False, refit_best=1)
+    assert sorted(d.selected) == ["accel-bias", "gyro-bias"], d.ranking_table()
+    assert all(len(row) == 1 for row in d.rounds[:2]), d.ranking_table()
+    for c in d.ranking:
+        if not c.refitted and c.deferred:
+            assert "refit_best" in c.to_dict()["not_refitted"] and c.deferred in d.ranking_table()
+    with pytest.raises(ConfigError, match="refit_best = 0"):
+        diagnose(simulate([], duration=0.5), candidates=CANDIDATES, ekf=False, refit_best=0)
