@@ -1315,8 +1315,8 @@ class FtOffset(_Constant):
     lever = 0.1
     """m: the torque bound is the force bound at this lever."""
     hint = ("shift the weight from foot to foot, sway or step: an offset is the part of a reading that does not "
-            "change with the load; at a constant load it reads like the contact's share of the weight (stiffness, "
-            "CoM offset)")
+            "change with the load, while a mass error scales every contact's force and a CoM offset moves load "
+            "from one contact to another")
 
     def __init__(self, contacts: int | tuple[int, ...] | list[int] = 2, max_force: float | None = None,
                  max_torque: float | None = None):
@@ -1380,6 +1380,7 @@ class FtOffset(_Constant):
         names = getattr(getattr(problem, "rec", None), "contact_names", None) if problem is not None else None
         if names is not None and len(names) > max(self.contacts):
             self._names = tuple(str(names[i]) for i in self.contacts)
+            self.labels = tuple(f"{c} {w} [{'N' if w[0] == 'F' else 'N m'}]" for c in self._names for w in _WRENCH)
         return self._names if self._names is not None else tuple(f"c{i}" for i in self.contacts)
 
     # -- the model ---------------------------------------------------------------------------

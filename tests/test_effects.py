@@ -133,7 +133,7 @@ def test_residual_terms_match_finite_differences(name, small_problem):
     s0 = eff.prior(prob)[1]
     e = rng.normal(0.0, 0.3, (n, eff.dim)) * s0
     touched = 0
-    for fam in ("newton_euler", "imu", "contact"):
+    for fam in ("newton_euler", "imu", "contact", "ft"):
         out = eff.residual_terms(fam, prob, steps, R, q, W, e)
         if out is None:
             continue
