@@ -1290,7 +1290,8 @@ class FtOffset(_Constant):
     ``contacts``: the contacts with an F/T sensor, as a count ``n`` (the recording's first ``n``
     contacts; default 2, a biped's feet) or as indices ``(0, 2, ...)``; 6 unknowns each, in that
     order.  Applicable only where the F/T readings are fused (``ModelConfig.use_ft``):
-    :meth:`applicable` says why not, :meth:`prior` raises it as a configuration error for a fit.
+    :meth:`applicable` says why not (the diagnosis skips the candidate with that line); a fit
+    without F/T fusion warns and leaves the offsets at their prior.
 
     Prior sigma: 10 per-sample sensor sigmas per axis (``ModelConfig.ft_force_sigma``,
     ``ft_torque_sigma``), the IMU biases' rule: 20 N and 2 N m with the default 2 N, 0.2 N m --
@@ -1348,6 +1349,7 @@ class FtOffset(_Constant):
                "changes of the yaw moment on that contact (twisting)")
         self.excites = per * len(idx)
         self._names: tuple[str, ...] | None = None
+        self._warned = False
 
     # -- applicability -----------------------------------------------------------------------
     def _unfit(self, problem: ProblemView) -> str | None:
@@ -1389,9 +1391,22 @@ class FtOffset(_Constant):
         return np.tile(10.0 * s, len(self.contacts))
 
     def prior(self, problem: ProblemView):
-        why = self._unfit(problem)
-        if why is not None:
-            raise ConfigError(f"ft-offset: {why}")
+        """Zero mean, :meth:`prior_sigma`.  Offsets set for contacts the problem lacks are a
+        configuration error; without F/T fusion the offsets have nothing to act on and stay at
+        their prior (a warning, once: the diagnosis skips such a candidate, and the catalogue's
+        generic uses -- screening, identifiability, the factor graph -- see an inert effect)."""
+        if not getattr(problem, "use_ft", False):
+            if not self._warned:
+                import warnings
+
+                self._warned = True
+                warnings.warn("ft-offset: the F/T readings are not fused (use_ft off): the offsets have nothing to act "
+                              "on and stay at their prior; fuse the F/T readings (use_ft, --ft) to estimate them",
+                              RuntimeWarning, stacklevel=2)
+        else:
+            why = self._unfit(problem)
+            if why is not None:
+                raise ConfigError(f"ft-offset: {why}")
         self._contact_names(problem)
         return super().prior(problem)
 

@@ -114,7 +114,7 @@ def test_registry_covers_the_simulator_effects():
 @pytest.fixture(scope="module")
 def small_problem():
     rec = simulate(None, 0.2)
-    return Problem.build(rec, ModelConfig.from_recording(rec)), rec
+    return Problem.build(rec, ModelConfig.from_recording(rec, use_ft=True)), rec  # ft-offset needs F/T fused
 
 
 @pytest.mark.parametrize("name", sorted(EFFECTS))

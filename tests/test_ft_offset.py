@@ -120,9 +120,12 @@ def test_contacts_and_configuration_errors():
     for bad in (0, [], [0, 0], [-1], "x"):
         with pytest.raises(ConfigError):
             make_effect("ft-offset", contacts=bad)
-    # a fit that asks for an offset the model cannot see says so in one line
-    with pytest.raises(ConfigError, match=r"ft-offset: the F/T readings are not fused \(use_ft off\)"):
-        fit(rec, ModelConfig.from_recording(rec, effects=(make_effect("ft-offset"),)))
+    # a fit that asks for an offset the model cannot see says so, and the offset stays at its prior
+    with pytest.warns(RuntimeWarning, match=r"ft-offset: the F/T readings are not fused \(use_ft off\)"):
+        est, _ = fit(rec, ModelConfig.from_recording(rec, effects=(make_effect("ft-offset"),)))
+    np.testing.assert_allclose(est.effects["ft-offset"]["value"], 0.0, atol=1e-9)
+    with pytest.raises(ConfigError, match="the problem has 2 contacts|the recording has 2 contacts"):
+        fit(rec, with_ft(rec, FtOffset(contacts=3)))
     three = FtOffset(contacts=3)
     assert "the recording has 2 contacts" in three.applicable(Problem.build(rec, with_ft(rec)))
 
