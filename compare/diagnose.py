@@ -348,6 +348,8 @@ class Diagnosis:
     cannot tell apart (:func:`flexforce.smoother.screening.identifiability`); None when not computed."""
     identifiability_error: str | None = None
     """Why the identifiability table could not be formed."""
+    skipped: list[str] = field(default_factory=list)
+    """One line per candidate with nothing to act on in the model (:func:`inapplicable`), not tested."""
 
     def identifiability_notes(self) -> list[str]:
         """One sentence per pair that cannot be told apart, with the choice the ranking made between
@@ -378,7 +380,8 @@ class Diagnosis:
                "identifiability": ({**self.identifiability.to_dict(), "notes": self.identifiability_notes()}
                                    if self.identifiability is not None else
                                    ({"error": self.identifiability_error} if self.identifiability_error else None)),
-               "before": self.before.to_dict(), "after": self.after.to_dict() if self.after else None}
+               "before": self.before.to_dict(), "after": self.after.to_dict() if self.after else None,
+               "skipped": list(self.skipped)}
         if self.ekf is not None:
             m = self.ekf.metrics
             out["ekf"] = {"nis": _clean(m.nis), "nis_bounds": list(m.nis_bounds) if m.nis_bounds else None,
@@ -406,6 +409,7 @@ class Diagnosis:
             if c.screen is not None:
                 lines.append(f"{'':28s}screened: {c.screen_text(level)}")
         lines += [f"   {w}" for w in self.ambiguities()]
+        lines += [f"   {w}" for w in self.skipped]
         if self.identifiability is not None:
             lines.append(self.identifiability.table())
             lines += [f"   {w}" for w in self.identifiability_notes() if "chose" in w]
@@ -770,6 +774,9 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
     for name in list(cands):
         if name in {e.name for e in model.effects}:
             del cands[name]  # already in the model
+    skipped = inapplicable(rec, model, cands) if rank else {}
+    for name in skipped:
+        del cands[name]  # nothing to act on in this model (an F/T offset without F/T fusion)
     add_makers: dict[str, Callable[[], object]] = {}
     for spec in add:
         if isinstance(spec, str) and spec in cands:
@@ -966,7 +973,35 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                           key=lambda t: (t.p_value, -t.statistic))
     return Diagnosis(describe(rec), ranking, rounds, selected, added, before, after, ekf_snap, criterion,
                      None if truth is None else np.asarray(truth.external_wrench, dtype=float), tests_sorted,
-                     ident, ident_error)
+                     ident, ident_error, list(skipped.values()))
+
+
+def inapplicable(rec, model, makers: dict[str, Callable[[], object]]) -> dict[str, str]:
+    """Name -> ``"<name>: <reason>"`` for the candidates whose optional ``applicable(problem)`` says
+    they have nothing to act on in ``model`` (an F/T offset when the F/T readings are not fused):
+    skipped with that line, never fitted.  A check that raises leaves its candidate to the tests."""
+    checks: dict[str, Any] = {}
+    for name, make in makers.items():
+        try:
+            eff = make()
+        except Exception:  # the fit says what is wrong with it
+            continue
+        if callable(getattr(eff, "applicable", None)):
+            checks[name] = eff
+    if not checks:
+        return {}
+    from flexforce.smoother import NoiseRule, Problem
+
+    prob = Problem.build(rec, model, NoiseRule())
+    out = {}
+    for name, eff in checks.items():
+        try:
+            why = eff.applicable(prob)
+        except Exception:
+            continue
+        if why:
+            out[name] = f"{name}: {why}"
+    return out
 
 
 def _plausibility(effect, report: dict, problem) -> str | None:

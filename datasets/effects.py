@@ -33,6 +33,11 @@ type                       parameters (SI units)
 ``mass-scale``             ``scale`` [-]: every body's mass and rotational inertia (about its
                            own CoM, which stays put) times this factor; the recording's inputs
                            are still computed with the nominal mass model.
+``ft-offset``              ``force`` [N] and ``torque`` [N m]: constant offset added to the F/T
+                           readings (the sensor's frame: force, and torque about the contact
+                           point, in the contact frame) of ``contact`` (a contact name; all
+                           contacts when absent); the physics and the other sensors are
+                           unchanged.  One table per sensor for different offsets.
 =========================  ==================================================================
 """
 
@@ -47,7 +52,7 @@ from flexforce.datasets.scenario import minjerk
 from flexforce.errors import ConfigError
 
 EFFECT_TYPES = ("external-wrench", "gyro-bias", "accel-bias", "stiffness", "anisotropic-stiffness",
-                "nonlinear-stiffness", "com-offset", "imu-mounting", "time-offset", "mass-scale")
+                "nonlinear-stiffness", "com-offset", "imu-mounting", "time-offset", "mass-scale", "ft-offset")
 
 _PARAMS = {
     "external-wrench": {"link", "force", "torque", "start", "duration", "profile", "ramp"},
@@ -60,6 +65,7 @@ _PARAMS = {
     "imu-mounting": {"rotation"},
     "time-offset": {"delay"},
     "mass-scale": {"scale"},
+    "ft-offset": {"contact", "force", "torque"},
 }
 
 

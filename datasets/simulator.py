@@ -612,6 +612,7 @@ class Simulator:
             if eff.type == "external-wrench":
                 self.ext_effects.append((eff, self._frame_of(eff.params.get("link", "@base")),
                                          eff.vector("force"), eff.vector("torque")))
+        self.ft_offset = self._ft_offsets()  # checked here, before a long run
 
     # ------------------------------------------------------------------------------------------
     def _frame_of(self, link: str) -> int:
@@ -681,6 +682,24 @@ class Simulator:
 
         at = np.clip(times - delay, times[0], times[-1])
         return CubicSpline(times, gyro, axis=0)(at), CubicSpline(times, accel, axis=0)(at)
+
+    def _ft_offsets(self) -> np.ndarray:
+        """(C, 6) the hidden constant offsets of the F/T readings (sensor frame), per contact."""
+        names = list(self.robot.contact_names)
+        out = np.zeros((len(names), 6))
+        for e in self.effects:
+            if e.type != "ft-offset":
+                continue
+            contact = e.params.get("contact")
+            if contact is None:
+                rows = list(range(len(names)))
+            elif contact in names:
+                rows = [names.index(contact)]
+            else:
+                raise ConfigError(f"ft-offset on unknown contact '{contact}' of robot '{self.robot.name}'; "
+                                  f"known: {', '.join(names)}")
+            out[rows] += np.concatenate([e.vector("force"), e.vector("torque")])
+        return out
 
     def _ambient_levels(self, spec: Ambient) -> tuple[float, float]:
         """RMS (linear m/s^2, angular rad/s^2) of the ambient acceleration (defaults: see Ambient),
@@ -1157,7 +1176,7 @@ class Simulator:
         gyro_true, accel_true = self._delay_imu(np.asarray(times, dtype=float), gyro_true, accel_true)
         gyro = gyro_true + gyro_bias
         accel = accel_true + accel_bias
-        ft = ft_true.copy()
+        ft = ft_true + self.ft_offset  # hidden sensor offsets (sensor frame)
         if self.noise:
             dt = 1.0 / sc.rate
             walk_g = np.cumsum(rng.normal(0.0, self.imu_noise.gyro_bias_rw * math.sqrt(dt), (n, 3)), axis=0)

@@ -235,11 +235,25 @@ def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True) -> Linea
         Jf = np.empty((n, nc, 6, S))
         JW = np.empty((n, nc, 6, 6))
         core.ft_all(R, q, W, act, prob.contact_p[sl], prob.contact_R[sl], prob.y_ft[sl], rf, Jf, JW)
+        # Effects on the readings (sensor offsets): their term, per contact, where the reading is
+        # fused (contact active, component finite); elsewhere the rows stay zero like the reading's.
+        f_terms = []
+        for eff, cols, ev in zip(prob.effects, e_cols, e_parts):
+            terms = eff.residual_terms("ft", prob, steps, R, q, W, ev)
+            if terms is not None:
+                f_terms.append((cols, terms))
         for i in range(nc):
             J = np.zeros((n, 6, D))
             J[:, :, :S] = Jf[:, i]
             J[:, :, w_cols[i]] = JW[:, i]
-            r, J = _whiten_rows(rf[:, i].copy(), J, sig.ft)  # NaN readings: zero rows (core.ft)
+            r = rf[:, i].copy()
+            if f_terms:
+                on = act[:, i, None] & np.isfinite(prob.y_ft[sl][:, i])
+                for cols, (dr, dr_ds, dr_de) in f_terms:
+                    r += np.where(on, dr[:, i], 0.0)
+                    J[:, :, :S] += np.where(on[:, :, None], dr_ds[:, i], 0.0)
+                    J[:, :, cols] += np.where(on[:, :, None], dr_de[:, i], 0.0)
+            r, J = _whiten_rows(r, J, sig.ft)  # NaN readings: zero rows (core.ft)
             if robust and sig.imu_robust is not None:
                 cap = prob.weight_cap.get(f"ft/{i}") if prob.weight_cap is not None else None
                 r, J, c, w = sensor_reweight(r, J, ((0, 3), (3, 6)), sig.imu_robust, sig.imu_robust_k,

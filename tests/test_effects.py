@@ -114,7 +114,7 @@ def test_registry_covers_the_simulator_effects():
 @pytest.fixture(scope="module")
 def small_problem():
     rec = simulate(None, 0.2)
-    return Problem.build(rec, ModelConfig.from_recording(rec)), rec
+    return Problem.build(rec, ModelConfig.from_recording(rec, use_ft=True)), rec  # ft-offset needs F/T fused
 
 
 @pytest.mark.parametrize("name", sorted(EFFECTS))
@@ -133,7 +133,7 @@ def test_residual_terms_match_finite_differences(name, small_problem):
     s0 = eff.prior(prob)[1]
     e = rng.normal(0.0, 0.3, (n, eff.dim)) * s0
     touched = 0
-    for fam in ("newton_euler", "imu", "contact"):
+    for fam in ("newton_euler", "imu", "contact", "ft"):
         out = eff.residual_terms(fam, prob, steps, R, q, W, e)
         if out is None:
             continue
