@@ -80,6 +80,10 @@ class GraphBuilder:
             for family in _EFFECT_FAMILIES:
                 if eff.residual_terms(family, p, steps0, R0[None], q0[None], W0, mean[None]) is not None:
                     self.touch[family].append((j, eff))
+            if p.use_ft and eff.residual_terms("ft", p, steps0, R0[None], q0[None], W0, mean[None]) is not None:
+                raise ConfigError(f"effect {eff.name!r} acts on the F/T readings, which the gtsam graph's F/T factors "
+                                  "do not carry; expected the numpy backends (the default batch smoother, "
+                                  "diagnose) for it")
             level = getattr(eff, "step_prior_sigma", None)
             self.effect_level.append(None if level is None else np.asarray(level(p), dtype=float))
             self.effect_walk.append(walk_sigma(eff, p))

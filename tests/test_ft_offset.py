@@ -204,3 +204,15 @@ def test_without_ft_fusion_the_candidate_is_skipped_with_one_line():
     assert [c.effect for c in d.ranking] == ["gyro-bias"]
     assert line in d.ranking_table().splitlines()[-1] or line in d.ranking_table()
     assert d.to_json()["skipped"] == [line]
+
+
+def test_the_gtsam_graph_refuses_an_effect_on_the_ft_readings():
+    """The gtsam graph's F/T factors carry no effect terms: one clear error, not an offset left
+    silently at its prior."""
+    pytest.importorskip("gtsam")
+    from flexforce.smoother.graph import GraphBuilder
+
+    rec = simulate([], duration=0.3)
+    with pytest.raises(ConfigError, match="'ft-offset' acts on the F/T readings"):
+        GraphBuilder(Problem.build(rec, with_ft(rec, make_effect("ft-offset"))))
+    GraphBuilder(Problem.build(rec, ModelConfig.from_recording(rec, effects=(make_effect("gyro-bias"),))))
