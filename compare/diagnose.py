@@ -735,7 +735,8 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
         add: effects to add for the before/after comparison (names of candidates, or further
             effect specs); ``"auto"`` stands for the significant effects found by the ranking.
         rank: score the candidates (greedy forward selection); False only refits with ``add``.
-        max_effects: at most this many greedy selection rounds add an effect.
+        max_effects: at most this many greedy selection rounds add an effect (with screening, the
+            candidates left once it is reached are screened at the final base, not refitted).
         alpha: level of the likelihood-ratio test and of the windowed residual tests.
         window: length of the residual windows, s.
         skip: seconds left out at the start of the error statistics (filter convergence).
@@ -880,6 +881,17 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                 if not remaining:
                     break
                 latest.update(again)
+                if len(selected) >= max_effects:
+                    # the selection is full: what is left is reported by its score test at the final
+                    # base, not refitted for a round whose choice would not be taken
+                    for k in remaining:
+                        t = latest.get(k)
+                        dropped.append(Candidate(
+                            k, tuple(selected), len(rounds) + 1, None, None, None, None, False,
+                            screen=None if isinstance(t, str) else t, refitted=False, screen_level=screen_level,
+                            deferred=f"its score test passed at the final base, but {max_effects} effects "
+                                     "(max_effects) are selected"))
+                    break
             this_round = _refit_choice(remaining, latest, ident, refit_best if screen_level is not None else None)
             row = []
             for name in this_round:
@@ -937,7 +949,9 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
     for i, name in enumerate(selected):
         ranking.append(next(c for c in rounds[i] if c.effect == name))
     if rounds:
-        ranking += [c for c in rounds[-1] if c.effect not in selected]
+        # a candidate screened out (or left unrefitted) at a later base is listed by that, its latest word
+        later = {d.effect for d in dropped if d.round > len(rounds)}
+        ranking += [c for c in rounds[-1] if c.effect not in selected and c.effect not in later]
     ranking += dropped
     added = list(dict.fromkeys((selected if want_auto else []) + list(add_makers)))
     before = _snapshot(rec, nominal, window, alpha, skip, calibrated)

@@ -305,3 +305,9 @@ def test_refit_best_defers_the_weaker_candidates_to_the_next_round():
             assert "refit_best" in c.to_dict()["not_refitted"] and c.deferred in d.ranking_table()
     with pytest.raises(ConfigError, match="refit_best = 0"):
         diagnose(simulate([], duration=0.5), candidates=CANDIDATES, ekf=False, refit_best=0)
+    # a full selection: what is left is screened at the final base, not refitted for nothing
+    full = diagnose(simulate([GYRO, ACCEL]), candidates=CANDIDATES, ekf=False, max_effects=1)
+    assert len(full.selected) == 1 and len(full.rounds) == 1, full.ranking_table()
+    (left,) = [c for c in full.ranking if c.effect not in full.selected]
+    assert not left.refitted and "max_effects" in left.deferred and left.screen is not None
+    assert left.base == tuple(full.selected)
