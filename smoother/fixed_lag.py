@@ -59,7 +59,7 @@ from flexforce.options import (
     require_config,
     with_options,
 )
-from flexforce.smoother import solvers
+from flexforce.smoother import solvers, window_kernel
 from flexforce.smoother.linearize import Trajectory, assemble_split, linearize
 from flexforce.smoother.problem import NoiseRule, Problem, with_footholds
 from flexforce.smoother.result import make_estimate
@@ -323,6 +323,12 @@ class FixedLagSmoother:
             e0[off:off + eff.dim] = eff.prior(prob)[0]
             off += eff.dim
         self._e0 = e0
+        self.compiled = True
+        """Use the compiled update (:func:`flexforce.smoother.window_kernel.window_update`) where it
+        applies (no effects, past the stream's first ``relinearize`` steps); False: always the
+        general linearisation (the reference it is tested against)."""
+        self._wp = window_kernel.WindowProblem(prob) if not prob.effects else None
+        self._scratch: dict = {}
 
     def _lower_weight_caps(self, f: int, lin, new: int = 1) -> None:
         """Remember the sensors' robust weights of the steps just linearised: a sample's weight
@@ -382,6 +388,7 @@ class FixedLagSmoother:
                 caps[fam] = new
             prob.weight_cap = caps
         self.prob = prob
+        self._wp = window_kernel.WindowProblem(prob) if not prob.effects else None
 
     def step(self) -> None:
         """Add the next sample; at every ``block``-th, update with the queued samples: relinearise
@@ -400,6 +407,9 @@ class FixedLagSmoother:
         t0 = time.perf_counter()
         frozen_first = k0 - M >= 0
         f = max(k0 - M, 0)
+        if f > 0 and self._wp is not None and self.compiled:
+            self._update_compiled(f, k0, k1, t0)
+            return
         # relinearise the unfrozen steps at their current estimate; the new ones at their prediction
         solvers.window_retract(self.Rb, self.qb, self.Wb, self.eb, self.dx,
                                np.arange(f + 1 if frozen_first else f, k0) % cap, S)
@@ -453,6 +463,11 @@ class FixedLagSmoother:
         solvers.window_back_substitute(self.Ld, self.C, self.y, order, self.dx)
         if not np.all(np.isfinite(self.dx[pk])):
             raise EstimatorError(f"fixed-lag smoother: non-finite estimate at step {k} (t = {k * prob.dt:.3f} s)")
+        self._finish_update(k0, k1, k, j0, j1, t0)
+
+    def _finish_update(self, k0: int, k1: int, k: int, j0: int, j1: int, t0: float) -> None:
+        """The update's time; the read-outs of the steps that left the window (``j0 .. j1-1``)."""
+        R = self.report_every
         self.last_update_time = time.perf_counter() - t0
         self.last_updated = k1 - k0
         self.k_done = k1
@@ -467,6 +482,53 @@ class FixedLagSmoother:
                 self._report(i)
         self.last_cov_time = cov_time
         self.next_report = j1
+
+    def _update_compiled(self, f: int, k0: int, k1: int, t0: float) -> None:
+        """:meth:`_update` in one compiled call (:func:`window_kernel.window_update`): the same
+        operations in the same order, without the Python work per family and per step."""
+        prob, cap, R = self.prob, self.cap, self.report_every
+        wp = self._wp
+        assert wp is not None
+        k = k1 - 1
+        m = k1 - f
+        nc, D = prob.nc, prob.state_dim
+        bufs = self._scratch.get(m)
+        if bufs is None:
+            bufs = (np.empty((m, D, D)), np.empty((m, D)), np.empty((m, D, D)), np.empty((m, D)),
+                    np.empty((max(m - 1, 1), D, D)), np.empty((m, 1 + nc, 2)), np.empty((m, 1 + nc, 2)))
+            self._scratch[m] = bufs
+        U, gU, Fw, gF, B, caps, weights = bufs
+        caps[:] = np.inf
+        a = f - prob.offset
+        fams = (("imu",) + tuple(f"ft/{i}" for i in range(nc) if prob.use_ft)) if wp.robust else ()
+        stored = prob.weight_cap
+        if stored is not None:
+            for j, fam in enumerate(fams):
+                c = stored.get(fam)
+                if c is not None:
+                    caps[:, j] = c[a:a + m]
+        j0 = self.next_report
+        j1 = j0 + R * max(0, (k - self.lag_steps - j0 + 1) // R)
+        oldest = min(f, j0) if j1 > j0 else f
+        try:
+            window_kernel.window_update(self.Rb, self.qb, self.Wb, self.dx, self.Ld, self.C, self.y, self.Sp,
+                                        self.rp, f, k0, k1, oldest, prob.offset, *wp.args, caps, U, gU, Fw, gF, B,
+                                        weights)
+        except np.linalg.LinAlgError as err:
+            raise EstimatorError(f"fixed-lag smoother: the window's system is not positive definite at step {k} "
+                                 f"(t = {k * prob.dt:.3f} s)") from err
+        if stored is not None and fams:
+            # the sensors' weights only fall (_lower_weight_caps), but for the new samples
+            new = k1 - k0
+            for j, fam in enumerate(fams):
+                c = stored.get(fam)
+                if c is None:
+                    c = stored[fam] = np.ones((prob.n, 2))
+                np.minimum(c[a:a + m - new], weights[:m - new, j], out=c[a:a + m - new])
+        pk = k % cap
+        if not np.all(np.isfinite(self.dx[pk])):
+            raise EstimatorError(f"fixed-lag smoother: non-finite estimate at step {k} (t = {k * prob.dt:.3f} s)")
+        self._finish_update(k0, k1, k, j0, j1, t0)
 
     def _covariances(self, k: int, j0: int, j1: int) -> None:
         """Window marginals (timed apart); kept for steps ``j0 .. j1-1``.

@@ -1,0 +1,404 @@
+r"""The fixed-lag window's linearisation and assembly in one compiled call.
+
+:func:`window_system` evaluates the factors on the newest steps of the window (the families a
+problem without effects uses, past the stream's first step: Newton-Euler, contact law, IMU, F/T,
+integration), whitens them, applies the robust losses and accumulates the Gauss-Newton blocks of
+:func:`flexforce.smoother.linearize.assemble_split` (``U``, ``gU``, ``Fw``, ``gF``, ``B``) directly:
+the same numbers as :func:`~flexforce.smoother.linearize.linearize` followed by ``assemble_split``
+(the same kernels per family, the same whitening products, the same order of accumulation), without
+the Python work per family and per update.  :class:`WindowProblem` holds the problem's arrays in
+the order the kernel takes them, built once per :class:`~flexforce.smoother.problem.Problem`.
+
+:func:`window_update` is a whole update of :class:`flexforce.smoother.fixed_lag.FixedLagSmoother`
+on that path: retraction of the relinearised steps, prediction of the new ones, the system above,
+the incremental elimination and the back substitution, on the smoother's ring buffers.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from flexforce.factors import core
+from flexforce.factors.core import njit, so3_exp
+from flexforce.smoother.linearize import _add_binary, _add_unary
+
+S = core.STATE_DIM
+
+ROBUST_KINDS = {None: 0, "log-tail": 1, "huber": 2, "cauchy": 3}
+"""Codes of the sensors' robust losses (:func:`flexforce.datasets.faults.robust_weights`)."""
+
+
+class WindowProblem:
+    """A :class:`~flexforce.smoother.problem.Problem`'s arrays as :func:`window_system` takes them
+    (a problem without effects)."""
+
+    def __init__(self, prob):
+        if prob.effects:
+            raise ValueError("the compiled window path takes a problem without effects")
+        sig = prob.sigmas
+        nc = prob.nc
+        self.prob = prob
+        self.offset = int(prob.offset)
+        Li = np.diag(1.0 / (np.sqrt(np.diag(sig.contact_cov)) * sig.inactive_factor))
+        self.robust = (sig.imu_robust is not None)
+        self.args = (
+            float(prob.rec.mass), float(prob.g), float(prob.dt), prob.com, prob.com_vel, prob.com_acc,
+            prob.inertia, prob.inertia_dot, prob.sigma_l, prob.sigma_dot,
+            prob.active, prob.contact_p, prob.contact_R, prob.rest_p, prob.rest_R,
+            prob.K_fs, prob.K_fd, prob.K_ts, prob.K_td, prob.beta, prob.iso,
+            prob.y_imu, prob.imu_R, prob.imu_p, prob.imu_v, prob.imu_a, prob.imu_w, prob.imu_use,
+            prob.y_ft if prob.use_ft else np.zeros((0, nc, 6)), bool(prob.use_ft),
+            np.ascontiguousarray(prob.ne_whitener, dtype=float), np.ascontiguousarray(prob.contact_whitener, dtype=float),
+            np.ascontiguousarray(Li), 1.0 / np.asarray(sig.imu, dtype=float), 1.0 / np.asarray(sig.ft, dtype=float),
+            np.ascontiguousarray(prob.integration_whitener, dtype=float),
+            -1.0 if sig.robust_k is None else float(sig.robust_k), ROBUST_KINDS[sig.imu_robust],
+            float(sig.imu_robust_k))
+
+
+@njit
+def _robust(norm, kind, k):
+    """Weight and robust cost of one whitened norm (as :func:`flexforce.datasets.faults.robust_weights`)."""
+    if kind == 1:  # log-tail
+        if norm > k:
+            safe = max(norm, k)
+            t = k / safe
+            return t * t, 0.5 * k * k + k * k * math.log(safe / k)
+        return 1.0, 0.5 * norm * norm
+    if kind == 2:  # huber
+        if norm <= k:
+            return 1.0, 0.5 * norm * norm
+        return k / max(norm, 1e-300), k * norm - 0.5 * k * k
+    u = (norm / k) * (norm / k)  # cauchy
+    return 1.0 / (1.0 + u), 0.5 * k * k * math.log1p(u)
+
+
+@njit
+def _sensor_reweight(r, J, cap, kind, k, w_out):
+    """IRLS of the gyro (rows 0-2) and accelerometer (3-5) blocks of ``r`` (m, 6), ``J`` (m, 6, D)
+    in place (``linearize.sensor_reweight``); ``cap`` (m, 2) upper bounds; weights into ``w_out``
+    (m, 2); returns the extra cost."""
+    rho_sum = 0.0
+    wn_sum = 0.0
+    for kk in range(r.shape[0]):
+        for j in range(2):
+            a = 3 * j
+            s = r[kk, a] * r[kk, a]
+            s = s + r[kk, a + 1] * r[kk, a + 1]
+            s = s + r[kk, a + 2] * r[kk, a + 2]
+            norm = math.sqrt(s)
+            w, rho = _robust(norm, kind, k)
+            c = cap[kk, j]
+            if c < w:
+                w = c
+            w_out[kk, j] = w
+            rho_sum += rho
+            wn_sum += w * (norm * norm)
+            sw = math.sqrt(w)
+            for i in range(a, a + 3):
+                r[kk, i] *= sw
+                for col in range(J.shape[2]):
+                    J[kk, i, col] *= sw
+    return rho_sum - 0.5 * wn_sum
+
+
+@njit
+def _sumsq(r):
+    out = 0.0
+    for kk in range(r.shape[0]):
+        for i in range(r.shape[1]):
+            out += r[kk, i] * r[kk, i]
+    return out
+
+
+@njit
+def window_system(Rb, qb, Wb, pos, s0, skip_first,
+                  mass, g, dt, com, com_vel, com_acc, inertia, inertia_dot, sigma_l, sigma_dot,
+                  active, contact_p, contact_R, rest_p, rest_R, K_fs, K_fd, K_ts, K_td, beta, iso,
+                  y_imu, imu_R, imu_p, imu_v, imu_a, imu_w, imu_use, y_ft, use_ft,
+                  L_ne, L_c, L_i, inv_imu, inv_ft, L_int, robust_k, sensor_kind, sensor_k,
+                  caps, U, gU, Fw, gF, B, weights):
+    """Linearise and assemble the window (module docstring).
+
+    The window's steps are at ring positions ``pos`` of ``Rb``, ``qb``, ``Wb`` and at rows
+    ``s0 ..`` of the problem's arrays.  ``caps`` (m, 1 + C, 2): upper bounds of the IMU's and each
+    F/T's robust weights (``inf``: none); ``weights`` (m, 1 + C, 2) receives them (with
+    ``sensor_kind`` 0 untouched).  ``U``, ``gU``, ``Fw``, ``gF``, ``B`` are zeroed and filled;
+    returns the cost (``Linearization.cost``)."""
+    m = pos.shape[0]
+    nc = active.shape[1]
+    D = U.shape[1]
+    first = 1 if skip_first else 0
+    U[:] = 0.0
+    gU[:] = 0.0
+    Fw[:] = 0.0
+    gF[:] = 0.0
+    B[:] = 0.0
+    total = 0.0
+    extra = 0.0
+    rs = np.empty(6)
+    Js = np.empty((6, S))
+    JW = np.empty((6, 6))
+    Jfull = np.zeros((6, D))
+    no_rest = np.empty((0, 6))
+    # Newton-Euler: required wrench minus the active contacts' wrenches, whitened by L_ne
+    r_raw = np.empty((m, 6))
+    J_fam = np.empty((m, 6, D))
+    Wsum = np.empty(6)
+    for kk in range(m):
+        p = pos[kk]
+        s = s0 + kk
+        for j in range(6):
+            Wsum[j] = Wb[p, 0, j] * (1.0 if active[s, 0] else 0.0)
+        for i in range(1, nc):
+            a = 1.0 if active[s, i] else 0.0
+            for j in range(6):
+                Wsum[j] = Wsum[j] + Wb[p, i, j] * a
+        core.newton_euler(Rb[p], qb[p], Wsum, mass, com[s], com_vel[s], com_acc[s], inertia[s], inertia_dot[s],
+                          sigma_l[s], sigma_dot[s], g, r_raw[kk], Js)
+        Jfull[:] = 0.0
+        Jfull[:, :S] = Js
+        for i in range(nc):
+            if active[s, i]:
+                for j in range(6):
+                    Jfull[j, S + 6 * i + j] = -1.0
+        J_fam[kk] = np.dot(L_ne, Jfull)
+    r_fam = np.dot(r_raw, L_ne.T)
+    if robust_k > 0.0:
+        rho_sum = 0.0
+        wn_sum = 0.0
+        for kk in range(m):
+            s = r_fam[kk, 0] * r_fam[kk, 0]
+            for i in range(1, 6):
+                s = s + r_fam[kk, i] * r_fam[kk, i]
+            norm = math.sqrt(s)
+            w, rho = _robust(norm, 2, robust_k)
+            rho_sum += rho
+            wn_sum += w * s
+            sw = math.sqrt(w)
+            for i in range(6):
+                r_fam[kk, i] = r_fam[kk, i] * sw
+                for col in range(D):
+                    J_fam[kk, i, col] = J_fam[kk, i, col] * sw
+        extra += rho_sum - 0.5 * wn_sum
+    total += _sumsq(r_fam)
+    _add_unary(U, gU, r_fam, J_fam, first, 0)
+    # contact law per contact: L_c (active) or L_i (inactive: the wrench held at zero)
+    for i in range(nc):
+        for kk in range(m):
+            p = pos[kk]
+            s = s0 + kk
+            Jfull[:] = 0.0
+            if active[s, i]:
+                core.contact_law(Rb[p], qb[p], Wb[p, i], contact_p[s, i], contact_R[s, i], rest_p[s, i],
+                                 rest_R[s, i], K_fs[i], K_fd[i], K_ts[i], K_td[i], beta[i, 0], beta[i, 1], iso[i],
+                                 rs, Js, no_rest)
+                Jfull[:, :S] = Js[:, :]
+                L = L_c
+            else:
+                for j in range(6):
+                    rs[j] = -Wb[p, i, j]
+                L = L_i
+            for j in range(6):
+                Jfull[j, S + 6 * i + j] = -1.0
+            r_fam[kk] = np.dot(L, rs)
+            J_fam[kk] = np.dot(L, Jfull)
+        total += _sumsq(r_fam)
+        _add_unary(U, gU, r_fam, J_fam, first, 0)
+    # IMU: rows whitened by sigma, missing or saturated axes zero, robust per sensor
+    for kk in range(m):
+        p = pos[kk]
+        s = s0 + kk
+        core.imu(Rb[p], qb[p], y_imu[s], imu_R[s], imu_p[s], imu_v[s], imu_a[s], imu_w[s], g, rs, Js)
+        for j in range(6):
+            u = imu_use[s, j]
+            r_fam[kk, j] = (rs[j] * inv_imu[j]) * u
+            for col in range(S):
+                J_fam[kk, j, col] = (Js[j, col] * inv_imu[j]) * u
+            for col in range(S, D):
+                J_fam[kk, j, col] = (0.0 * inv_imu[j]) * u
+    if sensor_kind != 0:
+        extra += _sensor_reweight(r_fam, J_fam, caps[:, 0], sensor_kind, sensor_k, weights[:, 0])
+    total += _sumsq(r_fam)
+    _add_unary(U, gU, r_fam, J_fam, first, 0)
+    # F/T readings: rows whitened by sigma (NaN readings: zero rows), robust per sensor
+    if use_ft:
+        for i in range(nc):
+            for kk in range(m):
+                p = pos[kk]
+                s = s0 + kk
+                if active[s, i]:
+                    core.ft(Rb[p], qb[p], Wb[p, i], contact_p[s, i], contact_R[s, i], y_ft[s, i], rs, Js, JW)
+                else:
+                    rs[:] = 0.0
+                    Js[:] = 0.0
+                    JW[:] = 0.0
+                for j in range(6):
+                    r_fam[kk, j] = rs[j] * inv_ft[j]
+                    for col in range(D):
+                        J_fam[kk, j, col] = 0.0
+                    for col in range(S):
+                        J_fam[kk, j, col] = Js[j, col] * inv_ft[j]
+                    for col in range(6):
+                        J_fam[kk, j, S + 6 * i + col] = JW[j, col] * inv_ft[j]
+            if sensor_kind != 0:
+                extra += _sensor_reweight(r_fam, J_fam, caps[:, 1 + i], sensor_kind, sensor_k, weights[:, 1 + i])
+            total += _sumsq(r_fam)
+            _add_unary(U, gU, r_fam, J_fam, first, 0)
+    # integration between successive steps, whitened by the Brownian-bridge covariance
+    if m > 1:
+        r_int = np.empty((m - 1, 12))
+        J0s = np.empty((12, S))
+        J1s = np.empty((12, S))
+        J0 = np.zeros((m - 1, 12, D))
+        J1 = np.zeros((m - 1, 12, D))
+        for kk in range(m - 1):
+            p0 = pos[kk]
+            p1 = pos[kk + 1]
+            core.integration(Rb[p0], qb[p0], Rb[p1], qb[p1], dt, r_int[kk], J0s, J1s)
+            J0[kk, :, :S] = np.dot(L_int, J0s)
+            J1[kk, :, :S] = np.dot(L_int, J1s)
+        r_w = np.dot(r_int, L_int.T)
+        total += _sumsq(r_w)
+        _add_binary(Fw, U, B, gF, gU, r_w, J0, J1)
+    return 0.5 * total + extra
+
+
+@njit
+def _predict_into(Rb, qb, Wb, dx, p_prev, p_new, s, dt, active, contact_p, contact_R, rest_p, rest_R,
+                  K_fs, K_fd, K_ts, K_td, beta, iso):
+    """The new step at ring position ``p_new`` (problem row ``s``) predicted from the current
+    estimate of the previous one (``FixedLagSmoother._predict``: ``predict_step`` and the contact
+    law's wrenches at the prediction)."""
+    R_prev = so3_exp(dx[p_prev, :3]) @ Rb[p_prev]
+    q_prev = qb[p_prev] + dx[p_prev, 3:S]
+    w = q_prev[3:6]
+    v = q_prev[6:9]
+    dw = q_prev[9:12]
+    a = q_prev[12:15]
+    Rb[p_new] = so3_exp(w * dt + 0.5 * dw * dt * dt) @ R_prev
+    q = qb[p_new]
+    q[:] = q_prev
+    q[0:3] = q_prev[0:3] + v * dt + 0.5 * a * dt * dt
+    q[3:6] = w + dw * dt
+    q[6:9] = v + a * dt
+    nc = Wb.shape[1]
+    r = np.empty(6)
+    J = np.empty((6, S))
+    zero = np.zeros(6)
+    no_rest = np.empty((0, 6))
+    for i in range(nc):
+        if active[s, i]:
+            core.contact_law(Rb[p_new], q, zero, contact_p[s, i], contact_R[s, i], rest_p[s, i], rest_R[s, i],
+                             K_fs[i], K_fd[i], K_ts[i], K_td[i], beta[i, 0], beta[i, 1], iso[i], r, J, no_rest)
+            Wb[p_new, i] = r
+        else:
+            Wb[p_new, i] = 0.0
+    dx[p_new] = 0.0
+
+
+@njit
+def _trsm_lower_rows_t(L, B, X, out):
+    """``out = (L^-1 B)^T`` (``solvers._trsm_lower_rows_t``: the same operations)."""
+    d = L.shape[0]
+    ncol = B.shape[1]
+    for i in range(d):
+        for j in range(ncol):
+            X[i, j] = B[i, j]
+        for k in range(i):
+            lik = L[i, k]
+            for j in range(ncol):
+                X[i, j] -= lik * X[k, j]
+        inv = L[i, i]
+        for j in range(ncol):
+            X[i, j] = X[i, j] / inv
+    for i in range(d):
+        for j in range(ncol):
+            out[j, i] = X[i, j]
+
+
+@njit
+def _trsv_lower(L, b):
+    x = b.copy()
+    core.trsv_lower_inplace(L, x)
+    return x
+
+
+@njit
+def window_update(Rb, qb, Wb, dx, Ld, C, y, Sp, rp, f, k0, k1, oldest, s_base,
+                  mass, g, dt, com, com_vel, com_acc, inertia, inertia_dot, sigma_l, sigma_dot,
+                  active, contact_p, contact_R, rest_p, rest_R, K_fs, K_fd, K_ts, K_td, beta, iso,
+                  y_imu, imu_R, imu_p, imu_v, imu_a, imu_w, imu_use, y_ft, use_ft,
+                  L_ne, L_c, L_i, inv_imu, inv_ft, L_int, robust_k, sensor_kind, sensor_k,
+                  caps, U, gU, Fw, gF, B, weights):
+    """One update of the fixed-lag window adding the samples ``k0 .. k1-1`` (``f > 0``: the
+    oldest relinearised step ``f`` is frozen, its predecessors eliminated), on the smoother's ring
+    buffers (``FixedLagSmoother._update``'s operations, in its order): retract steps ``f+1 ..
+    k0-1`` to their estimate, predict the new steps, linearise and assemble
+    (:func:`window_system`), eliminate oldest first (``solvers.window_eliminate``) into ``Ld``,
+    ``C``, ``y``, ``Sp``, ``rp``, back-substitute from step ``k1-1`` down to ``oldest``.  ``s_base``:
+    the problem's first step.  Returns the cost; raises LinAlgError when the system is not
+    positive definite."""
+    cap = Rb.shape[0]
+    nc = Wb.shape[1]
+    for k in range(f + 1, k0):  # window_retract
+        p = k % cap
+        Rb[p] = so3_exp(dx[p, :3]) @ Rb[p]
+        for i in range(S - 3):
+            qb[p, i] += dx[p, 3 + i]
+        for c in range(nc):
+            for j in range(6):
+                Wb[p, c, j] += dx[p, S + 6 * c + j]
+        dx[p, :] = 0.0
+    pk0 = k0 % cap
+    _predict_into(Rb, qb, Wb, dx, (k0 - 1) % cap, pk0, k0 - s_base, dt, active, contact_p, contact_R, rest_p,
+                  rest_R, K_fs, K_fd, K_ts, K_td, beta, iso)
+    for k in range(k0 + 1, k1):  # the block's later samples start at its first one's prediction
+        p = k % cap
+        Rb[p] = Rb[pk0]
+        qb[p] = qb[pk0]
+        Wb[p] = Wb[pk0]
+        dx[p] = 0.0
+    m = k1 - f
+    pos = np.empty(m, dtype=np.int64)
+    for i in range(m):
+        pos[i] = (f + i) % cap
+    cost = window_system(Rb, qb, Wb, pos, f - s_base, True, mass, g, dt, com, com_vel, com_acc, inertia,
+                         inertia_dot, sigma_l, sigma_dot, active, contact_p, contact_R, rest_p, rest_R, K_fs, K_fd,
+                         K_ts, K_td, beta, iso, y_imu, imu_R, imu_p, imu_v, imu_a, imu_w, imu_use, y_ft, use_ft,
+                         L_ne, L_c, L_i, inv_imu, inv_ft, L_int, robust_k, sensor_kind, sensor_k, caps,
+                         U, gU, Fw, gF, B, weights)
+    # elimination (solvers.window_eliminate with a frozen first step), in the ring buffers
+    D = U.shape[1]
+    X = np.empty((D, D))
+    for i in range(m):
+        p = pos[i]
+        if i > 0:
+            q = pos[i - 1]
+            Sp[p] = U[i] - C[q] @ C[q].T
+            rp[p] = gU[i] - C[q] @ y[q]
+        Ld[p] = np.linalg.cholesky(Sp[p] + Fw[i])
+        if i < m - 1:
+            _trsm_lower_rows_t(Ld[p], B[i], X, C[p])
+        y[p] = _trsv_lower(Ld[p], rp[p] + gF[i])
+    # back substitution (solvers.window_back_substitute) over k1-1 .. oldest
+    b = np.empty(D)
+    for kk in range(k1 - oldest):
+        p = (k1 - 1 - kk) % cap
+        for i in range(D):
+            b[i] = y[p, i]
+        if kk > 0:
+            pn = (k1 - kk) % cap
+            for j in range(D):
+                xj = dx[pn, j]
+                if xj != 0.0:
+                    for i in range(D):
+                        b[i] -= C[p, j, i] * xj
+        for i in range(D - 1, -1, -1):
+            xi = b[i] / Ld[p, i, i]
+            dx[p, i] = xi
+            if xi != 0.0:
+                for mm in range(i):
+                    b[mm] -= Ld[p, i, mm] * xi
+    return cost
