@@ -329,6 +329,8 @@ class FixedLagSmoother:
         general linearisation (the reference it is tested against)."""
         self._wp = window_kernel.WindowProblem(prob) if not prob.effects else None
         self._scratch: dict = {}
+        self._capbuf: tuple | None = None
+        self._no_caps = np.ones((1 + nc, 0, 2))
 
     def _lower_weight_caps(self, f: int, lin, new: int = 1) -> None:
         """Remember the sensors' robust weights of the steps just linearised: a sample's weight
@@ -389,6 +391,7 @@ class FixedLagSmoother:
             prob.weight_cap = caps
         self.prob = prob
         self._wp = window_kernel.WindowProblem(prob) if not prob.effects else None
+        self._capbuf = None
 
     def step(self) -> None:
         """Add the next sample; at every ``block``-th, update with the queued samples: relinearise
@@ -478,57 +481,57 @@ class FixedLagSmoother:
             if self.covariance:
                 self._covariances(k, a, a + R)
                 cov_time += self.last_cov_time
-            for i in range(a, a + R):
-                self._report(i)
+            self._report(a, a + R)
         self.last_cov_time = cov_time
         self.next_report = j1
 
     def _update_compiled(self, f: int, k0: int, k1: int, t0: float) -> None:
         """:meth:`_update` in one compiled call (:func:`window_kernel.window_update`): the same
         operations in the same order, without the Python work per family and per step."""
-        prob, cap, R = self.prob, self.cap, self.report_every
+        prob, R = self.prob, self.report_every
         wp = self._wp
         assert wp is not None
         k = k1 - 1
         m = k1 - f
-        nc, D = prob.nc, prob.state_dim
         bufs = self._scratch.get(m)
         if bufs is None:
+            nc, D = prob.nc, prob.state_dim
             bufs = (np.empty((m, D, D)), np.empty((m, D)), np.empty((m, D, D)), np.empty((m, D)),
                     np.empty((max(m - 1, 1), D, D)), np.empty((m, 1 + nc, 2)), np.empty((m, 1 + nc, 2)))
             self._scratch[m] = bufs
-        U, gU, Fw, gF, B, caps, weights = bufs
-        caps[:] = np.inf
-        a = f - prob.offset
-        fams = (("imu",) + tuple(f"ft/{i}" for i in range(nc) if prob.use_ft)) if wp.robust else ()
-        stored = prob.weight_cap
-        if stored is not None:
-            for j, fam in enumerate(fams):
-                c = stored.get(fam)
-                if c is not None:
-                    caps[:, j] = c[a:a + m]
+        capbuf = self._weight_caps()
         j0 = self.next_report
         j1 = j0 + R * max(0, (k - self.lag_steps - j0 + 1) // R)
         oldest = min(f, j0) if j1 > j0 else f
         try:
-            window_kernel.window_update(self.Rb, self.qb, self.Wb, self.dx, self.Ld, self.C, self.y, self.Sp,
-                                        self.rp, f, k0, k1, oldest, prob.offset, *wp.args, caps, U, gU, Fw, gF, B,
-                                        weights)
+            ok = window_kernel.window_update(self.Rb, self.qb, self.Wb, self.dx, self.Ld, self.C, self.y, self.Sp,
+                                             self.rp, f, k0, k1, oldest, prob.offset, *wp.args,
+                                             self._no_caps if capbuf is None else capbuf, capbuf is not None, *bufs)
         except np.linalg.LinAlgError as err:
             raise EstimatorError(f"fixed-lag smoother: the window's system is not positive definite at step {k} "
                                  f"(t = {k * prob.dt:.3f} s)") from err
-        if stored is not None and fams:
-            # the sensors' weights only fall (_lower_weight_caps), but for the new samples
-            new = k1 - k0
-            for j, fam in enumerate(fams):
-                c = stored.get(fam)
-                if c is None:
-                    c = stored[fam] = np.ones((prob.n, 2))
-                np.minimum(c[a:a + m - new], weights[:m - new, j], out=c[a:a + m - new])
-        pk = k % cap
-        if not np.all(np.isfinite(self.dx[pk])):
+        if not ok:
             raise EstimatorError(f"fixed-lag smoother: non-finite estimate at step {k} (t = {k * prob.dt:.3f} s)")
         self._finish_update(k0, k1, k, j0, j1, t0)
+
+    def _weight_caps(self):
+        """The sensors' weight caps as one array (1 + C, steps, 2) for the compiled update, the
+        entries of ``prob.weight_cap`` its views (None: the problem keeps no caps)."""
+        prob = self.prob
+        stored = prob.weight_cap
+        if stored is None or self._wp is None or not self._wp.robust:
+            return None
+        if self._capbuf is not None and self._capbuf[0] is stored:
+            return self._capbuf[1]
+        buf = np.ones((1 + prob.nc, prob.n, 2))  # no cap: 1 (a robust weight is at most 1)
+        fams = ("imu",) + tuple(f"ft/{i}" for i in range(prob.nc) if prob.use_ft)
+        for j, fam in enumerate(fams):
+            c = stored.get(fam)
+            if c is not None:
+                buf[j] = c
+            stored[fam] = buf[j]
+        self._capbuf = (stored, buf)
+        return buf
 
     def _covariances(self, k: int, j0: int, j1: int) -> None:
         """Window marginals (timed apart); kept for steps ``j0 .. j1-1``.
@@ -563,15 +566,21 @@ class FixedLagSmoother:
         if self.sink is None:
             self.cov_time[k] += self.last_cov_time
 
-    def _report(self, j: int) -> None:
-        R, q, W, e = self._state(j)
+    def _report(self, j0: int, j1: int) -> None:
+        """Report steps ``j0 .. j1-1`` (to the sink, or into :attr:`traj` and :attr:`P`)."""
+        n, nc, E = j1 - j0, self.prob.nc, self.prob.effect_dim
+        R, q, W, e = np.empty((n, 3, 3)), np.empty((n, 15)), np.empty((n, nc, 6)), np.empty((n, E))
+        window_kernel.window_states(self.Rb, self.qb, self.Wb, self.eb, self.dx, j0, j1, R, q, W, e)
+        cap = self.cap
         if self.sink is not None:
-            self.sink(j, R, q, W, e, self.Pw[j % self.cap].copy() if self.covariance else None)
+            for i in range(n):
+                j = j0 + i
+                self.sink(j, R[i], q[i], W[i], e[i], self.Pw[j % cap].copy() if self.covariance else None)
             return
-        self.traj.R[j], self.traj.q[j], self.traj.W[j], self.traj.e[j] = R, q, W, e
+        self.traj.R[j0:j1], self.traj.q[j0:j1], self.traj.W[j0:j1], self.traj.e[j0:j1] = R, q, W, e
         if self.covariance:
             assert self.P is not None  # allocated when covariance is set
-            self.P[j] = self.Pw[j % self.cap]
+            self.P[j0:j1] = self.Pw[np.arange(j0, j1) % cap]
 
     def finish(self) -> None:
         """Update with the samples still queued, then report the steps still in the window (and any
@@ -585,8 +594,8 @@ class FixedLagSmoother:
         solvers.window_back_substitute(self.Ld, self.C, self.y, order, self.dx)
         if self.covariance:
             self._covariances(self.k - 1, j0, self.k)
-        for j in range(j0, self.k):
-            self._report(j)
+        if self.k > j0:
+            self._report(j0, self.k)
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ import numpy as np
 
 from flexforce.factors import core
 from flexforce.factors.core import njit, so3_exp
-from flexforce.smoother.linearize import _add_binary, _add_unary
+from flexforce.smoother.linearize import _gather, _grad_into, _support
 
 S = core.STATE_DIM
 
@@ -55,6 +55,78 @@ class WindowProblem:
             np.ascontiguousarray(prob.integration_whitener, dtype=float),
             -1.0 if sig.robust_k is None else float(sig.robust_k), ROBUST_KINDS[sig.imu_robust],
             float(sig.imu_robust_k))
+
+
+@njit
+def _gram_into(H, k, A, Bt, ca, cb, sym):
+    """``H[k][ca, cb] += A Bt^T`` (``linearize._gram_into``: each entry summed over the rows in
+    order from 0.0, the same floating-point result), four entries at a time (independent sums)."""
+    rows = A.shape[1]
+    nb = cb.shape[0]
+    for ia in range(ca.shape[0]):
+        a = ca[ia]
+        ib = ia if sym else 0
+        while ib + 4 <= nb:
+            s0 = 0.0
+            s1 = 0.0
+            s2 = 0.0
+            s3 = 0.0
+            for i in range(rows):
+                x = A[ia, i]
+                s0 += x * Bt[ib, i]
+                s1 += x * Bt[ib + 1, i]
+                s2 += x * Bt[ib + 2, i]
+                s3 += x * Bt[ib + 3, i]
+            H[k, a, cb[ib]] += s0
+            H[k, a, cb[ib + 1]] += s1
+            H[k, a, cb[ib + 2]] += s2
+            H[k, a, cb[ib + 3]] += s3
+            if sym:
+                if ib != ia:
+                    H[k, cb[ib], a] += s0
+                H[k, cb[ib + 1], a] += s1
+                H[k, cb[ib + 2], a] += s2
+                H[k, cb[ib + 3], a] += s3
+            ib += 4
+        while ib < nb:
+            s0 = 0.0
+            for i in range(rows):
+                s0 += A[ia, i] * Bt[ib, i]
+            H[k, a, cb[ib]] += s0
+            if sym and ib != ia:
+                H[k, cb[ib], a] += s0
+            ib += 1
+
+
+@njit
+def _add_unary(H, g, r, J, first):
+    """A unary family's steps ``first ..`` into ``H[k]``, ``g[k]`` (``linearize._add_unary``)."""
+    if r.shape[0] <= first:
+        return
+    cols = _support(J[first:])
+    A = np.empty((cols.shape[0], J.shape[1]))
+    for k in range(first, r.shape[0]):
+        _gather(A, J[k], cols)
+        _gram_into(H, k, A, A, cols, cols, True)
+        _grad_into(g, k, A, r[k], cols)
+
+
+@njit
+def _add_binary(H0, H1, B, g0, g1, r, J0, J1):
+    """A binary family (``linearize._add_binary``): ``J0^T J0`` into ``H0[k]``, ``J1^T J1`` into
+    ``H1[k + 1]``, ``J0^T J1`` into ``B[k]``, the gradients into ``g0[k]``, ``g1[k + 1]``."""
+    c0 = _support(J0)
+    c1 = _support(J1)
+    A0 = np.empty((c0.shape[0], J0.shape[1]))
+    A1 = np.empty((c1.shape[0], J1.shape[1]))
+    for k in range(r.shape[0]):
+        _gather(A0, J0[k], c0)
+        _gather(A1, J1[k], c1)
+        _gram_into(H0, k, A0, A0, c0, c0, True)
+        _gram_into(H1, k + 1, A1, A1, c1, c1, True)
+        _gram_into(B, k, A0, A1, c0, c1, False)
+        _grad_into(g0, k, A0, r[k], c0)
+        _grad_into(g1, k + 1, A1, r[k], c1)
 
 
 @njit
@@ -183,7 +255,7 @@ def window_system(Rb, qb, Wb, pos, s0, skip_first,
                     J_fam[kk, i, col] = J_fam[kk, i, col] * sw
         extra += rho_sum - 0.5 * wn_sum
     total += _sumsq(r_fam)
-    _add_unary(U, gU, r_fam, J_fam, first, 0)
+    _add_unary(U, gU, r_fam, J_fam, first)
     # contact law per contact: L_c (active) or L_i (inactive: the wrench held at zero)
     for i in range(nc):
         for kk in range(m):
@@ -205,7 +277,7 @@ def window_system(Rb, qb, Wb, pos, s0, skip_first,
             r_fam[kk] = np.dot(L, rs)
             J_fam[kk] = np.dot(L, Jfull)
         total += _sumsq(r_fam)
-        _add_unary(U, gU, r_fam, J_fam, first, 0)
+        _add_unary(U, gU, r_fam, J_fam, first)
     # IMU: rows whitened by sigma, missing or saturated axes zero, robust per sensor
     for kk in range(m):
         p = pos[kk]
@@ -221,7 +293,7 @@ def window_system(Rb, qb, Wb, pos, s0, skip_first,
     if sensor_kind != 0:
         extra += _sensor_reweight(r_fam, J_fam, caps[:, 0], sensor_kind, sensor_k, weights[:, 0])
     total += _sumsq(r_fam)
-    _add_unary(U, gU, r_fam, J_fam, first, 0)
+    _add_unary(U, gU, r_fam, J_fam, first)
     # F/T readings: rows whitened by sigma (NaN readings: zero rows), robust per sensor
     if use_ft:
         for i in range(nc):
@@ -245,7 +317,7 @@ def window_system(Rb, qb, Wb, pos, s0, skip_first,
             if sensor_kind != 0:
                 extra += _sensor_reweight(r_fam, J_fam, caps[:, 1 + i], sensor_kind, sensor_k, weights[:, 1 + i])
             total += _sumsq(r_fam)
-            _add_unary(U, gU, r_fam, J_fam, first, 0)
+            _add_unary(U, gU, r_fam, J_fam, first)
     # integration between successive steps, whitened by the Brownian-bridge covariance
     if m > 1:
         r_int = np.empty((m - 1, 12))
@@ -331,15 +403,20 @@ def window_update(Rb, qb, Wb, dx, Ld, C, y, Sp, rp, f, k0, k1, oldest, s_base,
                   active, contact_p, contact_R, rest_p, rest_R, K_fs, K_fd, K_ts, K_td, beta, iso,
                   y_imu, imu_R, imu_p, imu_v, imu_a, imu_w, imu_use, y_ft, use_ft,
                   L_ne, L_c, L_i, inv_imu, inv_ft, L_int, robust_k, sensor_kind, sensor_k,
-                  caps, U, gU, Fw, gF, B, weights):
+                  weight_cap, use_caps, U, gU, Fw, gF, B, caps, weights):
     """One update of the fixed-lag window adding the samples ``k0 .. k1-1`` (``f > 0``: the
     oldest relinearised step ``f`` is frozen, its predecessors eliminated), on the smoother's ring
     buffers (``FixedLagSmoother._update``'s operations, in its order): retract steps ``f+1 ..
     k0-1`` to their estimate, predict the new steps, linearise and assemble
-    (:func:`window_system`), eliminate oldest first (``solvers.window_eliminate``) into ``Ld``,
-    ``C``, ``y``, ``Sp``, ``rp``, back-substitute from step ``k1-1`` down to ``oldest``.  ``s_base``:
-    the problem's first step.  Returns the cost; raises LinAlgError when the system is not
-    positive definite."""
+    (:func:`window_system`), lower the sensors' weight caps ``weight_cap`` (1 + C, problem
+    steps, 2) of the steps before the new ones (``use_caps``), eliminate oldest first
+    (``solvers.window_eliminate``) into ``Ld``, ``C``, ``y``, ``Sp``, ``rp``, back-substitute from
+    step ``k1-1`` down to ``oldest``.  ``s_base``: the problem's first step.  ``U`` .. ``weights``:
+    scratch of the window's size.  Returns False when the newest step's estimate is not finite;
+    raises LinAlgError when the system is not positive definite.
+
+    The integration factors touch the core state only: the cross blocks ``B`` and the rows of
+    ``C`` past it are zero, and the products with them are left out (the same results)."""
     cap = Rb.shape[0]
     nc = Wb.shape[1]
     for k in range(f + 1, k0):  # window_retract
@@ -361,14 +438,29 @@ def window_update(Rb, qb, Wb, dx, Ld, C, y, Sp, rp, f, k0, k1, oldest, s_base,
         Wb[p] = Wb[pk0]
         dx[p] = 0.0
     m = k1 - f
+    s0 = f - s_base
     pos = np.empty(m, dtype=np.int64)
     for i in range(m):
         pos[i] = (f + i) % cap
-    cost = window_system(Rb, qb, Wb, pos, f - s_base, True, mass, g, dt, com, com_vel, com_acc, inertia,
+    nf = 1 + (nc if use_ft else 0)
+    caps[:] = np.inf
+    if use_caps:
+        for kk in range(m):
+            for j in range(nf):
+                for c in range(2):
+                    caps[kk, j, c] = weight_cap[j, s0 + kk, c]
+    cost = window_system(Rb, qb, Wb, pos, s0, True, mass, g, dt, com, com_vel, com_acc, inertia,
                          inertia_dot, sigma_l, sigma_dot, active, contact_p, contact_R, rest_p, rest_R, K_fs, K_fd,
                          K_ts, K_td, beta, iso, y_imu, imu_R, imu_p, imu_v, imu_a, imu_w, imu_use, y_ft, use_ft,
                          L_ne, L_c, L_i, inv_imu, inv_ft, L_int, robust_k, sensor_kind, sensor_k, caps,
                          U, gU, Fw, gF, B, weights)
+    if use_caps and sensor_kind != 0:  # FixedLagSmoother._lower_weight_caps
+        for kk in range(m - (k1 - k0)):
+            for j in range(nf):
+                for c in range(2):
+                    w = weights[kk, j, c]
+                    if w < weight_cap[j, s0 + kk, c] or w != w:
+                        weight_cap[j, s0 + kk, c] = w
     # elimination (solvers.window_eliminate with a frozen first step), in the ring buffers
     D = U.shape[1]
     X = np.empty((D, D))
@@ -376,11 +468,17 @@ def window_update(Rb, qb, Wb, dx, Ld, C, y, Sp, rp, f, k0, k1, oldest, s_base,
         p = pos[i]
         if i > 0:
             q = pos[i - 1]
-            Sp[p] = U[i] - C[q] @ C[q].T
+            Cq = C[q, :S]
+            CC = Cq @ Cq.T
+            Sp[p] = U[i]
+            for a in range(S):
+                for b in range(S):
+                    Sp[p, a, b] = U[i, a, b] - CC[a, b]
             rp[p] = gU[i] - C[q] @ y[q]
         Ld[p] = np.linalg.cholesky(Sp[p] + Fw[i])
         if i < m - 1:
-            _trsm_lower_rows_t(Ld[p], B[i], X, C[p])
+            _trsm_lower_rows_t(Ld[p], B[i, :, :S], X, C[p, :S])
+            C[p, S:] = 0.0
         y[p] = _trsv_lower(Ld[p], rp[p] + gF[i])
     # back substitution (solvers.window_back_substitute) over k1-1 .. oldest
     b = np.empty(D)
@@ -401,4 +499,27 @@ def window_update(Rb, qb, Wb, dx, Ld, C, y, Sp, rp, f, k0, k1, oldest, s_base,
             if xi != 0.0:
                 for mm in range(i):
                     b[mm] -= Ld[p, i, mm] * xi
-    return cost
+    pk = (k1 - 1) % cap
+    for i in range(D):
+        if not np.isfinite(dx[pk, i]):
+            return False
+    return True
+
+
+@njit
+def window_states(Rb, qb, Wb, eb, dx, j0, j1, R, q, W, e):
+    """The current estimates of steps ``j0 .. j1-1`` (``FixedLagSmoother._state``: the
+    linearisation point moved by ``dx``) into ``R``, ``q``, ``W``, ``e`` (rows ``0 .. j1-j0-1``)."""
+    cap = Rb.shape[0]
+    nc = Wb.shape[1]
+    for j in range(j0, j1):
+        p = j % cap
+        i = j - j0
+        R[i] = so3_exp(dx[p, :3]) @ Rb[p]
+        for c in range(15):
+            q[i, c] = qb[p, c] + dx[p, 3 + c]
+        for c in range(nc):
+            for a in range(6):
+                W[i, c, a] = Wb[p, c, a] + dx[p, S + 6 * c + a]
+        for c in range(eb.shape[1]):
+            e[i, c] = eb[p, c] + dx[p, S + 6 * nc + c]
