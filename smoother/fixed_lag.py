@@ -330,6 +330,9 @@ class FixedLagSmoother:
         self._wp = window_kernel.WindowProblem(prob) if not prob.effects else None
         self._scratch: dict = {}
         self._capbuf: tuple | None = None
+        # rows of the elimination's C that can be nonzero: the integration factors (the only
+        # ones linking steps) touch the core state only, the effects' random walks their unknowns
+        self._nz = S if not prob.effects else D
         self._no_caps = np.ones((1 + nc, 0, 2))
 
     def _lower_weight_caps(self, f: int, lin, new: int = 1) -> None:
@@ -545,20 +548,14 @@ class FixedLagSmoother:
         hi = k - self.M  # the newest step whose elimination is final
         if j1 - j0 == R and j0 % R == 0 and j1 - 1 <= hi:
             start = max(self._final_next, j0)
-            if hi >= start:
-                solvers.window_final_factors(self.Ld, self.C, np.arange(start, hi + 1) % cap, self.Af, self.Gf)
             self._final_next = hi + 1
             b = j0 // R
             newest_block = (hi + 1) // R - 1
-            for bb in range(max(self._block_next, b + 1), newest_block + 1):
-                solvers.window_block_map(self.Af, self.Gf, np.arange(bb * R, bb * R + R) % cap, self.Ab, self.Phib,
-                                         bb % self.nblk)
+            bb0 = max(self._block_next, b + 1)
             self._block_next = max(self._block_next, newest_block + 1)
             top = max(newest_block, b)
-            solvers.window_marginals_blocked(self.Ld, self.C, np.arange(k, hi, -1) % cap, self.Af, self.Gf,
-                                             np.arange(hi, (top + 1) * R - 1, -1) % cap, self.Ab, self.Phib,
-                                             np.arange(top, b, -1) % self.nblk, np.arange(j1 - 1, j0 - 1, -1) % cap,
-                                             self.Pw)
+            window_kernel.window_covariances(self.Ld, self.C, self.Af, self.Gf, self.Ab, self.Phib, self.Pw, k, hi,
+                                             start, bb0, newest_block + 1, top, b, j0, j1, R, self._nz)
         else:
             order = np.arange(k, j0 - 1, -1) % cap
             solvers.window_marginals(self.Ld, self.C, order, self.Pw)

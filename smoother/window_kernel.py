@@ -523,3 +523,96 @@ def window_states(Rb, qb, Wb, eb, dx, j0, j1, R, q, W, e):
                 W[i, c, a] = Wb[p, c, a] + dx[p, S + 6 * c + a]
         for c in range(eb.shape[1]):
             e[i, c] = eb[p, c] + dx[p, S + 6 * nc + c]
+
+
+# ----------------------------------------------------------------------------------------------
+# Window marginals at a read-out (FixedLagSmoother._covariances), in one call
+# ----------------------------------------------------------------------------------------------
+
+
+@njit
+def _tri_inv(L, M):
+    """``M = L^-1`` for lower-triangular ``L``: ``solvers._trsm_lower(L, eye)``'s operations
+    without its products with the zeros above the diagonal (the same result)."""
+    d = L.shape[0]
+    for j in range(d):
+        for i in range(j):
+            M[i, j] = 0.0
+        for i in range(j, d):
+            acc = 1.0 if i == j else 0.0
+            for k in range(j, i):
+                acc -= L[i, k] * M[k, j]
+            M[i, j] = acc / L[i, i]
+
+
+@njit
+def _sandwich(A, G, P, nz):
+    """``A + G^T P G`` for ``G`` whose rows from ``nz`` on are zero (the products with them left
+    out: the same result as the whole product)."""
+    if nz == G.shape[0]:
+        return A + G.T @ P @ G
+    Gs = G[:nz]
+    return A + Gs.T @ np.ascontiguousarray(P[:nz, :nz]) @ Gs
+
+
+@njit
+def _marginal_step(Ldp, Cp, Pn, first, eye, M, nz):
+    """``solvers._marginal_step`` (``C``'s rows from ``nz`` on zero)."""
+    _tri_inv(Ldp, M)
+    if first:
+        return M.T @ M
+    return M.T @ _sandwich(eye, Cp, Pn, nz) @ M
+
+
+@njit
+def window_covariances(Ld, C, A, G, Ab, Phib, P, k, hi, start, bb0, bb1, top, b, j0, j1, R, nz):
+    """The read-out's marginals of ``FixedLagSmoother._covariances`` (the blocked branch) in one
+    call: the final steps ``start .. hi``'s factors (``solvers.window_final_factors``), the block
+    maps of blocks ``bb0 .. bb1-1`` (``solvers.window_block_map``), the marginals of steps ``j0
+    .. j1-1`` into ``P`` (``solvers.window_marginals_blocked``: from step ``k`` down through
+    ``hi + 1``, the final steps down to ``(top + 1) R``, blocks ``top .. b+1``).  Ring positions
+    are taken modulo the ring's size, block slots modulo ``len(Ab)``.  The rows of ``C`` from ``nz``
+    on are zero (the integration factors touch the core state only, without effects): the
+    products with them are left out, the results the same."""
+    cap = Ld.shape[0]
+    nblk = Ab.shape[0]
+    d = Ld.shape[1]
+    eye = np.eye(d)
+    M = np.empty((d, d))
+    for j in range(start, hi + 1):  # window_final_factors
+        p = j % cap
+        _tri_inv(Ld[p], M)
+        A[p] = M.T @ M
+        if nz == d:
+            G[p] = C[p] @ M
+        else:
+            G[p, :nz] = C[p, :nz] @ M
+            G[p, nz:] = 0.0
+    for bb in range(bb0, bb1):  # window_block_map
+        p = (bb * R + R - 1) % cap
+        Acc = A[p].copy()
+        Phi = G[p].copy()
+        for kk in range(R - 2, -1, -1):
+            p = (bb * R + kk) % cap
+            Acc = _sandwich(A[p], G[p], Acc, nz)
+            if nz == d:
+                Phi = Phi @ G[p]
+            else:
+                Phi = np.ascontiguousarray(Phi[:, :nz]) @ G[p, :nz]
+        Ab[bb % nblk] = Acc
+        Phib[bb % nblk] = Phi
+    # window_marginals_blocked
+    Pn = np.empty((d, d))
+    for kk in range(k - hi):
+        p = (k - kk) % cap
+        Pn = _marginal_step(Ld[p], C[p], Pn, kk == 0, eye, M, nz)
+    for j in range(hi, (top + 1) * R - 1, -1):
+        p = j % cap
+        Pn = _sandwich(A[p], G[p], Pn, nz)
+    for bb in range(top, b, -1):
+        slot = bb % nblk
+        Pn = _sandwich(Ab[slot], Phib[slot], Pn, nz)
+    for j in range(j1 - 1, j0 - 1, -1):
+        p = j % cap
+        Pn = _sandwich(A[p], G[p], Pn, nz)
+        P[p] = Pn
