@@ -176,6 +176,28 @@ def _sensor_reweight(r, J, cap, kind, k, w_out):
 
 
 @njit
+def _whiten_steps(L, Jraw, out, sel, nsel):
+    """``out[k, :, :n] = L @ Jraw[k]`` for the steps ``k = sel[:nsel]`` (``n`` the columns of
+    ``Jraw``), by one product over those steps side by side: each entry the same sum as the
+    product step by step."""
+    if nsel == 0:
+        return
+    rows, n = Jraw.shape[1], Jraw.shape[2]
+    Jc = np.empty((rows, nsel * n))
+    for t in range(nsel):
+        k = sel[t]
+        for i in range(rows):
+            for c in range(n):
+                Jc[i, t * n + c] = Jraw[k, i, c]
+    Oc = np.dot(L, Jc)
+    for t in range(nsel):
+        k = sel[t]
+        for i in range(rows):
+            for c in range(n):
+                out[k, i, c] = Oc[i, t * n + c]
+
+
+@njit
 def _sumsq(r):
     out = 0.0
     for kk in range(r.shape[0]):
@@ -212,11 +234,14 @@ def window_system(Rb, qb, Wb, pos, s0, skip_first,
     rs = np.empty(6)
     Js = np.empty((6, S))
     JW = np.empty((6, 6))
-    Jfull = np.zeros((6, D))
     no_rest = np.empty((0, 6))
     # Newton-Euler: required wrench minus the active contacts' wrenches, whitened by L_ne
     r_raw = np.empty((m, 6))
     J_fam = np.empty((m, 6, D))
+    J_raw = np.zeros((m, 6, D))
+    every = np.arange(m)
+    sel_on = np.empty(m, dtype=np.int64)
+    sel_off = np.empty(m, dtype=np.int64)
     Wsum = np.empty(6)
     for kk in range(m):
         p = pos[kk]
@@ -229,13 +254,11 @@ def window_system(Rb, qb, Wb, pos, s0, skip_first,
                 Wsum[j] = Wsum[j] + Wb[p, i, j] * a
         core.newton_euler(Rb[p], qb[p], Wsum, mass, com[s], com_vel[s], com_acc[s], inertia[s], inertia_dot[s],
                           sigma_l[s], sigma_dot[s], g, r_raw[kk], Js)
-        Jfull[:] = 0.0
-        Jfull[:, :S] = Js
+        J_raw[kk, :, :S] = Js
         for i in range(nc):
-            if active[s, i]:
-                for j in range(6):
-                    Jfull[j, S + 6 * i + j] = -1.0
-        J_fam[kk] = np.dot(L_ne, Jfull)
+            for j in range(6):
+                J_raw[kk, j, S + 6 * i + j] = -1.0 if active[s, i] else 0.0
+    _whiten_steps(L_ne, J_raw, J_fam, every, m)
     r_fam = np.dot(r_raw, L_ne.T)
     if robust_k > 0.0:
         rho_sum = 0.0
@@ -258,24 +281,30 @@ def window_system(Rb, qb, Wb, pos, s0, skip_first,
     _add_unary(U, gU, r_fam, J_fam, first)
     # contact law per contact: L_c (active) or L_i (inactive: the wrench held at zero)
     for i in range(nc):
+        n_on = 0
+        n_off = 0
+        J_raw[:] = 0.0
         for kk in range(m):
             p = pos[kk]
             s = s0 + kk
-            Jfull[:] = 0.0
             if active[s, i]:
                 core.contact_law(Rb[p], qb[p], Wb[p, i], contact_p[s, i], contact_R[s, i], rest_p[s, i],
                                  rest_R[s, i], K_fs[i], K_fd[i], K_ts[i], K_td[i], beta[i, 0], beta[i, 1], iso[i],
                                  rs, Js, no_rest)
-                Jfull[:, :S] = Js[:, :]
-                L = L_c
+                J_raw[kk, :, :S] = Js
+                r_fam[kk] = np.dot(L_c, rs)
+                sel_on[n_on] = kk
+                n_on += 1
             else:
                 for j in range(6):
                     rs[j] = -Wb[p, i, j]
-                L = L_i
+                r_fam[kk] = np.dot(L_i, rs)
+                sel_off[n_off] = kk
+                n_off += 1
             for j in range(6):
-                Jfull[j, S + 6 * i + j] = -1.0
-            r_fam[kk] = np.dot(L, rs)
-            J_fam[kk] = np.dot(L, Jfull)
+                J_raw[kk, j, S + 6 * i + j] = -1.0
+        _whiten_steps(L_c, J_raw, J_fam, sel_on, n_on)
+        _whiten_steps(L_i, J_raw, J_fam, sel_off, n_off)
         total += _sumsq(r_fam)
         _add_unary(U, gU, r_fam, J_fam, first)
     # IMU: rows whitened by sigma, missing or saturated axes zero, robust per sensor
@@ -321,16 +350,16 @@ def window_system(Rb, qb, Wb, pos, s0, skip_first,
     # integration between successive steps, whitened by the Brownian-bridge covariance
     if m > 1:
         r_int = np.empty((m - 1, 12))
-        J0s = np.empty((12, S))
-        J1s = np.empty((12, S))
         J0 = np.zeros((m - 1, 12, D))
         J1 = np.zeros((m - 1, 12, D))
+        J0r = np.empty((m - 1, 12, S))
+        J1r = np.empty((m - 1, 12, S))
         for kk in range(m - 1):
             p0 = pos[kk]
             p1 = pos[kk + 1]
-            core.integration(Rb[p0], qb[p0], Rb[p1], qb[p1], dt, r_int[kk], J0s, J1s)
-            J0[kk, :, :S] = np.dot(L_int, J0s)
-            J1[kk, :, :S] = np.dot(L_int, J1s)
+            core.integration(Rb[p0], qb[p0], Rb[p1], qb[p1], dt, r_int[kk], J0r[kk], J1r[kk])
+        _whiten_steps(L_int, J0r, J0, every, m - 1)
+        _whiten_steps(L_int, J1r, J1, every, m - 1)
         r_w = np.dot(r_int, L_int.T)
         total += _sumsq(r_w)
         _add_binary(Fw, U, B, gF, gU, r_w, J0, J1)
