@@ -256,6 +256,12 @@ class FixedLagSmoother:
     """Own fixed-lag smoother over a window (module docstring): :meth:`step` once per sample, then
     :meth:`finish`.  Memory: ring buffers of ``lag + relinearize + report_every + block + 2`` steps."""
 
+    compiled = True
+    """Use the compiled update (:func:`flexforce.smoother.window_kernel.window_update`) where it
+    applies (no effects, past the stream's first ``relinearize`` steps) and the compiled read-out
+    marginals (:func:`~flexforce.smoother.window_kernel.window_covariances`); False: the general
+    linearisation and the marginals step by step (the reference they are tested against, equal)."""
+
     def __init__(self, prob: Problem, lag: float = 1.0, relinearize: int = 6, covariance: bool = True,
                  report_every: int = 10, sink: Callable[..., None] | None = None, block: int = 1):
         """``sink``: called as ``sink(j, R, q, W, e, P)`` for each step ``j`` as it leaves the
@@ -323,10 +329,6 @@ class FixedLagSmoother:
             e0[off:off + eff.dim] = eff.prior(prob)[0]
             off += eff.dim
         self._e0 = e0
-        self.compiled = True
-        """Use the compiled update (:func:`flexforce.smoother.window_kernel.window_update`) where it
-        applies (no effects, past the stream's first ``relinearize`` steps); False: always the
-        general linearisation (the reference it is tested against)."""
         self._wp = window_kernel.WindowProblem(prob) if not prob.effects else None
         self._scratch: dict = {}
         self._capbuf: tuple | None = None
@@ -546,7 +548,23 @@ class FixedLagSmoother:
         t0 = time.perf_counter()
         R, cap = self.report_every, self.cap
         hi = k - self.M  # the newest step whose elimination is final
-        if j1 - j0 == R and j0 % R == 0 and j1 - 1 <= hi:
+        if j1 - j0 == R and j0 % R == 0 and j1 - 1 <= hi and not self.compiled:
+            start = max(self._final_next, j0)
+            if hi >= start:
+                solvers.window_final_factors(self.Ld, self.C, np.arange(start, hi + 1) % cap, self.Af, self.Gf)
+            self._final_next = hi + 1
+            b = j0 // R
+            newest_block = (hi + 1) // R - 1
+            for bb in range(max(self._block_next, b + 1), newest_block + 1):
+                solvers.window_block_map(self.Af, self.Gf, np.arange(bb * R, bb * R + R) % cap, self.Ab, self.Phib,
+                                         bb % self.nblk)
+            self._block_next = max(self._block_next, newest_block + 1)
+            top = max(newest_block, b)
+            solvers.window_marginals_blocked(self.Ld, self.C, np.arange(k, hi, -1) % cap, self.Af, self.Gf,
+                                             np.arange(hi, (top + 1) * R - 1, -1) % cap, self.Ab, self.Phib,
+                                             np.arange(top, b, -1) % self.nblk, np.arange(j1 - 1, j0 - 1, -1) % cap,
+                                             self.Pw)
+        elif j1 - j0 == R and j0 % R == 0 and j1 - 1 <= hi:
             start = max(self._final_next, j0)
             self._final_next = hi + 1
             b = j0 // R

@@ -50,7 +50,8 @@ class WindowProblem:
             prob.K_fs, prob.K_fd, prob.K_ts, prob.K_td, prob.beta, prob.iso,
             prob.y_imu, prob.imu_R, prob.imu_p, prob.imu_v, prob.imu_a, prob.imu_w, prob.imu_use,
             prob.y_ft if prob.use_ft else np.zeros((0, nc, 6)), bool(prob.use_ft),
-            np.ascontiguousarray(prob.ne_whitener, dtype=float), np.ascontiguousarray(prob.contact_whitener, dtype=float),
+            np.ascontiguousarray(prob.ne_whitener, dtype=float),
+            np.ascontiguousarray(prob.contact_whitener, dtype=float),
             np.ascontiguousarray(Li), 1.0 / np.asarray(sig.imu, dtype=float), 1.0 / np.asarray(sig.ft, dtype=float),
             np.ascontiguousarray(prob.integration_whitener, dtype=float),
             -1.0 if sig.robust_k is None else float(sig.robust_k), ROBUST_KINDS[sig.imu_robust],
@@ -478,7 +479,7 @@ def window_update(Rb, qb, Wb, dx, Ld, C, y, Sp, rp, f, k0, k1, oldest, s_base,
             for j in range(nf):
                 for c in range(2):
                     caps[kk, j, c] = weight_cap[j, s0 + kk, c]
-    cost = window_system(Rb, qb, Wb, pos, s0, True, mass, g, dt, com, com_vel, com_acc, inertia,
+    window_system(Rb, qb, Wb, pos, s0, True, mass, g, dt, com, com_vel, com_acc, inertia,
                          inertia_dot, sigma_l, sigma_dot, active, contact_p, contact_R, rest_p, rest_R, K_fs, K_fd,
                          K_ts, K_td, beta, iso, y_imu, imu_R, imu_p, imu_v, imu_a, imu_w, imu_use, y_ft, use_ft,
                          L_ne, L_c, L_i, inv_imu, inv_ft, L_int, robust_k, sensor_kind, sensor_k, caps,
