@@ -479,6 +479,10 @@ class StreamImporter:
         out[lo - h:hi + h] = convolve1d(x[lo - h:hi + h], coeffs, axis=0, mode="constant")
         return out
 
+    def _part_due(self) -> bool:
+        """A whole part is ready (:meth:`parts` would hand one out)."""
+        return self.rate is not None and len(self._ready) >= max(1, int(round(self.part_seconds * self.rate)))
+
     def _hand_out(self, final: bool) -> Iterator[Recording]:
         assert self.rate is not None or not self._ready
         size = max(1, int(round(self.part_seconds * (self.rate or 1.0))))
@@ -725,7 +729,9 @@ def stream_bag(path, robot_config, rate: float | None = None, contacts: str = "f
                 imp.add_joints(t, *values)
             else:
                 imp.add_ft(ft_topics[topic], t, values, frame)
-            yield from imp.parts()
+            imp._advance(final=False)  # imp.parts(), without a generator per message
+            if imp._part_due():
+                yield from imp._hand_out(final=False)
         yield from imp.finish()
     except (BagError, DataError, ConfigError):
         raise
