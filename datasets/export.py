@@ -92,11 +92,14 @@ def _csv_lines(estimate: Estimate, t0_ns: int | None = None):
         parts.append(estimate.state_std())
     if estimate.cop_cov is not None:
         parts.append(np.sqrt(np.maximum(np.diagonal(estimate.cop_cov, axis1=1, axis2=2), 0.0)))
-    table = np.concatenate(parts, axis=1)
-    for k, row in enumerate(table):
-        cells = [repr(float(x)) for x in row]
-        cells[1] = str(int(estimate.t_ns[k]))  # exact ns, not through a float
-        yield ",".join(cells) + "\n"
+    rows = np.concatenate(parts, axis=1).tolist()  # Python floats: repr is the shortest round trip
+    for row, t_ns in zip(rows, estimate.t_ns.tolist()):
+        row[1] = t_ns  # exact ns, not through a float
+    if not rows:
+        return
+    # The repr of the nested list formats every value at once (a float's or an int's repr never
+    # holds "[", "]" or ", "): one line per row, the cells joined by commas.
+    yield repr(rows)[2:-2].replace("], [", "\n").replace(", ", ",") + "\n"
 
 
 def export_csv(estimate: Estimate, path) -> Path:

@@ -254,8 +254,9 @@ def _stream_parts(args):
                           "--robot NAME|CONFIG.toml (e.g. --robot icub)")
     if args._copy is None and (os.cpu_count() or 1) > 1:  # import and smoothing on two cores
         from flexforce.datasets.stream import pipelined
+        from flexforce.smoother.stream import warm_up
 
-        return pipelined(stream_bag, path, args.robot, contacts=args.contacts), None
+        return pipelined(stream_bag, path, args.robot, contacts=args.contacts, warm_up=warm_up), None
     return stream_bag(path, args.robot, contacts=args.contacts, on_message=args._copy), None
 
 

@@ -59,7 +59,7 @@ from flexforce.options import (
     require_config,
     with_options,
 )
-from flexforce.smoother import solvers
+from flexforce.smoother import solvers, window_kernel
 from flexforce.smoother.linearize import Trajectory, assemble_split, linearize
 from flexforce.smoother.problem import NoiseRule, Problem, with_footholds
 from flexforce.smoother.result import make_estimate
@@ -256,6 +256,12 @@ class FixedLagSmoother:
     """Own fixed-lag smoother over a window (module docstring): :meth:`step` once per sample, then
     :meth:`finish`.  Memory: ring buffers of ``lag + relinearize + report_every + block + 2`` steps."""
 
+    compiled = True
+    """Use the compiled update (:func:`flexforce.smoother.window_kernel.window_update`) where it
+    applies (no effects, past the stream's first ``relinearize`` steps) and the compiled read-out
+    marginals (:func:`~flexforce.smoother.window_kernel.window_covariances`); False: the general
+    linearisation and the marginals step by step (the reference they are tested against, equal)."""
+
     def __init__(self, prob: Problem, lag: float = 1.0, relinearize: int = 6, covariance: bool = True,
                  report_every: int = 10, sink: Callable[..., None] | None = None, block: int = 1):
         """``sink``: called as ``sink(j, R, q, W, e, P)`` for each step ``j`` as it leaves the
@@ -323,6 +329,13 @@ class FixedLagSmoother:
             e0[off:off + eff.dim] = eff.prior(prob)[0]
             off += eff.dim
         self._e0 = e0
+        self._wp = window_kernel.WindowProblem(prob) if not prob.effects else None
+        self._scratch: dict = {}
+        self._capbuf: tuple | None = None
+        # rows of the elimination's C that can be nonzero: the integration factors (the only
+        # ones linking steps) touch the core state only, the effects' random walks their unknowns
+        self._nz = S if not prob.effects else D
+        self._no_caps = np.ones((1 + nc, 0, 2))
 
     def _lower_weight_caps(self, f: int, lin, new: int = 1) -> None:
         """Remember the sensors' robust weights of the steps just linearised: a sample's weight
@@ -382,6 +395,8 @@ class FixedLagSmoother:
                 caps[fam] = new
             prob.weight_cap = caps
         self.prob = prob
+        self._wp = window_kernel.WindowProblem(prob) if not prob.effects else None
+        self._capbuf = None
 
     def step(self) -> None:
         """Add the next sample; at every ``block``-th, update with the queued samples: relinearise
@@ -400,6 +415,9 @@ class FixedLagSmoother:
         t0 = time.perf_counter()
         frozen_first = k0 - M >= 0
         f = max(k0 - M, 0)
+        if f > 0 and self._wp is not None and self.compiled:
+            self._update_compiled(f, k0, k1, t0)
+            return
         # relinearise the unfrozen steps at their current estimate; the new ones at their prediction
         solvers.window_retract(self.Rb, self.qb, self.Wb, self.eb, self.dx,
                                np.arange(f + 1 if frozen_first else f, k0) % cap, S)
@@ -453,6 +471,11 @@ class FixedLagSmoother:
         solvers.window_back_substitute(self.Ld, self.C, self.y, order, self.dx)
         if not np.all(np.isfinite(self.dx[pk])):
             raise EstimatorError(f"fixed-lag smoother: non-finite estimate at step {k} (t = {k * prob.dt:.3f} s)")
+        self._finish_update(k0, k1, k, j0, j1, t0)
+
+    def _finish_update(self, k0: int, k1: int, k: int, j0: int, j1: int, t0: float) -> None:
+        """The update's time; the read-outs of the steps that left the window (``j0 .. j1-1``)."""
+        R = self.report_every
         self.last_update_time = time.perf_counter() - t0
         self.last_updated = k1 - k0
         self.k_done = k1
@@ -463,10 +486,57 @@ class FixedLagSmoother:
             if self.covariance:
                 self._covariances(k, a, a + R)
                 cov_time += self.last_cov_time
-            for i in range(a, a + R):
-                self._report(i)
+            self._report(a, a + R)
         self.last_cov_time = cov_time
         self.next_report = j1
+
+    def _update_compiled(self, f: int, k0: int, k1: int, t0: float) -> None:
+        """:meth:`_update` in one compiled call (:func:`window_kernel.window_update`): the same
+        operations in the same order, without the Python work per family and per step."""
+        prob, R = self.prob, self.report_every
+        wp = self._wp
+        assert wp is not None
+        k = k1 - 1
+        m = k1 - f
+        bufs = self._scratch.get(m)
+        if bufs is None:
+            nc, D = prob.nc, prob.state_dim
+            bufs = (np.empty((m, D, D)), np.empty((m, D)), np.empty((m, D, D)), np.empty((m, D)),
+                    np.empty((max(m - 1, 1), D, D)), np.empty((m, 1 + nc, 2)), np.empty((m, 1 + nc, 2)))
+            self._scratch[m] = bufs
+        capbuf = self._weight_caps()
+        j0 = self.next_report
+        j1 = j0 + R * max(0, (k - self.lag_steps - j0 + 1) // R)
+        oldest = min(f, j0) if j1 > j0 else f
+        try:
+            ok = window_kernel.window_update(self.Rb, self.qb, self.Wb, self.dx, self.Ld, self.C, self.y, self.Sp,
+                                             self.rp, f, k0, k1, oldest, prob.offset, *wp.args,
+                                             self._no_caps if capbuf is None else capbuf, capbuf is not None, *bufs)
+        except np.linalg.LinAlgError as err:
+            raise EstimatorError(f"fixed-lag smoother: the window's system is not positive definite at step {k} "
+                                 f"(t = {k * prob.dt:.3f} s)") from err
+        if not ok:
+            raise EstimatorError(f"fixed-lag smoother: non-finite estimate at step {k} (t = {k * prob.dt:.3f} s)")
+        self._finish_update(k0, k1, k, j0, j1, t0)
+
+    def _weight_caps(self):
+        """The sensors' weight caps as one array (1 + C, steps, 2) for the compiled update, the
+        entries of ``prob.weight_cap`` its views (None: the problem keeps no caps)."""
+        prob = self.prob
+        stored = prob.weight_cap
+        if stored is None or self._wp is None or not self._wp.robust:
+            return None
+        if self._capbuf is not None and self._capbuf[0] is stored:
+            return self._capbuf[1]
+        buf = np.ones((1 + prob.nc, prob.n, 2))  # no cap: 1 (a robust weight is at most 1)
+        fams = ("imu",) + tuple(f"ft/{i}" for i in range(prob.nc) if prob.use_ft)
+        for j, fam in enumerate(fams):
+            c = stored.get(fam)
+            if c is not None:
+                buf[j] = c
+            stored[fam] = buf[j]
+        self._capbuf = (stored, buf)
+        return buf
 
     def _covariances(self, k: int, j0: int, j1: int) -> None:
         """Window marginals (timed apart); kept for steps ``j0 .. j1-1``.
@@ -478,7 +548,7 @@ class FixedLagSmoother:
         t0 = time.perf_counter()
         R, cap = self.report_every, self.cap
         hi = k - self.M  # the newest step whose elimination is final
-        if j1 - j0 == R and j0 % R == 0 and j1 - 1 <= hi:
+        if j1 - j0 == R and j0 % R == 0 and j1 - 1 <= hi and not self.compiled:
             start = max(self._final_next, j0)
             if hi >= start:
                 solvers.window_final_factors(self.Ld, self.C, np.arange(start, hi + 1) % cap, self.Af, self.Gf)
@@ -494,6 +564,16 @@ class FixedLagSmoother:
                                              np.arange(hi, (top + 1) * R - 1, -1) % cap, self.Ab, self.Phib,
                                              np.arange(top, b, -1) % self.nblk, np.arange(j1 - 1, j0 - 1, -1) % cap,
                                              self.Pw)
+        elif j1 - j0 == R and j0 % R == 0 and j1 - 1 <= hi:
+            start = max(self._final_next, j0)
+            self._final_next = hi + 1
+            b = j0 // R
+            newest_block = (hi + 1) // R - 1
+            bb0 = max(self._block_next, b + 1)
+            self._block_next = max(self._block_next, newest_block + 1)
+            top = max(newest_block, b)
+            window_kernel.window_covariances(self.Ld, self.C, self.Af, self.Gf, self.Ab, self.Phib, self.Pw, k, hi,
+                                             start, bb0, newest_block + 1, top, b, j0, j1, R, self._nz)
         else:
             order = np.arange(k, j0 - 1, -1) % cap
             solvers.window_marginals(self.Ld, self.C, order, self.Pw)
@@ -501,15 +581,21 @@ class FixedLagSmoother:
         if self.sink is None:
             self.cov_time[k] += self.last_cov_time
 
-    def _report(self, j: int) -> None:
-        R, q, W, e = self._state(j)
+    def _report(self, j0: int, j1: int) -> None:
+        """Report steps ``j0 .. j1-1`` (to the sink, or into :attr:`traj` and :attr:`P`)."""
+        n, nc, E = j1 - j0, self.prob.nc, self.prob.effect_dim
+        R, q, W, e = np.empty((n, 3, 3)), np.empty((n, 15)), np.empty((n, nc, 6)), np.empty((n, E))
+        window_kernel.window_states(self.Rb, self.qb, self.Wb, self.eb, self.dx, j0, j1, R, q, W, e)
+        cap = self.cap
         if self.sink is not None:
-            self.sink(j, R, q, W, e, self.Pw[j % self.cap].copy() if self.covariance else None)
+            for i in range(n):
+                j = j0 + i
+                self.sink(j, R[i], q[i], W[i], e[i], self.Pw[j % cap].copy() if self.covariance else None)
             return
-        self.traj.R[j], self.traj.q[j], self.traj.W[j], self.traj.e[j] = R, q, W, e
+        self.traj.R[j0:j1], self.traj.q[j0:j1], self.traj.W[j0:j1], self.traj.e[j0:j1] = R, q, W, e
         if self.covariance:
             assert self.P is not None  # allocated when covariance is set
-            self.P[j] = self.Pw[j % self.cap]
+            self.P[j0:j1] = self.Pw[np.arange(j0, j1) % cap]
 
     def finish(self) -> None:
         """Update with the samples still queued, then report the steps still in the window (and any
@@ -523,8 +609,8 @@ class FixedLagSmoother:
         solvers.window_back_substitute(self.Ld, self.C, self.y, order, self.dx)
         if self.covariance:
             self._covariances(self.k - 1, j0, self.k)
-        for j in range(j0, self.k):
-            self._report(j)
+        if self.k > j0:
+            self._report(j0, self.k)
 
 
 @dataclass(frozen=True)

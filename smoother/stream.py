@@ -42,7 +42,7 @@ from flexforce.smoother.linearize import Trajectory
 from flexforce.smoother.problem import Problem
 from flexforce.smoother.result import make_estimate
 
-__all__ = ["FixedLagStream", "run_stream"]
+__all__ = ["FixedLagStream", "run_stream", "warm_up"]
 
 
 class FixedLagStream:
@@ -300,3 +300,23 @@ def run_stream(parts, model, config: FixedLagConfig | None = None, *, covariance
             stats.update({"missed_deadlines": missed, "max_late_s": late_max})
     if est is not None:
         yield est
+
+
+def warm_up() -> None:
+    """Load the stream's compiled code (numba's cache: ~1 s) by smoothing a short simulated
+    recording, with and without covariances: ``flexforce run`` calls it while the import's first
+    part is awaited, so that the stream runs at speed from its first update."""
+    from flexforce.datasets.scenario import Scenario
+    from flexforce.datasets.simulator import Simulator
+    from flexforce.factors.model import ModelConfig
+
+    scenario = Scenario.load("stand")
+    scenario.duration = 0.25
+    rec = Simulator(scenario, noise=False).run()
+    model = ModelConfig.from_recording(rec)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for covariance in (True, False):
+            stream = FixedLagStream(model, FixedLagConfig(lag=0.1), covariance=covariance)
+            stream.push(rec)
+            stream.finish()
