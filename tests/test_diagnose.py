@@ -271,9 +271,9 @@ def test_hidden_push_ranks_the_external_wrench_first():
 
 
 def test_refit_choice_takes_the_strongest_and_their_inseparable_partners():
-    """Per round, the refit_best strongest by their score test's chi-square tail (not by T: the dof
-    differ), every failed test (the refit decides), and whatever the identifiability table
-    cannot tell from a chosen one."""
+    """Per round, the refit_best strongest constant candidates by their score test's chi-square
+    tail (not by T: the dof differ), every per-step candidate and every failed test (the refit
+    decides), and whatever the identifiability table cannot tell from a chosen one."""
     from types import SimpleNamespace
 
     from flexforce.compare.diagnose import _refit_choice
@@ -283,14 +283,15 @@ def test_refit_choice_takes_the_strongest_and_their_inseparable_partners():
              "b": ScoreTest("b", 40.0, 6.0, 0.0, "constant", [], 0.0),  # larger T than c, weaker on 6 dof
              "c": ScoreTest("c", 30.0, 1.0, 0.0, "constant", [], 0.0),
              "d": ScoreTest("d", 8.0, 1.0, 0.0, "constant", [], 0.0),
-             "e": "not excited"}
-    remaining = ["a", "b", "c", "d", "e"]
-    assert _refit_choice(remaining, tests, None, 2) == ["a", "c", "e"]
+             "e": "not excited",
+             "w": ScoreTest("w", 9.0, 5.0, 1e-3, "windowed", [], 0.0)}  # per-step: always refitted
+    remaining = ["a", "b", "c", "d", "e", "w"]
+    assert _refit_choice(remaining, tests, None, 2) == ["a", "c", "e", "w"]
     assert _refit_choice(remaining, tests, None, None) == remaining
     pairs = {frozenset(("c", "d")): SimpleNamespace(inseparable=True),
              frozenset(("a", "b")): SimpleNamespace(inseparable=False)}
     ident = SimpleNamespace(pair=lambda x, y: pairs.get(frozenset((x, y))))
-    assert _refit_choice(remaining, tests, ident, 2) == ["a", "c", "d", "e"]
+    assert _refit_choice(remaining, tests, ident, 2) == ["a", "c", "d", "e", "w"]
 
 
 def test_refit_best_defers_the_weaker_candidates_to_the_next_round():
