@@ -119,7 +119,8 @@ def test_stream_in_blocks_equals_offline_in_blocks(pitch, block):
         assert np.max(np.abs(got[name] - ref)) <= EXACT, name
     stats = stream.update_stats
     assert stats["updates"] == -(-pitch.n // block) and stats["samples_per_update"] == block
-    assert len(stream.update_time) == pitch.n
+    assert stream.samples_updated == pitch.n and len(stream.update_time) == 0  # reported: handed out
+    assert sum(len(e.time_per_step) for e in ests) == pitch.n
     single = run_fixed_lag(pitch, model)
     assert np.max(np.abs(offline.wrench - single.wrench)) < 0.05 * np.max(np.abs(single.wrench))
 
@@ -354,3 +355,21 @@ def test_cli_streams_a_flexforce_recording(tmp_path: Path, pitch):
         in_topics = {c.topic for c in reader.connections}
     assert in_topics <= out_topics and any(t.startswith("/truth") for t in in_topics)
     assert "/estimate/fixed_lag/total_wrench" in out_topics
+
+
+def test_update_times_quantiles_in_constant_memory():
+    """The update-time distribution keeps bins, not samples: its median and p99 are within 0.1 %
+    of the samples' (lower quantiles), its size does not grow."""
+    from flexforce.smoother.stream import UpdateTimes
+
+    rng = np.random.default_rng(3)
+    x = np.exp(rng.normal(np.log(2e-4), 0.6, size=20000))
+    u = UpdateTimes()
+    size = u.bins.nbytes
+    for v in x:
+        u.add(v)
+    assert u.bins.nbytes == size and u.count == x.size and u.max == x.max()
+    assert u.total == pytest.approx(x.sum(), rel=1e-12)
+    for q in (0.5, 0.99):
+        ref = np.sort(x)[int(np.ceil(q * x.size)) - 1]
+        assert u.quantile(q) == pytest.approx(ref, rel=1e-3), q
