@@ -867,6 +867,14 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                                              screen_level=screen_level))
         latest: dict[str, ScoreTest | str] = dict(screened)
         this_round: list[str] = []
+
+        def waited(k: str, round_: int, why: str) -> None:
+            """A candidate that passed the screening but was not refitted: listed with why."""
+            t = latest.get(k)
+            dropped.append(Candidate(k, tuple(selected), round_, None, None, None, None, False,
+                                     screen=None if isinstance(t, str) else t, refitted=False,
+                                     screen_level=screen_level, deferred=why))
+
         while remaining:
             base = fitted(tuple(selected))
             if selected and screen_level is not None and base.trajectory is not None and base.model is not None:
@@ -889,12 +897,8 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                     # the selection is full: what is left is reported by its score test at the final
                     # base, not refitted for a round whose choice would not be taken
                     for k in remaining:
-                        t = latest.get(k)
-                        dropped.append(Candidate(
-                            k, tuple(selected), len(rounds) + 1, None, None, None, None, False,
-                            screen=None if isinstance(t, str) else t, refitted=False, screen_level=screen_level,
-                            deferred=f"its score test passed at the final base, but {max_effects} effects "
-                                     "(max_effects) are selected"))
+                        waited(k, len(rounds) + 1, f"its score test passed at the final base, but {max_effects} "
+                                                   "effects (max_effects) are selected")
                     break
             this_round = _refit_choice(remaining, latest, ident, refit_best if screen_level is not None else None)
             row = []
@@ -940,14 +944,9 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
             if stop:
                 # those that passed the screening but waited behind stronger ones
                 for k in remaining:
-                    if k in this_round:
-                        continue
-                    t = latest.get(k)
-                    dropped.append(Candidate(
-                        k, tuple(selected), len(rounds), None, None, None, None, False,
-                        screen=None if isinstance(t, str) else t, refitted=False, screen_level=screen_level,
-                        deferred=f"its score test passed, but the round refitted the {refit_best} strongest "
-                                 "(refit_best) and stopped"))
+                    if k not in this_round:
+                        waited(k, len(rounds), f"its score test passed, but the round refitted the {refit_best} "
+                                               "strongest (refit_best) and stopped")
                 break
     ranking: list[Candidate] = []
     for i, name in enumerate(selected):

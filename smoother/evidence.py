@@ -152,22 +152,30 @@ def _stacked(lin: Linearization, keys_u, keys_b, n: int, aidx, s):
     return Ju, J0, J1, np.ascontiguousarray(Jf)
 
 
+def _scaled_states(prob, lin: Linearization, cidx: np.ndarray):
+    """``(aidx, s, Hs, Bs)``: the per-step states' columns (``cidx`` held), their Jacobi scale
+    from ``H``'s diagonal, and ``H``'s diagonal and upper blocks on them, scaled."""
+    n, D = prob.n, prob.state_dim
+    aidx = np.setdiff1d(np.arange(D), cidx)
+    Hd, B, _ = assemble(lin, n, D)
+    Ha, Ba = Hd[:, aidx][:, :, aidx], B[:, aidx][:, :, aidx]
+    s = 1.0 / np.sqrt(np.maximum(np.diagonal(Ha, axis1=1, axis2=2), 1e-300))
+    Hs = np.ascontiguousarray(Ha * s[:, :, None] * s[:, None, :])
+    Bs = np.ascontiguousarray(Ba * s[:-1, :, None] * s[1:, None, :])
+    return aidx, s, Hs, Bs
+
+
 def log_dets(prob, lin: Linearization, cidx: np.ndarray) -> tuple[float, float]:
     """``(ln det H_post, ln det H_model)`` over the per-step states (the columns ``cidx`` held):
     ``H_post``'s by its block Cholesky pivots, ``H_model``'s from the model factors' rows by QR
     (:func:`_qr_logdet`); the columns Jacobi-scaled by ``H_post``'s diagonal (the scale cancels
     in the difference)."""
     lin = drop_global_walks(prob, lin) if cidx.size else lin
-    n, D = prob.n, prob.state_dim
-    aidx = np.setdiff1d(np.arange(D), cidx)
-    Hd, B, _ = assemble(lin, n, D)
-    Ha, Ba = Hd[:, aidx][:, :, aidx], B[:, aidx][:, :, aidx]
-    s = 1.0 / np.sqrt(np.maximum(np.diagonal(Ha, axis1=1, axis2=2), 1e-300))
+    n = prob.n
+    aidx, s, Hs, Bs = _scaled_states(prob, lin, cidx)
     shift = -2.0 * float(np.sum(np.log(s)))
     # the posterior (the measurements make it well conditioned) by the block Cholesky pivots of
     # H; the trajectory prior by QR of its rows
-    Hs = np.ascontiguousarray(Ha * s[:, :, None] * s[:, None, :])
-    Bs = np.ascontiguousarray(Ba * s[:-1, :, None] * s[1:, None, :])
     try:
         post = float(solvers.block_tridiag_logdet(Hs, Bs))
     except np.linalg.LinAlgError:
@@ -254,13 +262,10 @@ def occam_gradient(prob, traj, cidx: np.ndarray, rel_step: float = 1e-3) -> np.n
     grad = np.zeros(cidx.size)
     if not cidx.size:
         return grad
-    n, D = prob.n, prob.state_dim
-    aidx = np.setdiff1d(np.arange(D), cidx)
-    d = len(aidx)
+    n = prob.n
     base = drop_global_walks(prob, linearize(prob, traj))
-    Hd, B, _ = assemble(base, n, D)
-    Ha, Ba = Hd[:, aidx][:, :, aidx], B[:, aidx][:, :, aidx]
-    s = 1.0 / np.sqrt(np.maximum(np.diagonal(Ha, axis1=1, axis2=2), 1e-300))
+    aidx, s, Hs, Bs = _scaled_states(prob, base, cidx)
+    d = len(aidx)
     model_u = [k for k in base.unary if _family(k) not in MEASUREMENT_FAMILIES]
     post_inv: tuple[np.ndarray, np.ndarray] | None = None
     model_inv: tuple[np.ndarray, np.ndarray] | None = None
@@ -275,8 +280,6 @@ def occam_gradient(prob, traj, cidx: np.ndarray, rel_step: float = 1e-3) -> np.n
         if not keys:
             continue
         if post_inv is None:
-            Hs = np.ascontiguousarray(Ha * s[:, :, None] * s[:, None, :])
-            Bs = np.ascontiguousarray(Ba * s[:-1, :, None] * s[1:, None, :])
             try:
                 post_inv = solvers.block_tridiag_covariances(Hs, Bs)
             except np.linalg.LinAlgError as err:

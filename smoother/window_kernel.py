@@ -22,7 +22,8 @@ import numpy as np
 
 from flexforce.factors import core
 from flexforce.factors.core import njit, so3_exp
-from flexforce.smoother.linearize import _gather, _grad_into, _support
+from flexforce.smoother.linearize import _add_binary, _add_unary
+from flexforce.smoother.solvers import _trsm_lower_rows_t, _trsv_lower, window_back_substitute
 
 S = core.STATE_DIM
 
@@ -97,37 +98,6 @@ def _gram_into(H, k, A, Bt, ca, cb, sym):
             if sym and ib != ia:
                 H[k, cb[ib], a] += s0
             ib += 1
-
-
-@njit
-def _add_unary(H, g, r, J, first):
-    """A unary family's steps ``first ..`` into ``H[k]``, ``g[k]`` (``linearize._add_unary``)."""
-    if r.shape[0] <= first:
-        return
-    cols = _support(J[first:])
-    A = np.empty((cols.shape[0], J.shape[1]))
-    for k in range(first, r.shape[0]):
-        _gather(A, J[k], cols)
-        _gram_into(H, k, A, A, cols, cols, True)
-        _grad_into(g, k, A, r[k], cols)
-
-
-@njit
-def _add_binary(H0, H1, B, g0, g1, r, J0, J1):
-    """A binary family (``linearize._add_binary``): ``J0^T J0`` into ``H0[k]``, ``J1^T J1`` into
-    ``H1[k + 1]``, ``J0^T J1`` into ``B[k]``, the gradients into ``g0[k]``, ``g1[k + 1]``."""
-    c0 = _support(J0)
-    c1 = _support(J1)
-    A0 = np.empty((c0.shape[0], J0.shape[1]))
-    A1 = np.empty((c1.shape[0], J1.shape[1]))
-    for k in range(r.shape[0]):
-        _gather(A0, J0[k], c0)
-        _gather(A1, J1[k], c1)
-        _gram_into(H0, k, A0, A0, c0, c0, True)
-        _gram_into(H1, k + 1, A1, A1, c1, c1, True)
-        _gram_into(B, k, A0, A1, c0, c1, False)
-        _grad_into(g0, k, A0, r[k], c0)
-        _grad_into(g1, k + 1, A1, r[k], c1)
 
 
 @njit
@@ -279,7 +249,7 @@ def window_system(Rb, qb, Wb, pos, s0, skip_first,
                     J_fam[kk, i, col] = J_fam[kk, i, col] * sw
         extra += rho_sum - 0.5 * wn_sum
     total += _sumsq(r_fam)
-    _add_unary(U, gU, r_fam, J_fam, first)
+    _add_unary(U, gU, r_fam, J_fam, first, 0)
     # contact law per contact: L_c (active) or L_i (inactive: the wrench held at zero)
     for i in range(nc):
         n_on = 0
@@ -307,7 +277,7 @@ def window_system(Rb, qb, Wb, pos, s0, skip_first,
         _whiten_steps(L_c, J_raw, J_fam, sel_on, n_on)
         _whiten_steps(L_i, J_raw, J_fam, sel_off, n_off)
         total += _sumsq(r_fam)
-        _add_unary(U, gU, r_fam, J_fam, first)
+        _add_unary(U, gU, r_fam, J_fam, first, 0)
     # IMU: rows whitened by sigma, missing or saturated axes zero, robust per sensor
     for kk in range(m):
         p = pos[kk]
@@ -323,7 +293,7 @@ def window_system(Rb, qb, Wb, pos, s0, skip_first,
     if sensor_kind != 0:
         extra += _sensor_reweight(r_fam, J_fam, caps[:, 0], sensor_kind, sensor_k, weights[:, 0])
     total += _sumsq(r_fam)
-    _add_unary(U, gU, r_fam, J_fam, first)
+    _add_unary(U, gU, r_fam, J_fam, first, 0)
     # F/T readings: rows whitened by sigma (NaN readings: zero rows), robust per sensor
     if use_ft:
         for i in range(nc):
@@ -347,7 +317,7 @@ def window_system(Rb, qb, Wb, pos, s0, skip_first,
             if sensor_kind != 0:
                 extra += _sensor_reweight(r_fam, J_fam, caps[:, 1 + i], sensor_kind, sensor_k, weights[:, 1 + i])
             total += _sumsq(r_fam)
-            _add_unary(U, gU, r_fam, J_fam, first)
+            _add_unary(U, gU, r_fam, J_fam, first, 0)
     # integration between successive steps, whitened by the Brownian-bridge covariance
     if m > 1:
         r_int = np.empty((m - 1, 12))
@@ -398,33 +368,6 @@ def _predict_into(Rb, qb, Wb, dx, p_prev, p_new, s, dt, active, contact_p, conta
         else:
             Wb[p_new, i] = 0.0
     dx[p_new] = 0.0
-
-
-@njit
-def _trsm_lower_rows_t(L, B, X, out):
-    """``out = (L^-1 B)^T`` (``solvers._trsm_lower_rows_t``: the same operations)."""
-    d = L.shape[0]
-    ncol = B.shape[1]
-    for i in range(d):
-        for j in range(ncol):
-            X[i, j] = B[i, j]
-        for k in range(i):
-            lik = L[i, k]
-            for j in range(ncol):
-                X[i, j] -= lik * X[k, j]
-        inv = L[i, i]
-        for j in range(ncol):
-            X[i, j] = X[i, j] / inv
-    for i in range(d):
-        for j in range(ncol):
-            out[j, i] = X[i, j]
-
-
-@njit
-def _trsv_lower(L, b):
-    x = b.copy()
-    core.trsv_lower_inplace(L, x)
-    return x
 
 
 @njit
@@ -510,25 +453,7 @@ def window_update(Rb, qb, Wb, dx, Ld, C, y, Sp, rp, f, k0, k1, oldest, s_base,
             _trsm_lower_rows_t(Ld[p], B[i, :, :S], X, C[p, :S])
             C[p, S:] = 0.0
         y[p] = _trsv_lower(Ld[p], rp[p] + gF[i])
-    # back substitution (solvers.window_back_substitute) over k1-1 .. oldest
-    b = np.empty(D)
-    for kk in range(k1 - oldest):
-        p = (k1 - 1 - kk) % cap
-        for i in range(D):
-            b[i] = y[p, i]
-        if kk > 0:
-            pn = (k1 - kk) % cap
-            for j in range(D):
-                xj = dx[pn, j]
-                if xj != 0.0:
-                    for i in range(D):
-                        b[i] -= C[p, j, i] * xj
-        for i in range(D - 1, -1, -1):
-            xi = b[i] / Ld[p, i, i]
-            dx[p, i] = xi
-            if xi != 0.0:
-                for mm in range(i):
-                    b[mm] -= Ld[p, i, mm] * xi
+    window_back_substitute(Ld, C, y, np.arange(k1 - 1, oldest - 1, -1) % cap, dx)
     pk = (k1 - 1) % cap
     for i in range(D):
         if not np.isfinite(dx[pk, i]):
