@@ -769,10 +769,15 @@ def pipelined(factory: Callable[..., Iterator[Recording]], *args, depth: int = 6
     child has started, while its first part is awaited (e.g.
     :func:`flexforce.smoother.stream.warm_up`); its failure is ignored.  An error of the import
     is raised here, as it would be in-process."""
+    import gc
     import multiprocessing as mp
 
     ctx = mp.get_context("fork") if "fork" in mp.get_all_start_methods() else mp.get_context()
     queue = ctx.Queue(maxsize=depth)
+    # the objects made so far (the modules above all) leave the collector's generations: its
+    # passes in either process would otherwise write to their headers and copy every page
+    # shared with the forked child (~20 MB of the two processes' PSS on the iCub)
+    gc.freeze()
     proc = ctx.Process(target=_produce, args=(queue, factory, args, kwargs), daemon=True)
     proc.start()
     if warm_up is not None:
@@ -798,3 +803,4 @@ def pipelined(factory: Callable[..., Iterator[Recording]], *args, depth: int = 6
         if proc.is_alive():
             proc.terminate()
         proc.join(timeout=5.0)
+        gc.unfreeze()  # collectable again (a caller's garbage of before the stream is not kept for good)
