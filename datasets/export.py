@@ -12,6 +12,9 @@ CSV (:func:`export_csv`): one row per step, a header row of column names with un
 * when the estimate has covariances: ``std_<state label>`` for the 18 state components
   (:data:`flexforce.datasets.estimate.STATE_LABELS`), ``std_cop_x std_cop_y``.
 
+Numbers have 15 significant digits (within 1e-14 of the estimate, relatively: the .npz is the
+lossless output), ``t_ns`` is exact (:mod:`flexforce.datasets.csvformat`).
+
 MCAP (:func:`export_mcap`): a ROS 2 bag directory (MCAP storage, Humble message definitions
 embedded) for PlotJuggler or Foxglove, with under ``/estimate/<estimator>/``:
 
@@ -48,6 +51,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from flexforce.datasets.csvformat import format_rows
 from flexforce.datasets.estimate import STATE_LABELS, Estimate
 from flexforce.datasets.recording import Recording
 from flexforce.datasets.safeio import is_bag_folder, safe_output
@@ -92,14 +96,9 @@ def _csv_lines(estimate: Estimate, t0_ns: int | None = None):
         parts.append(estimate.state_std())
     if estimate.cop_cov is not None:
         parts.append(np.sqrt(np.maximum(np.diagonal(estimate.cop_cov, axis1=1, axis2=2), 0.0)))
-    rows = np.concatenate(parts, axis=1).tolist()  # Python floats: repr is the shortest round trip
-    for row, t_ns in zip(rows, estimate.t_ns.tolist()):
-        row[1] = t_ns  # exact ns, not through a float
-    if not rows:
+    if not estimate.n:
         return
-    # The repr of the nested list formats every value at once (a float's or an int's repr never
-    # holds "[", "]" or ", "): one line per row, the cells joined by commas.
-    yield repr(rows)[2:-2].replace("], [", "\n").replace(", ", ",") + "\n"
+    yield format_rows(np.concatenate(parts, axis=1), estimate.t_ns, int_col=1)  # t_ns exact, not through a float
 
 
 def export_csv(estimate: Estimate, path) -> Path:

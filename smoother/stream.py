@@ -342,8 +342,9 @@ def run_stream(parts, model, config: FixedLagConfig | None = None, *, covariance
 
 def warm_up() -> None:
     """Load the stream's compiled code (numba's cache: ~1 s) by smoothing a short simulated
-    recording, with and without covariances: ``flexforce run`` calls it while the import's first
-    part is awaited, so that the stream runs at speed from its first update."""
+    recording, with and without covariances, and the CSV formatting: ``flexforce run`` calls it
+    while the import's first part is awaited, so that the stream runs at speed from its first update."""
+    from flexforce.datasets.csvformat import format_rows
     from flexforce.datasets.scenario import Scenario
     from flexforce.datasets.simulator import Simulator
     from flexforce.factors.model import ModelConfig
@@ -358,3 +359,4 @@ def warm_up() -> None:
             stream = FixedLagStream(model, FixedLagConfig(lag=0.1), covariance=covariance)
             stream.push(rec)
             stream.finish()
+    format_rows(np.zeros((1, 2)), np.zeros(1, dtype=np.int64), int_col=1)
