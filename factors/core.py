@@ -753,6 +753,13 @@ def center_of_pressure(W, z0, min_force, p, J):
     return True
 
 
+@njit
+def centers_of_pressure(W, z0, min_force, p, J):
+    """:func:`center_of_pressure` of every wrench ``W`` (N, 6) into ``p`` (N, 3) and ``J`` (N, 3, 6)."""
+    for k in range(W.shape[0]):
+        center_of_pressure(W[k], z0, min_force, p[k], J[k])
+
+
 # ----------------------------------------------------------------------------------------------
 # All steps (batch linearisation)
 # ----------------------------------------------------------------------------------------------

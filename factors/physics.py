@@ -375,7 +375,11 @@ def imu_readings(R, t, w, v, dw, a, imu: ImuPlacement, g: float = GRAVITY, jacob
 # ----------------------------------------------------------------------------------------------
 
 
-def center_of_pressure(wrench, z0: float = 0.0, jacobian: bool = False, min_force: float = 1e-6):
+COP_MIN_FORCE = 1e-6
+"""Vertical force (N) at or below which the centre of pressure is undefined (NaN)."""
+
+
+def center_of_pressure(wrench, z0: float = 0.0, jacobian: bool = False, min_force: float = COP_MIN_FORCE):
     r"""Centre of pressure on the horizontal plane ``z = z0`` from the total contact wrench.
 
     For a wrench (F, T) with T about the world origin, the point p = (px, py, z0) where the

@@ -9,7 +9,7 @@ import numpy as np
 from flexforce.datasets import faults
 from flexforce.datasets.estimate import Estimate
 from flexforce.factors import core
-from flexforce.factors.physics import center_of_pressure
+from flexforce.factors.physics import COP_MIN_FORCE
 from flexforce.smoother.linearize import Trajectory, linearize
 
 S = core.STATE_DIM
@@ -109,8 +109,7 @@ def make_estimate(prob, name: str, traj: Trajectory, P: np.ndarray | None = None
     total = W.sum(axis=1)
     cop = np.empty((n, 3))
     cop_J = np.empty((n, 3, 6))
-    for k in range(n):
-        cop[k], cop_J[k] = center_of_pressure(total[k], z0=0.0, jacobian=True)
+    core.centers_of_pressure(np.ascontiguousarray(total, dtype=float), 0.0, COP_MIN_FORCE, cop, cop_J)
     cov = wrench_cov = cop_cov = None
     if P is not None:
         cov = P[:, :S, :S].copy()
@@ -119,8 +118,8 @@ def make_estimate(prob, name: str, traj: Trajectory, P: np.ndarray | None = None
             A[:, S + 6 * i:S + 6 * i + 6] = np.eye(6)
         # Inactive contacts are held at zero: drop them from the sum.
         wrench_cov = np.empty((n, 6, 6))
-        for i_mask in {tuple(m) for m in prob.active}:
-            sel = np.all(prob.active == np.array(i_mask), axis=1)
+        for i_mask in np.unique(prob.active, axis=0):
+            sel = np.all(prob.active == i_mask, axis=1)
             Ak = A.copy()
             for i in range(nc):
                 if not i_mask[i]:
