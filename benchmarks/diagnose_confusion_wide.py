@@ -1,0 +1,260 @@
+"""The diagnostics across robots, motions, magnitudes and two effects at once, scored against the
+identifiability table.
+
+Usage::
+
+    python benchmarks/diagnose_confusion_wide.py [--jobs 2] [--duration 3] [--only NAME ...] [--fresh]
+
+Prints a summary as JSON and writes ``benchmarks/results/diagnose_confusion_wide.json`` (every
+recording) and ``diagnose_confusion_wide.md`` (the tables).
+
+Recordings (simulated, 3 s, the IMU bias random walk off so that "clean" means clean):
+
+* every catalogue effect (:data:`WIDE_CASES`: the eight of ``diagnose_confusion.py`` and the
+  real-log ones, IMU mounting rotation, IMU/encoder time offset, mass scale, F/T offset) at a
+  clear and a near-detection-limit magnitude, each on two of the six (robot, motion) pairs --
+  Romeo and TALOS, the ``sway``, ``weight-shift`` and ``com-step`` scenarios -- so that every
+  effect is seen on both robots;
+* two effects at once (:data:`PAIRS`) on both robots;
+* clean recordings: every (robot, motion) pair, two noise seeds.
+
+The F/T sensors are fused (``use_ft``) for the mass-scale and F/T-offset recordings (without
+them a mass scale is a stiffness scale, and an F/T offset acts on nothing); the others use the
+IMU and the encoders only, as the paper.  :func:`flexforce.compare.diagnose.diagnose` ranks every
+registered effect (screening, refits, greedy forward selection, ``add=["auto"]``, at most two).
+
+Scored as the targets read:
+
+* right effect first, among the single-effect recordings whose truth the identifiability table
+  (computed by the diagnosis at the nominal fit, before any refit) calls seen and separable from
+  every other candidate;
+* no significant effect on the clean recordings;
+* no wrong candidate in the final selection: a selected effect that is not a truth and not
+  called inseparable from one by the table;
+* the errors (force, CoP, tilt against the simulated truth) after adding the selected effects,
+  as a ratio to before, when a truth was selected.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+from diagnose_confusion import CASES, KEYS  # type: ignore[import-not-found]  # noqa: E402
+
+WIDE_CASES = {
+    **CASES,
+    "imu-mounting": [{"type": "imu-mounting", "rotation": [0.02, -0.01, 0.05]},
+                     {"type": "imu-mounting", "rotation": [0.006, 0.0, 0.0]}],
+    "time-offset": [{"type": "time-offset", "delay": 0.02}, {"type": "time-offset", "delay": 0.006}],
+    "mass-scale": [{"type": "mass-scale", "scale": 1.1}, {"type": "mass-scale", "scale": 1.03}],
+    "ft-offset": [{"type": "ft-offset", "contact": "left_foot", "force": [0.0, 0.0, 15.0], "torque": [2.0, 0.0, 0.0]},
+                  {"type": "ft-offset", "contact": "right_foot", "force": [4.0, 0.0, 0.0], "torque": [0.0, 0.0, 0.0]}],
+}
+"""Per effect: a clear magnitude (level 0) and one near the detection limit (level 1)."""
+FUSE_FT = ("mass-scale", "ft-offset")
+COMBOS = [("romeo", "sway"), ("talos", "weight-shift"), ("romeo", "com-step"), ("talos", "sway"),
+          ("romeo", "weight-shift"), ("talos", "com-step")]
+"""(robot, motion); consecutive pairs alternate the robot."""
+PAIRS = [("gyro-bias", "external-wrench"), ("com-offset", "stiffness"), ("accel-bias", "anisotropic-stiffness"),
+         ("imu-mounting", "nonlinear-stiffness")]
+"""Two hidden effects at once (each at its clear magnitude)."""
+
+
+def jobs_of(duration: float, only=None) -> list[dict]:
+    jobs = []
+    for robot, motion in COMBOS:
+        for seed in (0, 1):
+            jobs.append({"truth": [], "robot": robot, "motion": motion, "level": None, "seed": seed})
+    for e, name in enumerate(WIDE_CASES):
+        for level in (0, 1):
+            for j in (0, 1):
+                robot, motion = COMBOS[(2 * (2 * e + level) + j) % len(COMBOS)]
+                jobs.append({"truth": [name], "robot": robot, "motion": motion, "level": level, "seed": 0})
+    for p, (a, b) in enumerate(PAIRS):
+        for robot in ("romeo", "talos"):
+            motion = ("sway", "weight-shift", "com-step")[p % 3]
+            jobs.append({"truth": [a, b], "robot": robot, "motion": motion, "level": 0, "seed": 0})
+    for job in jobs:
+        job["duration"] = duration
+        job["ft"] = any(t in FUSE_FT for t in job["truth"])
+    if only:
+        jobs = [j for j in jobs if any(t in only for t in (j["truth"] or ["none"]))]
+    return jobs
+
+
+def key(job) -> str:
+    truth = "+".join(job["truth"]) or "none"
+    return f'{truth}/{job["level"]}/{job["robot"]}/{job["motion"]}/{job["seed"]}'
+
+
+def one(job):
+    try:
+        return _one(job)
+    except Exception as exc:  # one failed recording must not lose the others
+        return {**job, "key": key(job), "selected": [], "first": "error", "error": f"{type(exc).__name__}: {exc}"}
+
+
+def _one(job):
+    from flexforce.compare.diagnose import diagnose
+    from flexforce.datasets.scenario import Scenario
+    from flexforce.datasets.simulator import Simulator
+    from flexforce.factors.model import ModelConfig
+
+    sc = Scenario.load(job["motion"])
+    sc.robot = job["robot"]
+    sc.duration = job["duration"]
+    sc.seed = job["seed"]
+    sc.imu_noise = {"gyro_bias_rw": 0.0, "accel_bias_rw": 0.0}
+    sc.effects = [WIDE_CASES[t][job["level"]] for t in job["truth"]]
+    rec = Simulator(sc).run()
+    model = ModelConfig.from_recording(rec, use_ft=job["ft"])
+    t0 = time.perf_counter()
+    d = diagnose(rec, model, add=["auto"], ekf=False, max_effects=2)
+    ident = d.identifiability
+    return {**job, "key": key(job), "selected": list(d.selected), "first": d.selected[0] if d.selected else "none",
+            "inseparable": [[p.a, p.b, float(p.largest)] for p in ident.inseparable()] if ident else None,
+            "not_seen": [c.effect for c in ident.not_seen()] if ident else None,
+            "ranking": [{"effect": c.effect, "score": c.score, "significant": c.significant}
+                        for c in d.rounds[0]] if d.rounds else [],
+            "before": {k: d.before.rmse[k] for k in KEYS},
+            "after": {k: d.after.rmse[k] for k in KEYS} if d.after else None,
+            "seconds": time.perf_counter() - t0}
+
+
+def partners(r, name) -> set[str]:
+    """The candidates the recording's identifiability table cannot tell from ``name``."""
+    return {b if a == name else a for a, b, _ in (r.get("inseparable") or []) if name in (a, b)}
+
+
+def score(runs: list[dict]) -> dict:
+    singles = [r for r in runs if len(r["truth"]) == 1 and r["first"] != "error"]
+    separable = [r for r in singles if r.get("not_seen") is not None and r["truth"][0] not in r["not_seen"]
+                 and not partners(r, r["truth"][0])]
+    clean = [r for r in runs if not r["truth"] and r["first"] != "error"]
+    wrong = []
+    for r in runs:
+        if r["first"] == "error":
+            continue
+        allowed = set(r["truth"]).union(*(partners(r, t) for t in r["truth"])) if r["truth"] else set()
+        extra = [s for s in r["selected"] if s not in allowed]
+        if extra:
+            wrong.append([r["key"], extra])
+    ratios: dict = {}
+    for r in runs:
+        if r["truth"] and r.get("after") and set(r["truth"]) & set(r["selected"]):
+            for k in KEYS:
+                if r["before"][k] > 0:
+                    ratios.setdefault(k, []).append(r["after"][k] / r["before"][k])
+
+    def frac(a, b):
+        return [a, b, round(a / b, 3) if b else None]
+
+    return {
+        "recordings": len(runs), "errors": [r["key"] for r in runs if r["first"] == "error"],
+        "right_first_separable": frac(sum(r["first"] == r["truth"][0] for r in separable), len(separable)),
+        "right_first_all_single": frac(sum(r["first"] == r["truth"][0] for r in singles), len(singles)),
+        "right_first_separable_by_level": {
+            str(lv): frac(sum(r["first"] == r["truth"][0] for r in separable if r["level"] == lv),
+                          sum(r["level"] == lv for r in separable)) for lv in (0, 1)},
+        "clean_without_selection": frac(sum(not r["selected"] for r in clean), len(clean)),
+        "two_effects_both_found": frac(sum(set(r["truth"]) <= set(r["selected"]) for r in runs if len(r["truth"]) == 2),
+                                       sum(len(r["truth"]) == 2 for r in runs)),
+        "recordings_with_a_wrong_selection": wrong,
+        "not_separable": [[r["key"], sorted(partners(r, r["truth"][0])),
+                           r["truth"][0] in (r.get("not_seen") or []), r["first"]]
+                          for r in singles if r not in separable],
+        "error_ratio_after_before_median": {k: float(np.median(v)) for k, v in ratios.items()},
+        "error_ratio_after_before_range": {k: [float(np.min(v)), float(np.max(v))] for k, v in ratios.items()},
+        "seconds_per_recording_median": float(np.median([r["seconds"] for r in runs if "seconds" in r] or [0.0])),
+    }
+
+
+def markdown(runs: list[dict], summary: dict) -> str:
+    lines = ["| recording (truth/level/robot/motion/seed) | ft | seen, separable | first | selected | "
+             "force / CoP / tilt after ÷ before |", "|---|---|---|---|---|---|"]
+    for r in runs:
+        sep = "—"
+        if len(r["truth"]) == 1 and r.get("not_seen") is not None:
+            t = r["truth"][0]
+            p = partners(r, t)
+            sep = ("not seen" if t in r["not_seen"] else "yes") + (f"; inseparable from {', '.join(sorted(p))}"
+                                                                    if p else "")
+        ratio = "—"
+        if r.get("after") and r["truth"]:
+            ratio = " / ".join(f'{r["after"][k] / r["before"][k]:.2f}' if r["before"][k] > 0 else "—" for k in KEYS)
+        lines.append(f'| {r["key"]} | {"yes" if r.get("ft") else ""} | {sep} | {r["first"]} | '
+                     f'{", ".join(r["selected"]) or "none"} | {ratio} |')
+    head = [f"- right effect first, seen and separable: {summary['right_first_separable'][0]} of "
+            f"{summary['right_first_separable'][1]}",
+            f"- right effect first, every single-effect recording: {summary['right_first_all_single'][0]} of "
+            f"{summary['right_first_all_single'][1]}",
+            f"- clean recordings without a selection: {summary['clean_without_selection'][0]} of "
+            f"{summary['clean_without_selection'][1]}",
+            f"- two effects, both selected: {summary['two_effects_both_found'][0]} of "
+            f"{summary['two_effects_both_found'][1]}",
+            f"- recordings with a wrong selection: {len(summary['recordings_with_a_wrong_selection'])}",
+            "- median error ratio after/before (truth selected): "
+            + ", ".join(f"{k} {v:.2f}" for k, v in summary["error_ratio_after_before_median"].items()), ""]
+    return "\n".join(head + lines) + "\n"
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--duration", type=float, default=3.0)
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--only", nargs="*", default=None, help="truths to run (effect names or 'none')")
+    ap.add_argument("--fresh", action="store_true", help="ignore the results already in --out")
+    ap.add_argument("--list", action="store_true", help="list the recordings and stop")
+    ap.add_argument("--out", default=str(Path(__file__).with_name("results") / "diagnose_confusion_wide.json"))
+    args = ap.parse_args()
+    jobs = jobs_of(args.duration, args.only)
+    if args.list:
+        print("\n".join(key(j) + (" (F/T fused)" if j["ft"] else "") for j in jobs))
+        print(f"{len(jobs)} recordings")
+        return
+    t0 = time.perf_counter()
+    partial = Path(args.out).with_suffix(".partial.jsonl")  # an interrupted run resumes
+    done = {}
+    if Path(args.out).exists() and not args.fresh:
+        for r in json.loads(Path(args.out).read_text()).get("details", []):
+            if r.get("first") != "error":
+                done[r["key"]] = r
+    if partial.exists() and not args.fresh:
+        for line in partial.read_text().splitlines():
+            r = json.loads(line)
+            done[r["key"]] = r
+    todo = [j for j in jobs if key(j) not in done]
+    with ProcessPoolExecutor(max_workers=args.jobs) as pool, partial.open("w" if args.fresh else "a") as fh:
+        for r in pool.map(one, todo):
+            done[r["key"]] = r
+            fh.write(json.dumps(r) + "\n")
+            fh.flush()
+            print(f'{r["key"]}: {r["first"]} {r.get("selected")} {r.get("seconds", 0):.0f} s', file=sys.stderr,
+                  flush=True)
+    runs = [done[key(j)] for j in jobs]
+    summary = score(runs)
+    result = {"benchmark": "diagnose_confusion_wide", "duration_s": args.duration, "cases": WIDE_CASES,
+              "combos": COMBOS, "pairs": PAIRS, "fuse_ft": FUSE_FT, "summary": summary, "details": runs,
+              "wall_s": time.perf_counter() - t0,
+              "machine": {"python": platform.python_version(), "cpus": os.cpu_count(),
+                          "loadavg_at_end": list(os.getloadavg())}}
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(result, indent=1))
+    Path(args.out).with_suffix(".md").write_text(markdown(runs, summary))
+    partial.unlink()
+    print(json.dumps(summary, indent=1))
+
+
+if __name__ == "__main__":
+    main()
