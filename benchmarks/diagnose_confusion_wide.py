@@ -45,6 +45,7 @@ import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -72,7 +73,7 @@ PAIRS = [("gyro-bias", "external-wrench"), ("com-offset", "stiffness"), ("accel-
 
 
 def jobs_of(duration: float, only=None) -> list[dict]:
-    jobs = []
+    jobs: list[dict[str, Any]] = []
     for robot, motion in COMBOS:
         for seed in (0, 1):
             jobs.append({"truth": [], "robot": robot, "motion": motion, "level": None, "seed": seed})

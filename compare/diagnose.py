@@ -654,36 +654,40 @@ def finding(c: Candidate, rep: dict, effect) -> str:
 
 
 def screen(rec, fit: Fit, makers: dict[str, Callable[[], object]], window: float = SCREEN_WINDOW,
-           progress: Callable[..., None] | None = None, problem=None) -> dict[str, ScoreTest | str]:
+           progress: Callable[..., None] | None = None, problem=None, jobs: int = 1) -> dict[str, ScoreTest | str]:
     """The score test of every candidate at ``fit`` (name -> :class:`ScoreTest`, or the reason
-    when the test failed): one linearisation each, no refit (:mod:`flexforce.smoother.screening`).
+    when the test failed): one linearisation each, no refit (:mod:`flexforce.smoother.screening`);
+    in ``jobs`` forked processes (:func:`flexforce.compare.runner.fork_map`), the same results.
 
     ``progress(fraction)`` or ``progress(fraction, message)`` (a callable made by
     :func:`progress_caller` takes the message): one call per candidate, the message naming it
     with its statistic and time."""
+    from flexforce.compare.runner import fork_map
     from flexforce.smoother import NoiseRule, Problem
     from flexforce.smoother.screening import score_test
 
     if fit.trajectory is None or fit.model is None:
         raise ConfigError("screening needs the fitted trajectory (flexforce.smoother.fit returns it)")
     prob = problem if problem is not None else Problem.build(rec, fit.model, NoiseRule())
-    out: dict[str, ScoreTest | str] = {}
-    for i, (name, make) in enumerate(makers.items()):
-        t0 = time.perf_counter()
-        try:
-            res = score_test(prob, fit.trajectory, make(), window=window)  # type: ignore[arg-type]
-            out[name] = res
+    items = list(makers.items())
+    found: dict[str, ScoreTest | str] = {}
+    for done, (i, ok, res, seconds) in enumerate(fork_map(
+            lambda item: score_test(prob, fit.trajectory, item[1](), window=window),  # type: ignore[arg-type]
+            items, jobs)):
+        name = items[i][0]
+        if ok:
+            found[name] = res
             msg = f"{name}: T = {res.statistic:.1f} (ν {res.dof:.1f}), p = {res.p_value:.2g}"
-        except Exception as err:  # a user's effect may raise anything: one line, the others go on
-            out[name] = _failure(name, err)[0]
-            msg = f"{name}: failed ({out[name]})"
+        else:  # a user's effect may raise anything: one line, the others go on
+            found[name] = _failure(name, res)[0]
+            msg = f"{name}: failed ({found[name]})"
         if progress is not None:
-            frac = (i + 1) / max(len(makers), 1)
+            frac = (done + 1) / max(len(makers), 1)
             if _takes_two(progress):
-                progress(frac, f"{msg} [{time.perf_counter() - t0:.1f} s]")
+                progress(frac, f"{msg} [{seconds:.1f} s]")
             else:
                 progress(frac)
-    return out
+    return {name: found[name] for name, _ in items}
 
 
 def _strength(test) -> float:
@@ -727,7 +731,8 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
              max_effects: int = 3, alpha: float = ALPHA, window: float = 0.5, skip: float = 0.5,
              ekf: bool = True, progress: Callable[[str, float], None] | None = None,
              screen_level: float | None = SCREEN_LEVEL, screen_window: float = SCREEN_WINDOW,
-             calibrated: bool = True, identify: bool = True, refit_best: int | None = REFIT_BEST) -> Diagnosis:
+             calibrated: bool = True, identify: bool = True, refit_best: int | None = REFIT_BEST,
+             jobs: int = 1) -> Diagnosis:
     """Fit the nominal model, rank the candidate effects, and refit with the ``add``-ed ones.
 
     Args:
@@ -763,8 +768,11 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
             candidate the identifiability table cannot tell apart from one of them; the others
             wait for the next round (screened again at its base).  None refits every one that
             passes.  On real logs every candidate passes (the model is never exact).
+        jobs: worker processes (forked: :func:`flexforce.compare.runner.fork_map`) for the
+            candidates' score tests, a round's refits and the before/after views; the same results
+            as ``jobs=1``, each worker taking about the memory of one fit.
     """
-    from flexforce.compare.runner import describe
+    from flexforce.compare.runner import describe, fork_map
     from flexforce.factors.model import ModelConfig
 
     rec.validate()
@@ -810,6 +818,8 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
 
     def fitted(names: tuple[str, ...]) -> Fit:
         key = tuple(sorted(names))
+        if key in fit_errors:
+            raise fit_errors.pop(key)
         if key not in cache:
             effects = tuple(model.effects) + tuple(makers[n]() for n in names)
             label = "nominal" if not names else "+ " + " + ".join(names)
@@ -817,6 +827,33 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
             cache[key] = fit_model(rec, dataclasses.replace(model, effects=effects), progress=cb(label))
             say(label, f"fitted {label if names else 'the nominal model'}", t0)
         return cache[key]
+
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+        raise ConfigError(f"jobs = {jobs!r}; expected a positive number of worker processes (1: in this process)")
+    fit_errors: dict[tuple[str, ...], Exception] = {}
+    fit_seconds: dict[tuple[str, ...], float] = {}
+
+    def fit_all(names_list: list[tuple[str, ...]]) -> None:
+        """Fit the models not fitted yet, in ``jobs`` worker processes (into ``cache``; a failure
+        into ``fit_errors``, raised by :func:`fitted`)."""
+        todo = [n for n in dict.fromkeys(names_list) if tuple(sorted(n)) not in cache]
+        if jobs == 1 or len(todo) < 2:
+            return
+
+        def one(names):
+            effects = tuple(model.effects) + tuple(makers[n]() for n in names)
+            return fit_model(rec, dataclasses.replace(model, effects=effects))
+
+        for i, ok, value, seconds in fork_map(one, todo, jobs):
+            key = tuple(sorted(todo[i]))
+            if ok:
+                cache[key] = value
+                label = "+ " + " + ".join(todo[i])
+                if call is not None:
+                    call(label, 1.0, f"fitted {label} [{seconds:.1f} s, {time.perf_counter() - t_start:.0f} s in all]")
+            else:
+                fit_errors[key] = value
+            fit_seconds[key] = seconds
 
     if screen_level is not None and not 0.0 < screen_level < 1.0:
         raise ConfigError(f"screen_level = {screen_level!r}; expected a probability in (0, 1) or None (no screening)")
@@ -839,7 +876,8 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
     if rank:
         remaining = list(cands)
         if screen_level is not None and cands:
-            screened = screen(rec, nominal, cands, screen_window, progress=cb_message("screening"), problem=prob)
+            screened = screen(rec, nominal, cands, screen_window, progress=cb_message("screening"), problem=prob,
+                              jobs=jobs)
         if identify and cands and prob is not None:
             t0 = time.perf_counter()
             ident, ident_error = identify_candidates(prob, nominal, {k: v for k, v in cands.items()
@@ -884,7 +922,7 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
 
                 again = screen(rec, base, {k: makers[k] for k in remaining}, screen_window,
                                progress=cb_message("screening at + " + " + ".join(selected)),
-                               problem=Problem.build(rec, base.model, NoiseRule()))
+                               problem=Problem.build(rec, base.model, NoiseRule()), jobs=jobs)
                 for k, v in again.items():
                     if not isinstance(v, str) and v.p_value >= screen_level:
                         remaining.remove(k)
@@ -901,9 +939,10 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                                                    "effects (max_effects) are selected")
                     break
             this_round = _refit_choice(remaining, latest, ident, refit_best if screen_level is not None else None)
+            fit_all([tuple(selected) + (name,) for name in this_round])
             row = []
             for name in this_round:
-                t0 = time.perf_counter()
+                t0 = time.perf_counter() - fit_seconds.pop(tuple(sorted(tuple(selected) + (name,))), 0.0)
                 label = "+ " + " + ".join(tuple(selected) + (name,))
                 try:
                     f = fitted(tuple(selected) + (name,))
@@ -957,10 +996,14 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
         ranking += [c for c in rounds[-1] if c.effect not in selected and c.effect not in later]
     ranking += dropped
     added = list(dict.fromkeys((selected if want_auto else []) + list(add_makers)))
-    before = _snapshot(rec, nominal, window, alpha, skip, calibrated)
-    after = None
-    if added:
-        after = _snapshot(rec, fitted(tuple(added)), window, alpha, skip, calibrated)
+    fits = [nominal] + ([fitted(tuple(added))] if added else [])
+    views: list[Snapshot | None] = [None] * len(fits)
+    for i, ok, value, _ in fork_map(lambda f: _snapshot(rec, f, window, alpha, skip, calibrated), fits, jobs):
+        if not ok:
+            raise value
+        views[i] = value
+    before, after = views[0], (views[1] if added else None)
+    assert before is not None
     ekf_snap = None
     if ekf:
         from flexforce.compare.ekf import run_ekf

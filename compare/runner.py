@@ -234,6 +234,91 @@ def run_jobs(fn: Callable[[Any], Any], items: list, jobs: int = 1, initializer: 
                 future.cancel()
 
 
+_FORK_TASKS: list = []
+"""The (function, items) of the running :func:`fork_map` calls, innermost last: what their forked
+workers inherit (nothing is pickled on the way there)."""
+
+
+def _fork_task(i: int) -> tuple[int, bool, Any, float]:
+    """Item ``i`` of the innermost :func:`fork_map`, in a worker: (index, ok, the pickled result or
+    the exception, seconds).  A result that does not pickle comes back as None (computed again
+    in the parent)."""
+    import pickle
+
+    fn, items = _FORK_TASKS[-1]
+    t0 = time.perf_counter()
+    try:
+        value = fn(items[i])
+    except Exception as err:  # noqa: BLE001 -- handed to the parent, as in-process
+        try:
+            pickle.dumps(err)
+        except Exception:  # noqa: BLE001 -- an exception that does not pickle: its text
+            err = RuntimeError(f"{type(err).__name__}: {err}")
+        return i, False, err, time.perf_counter() - t0
+    try:
+        data = pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)
+    except Exception:  # noqa: BLE001 -- e.g. a user's effect holding a lambda
+        data = None
+    return i, True, data, time.perf_counter() - t0
+
+
+def fork_map(fn: Callable[[Any], Any], items: list, jobs: int = 1) -> Iterator[tuple[int, bool, Any, float]]:
+    """``fn(item)`` for every item, as ``(index, ok, result or exception, seconds)`` in the order
+    they finish; in ``jobs`` forked worker processes when ``jobs`` > 1 (and the platform forks).
+
+    Unlike :func:`run_jobs` nothing is sent to the workers: they are forked with ``fn`` and the
+    items in memory (a closure over a fitted model is fine), and only the results are pickled
+    back -- one recording's candidates on two cores.  Each result is what ``jobs=1`` computes; a
+    result that does not pickle is computed again here.  An exception of ``fn`` is returned, not
+    raised (``ok`` False).
+
+    Raises:
+        EstimatorError: a worker process ended abruptly (killed, out of memory).
+    """
+    import multiprocessing
+    import pickle
+
+    if jobs <= 1 or len(items) <= 1 or "fork" not in multiprocessing.get_all_start_methods():
+        for i, item in enumerate(items):
+            t0 = time.perf_counter()
+            try:
+                value = fn(item)
+            except Exception as err:  # noqa: BLE001 -- returned, as from a worker
+                yield i, False, err, time.perf_counter() - t0
+                continue
+            yield i, True, value, time.perf_counter() - t0
+        return
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures.process import BrokenProcessPool
+
+    from flexforce.errors import EstimatorError
+
+    _FORK_TASKS.append((fn, items))
+    try:
+        with ProcessPoolExecutor(max_workers=min(jobs, len(items)),
+                                 mp_context=multiprocessing.get_context("fork")) as pool:
+            futures = [pool.submit(_fork_task, i) for i in range(len(items))]
+            try:
+                for future in as_completed(futures):
+                    i, ok, value, seconds = future.result()
+                    if ok:
+                        if value is None:
+                            t0 = time.perf_counter()
+                            value = fn(items[i])
+                            seconds = time.perf_counter() - t0
+                        else:
+                            value = pickle.loads(value)
+                    yield i, ok, value, seconds
+            except BrokenProcessPool as err:
+                raise EstimatorError(f"a worker process of jobs = {jobs} ended abruptly ({err}: out of memory?); "
+                                     "expected it to return its result: run with jobs = 1") from None
+            finally:
+                for future in futures:
+                    future.cancel()
+    finally:
+        _FORK_TASKS.pop()
+
+
 def aggregate(comparisons: list[Comparison]) -> dict:
     """Mean and spread (standard deviation, min, max) of every number over several recordings."""
     out: dict[str, Any] = {"recordings": [c.recording for c in comparisons], "estimators": {}}

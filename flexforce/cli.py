@@ -611,7 +611,7 @@ def _diagnose_job(args, job) -> dict:
         level = None if args.no_screen else args.screen_level
         diag = diagnose(rec, model, candidates=candidates, add=args.add, rank=not args.no_rank,
                         max_effects=args.max_effects, ekf=not args.no_ekf, progress=progress, screen_level=level,
-                        refit_best=args.refit_best or None)
+                        refit_best=args.refit_best or None, jobs=args.jobs if label is None else 1)
         write_diagnosis(diag, out)
     finally:
         PROGRESS_PREFIX = ""
@@ -767,7 +767,8 @@ def build_parser() -> argparse.ArgumentParser:
                                                 "(several: one report folder each, and an index)")
     p.add_argument("-o", "--output", required=True, type=Path, help="report folder (index.html, diagnosis.json)")
     p.add_argument("--jobs", "-j", type=int, default=1, metavar="N",
-                   help="diagnose N recordings at a time, in worker processes (default 1); the results are the same")
+                   help="worker processes (default 1; the results are the same): several recordings, N at a time; "
+                        "one recording, its candidates' tests and refits N at a time")
     p.add_argument("--add", action="append", default=[], metavar="NAME",
                    help="refit with this effect and compare before/after (repeatable; 'auto': the significant ones)")
     p.add_argument("--candidates", help="comma-separated effect names to rank (default: every built-in effect)")

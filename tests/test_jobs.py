@@ -95,6 +95,35 @@ def test_diagnose_jobs_gives_the_results_of_one_process(bags, tmp_path, capsys):
     assert (reports[2] / "push-2" / "index.html").is_file()
 
 
+def test_one_recording_diagnosed_with_jobs_gives_the_results_of_one_process(bags, tmp_path, capsys):
+    """--jobs on one recording: its score tests, a round's refits and the before/after views in
+    forked workers; the report is that of one process."""
+    reports = {}
+    for jobs in (1, 2):
+        out = tmp_path / f"one{jobs}"
+        assert main(["diagnose", str(bags[0]), "--candidates", "gyro-bias,external-wrench,com-offset,stiffness",
+                     "--no-screen", "--add", "auto", "--no-ekf", "--jobs", str(jobs), "-o", str(out), "-q"]) == 0, \
+            capsys.readouterr().err
+        reports[jobs] = json.loads((out / "diagnosis.json").read_text())
+    assert without_timing(reports[1]) == without_timing(reports[2])
+    assert len(reports[2]["rounds"][0]) == 4  # every candidate refitted in the first round
+
+
+def test_fork_map_returns_each_result_or_exception():
+    from flexforce.compare.runner import fork_map
+
+    def fn(x):
+        if x == 2:
+            raise ValueError("two")
+        return lambda: x if x == 3 else x * 10  # a lambda does not pickle: computed again here
+
+    for jobs in (1, 2):
+        got = {i: (ok, value) for i, ok, value, _ in fork_map(fn, [0, 1, 2, 3], jobs)}
+        assert sorted(got) == [0, 1, 2, 3]
+        assert [got[i][1]() for i in (0, 1, 3)] == [0, 10, 3]
+        assert got[2][0] is False and isinstance(got[2][1], ValueError) and str(got[2][1]) == "two"
+
+
 def test_bad_jobs_is_one_line(bags, tmp_path, capsys):
     for command in ("compare", "diagnose"):
         assert main([command, str(bags[0]), "--jobs", "0", "-o", str(tmp_path / "r"), "-q"]) == 1
