@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/diagnose_speed.py [--durations 20,60] [--icub] [--quick]
+    python benchmarks/diagnose_speed.py [--durations 20,60] [--icub] [--quick] [--jobs N]
 
 Prints JSON to stdout and writes ``benchmarks/results/diagnose_speed.json``.
 
@@ -16,7 +16,9 @@ progress messages.
 Simulated cases: the ``sway`` scenario (Romeo standing on both feet, the CoM swaying) at 200 Hz
 with a hidden gyroscope bias of (0, 0.01, 0) rad/s, ``--durations`` seconds long.  Real case
 (``--icub``): the iCub CoM-sinusoid bag (20 s, beside the checkout) with the identified iCub
-configuration.
+configuration.  ``--jobs N``: the diagnosis's own worker processes (``diagnose(jobs=N)``, what
+``flexforce diagnose --jobs N`` does on one recording); the peak RSS of the largest worker is
+reported beside the parent's.
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ HERE = Path(__file__).resolve().parent
 ICUB_SWAY = HERE.parents[1] / "shared" / "data" / "icub" / "icub-com-sinusoid-20s.bag"
 
 
-def _child(case: str, duration: float) -> dict:
+def _child(case: str, duration: float, jobs: int = 1) -> dict:
     """One diagnosis (runs in the child process)."""
     import resource
 
@@ -62,20 +64,22 @@ def _child(case: str, duration: float) -> dict:
         if message:
             stages.append({"at_s": round(time.perf_counter() - t0, 2), "stage": label, "message": message})
 
-    d = diagnose(rec, add=["auto"], progress=progress)
+    d = diagnose(rec, add=["auto"], progress=progress, jobs=jobs)
     wall = time.perf_counter() - t0
     return {"case": case, "duration_s": float(rec.t_ns[-1] - rec.t_ns[0]) * 1e-9, "steps": int(rec.n),
-            "load_s": round(load_s, 2), "diagnosis_s": round(wall, 2),
+            "load_s": round(load_s, 2), "diagnosis_s": round(wall, 2), "jobs": jobs,
             "selected": list(d.selected),
             "refitted": sum(1 for row in d.rounds for c in row),
             "screened": len(d.screening),
             "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
+            "peak_rss_largest_worker_mb": round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0, 1)
+            if jobs > 1 else None,
             "stages": stages}
 
 
-def run_case(case: str, duration: float) -> dict:
+def run_case(case: str, duration: float, jobs: int = 1) -> dict:
     code = (f"import json, sys; sys.path.insert(0, {str(HERE)!r}); import diagnose_speed as b; "
-            f"print('RESULT ' + json.dumps(b._child({case!r}, {duration!r})))")
+            f"print('RESULT ' + json.dumps(b._child({case!r}, {duration!r}, {jobs!r})))")
     t0 = time.perf_counter()
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     line = next((x for x in out.stdout.splitlines() if x.startswith("RESULT ")), None)
@@ -91,12 +95,13 @@ def main(argv=None) -> dict:
     ap.add_argument("--durations", default="20,60", help="simulated lengths, s (comma-separated; '' for none)")
     ap.add_argument("--icub", action="store_true", help="also the real iCub CoM sway (20 s)")
     ap.add_argument("--quick", action="store_true", help="one 10 s recording")
+    ap.add_argument("--jobs", type=int, default=1, help="the diagnosis's worker processes (default 1)")
     ap.add_argument("--out", default=str(HERE / "results" / "diagnose_speed.json"))
     args = ap.parse_args(argv)
     durations = [10.0] if args.quick else [float(x) for x in args.durations.split(",") if x.strip()]
-    cases = [run_case("sway-gyro-bias", d) for d in durations]
+    cases = [run_case("sway-gyro-bias", d, args.jobs) for d in durations]
     if args.icub:
-        cases.append(run_case("icub", 20.0))
+        cases.append(run_case("icub", 20.0, args.jobs))
     result = {"benchmark": "diagnose_speed", "cases": cases,
               "targets": {"60 s at 200 Hz, every candidate": "<= 120 s", "iCub 20 s sway, every candidate": "<= 60 s"},
               "load_average_at_end": list(os.getloadavg()),
