@@ -654,10 +654,12 @@ def finding(c: Candidate, rep: dict, effect) -> str:
 
 
 def screen(rec, fit: Fit, makers: dict[str, Callable[[], object]], window: float = SCREEN_WINDOW,
-           progress: Callable[..., None] | None = None, problem=None, jobs: int = 1) -> dict[str, ScoreTest | str]:
+           progress: Callable[..., None] | None = None, problem=None, jobs: int = 1, identify: bool = False):
     """The score test of every candidate at ``fit`` (name -> :class:`ScoreTest`, or the reason
     when the test failed): one linearisation each, no refit (:mod:`flexforce.smoother.screening`);
     in ``jobs`` forked processes (:func:`flexforce.compare.runner.fork_map`), the same results.
+    ``identify``: also the identifiability table of every candidate (:func:`identify_candidates`),
+    as one more task; returns ``(tests, (table, reason))``.
 
     ``progress(fraction)`` or ``progress(fraction, message)`` (a callable made by
     :func:`progress_caller` takes the message): one call per candidate, the message naming it
@@ -669,25 +671,37 @@ def screen(rec, fit: Fit, makers: dict[str, Callable[[], object]], window: float
     if fit.trajectory is None or fit.model is None:
         raise ConfigError("screening needs the fitted trajectory (flexforce.smoother.fit returns it)")
     prob = problem if problem is not None else Problem.build(rec, fit.model, NoiseRule())
-    items = list(makers.items())
+    items: list[tuple[str | None, Any]] = ([(None, None)] if identify else []) + list(makers.items())
+
+    def task(item):
+        name, make = item
+        if name is None:
+            return identify_candidates(prob, fit, makers, window)
+        return score_test(prob, fit.trajectory, make(), window=window)
+
     found: dict[str, ScoreTest | str] = {}
-    for done, (i, ok, res, seconds) in enumerate(fork_map(
-            lambda item: score_test(prob, fit.trajectory, item[1](), window=window),  # type: ignore[arg-type]
-            items, jobs)):
+    table: tuple = (None, None)
+    done = 0
+    for i, ok, res, seconds in fork_map(task, items, jobs):
         name = items[i][0]
+        if name is None:
+            table = res if ok else (None, _failure("identifiability", res)[0])
+            continue
         if ok:
             found[name] = res
             msg = f"{name}: T = {res.statistic:.1f} (ν {res.dof:.1f}), p = {res.p_value:.2g}"
         else:  # a user's effect may raise anything: one line, the others go on
             found[name] = _failure(name, res)[0]
             msg = f"{name}: failed ({found[name]})"
+        done += 1
         if progress is not None:
-            frac = (done + 1) / max(len(makers), 1)
+            frac = done / max(len(makers), 1)
             if _takes_two(progress):
                 progress(frac, f"{msg} [{seconds:.1f} s]")
             else:
                 progress(frac)
-    return {name: found[name] for name, _ in items}
+    tests = {name: found[name] for name in makers}
+    return (tests, table) if identify else tests
 
 
 def _strength(test) -> float:
@@ -875,14 +889,25 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
         prob = Problem.build(rec, nominal.model, NoiseRule())
     if rank:
         remaining = list(cands)
+        early: tuple | None = None
         if screen_level is not None and cands:
-            screened = screen(rec, nominal, cands, screen_window, progress=cb_message("screening"), problem=prob,
-                              jobs=jobs)
-        if identify and cands and prob is not None:
             t0 = time.perf_counter()
-            ident, ident_error = identify_candidates(prob, nominal, {k: v for k, v in cands.items()
-                                                                     if not isinstance(screened.get(k), str)},
-                                                     screen_window)
+            if jobs > 1 and identify and prob is not None:
+                # the table beside the score tests, on every candidate (the longest task first); formed
+                # again below only if a test failed (the table leaves out the failed ones)
+                screened, early = screen(rec, nominal, cands, screen_window, progress=cb_message("screening"),
+                                         problem=prob, jobs=jobs, identify=True)
+            else:
+                screened = screen(rec, nominal, cands, screen_window, progress=cb_message("screening"), problem=prob,
+                                  jobs=jobs)
+        if identify and cands and prob is not None:
+            if early is None or any(isinstance(v, str) for v in screened.values()):
+                t0 = time.perf_counter()
+                ident, ident_error = identify_candidates(prob, nominal, {k: v for k, v in cands.items()
+                                                                         if not isinstance(screened.get(k), str)},
+                                                         screen_window)
+            else:
+                ident, ident_error = early
             if ident is not None:
                 msg = (f"identifiability: {len(ident.inseparable())} pairs cannot be told apart, "
                        f"{len(ident.not_seen())} candidates not fully seen")

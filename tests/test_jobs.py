@@ -98,15 +98,19 @@ def test_diagnose_jobs_gives_the_results_of_one_process(bags, tmp_path, capsys):
 def test_one_recording_diagnosed_with_jobs_gives_the_results_of_one_process(bags, tmp_path, capsys):
     """--jobs on one recording: its score tests, a round's refits and the before/after views in
     forked workers; the report is that of one process."""
-    reports = {}
-    for jobs in (1, 2):
-        out = tmp_path / f"one{jobs}"
-        assert main(["diagnose", str(bags[0]), "--candidates", "gyro-bias,external-wrench,com-offset,stiffness",
-                     "--no-screen", "--add", "auto", "--no-ekf", "--jobs", str(jobs), "-o", str(out), "-q"]) == 0, \
-            capsys.readouterr().err
-        reports[jobs] = json.loads((out / "diagnosis.json").read_text())
-    assert without_timing(reports[1]) == without_timing(reports[2])
-    assert len(reports[2]["rounds"][0]) == 4  # every candidate refitted in the first round
+    for flags in (["--no-screen"], []):  # every candidate refitted; screened, with the identifiability table
+        reports = {}
+        for jobs in (1, 2):
+            out = tmp_path / f"one{jobs}{len(flags)}"
+            assert main(["diagnose", str(bags[0]), "--candidates", "gyro-bias,external-wrench,com-offset,stiffness",
+                         *flags, "--add", "auto", "--no-ekf", "--jobs", str(jobs), "-o", str(out), "-q"]) == 0, \
+                capsys.readouterr().err
+            reports[jobs] = json.loads((out / "diagnosis.json").read_text())
+        assert without_timing(reports[1]) == without_timing(reports[2])
+        if flags:
+            assert len(reports[2]["rounds"][0]) == 4  # every candidate refitted in the first round
+        else:
+            assert len(reports[2]["screening"]) == 4 and reports[2]["identifiability"] is not None
 
 
 def test_fork_map_returns_each_result_or_exception():
