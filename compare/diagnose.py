@@ -645,8 +645,11 @@ def finding(c: Candidate, rep: dict, effect) -> str:
     if c.significant:
         if null_text:  # the evidence sees it though no single component is beyond 3 sigma
             inner = summary[summary.find("(") + 1:summary.rfind(")")] if "(" in summary else summary
-            summary = (f"{inner} (jointly significant; no single component beyond 3σ: the components are "
-                       "correlated)")
+            if int(getattr(effect, "dim", 0)) == 1:  # one unknown: nothing "joint" about it
+                summary = f"{inner} (within 3σ of 0, yet the evidence test is significant: a marginal finding)"
+            else:
+                summary = (f"{inner} (jointly significant; no single component beyond 3σ: the components are "
+                           "correlated)")
         return f"{summary}; {evidence}; {_when(rep, effect)}"
     if null_text:
         return f"not significant: {summary}"

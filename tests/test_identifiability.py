@@ -75,6 +75,11 @@ def test_no_row_is_both_significant_and_consistent_with_zero():
     text = finding(c, rep, eff)
     assert "consistent with" not in text and "jointly significant" in text
     assert "evidence 2ΔE = 45.0" in text and "acts throughout (a constant)" in text
+    # one unknown: no "joint" wording (a time offset at 2.97 sigma, its evidence test significant)
+    rep = {"summary": "IMU time offset: consistent with 0 (IMU time offset tau = -0.0101 ± 0.0034 s)"}
+    c = _cand(effect="time-offset", summary=rep["summary"], effective_dof=1.0)
+    text = finding(c, rep, make_effect("time-offset"))
+    assert "consistent with" not in text and "jointly" not in text and "within 3σ of 0" in text
     # not significant: never presented as found
     c = _cand(significant=False, score=-5.0, summary="gyro bias y = 0.004 ± 0.001 rad/s")
     assert finding(c, {}, eff).startswith("not significant")
