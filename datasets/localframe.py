@@ -37,6 +37,9 @@ Given the joint trajectory and which contacts are in force, this module places t
        J_b a_b + J_j a_j + dJ v = 0               ->  a_b = -J_b^-1 (J_j a_j + dJ v)
 
    ``J_j a_j + dJ v`` is the anchor frame's spatial acceleration computed with ``a_b = 0``.
+   ``J_b`` is the adjoint of ``anchor_T_base``, so ``J_b^-1`` is that of ``base_T_anchor``
+   (the forward kinematics of step 2): no matrix is inverted, and both products are taken over
+   a whole part at once.
 """
 
 from __future__ import annotations
@@ -169,85 +172,131 @@ class LocalFrameTracker:
         load = np.zeros((n, c)) if load is None else np.where(np.isfinite(load), load, -np.inf)
         footholds, switch_ratio, rest = self.footholds, self.switch_ratio, self.rest
         k0 = self.k
+        on_rows: list[list[bool]] = active.tolist()  # Python rows: the step loop reads them element by element
+        load_rows: list[list[float]] = load.tolist()
 
         def pick(k: int, candidates) -> int:
             candidates = list(candidates)
-            return max(candidates, key=lambda i: (load[k, i], -i))
+            return max(candidates, key=lambda i: (load_rows[k][i], -i))
 
         q_out = np.zeros((n, pmodel.nq))
         v_out = np.zeros((n, pmodel.nv))
         a_out = np.zeros((n, pmodel.nv))
+        q_out[:, 7:] = q_joints
+        v_out[:, 6:] = v_joints
+        a_out[:, 6:] = a_joints
         anchors = np.zeros(n, dtype=int)
-        cp = np.zeros((n, c, 3))
-        cR = np.zeros((n, c, 3, 3))
+        b_T_c_H = np.zeros((n, c, 4, 4))  # base_T_contact of each step, homogeneous
+        J_j = np.zeros((n, 6, pmodel.nv - 6))  # the joint columns of the anchor's Jacobian
+        rest_H: list[np.ndarray] = []  # the rest placements held in this part (homogeneous) ...
+        held: list[int] = [-1] * c  # ... the one each contact holds (index in rest_H, -1: none) ...
+        for i in range(c):
+            if rest[i] is not None:
+                held[i] = len(rest_H)
+                rest_H.append(rest[i].homogeneous)
+        held_rows: list[tuple[int, ...]] = []  # ... and that at each step
         switches = []
         landed: list[tuple[int, int, float, float]] = []
+
+        def hold(i: int, placement) -> None:
+            rest[i] = placement
+            held[i] = len(rest_H)
+            rest_H.append(placement.homogeneous)
 
         def _more_loaded(k: int, i: int) -> bool:
             """Another contact in force carries ``switch_ratio`` times the anchor's load (and held its
             foothold since the last step): the anchor passes to it while both feet are down."""
-            others = [j for j in np.flatnonzero(active[k]) if j != i and was[j] and rest[j] is not None]
-            return bool(others) and max(load[k, j] for j in others) > switch_ratio * max(load[k, i], 0.0)
+            assert switch_ratio is not None
+            on_k, load_k = on_rows[k], load_rows[k]
+            others = [j for j in range(c) if on_k[j] and j != i and was[j] and rest[j] is not None]
+            return bool(others) and max(load_k[j] for j in others) > switch_ratio * max(load_k[i], 0.0)
 
-        def touch_down(k: int, i: int) -> pin.SE3:
-            foothold, tilt, height = on_ground(self.base * b_T_c[i], footholds)
+        def touch_down(k: int, i: int, base) -> pin.SE3:
+            foothold, tilt, height = on_ground(base * b_T_c[i], footholds)
             landed.append((k0 + k, i, tilt, height))
             return foothold
 
         q = self.q
+        q[:7] = (0, 0, 0, 0, 0, 0, 1)
+        base = self.base
+        was = self.was.tolist()
         for k in range(n):
-            q[:7] = (0, 0, 0, 0, 0, 0, 1)
+            on_k = on_rows[k]
             q[7:] = q_joints[k]
-            pin.framesForwardKinematics(pmodel, data, q)
-            b_T_c = [data.oMf[f].copy() for f in fids]
-            was = active[k - 1] if k > 0 else self.was
-            for i in range(c):  # released contacts lose their rest placement
-                if not active[k, i]:
+            pin.forwardKinematics(pmodel, data, q)
+            b_T_c = [pin.updateFramePlacement(pmodel, data, f) for f in fids]
+            for i in range(c):
+                b_T_c_H[k, i] = b_T_c[i].homogeneous
+                if not on_k[i] and rest[i] is not None:  # released contacts lose their rest placement
                     rest[i] = None
+                    held[i] = -1
             if self.current is None:
-                on = np.flatnonzero(active[k])
+                on = [i for i in range(c) if on_k[i]]
                 anchor = self.anchor_pref
-                if anchor is not None and (active[k, anchor] or not on.size):
+                if anchor is not None and (on_k[anchor] or not on):
                     self.current = anchor
                 else:
-                    self.current = pick(k, on if on.size else range(c))
-                rest[self.current] = pin.SE3.Identity()
-            elif (not active[k, self.current] and active[k].any()) or (
-                    switch_ratio is not None and active[k, self.current] and _more_loaded(k, self.current)):
-                new = pick(k, np.flatnonzero(active[k]))
+                    self.current = pick(k, on if on else range(c))
+                hold(self.current, pin.SE3.Identity())
+            elif (not on_k[self.current] and any(on_k)) or (
+                    switch_ratio is not None and on_k[self.current] and _more_loaded(k, self.current)):
+                new = pick(k, [i for i in range(c) if on_k[i]])
                 if rest[new] is None:  # touched down at this very step
-                    rest[new] = touch_down(k, new)
-                jump = float(np.linalg.norm((self.base * b_T_c[new]).translation - rest[new].translation))
+                    hold(new, touch_down(k, new, base))
+                jump = float(np.linalg.norm((base * b_T_c[new]).translation - rest[new].translation))
                 switches.append((k0 + k, int(self.current), int(new), jump))
                 self.current = new
             current = self.current
             if rest[current] is None:  # virtual anchor (no contact in force): hold its last placement
-                rest[current] = self.base * b_T_c[current]
-            self.base = rest[current] * b_T_c[current].inverse()
+                hold(current, base * b_T_c[current])
+            base = rest[current] * b_T_c[current].inverse()
             for i in range(c):
-                if active[k, i] and (rest[i] is None or not was[i]) and i != current:
-                    rest[i] = touch_down(k, i)
-                placement = rest[i] if active[k, i] else self.base * b_T_c[i]
-                cp[k, i] = placement.translation
-                cR[k, i] = placement.rotation
-                if active[k, i]:
-                    self.drift = max(self.drift, float(np.linalg.norm(
-                        placement.translation - (self.base * b_T_c[i]).translation)))
+                if on_k[i] and (rest[i] is None or not was[i]) and i != current:
+                    hold(i, touch_down(k, i, base))
+            held_rows.append(tuple(held))
             anchors[k] = current
-
-            # free-flyer velocity and acceleration from the anchor constraint (module docstring, 5)
-            q[:7] = pin.SE3ToXYZQUAT(self.base)
-            fid = fids[current]
-            J = pin.computeFrameJacobian(pmodel, data, q, fid, pin.LOCAL)
-            Jb_inv = np.linalg.inv(J[:, :6])
-            v = np.concatenate([-Jb_inv @ (J[:, 6:] @ v_joints[k]), v_joints[k]])
-            a0 = np.concatenate([np.zeros(6), a_joints[k]])
-            pin.forwardKinematics(pmodel, data, q, v, a0)
-            gamma = pin.getFrameAcceleration(pmodel, data, fid, pin.LOCAL).vector
-            a = np.concatenate([-Jb_inv @ gamma, a_joints[k]])
-            q_out[k], v_out[k], a_out[k] = q, v, a
+            q_out[k, :7] = pin.SE3ToXYZQUAT(base)
+            # the anchor's Jacobian in its own frame does not depend on the base placement
+            J_j[k] = pin.computeFrameJacobian(pmodel, data, q, fids[current], pin.LOCAL)[:, 6:]
+            was = on_k
             if progress is not None and (k % 50 == 0 or k == n - 1):
-                progress((k + 1) / n)
+                progress(0.5 * (k + 1) / n)
+        self.base = base
+        rows = np.arange(n)
+        # free-flyer velocity and acceleration from the anchor constraint (module docstring, 5):
+        # -J_b^-1 x, J_b^-1 the adjoint of base_T_anchor
+        b_T_a = b_T_c_H[rows, anchors]
+        R_a, p_a = b_T_a[:, :3, :3], b_T_a[:, :3, 3]
+
+        def minus_adjoint(x: np.ndarray) -> np.ndarray:
+            ang = np.einsum("nij,nj->ni", R_a, x[:, 3:])
+            return -np.concatenate([np.einsum("nij,nj->ni", R_a, x[:, :3]) + np.cross(p_a, ang), ang], axis=1)
+
+        v_out[:, :6] = minus_adjoint(np.einsum("nij,nj->ni", J_j, v_joints))
+        gamma = np.zeros((n, 6))  # the anchor's spatial acceleration with a_b = 0
+        for k in range(n):
+            pin.forwardKinematics(pmodel, data, q_out[k], v_out[k], a_out[k])
+            gamma[k] = pin.getFrameAcceleration(pmodel, data, fids[anchors[k]], pin.LOCAL).vector
+            if progress is not None and (k % 50 == 0 or k == n - 1):
+                progress(0.5 + 0.5 * (k + 1) / n)
+        a_out[:, :6] = minus_adjoint(gamma)
+        # the contacts: the held rest placement when in force, the kinematic one otherwise
+        # (every contact in force holds one; so does the anchor)
+        ids = np.array(held_rows, dtype=int).reshape(n, c)
+        rests = np.array(rest_H).reshape(-1, 4, 4)
+        anchor_rest = rests[ids[rows, anchors]] if n else np.zeros((0, 4, 4))
+        # base = anchor_rest * base_T_anchor^-1 (the placement the step loop formed as an SE3)
+        R_base = anchor_rest[:, :3, :3] @ R_a.transpose(0, 2, 1)
+        p_base = anchor_rest[:, :3, 3] - np.einsum("nij,nj->ni", R_base, p_a)
+        kin_R = R_base[:, None] @ b_T_c_H[:, :, :3, :3]
+        kin_p = np.einsum("nij,ncj->nci", R_base, b_T_c_H[:, :, :3, 3]) + p_base[:, None]
+        in_force = active[:, :, None]
+        placed = rests[np.maximum(ids, 0)] if len(rests) else np.zeros((n, c, 4, 4))
+        cp = np.where(in_force, placed[:, :, :3, 3], kin_p)
+        cR = np.where(in_force[..., None], placed[:, :, :3, :3], kin_R)
+        if active.any():
+            gap = np.linalg.norm(cp - kin_p, axis=2)
+            self.drift = max(self.drift, float(gap[active].max()))
         if n:
             self.was = active[n - 1].copy()
         self.k += n

@@ -32,10 +32,6 @@ from flexforce.factors.physics import GRAVITY, ContactParams, ImuPlacement, Inpu
 ROBOTS_DIR = Path(__file__).resolve().parent / "robots"
 DEFAULT_ROBOT = "romeo"
 
-INERTIA_RATE_STEP = 1e-3
-"""Step of the central difference of :meth:`RobotModel._inertia_rate` along the motion: the
-largest velocity component times the time step (rad or m; 3e-4 .. 2e-3 agree to ~1e-11)."""
-
 STIFFNESS_UNITS = {"k_fs": "N/m", "k_fd": "N s/m", "k_ts": "N m/rad", "k_td": "N m s/rad"}
 """The keys of a robot configuration's ``[stiffness]`` section (all four required) and their units."""
 
@@ -647,61 +643,78 @@ class RobotModel:
             q, v, a: configuration, velocity and acceleration of the robot in the local frame
                 (pinocchio conventions, free-flyer velocity in the body frame).
         """
-        model, data = self.model, self.data
-        pin.forwardKinematics(model, data, q, v, a)
-        pin.updateFramePlacements(model, data)
-        m = self.mass
-        # the centre of mass and the centroidal momentum from the kinematics just computed
-        c = pin.centerOfMass(model, data, pin.KinematicLevel.ACCELERATION, False).copy()
-        dc = data.vcom[0].copy()
-        ddc = data.acom[0].copy()
-        pin.computeCentroidalMomentumTimeVariation(model, data)
-        hg_ang = data.hg.angular.copy()
-        dhg_ang = data.dhg.angular.copy()
-        pin.ccrba(model, data, q, v)
-        I_G = data.Ig.inertia.copy()
-        Sc = _skew(c)
-        I_l = I_G - m * Sc @ Sc
-        sigma = hg_ang + m * Sc @ dc
-        dsigma = dhg_ang + m * Sc @ ddc
-        dI = self._inertia_rate(q, v)
-        inputs = Inputs(m, c, dc, ddc, I_l, dI, sigma, dsigma)
-        fid = self.imu_frame_id
-        oMf = data.oMf[fid]
-        vel = pin.getFrameVelocity(model, data, fid, pin.LOCAL_WORLD_ALIGNED)
-        acc = pin.getFrameClassicalAcceleration(model, data, fid, pin.LOCAL_WORLD_ALIGNED)
-        imu = ImuPlacement(oMf.rotation.copy(), oMf.translation.copy(), vel.linear.copy(),
-                           acc.linear.copy(), vel.angular.copy())
-        cp = np.array([data.oMf[i].translation for i in self.contact_frame_ids])
-        cR = np.array([data.oMf[i].rotation for i in self.contact_frame_ids])
-        links = np.array([data.oMf[i].translation for i in self.link_frame_ids]).reshape(-1, 3)
+        row = {key: value[0] for key, value in self.local_kinematics(q[None], v[None], a[None]).items()}
+        inputs = Inputs(self.mass, row["com"], row["com_vel"], row["com_acc"], row["inertia"], row["inertia_dot"],
+                        row["sigma"], row["sigma_dot"])
+        imu = ImuPlacement(row["imu_R"], row["imu_p"], row["imu_v"], row["imu_a"], row["imu_w"])
+        model, data = self.model, self.data  # after local_kinematics: the joint placements of q
+        contacts = [pin.updateFramePlacement(model, data, i) for i in self.contact_frame_ids]
+        cp = np.array([M.translation for M in contacts]).reshape(-1, 3)
+        cR = np.array([M.rotation for M in contacts]).reshape(-1, 3, 3)
+        links = np.array([pin.updateFramePlacement(model, data, i).translation
+                          for i in self.link_frame_ids]).reshape(-1, 3)
         return LocalKinematics(inputs, imu, cp, cR, links)
 
-    def _inertia_rate(self, q: np.ndarray, v: np.ndarray) -> np.ndarray:
-        r"""dI_l/dt, I_l = sum_i (R_i I_i R_i^T - m_i [c_i]x^2) about the origin, moving at ``v``.
+    def local_kinematics(self, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> dict[str, np.ndarray]:
+        """:meth:`kinematics` along a trajectory, without the contacts: the paper's inputs and the IMU
+        placement and motion of each row of ``q`` (N, nq), ``v`` and ``a`` (N, nv), as arrays named as
+        the Recording fields (``com`` ... ``imu_w``).
 
-        ``I_l(q)`` is the whole robot's composite inertia about the origin (``oYcrb[0]`` of
-        pinocchio's ``ccrba``, on a Data of its own); its derivative along the motion by the
-        five-point central difference
-        ``(I(-2h) - 8 I(-h) + 8 I(h) - I(2h)) / 12h`` with ``I(s) = I_l(q (+) s v)``, the step
-        ``h |v|_inf = INERTIA_RATE_STEP``.  Truncation ``O(h^4)`` and rounding ``O(eps / h)``:
-        within ~1e-11 of the analytic per-body sum
-        (:meth:`_inertia_rate_bodies`, tests/test_robot.py) at a tenth of its cost.
+        Per row, pinocchio's forward kinematics, centre of mass, centroidal momentum and its time
+        variation, and ``dccrba`` (the composite inertia and the rate of the centroidal map); the
+        rest is formed over all rows at once.
         """
-        speed = float(np.max(np.abs(v))) if v.size else 0.0
-        if speed == 0.0:
-            return np.zeros((3, 3))
+        model, data = self.model, self.data
+        n = len(q)
+        m = self.mass
+        c, dc, ddc, hg_ang, dhg_ang = (np.zeros((n, 3)) for _ in range(5))
+        I_G = np.zeros((n, 3, 3))
+        dAg = np.zeros((n, 6, 6))  # the rate of the centroidal map's free-flyer columns
+        Ag_lin = np.zeros((n, 3, 6))
+        imu_H = np.zeros((n, 4, 4))
+        imu_vel = np.zeros((n, 6))
+        imu_acc = np.zeros((n, 3))
+        com, vcom, acom = data.com, data.vcom, data.acom
+        fid = self.imu_frame_id
+        for k in range(n):
+            qk, vk = q[k], v[k]
+            pin.forwardKinematics(model, data, qk, vk, a[k])
+            # the centre of mass and the centroidal momentum from the kinematics just computed
+            pin.centerOfMass(model, data, pin.KinematicLevel.ACCELERATION, False)
+            c[k], dc[k], ddc[k] = com[0], vcom[0], acom[0]
+            pin.computeCentroidalMomentumTimeVariation(model, data)
+            hg_ang[k], dhg_ang[k] = data.hg.angular, data.dhg.angular
+            imu_H[k] = pin.updateFramePlacement(model, data, fid).homogeneous
+            imu_vel[k] = pin.getFrameVelocity(model, data, fid, pin.LOCAL_WORLD_ALIGNED).vector
+            imu_acc[k] = pin.getFrameClassicalAcceleration(model, data, fid, pin.LOCAL_WORLD_ALIGNED).linear
+            pin.dccrba(model, data, qk, vk)
+            I_G[k] = data.Ig.inertia
+            dAg[k] = data.dAg[:, :6]
+            Ag_lin[k] = data.Ag[:3, :6]
+        Sc = _skews(c)
+        I_l = I_G - m * Sc @ Sc
+        sigma = hg_ang + (m * Sc @ dc[..., None])[..., 0]
+        dsigma = dhg_ang + (m * Sc @ ddc[..., None])[..., 0]
+        dI = _inertia_rate_of(m, c, dc, I_l, dAg, Ag_lin, q, v)
+        return {"com": c, "com_vel": dc, "com_acc": ddc, "inertia": I_l, "inertia_dot": dI, "sigma": sigma,
+                "sigma_dot": dsigma, "imu_R": imu_H[:, :3, :3].copy(), "imu_p": imu_H[:, :3, 3].copy(),
+                "imu_v": imu_vel[:, :3].copy(), "imu_a": imu_acc, "imu_w": imu_vel[:, 3:].copy()}
+
+    def _inertia_rate(self, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        r"""dI_l/dt, I_l = sum_i (R_i I_i R_i^T - m_i [c_i]x^2) about the origin, moving at ``v``:
+        :func:`_inertia_rate_of` after pinocchio's ``dccrba`` (on a Data of its own), as
+        :meth:`local_kinematics` forms it.  Equal to the analytic per-body sum
+        (:meth:`_inertia_rate_bodies`, tests/test_robot.py) to rounding.
+        """
         model = self.model
         data = getattr(self, "_rate_data", None)
         if data is None:
             data = self._rate_data = model.createData()
-        h = INERTIA_RATE_STEP / speed
-        zero = np.zeros(model.nv)
-        out = np.zeros((3, 3))
-        for s, weight in ((-2.0, 1.0), (-1.0, -8.0), (1.0, 8.0), (2.0, -1.0)):
-            pin.ccrba(model, data, pin.integrate(model, q, (s * h) * v), zero)
-            out += weight * data.oYcrb[0].matrix()[3:, 3:]  # the whole robot's rotational inertia about the origin
-        return out / (12.0 * h)
+        pin.dccrba(model, data, q, v)
+        c = data.com[0][None]
+        I_l = data.oYcrb[0].matrix()[3:, 3:][None]  # the whole robot's rotational inertia about the origin
+        return _inertia_rate_of(self.mass, c, data.vcom[0][None], I_l, data.dAg[:, :6][None], data.Ag[:3, :6][None],
+                                q[None], v[None])[0]
 
     def _inertia_rate_bodies(self) -> np.ndarray:
         r"""dI_l/dt summed analytically over the bodies (after ``forwardKinematics(q, v)``): the
@@ -738,5 +751,47 @@ class RobotModel:
         return rot - (outer + outer.T - 2.0 * dot * np.eye(3))
 
 
-def _skew(v):
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+def _skews(v: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) cross-product matrices ``[v]x`` of (N, 3) vectors."""
+    out = np.zeros((len(v), 3, 3))
+    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    return out
+
+
+def _rotations(quat: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) rotation matrices of (N, 4) unit quaternions (x, y, z, w)."""
+    x, y, z, w = quat.T
+    return np.stack([1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - z * w), 2.0 * (x * z + y * w),
+                     2.0 * (x * y + z * w), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - x * w),
+                     2.0 * (x * z - y * w), 2.0 * (y * z + x * w), 1.0 - 2.0 * (x * x + y * y)],
+                    axis=-1).reshape(-1, 3, 3)
+
+
+def _inertia_rate_of(m: float, c: np.ndarray, dc: np.ndarray, I_l: np.ndarray, dAg: np.ndarray, Ag_lin: np.ndarray,
+                     q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    r"""dI_l/dt of (N, 3, 3) from what pinocchio's ``dccrba`` leaves at each of N configurations.
+
+    ``dccrba`` sums the rates ``dY_i = v_i x* Y_i - Y_i v_i x`` of the bodies' spatial inertias
+    (world frame, about the origin) into ``dY``, whose angular block is dI_l, and forms the
+    free-flyer columns of the centroidal map's rate ``dAg = dY A + Y (v_1 x) A`` with ``A`` the
+    adjoint of the base placement, ``Y`` the composite inertia and ``v_1`` the base's spatial
+    velocity, before moving their angular rows to the CoM (``+ c x dAg_lin + dc x Ag_lin``).
+    Undone: ``dY = dAg A^-1 - Y (v_1 x)``, whose angular block is
+    ``D_ang R^T - D_lin R^T [p]x - m [c]x [v]x - I_l [w]x`` (``R, p`` the base placement,
+    ``w, v`` the angular and linear parts of ``v_1``).
+
+    Args:
+        m: total mass, kg; c, dc: (N, 3) CoM and its velocity; I_l: (N, 3, 3) rotational inertia
+        about the origin; dAg: (N, 6, 6) free-flyer columns of ``data.dAg``; Ag_lin: (N, 3, 6)
+        linear rows of those of ``data.Ag``; q, v: (N, nq), (N, nv) configurations and velocities.
+    """
+    R = _rotations(q[:, 3:7])
+    p = q[:, :3]
+    w = np.einsum("nij,nj->ni", R, v[:, 3:6])
+    lin = np.einsum("nij,nj->ni", R, v[:, :3]) + np.cross(p, w)
+    Sc = _skews(c)
+    D = dAg[:, 3:] + Sc @ dAg[:, :3] + _skews(dc) @ Ag_lin  # the angular rows, about the origin
+    RT = R.transpose(0, 2, 1)
+    return (D[:, :, 3:] @ RT - D[:, :, :3] @ RT @ _skews(p) - m * Sc @ _skews(lin)
+            - I_l @ _skews(w))

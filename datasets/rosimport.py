@@ -74,6 +74,8 @@ FOOTHOLD_BOUND = 6.0
 """A landing sole further from the floor plane than this many leg-kinematics sigmas contradicts
 the ground prior: an error, not a silent correction."""
 META_TOPIC = "/flexforce/meta"
+INPUT_BLOCK = 500
+"""Steps whose inputs :func:`local_inputs` forms at once between two progress reports."""
 _NS = 1_000_000_000
 _EXPECTED = "expected a ROS 2 bag directory, .mcap/.db3 file or ROS 1 .bag file"
 
@@ -545,20 +547,18 @@ def check_touch_downs(landed, footholds, contact_names, time_of) -> None:
 
 def local_inputs(model, lf, progress=None) -> dict[str, Any]:
     """The paper's inputs and the IMU placement per step (the Recording fields ``com`` ... ``imu_w``)
-    from the local frame ``lf`` (:meth:`RobotModel.kinematics` at each step)."""
-    fields: dict[str, list] = {k: [] for k in ("com", "com_vel", "com_acc", "inertia", "inertia_dot", "sigma",
-                                               "sigma_dot", "imu_R", "imu_p", "imu_v", "imu_a", "imu_w")}
+    from the local frame ``lf`` (:meth:`RobotModel.local_kinematics`, by blocks of ``INPUT_BLOCK``
+    steps when ``progress`` is given)."""
     n = len(lf.q)
-    for k in range(n):
-        kin = model.kinematics(lf.q[k], lf.v[k], lf.a[k])
-        inp, im = kin.inputs, kin.imu
-        for key, value in (("com", inp.c), ("com_vel", inp.dc), ("com_acc", inp.ddc), ("inertia", inp.I),
-                           ("inertia_dot", inp.dI), ("sigma", inp.sigma), ("sigma_dot", inp.dsigma),
-                           ("imu_R", im.R), ("imu_p", im.p), ("imu_v", im.v), ("imu_a", im.a), ("imu_w", im.w)):
-            fields[key].append(value)
-        if progress is not None and k % 50 == 0:
-            progress(k / n)
-    return {k: np.array(v) for k, v in fields.items()}
+    block = INPUT_BLOCK if progress is not None else max(n, 1)
+    parts = []
+    for k in range(0, max(n, 1), block):
+        parts.append(model.local_kinematics(lf.q[k:k + block], lf.v[k:k + block], lf.a[k:k + block]))
+        if progress is not None:
+            progress(min(k + block, n) / max(n, 1))
+    if len(parts) == 1:
+        return parts[0]
+    return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
 
 
 def _merge_gaps(gaps: list[dict]) -> list[dict]:

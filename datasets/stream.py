@@ -188,6 +188,7 @@ class StreamImporter:
         # interpolated rows not yet differentiated (and the h before them, for the filter)
         self._rows: dict[str, list] = {"gyro": [], "accel": [], "q": [], "v": [], "ft": []}
         self._rows_first = 0  # step of self._rows[...][0]
+        self._waiting: tuple[np.ndarray | None, np.ndarray | None] = (None, None)  # the next step's IMU, joints
         self._k_interp = 0  # next step to interpolate
         self._k_deriv = 0  # next step to differentiate
         self._ready: list[dict] = []  # steps with every input final, not yet handed out
@@ -387,13 +388,20 @@ class StreamImporter:
         t0 = self.t_first if self.t_first is not None else self.grid0
         while True:
             g = self.grid0 + self._k_interp * self.period
-            imu = self.imu.at(g, self.max_gap_ns, True, t0)
+            # the IMU and joint values of a step kept while it waits for another topic (final once
+            # a message at or after the step has arrived)
+            imu, joints = self._waiting
             if imu is None:
-                return
-            joints = self.joints.at(g, self.max_gap_ns, True, t0)
+                imu = self.imu.at(g, self.max_gap_ns, True, t0)
+                if imu is None:
+                    return
             if joints is None:
-                return
-            ft = np.full((len(self.names_c), 6), np.nan)
+                joints = self.joints.at(g, self.max_gap_ns, True, t0)
+                if joints is None:
+                    self._waiting = (imu, None)
+                    return
+            self._waiting = (imu, joints)
+            wrenches = []
             for i, topic in self.ft.items():
                 w = topic.at(g, self.max_gap_ns, False, t0)
                 if w is None:
@@ -402,6 +410,10 @@ class StreamImporter:
                     if not (final or behind):
                         return
                     continue
+                wrenches.append((i, w))
+            self._waiting = (None, None)
+            ft = np.full((len(self.names_c), 6), np.nan)
+            for i, w in wrenches:
                 ft[i] = w
             rows["gyro"].append(imu[:3])
             rows["accel"].append(imu[3:])
