@@ -26,8 +26,8 @@ registered effect (screening, refits, greedy forward selection, ``add=["auto"]``
 Scored as the targets read:
 
 * right effect first, among the single-effect recordings whose truth the identifiability table
-  (computed by the diagnosis at the nominal fit, before any refit) calls seen and separable from
-  every other candidate;
+  (computed by the diagnosis at the nominal fit, before any refit) calls seen (at least partly:
+  some direction of it pays for its dof) and separable from every other candidate;
 * no significant effect on the clean recordings;
 * no wrong candidate in the final selection: a selected effect that is not a truth and not
   called inseparable from one by the table;
@@ -126,6 +126,7 @@ def _one(job):
     return {**job, "key": key(job), "selected": list(d.selected), "first": d.selected[0] if d.selected else "none",
             "inseparable": [[p.a, p.b, float(p.largest)] for p in ident.inseparable()] if ident else None,
             "not_seen": [c.effect for c in ident.not_seen()] if ident else None,
+            "status": {t: ident.candidates[t].status for t in job["truth"] if t in ident.candidates} if ident else None,
             "ranking": [{"effect": c.effect, "score": c.score, "significant": c.significant}
                         for c in d.rounds[0]] if d.rounds else [],
             "before": {k: d.before.rmse[k] for k in KEYS},
@@ -138,9 +139,16 @@ def partners(r, name) -> set[str]:
     return {b if a == name else a for a, b, _ in (r.get("inseparable") or []) if name in (a, b)}
 
 
+def seen(r, name) -> bool:
+    """The table sees ``name`` at least partly (a direction of it pays for its dof: the external
+    wrench's vertical force never does on these robots, its horizontal push does)."""
+    return (r.get("status") or {}).get(name, "seen" if name not in (r.get("not_seen") or []) else "not seen") != \
+        "not seen"
+
+
 def score(runs: list[dict]) -> dict:
     singles = [r for r in runs if len(r["truth"]) == 1 and r["first"] != "error"]
-    separable = [r for r in singles if r.get("not_seen") is not None and r["truth"][0] not in r["not_seen"]
+    separable = [r for r in singles if r.get("not_seen") is not None and seen(r, r["truth"][0])
                  and not partners(r, r["truth"][0])]
     clean = [r for r in runs if not r["truth"] and r["first"] != "error"]
     wrong = []
@@ -172,8 +180,7 @@ def score(runs: list[dict]) -> dict:
         "two_effects_both_found": frac(sum(set(r["truth"]) <= set(r["selected"]) for r in runs if len(r["truth"]) == 2),
                                        sum(len(r["truth"]) == 2 for r in runs)),
         "recordings_with_a_wrong_selection": wrong,
-        "not_separable": [[r["key"], sorted(partners(r, r["truth"][0])),
-                           r["truth"][0] in (r.get("not_seen") or []), r["first"]]
+        "not_separable": [[r["key"], sorted(partners(r, r["truth"][0])), not seen(r, r["truth"][0]), r["first"]]
                           for r in singles if r not in separable],
         "error_ratio_after_before_median": {k: float(np.median(v)) for k, v in ratios.items()},
         "error_ratio_after_before_range": {k: [float(np.min(v)), float(np.max(v))] for k, v in ratios.items()},
@@ -189,8 +196,8 @@ def markdown(runs: list[dict], summary: dict) -> str:
         if len(r["truth"]) == 1 and r.get("not_seen") is not None:
             t = r["truth"][0]
             p = partners(r, t)
-            sep = ("not seen" if t in r["not_seen"] else "yes") + (f"; inseparable from {', '.join(sorted(p))}"
-                                                                    if p else "")
+            status = (r.get("status") or {}).get(t, "not seen" if t in r["not_seen"] else "seen")
+            sep = status + (f"; inseparable from {', '.join(sorted(p))}" if p else "")
         ratio = "—"
         if r.get("after") and r["truth"]:
             ratio = " / ".join(f'{r["after"][k] / r["before"][k]:.2f}' if r["before"][k] > 0 else "—" for k in KEYS)

@@ -464,6 +464,10 @@ class Problem:
         (prob.K_fs, prob.K_fd, prob.K_ts, prob.K_td), prob.beta, prob.iso = _contact_arrays(model.contact_params)
         prob.effect_dims = tuple(int(e.dim) for e in prob.effects)
         prob.prior_mean = part_of.prior_mean if part_of is not None else prob.equilibrium(0)
+        if part_of is not None:  # the same noise: its whiteners
+            prob.integration_whitener = part_of.integration_whitener
+            prob.ne_whitener, prob.contact_whitener = part_of.ne_whitener, part_of.contact_whitener
+            return prob
         prob.integration_whitener = whitener(prob.sigmas.integration_cov)
         # derive_sigmas sets both covariances.
         assert prob.sigmas.newton_euler_cov is not None and prob.sigmas.contact_cov is not None
