@@ -789,7 +789,7 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
             candidates' score tests, a round's refits and the before/after views; the same results
             as ``jobs=1``, each worker taking about the memory of one fit.
     """
-    from flexforce.compare.runner import describe, fork_map
+    from flexforce.compare.runner import check_jobs, describe, fork_map
     from flexforce.factors.model import ModelConfig
 
     rec.validate()
@@ -833,20 +833,23 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
 
     cache: dict[tuple[str, ...], Fit] = {}
 
+    def fit_with(names: tuple[str, ...], progress=None) -> Fit:
+        """The model with the candidates ``names`` added, fitted."""
+        effects = tuple(model.effects) + tuple(makers[n]() for n in names)
+        return fit_model(rec, dataclasses.replace(model, effects=effects), progress=progress)
+
     def fitted(names: tuple[str, ...]) -> Fit:
         key = tuple(sorted(names))
         if key in fit_errors:
             raise fit_errors.pop(key)
         if key not in cache:
-            effects = tuple(model.effects) + tuple(makers[n]() for n in names)
             label = "nominal" if not names else "+ " + " + ".join(names)
             t0 = time.perf_counter()
-            cache[key] = fit_model(rec, dataclasses.replace(model, effects=effects), progress=cb(label))
+            cache[key] = fit_with(names, progress=cb(label))
             say(label, f"fitted {label if names else 'the nominal model'}", t0)
         return cache[key]
 
-    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
-        raise ConfigError(f"jobs = {jobs!r}; expected a positive number of worker processes (1: in this process)")
+    check_jobs(jobs)
     fit_errors: dict[tuple[str, ...], Exception] = {}
     fit_seconds: dict[tuple[str, ...], float] = {}
 
@@ -857,11 +860,7 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
         if jobs == 1 or len(todo) < 2:
             return
 
-        def one(names):
-            effects = tuple(model.effects) + tuple(makers[n]() for n in names)
-            return fit_model(rec, dataclasses.replace(model, effects=effects))
-
-        for i, ok, value, seconds in fork_map(one, todo, jobs):
+        for i, ok, value, seconds in fork_map(fit_with, todo, jobs):
             key = tuple(sorted(todo[i]))
             if ok:
                 cache[key] = value

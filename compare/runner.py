@@ -202,6 +202,12 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
     return result
 
 
+def check_jobs(jobs) -> None:
+    """Raise a :class:`ConfigError` unless ``jobs`` is a positive number of worker processes."""
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+        raise ConfigError(f"jobs = {jobs!r}; expected a positive number of worker processes (1: in this process)")
+
+
 def run_jobs(fn: Callable[[Any], Any], items: list, jobs: int = 1, initializer: Callable[..., None] | None = None,
              initargs: tuple = ()) -> Iterator[Any]:
     """``fn(item)`` for every item, yielded in the items' order; in ``jobs`` worker processes when
@@ -214,8 +220,7 @@ def run_jobs(fn: Callable[[Any], Any], items: list, jobs: int = 1, initializer: 
     Raises:
         ConfigError: ``jobs`` is not a positive integer.
     """
-    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
-        raise ConfigError(f"jobs = {jobs!r}; expected a positive number of worker processes (1: in this process)")
+    check_jobs(jobs)
     if jobs == 1 or len(items) <= 1:
         for item in items:
             yield fn(item)
@@ -239,6 +244,15 @@ _FORK_TASKS: list = []
 workers inherit (nothing is pickled on the way there)."""
 
 
+def _timed_call(fn: Callable[[Any], Any], item) -> tuple[bool, Any, float]:
+    """``(ok, fn(item) or its exception, seconds)``."""
+    t0 = time.perf_counter()
+    try:
+        return True, fn(item), time.perf_counter() - t0
+    except Exception as err:  # noqa: BLE001 -- returned, as from a worker
+        return False, err, time.perf_counter() - t0
+
+
 def _fork_task(i: int) -> tuple[int, bool, Any, float]:
     """Item ``i`` of the innermost :func:`fork_map`, in a worker: (index, ok, the pickled result or
     the exception, seconds).  A result that does not pickle comes back as None (computed again
@@ -246,20 +260,18 @@ def _fork_task(i: int) -> tuple[int, bool, Any, float]:
     import pickle
 
     fn, items = _FORK_TASKS[-1]
-    t0 = time.perf_counter()
-    try:
-        value = fn(items[i])
-    except Exception as err:  # noqa: BLE001 -- handed to the parent, as in-process
+    ok, value, seconds = _timed_call(fn, items[i])
+    if not ok:
         try:
-            pickle.dumps(err)
+            pickle.dumps(value)
         except Exception:  # noqa: BLE001 -- an exception that does not pickle: its text
-            err = RuntimeError(f"{type(err).__name__}: {err}")
-        return i, False, err, time.perf_counter() - t0
+            value = RuntimeError(f"{type(value).__name__}: {value}")
+        return i, False, value, seconds
     try:
         data = pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)
     except Exception:  # noqa: BLE001 -- e.g. a user's effect holding a lambda
         data = None
-    return i, True, data, time.perf_counter() - t0
+    return i, True, data, seconds
 
 
 def fork_map(fn: Callable[[Any], Any], items: list, jobs: int = 1) -> Iterator[tuple[int, bool, Any, float]]:
@@ -280,13 +292,7 @@ def fork_map(fn: Callable[[Any], Any], items: list, jobs: int = 1) -> Iterator[t
 
     if jobs <= 1 or len(items) <= 1 or "fork" not in multiprocessing.get_all_start_methods():
         for i, item in enumerate(items):
-            t0 = time.perf_counter()
-            try:
-                value = fn(item)
-            except Exception as err:  # noqa: BLE001 -- returned, as from a worker
-                yield i, False, err, time.perf_counter() - t0
-                continue
-            yield i, True, value, time.perf_counter() - t0
+            yield (i, *_timed_call(fn, item))
         return
     from concurrent.futures import ProcessPoolExecutor, as_completed
     from concurrent.futures.process import BrokenProcessPool
@@ -301,13 +307,10 @@ def fork_map(fn: Callable[[Any], Any], items: list, jobs: int = 1) -> Iterator[t
             try:
                 for future in as_completed(futures):
                     i, ok, value, seconds = future.result()
-                    if ok:
-                        if value is None:
-                            t0 = time.perf_counter()
-                            value = fn(items[i])
-                            seconds = time.perf_counter() - t0
-                        else:
-                            value = pickle.loads(value)
+                    if ok and value is None:
+                        ok, value, seconds = _timed_call(fn, items[i])
+                    elif ok:
+                        value = pickle.loads(value)
                     yield i, ok, value, seconds
             except BrokenProcessPool as err:
                 raise EstimatorError(f"a worker process of jobs = {jobs} ended abruptly ({err}: out of memory?); "

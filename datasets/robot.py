@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
+from scipy.spatial.transform import Rotation
 
 from flexforce.errors import ConfigError, ConfigWarning
 from flexforce.factors.footholds import FootholdPrior
@@ -759,15 +760,6 @@ def _skews(v: np.ndarray) -> np.ndarray:
     return out
 
 
-def _rotations(quat: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) rotation matrices of (N, 4) unit quaternions (x, y, z, w)."""
-    x, y, z, w = quat.T
-    return np.stack([1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - z * w), 2.0 * (x * z + y * w),
-                     2.0 * (x * y + z * w), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - x * w),
-                     2.0 * (x * z - y * w), 2.0 * (y * z + x * w), 1.0 - 2.0 * (x * x + y * y)],
-                    axis=-1).reshape(-1, 3, 3)
-
-
 def _inertia_rate_of(m: float, c: np.ndarray, dc: np.ndarray, I_l: np.ndarray, dAg: np.ndarray, Ag_lin: np.ndarray,
                      q: np.ndarray, v: np.ndarray) -> np.ndarray:
     r"""dI_l/dt of (N, 3, 3) from what pinocchio's ``dccrba`` leaves at each of N configurations.
@@ -786,7 +778,7 @@ def _inertia_rate_of(m: float, c: np.ndarray, dc: np.ndarray, I_l: np.ndarray, d
         about the origin; dAg: (N, 6, 6) free-flyer columns of ``data.dAg``; Ag_lin: (N, 3, 6)
         linear rows of those of ``data.Ag``; q, v: (N, nq), (N, nv) configurations and velocities.
     """
-    R = _rotations(q[:, 3:7])
+    R = Rotation.from_quat(q[:, 3:7]).as_matrix() if len(q) else np.zeros((0, 3, 3))  # (older scipy: no empty)
     p = q[:, :3]
     w = np.einsum("nij,nj->ni", R, v[:, 3:6])
     lin = np.einsum("nij,nj->ni", R, v[:, :3]) + np.cross(p, w)

@@ -26,6 +26,7 @@ episode's first step, which the offline smoother reads ahead) and the gtsam back
 
 from __future__ import annotations
 
+import math
 import time
 import warnings
 from array import array
@@ -60,11 +61,12 @@ class UpdateTimes:
         self.max = 0.0
 
     def add(self, seconds: float) -> None:
-        x = min(max(float(seconds), self.LO), self.HI)
-        self.bins[int(np.log(x / self.LO) / self._log_ratio)] += 1
+        seconds = float(seconds)
+        x = min(max(seconds, self.LO), self.HI)
+        self.bins[int(math.log(x / self.LO) / self._log_ratio)] += 1
         self.count += 1
-        self.total += float(seconds)
-        self.max = max(self.max, float(seconds))
+        self.total += seconds
+        self.max = max(self.max, seconds)
 
     def quantile(self, q: float) -> float:
         """The ``q`` quantile (lower: the smallest value with at least ``q`` of the count at or below it)."""
