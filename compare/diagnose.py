@@ -141,6 +141,17 @@ def effect_factory(spec) -> tuple[str, Callable[[], object]]:
     raise ConfigError(f"candidate {spec!r} is neither an effect name, an Effect class nor an Effect instance")
 
 
+def bound(make: Callable[[], object], rec, model) -> Callable[[], object]:
+    """``make`` whose effects are fitted to ``rec``: an effect with a ``bind(rec, model)`` method
+    (one unknown block per contact of the recording, e.g. the footholds) is made through it."""
+    def made():
+        eff = make()
+        bind = getattr(eff, "bind", None)
+        return bind(rec, model) if callable(bind) else eff
+
+    return made
+
+
 def resolve_candidates(candidates: Iterable | None) -> dict[str, Callable[[], object]]:
     """Name -> factory of every candidate (default: every registered effect)."""
     if candidates is None:
@@ -799,6 +810,7 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
     want_auto = AUTO in add
     add = [a for a in add if a != AUTO]
     cands = resolve_candidates(candidates) if candidates is not None or registered_effects() else {}
+    cands = {k: bound(m, rec, model) for k, m in cands.items()}
     if rank and not cands:
         raise ConfigError("no candidate effects to rank: flexforce.factors.effects is not available; pass candidates")
     for name in list(cands):
@@ -813,7 +825,7 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
             add_makers[spec] = cands[spec]
         else:
             name, make = effect_factory(spec)
-            add_makers[name] = make
+            add_makers[name] = bound(make, rec, model)
     makers = {**cands, **add_makers}
 
     call = progress_caller(progress)
@@ -1138,7 +1150,7 @@ def identifiability(rec, candidates: Iterable | None = None, model=None, window:
     rec.validate()
     if model is None:
         model = ModelConfig.from_recording(rec)
-    cands = resolve_candidates(candidates)
+    cands = {k: bound(m, rec, model) for k, m in resolve_candidates(candidates).items()}
     nominal = fit_model(rec, model, progress=progress)
     if nominal.trajectory is None or nominal.model is None:
         raise ConfigError("the identifiability table needs the fitted trajectory (flexforce.smoother.fit returns it)")

@@ -38,6 +38,12 @@ type                       parameters (SI units)
                            point, in the contact frame) of ``contact`` (a contact name; all
                            contacts when absent); the physics and the other sensors are
                            unchanged.  One table per sensor for different offsets.
+``foothold``               ``contact`` (a contact name, in force at the start), ``position``
+                           [m] and ``rotation`` [rad] (world axes): the ground under that
+                           contact is off the nominal rest placement by this much -- a shim,
+                           a tilted tile, a foot that settled elsewhere than the kinematics
+                           say.  The spring's true rest is moved; the recording's contact
+                           placement is still the nominal one.
 =========================  ==================================================================
 """
 
@@ -52,7 +58,8 @@ from flexforce.datasets.scenario import minjerk
 from flexforce.errors import ConfigError
 
 EFFECT_TYPES = ("external-wrench", "gyro-bias", "accel-bias", "stiffness", "anisotropic-stiffness",
-                "nonlinear-stiffness", "com-offset", "imu-mounting", "time-offset", "mass-scale", "ft-offset")
+                "nonlinear-stiffness", "com-offset", "imu-mounting", "time-offset", "mass-scale", "ft-offset",
+                "foothold")
 
 _PARAMS = {
     "external-wrench": {"link", "force", "torque", "start", "duration", "profile", "ramp"},
@@ -66,6 +73,7 @@ _PARAMS = {
     "time-offset": {"delay"},
     "mass-scale": {"scale"},
     "ft-offset": {"contact", "force", "torque"},
+    "foothold": {"contact", "position", "rotation"},
 }
 
 

@@ -683,6 +683,26 @@ class Simulator:
         at = np.clip(times - delay, times[0], times[-1])
         return CubicSpline(times, gyro, axis=0)(at), CubicSpline(times, accel, axis=0)(at)
 
+    def _foothold_offsets(self, active) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        """Contact index -> (position m, rotation vector rad, world axes) by which the true rest
+        placement of a contact standing at the start is off its nominal one (``foothold``)."""
+        names = list(self.robot.contact_names)
+        out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        for e in self.effects:
+            if e.type != "foothold":
+                continue
+            contact = e.params.get("contact")
+            if contact not in names:
+                raise ConfigError(f"foothold on unknown contact {contact!r} of robot '{self.robot.name}'; "
+                                  f"known: {', '.join(names)}")
+            ci = names.index(contact)
+            if not active[ci]:
+                raise ConfigError(f"foothold on '{contact}', which is not in contact at the start; the effect "
+                                  "moves the rest placement of a contact standing at the first sample")
+            dp, dr = out.get(ci, (np.zeros(3), np.zeros(3)))
+            out[ci] = (dp + e.vector("position"), dr + e.vector("rotation"))
+        return out
+
     def _ft_offsets(self) -> np.ndarray:
         """(C, 6) the hidden constant offsets of the F/T readings (sensor frame), per contact."""
         names = list(self.robot.contact_names)
@@ -912,6 +932,10 @@ class Simulator:
         # computed when its interval starts (an early touch-down changes the motion from then on).
         samples = [self.motion.sample(0.0)]
         rest: list[Any] = [pin.SE3(M) if act else None for M, act in zip(self.motion.placements0, samples[0].active)]
+        nominal_rest = [pin.SE3(M) if M is not None else None for M in rest]
+        for ci, (dp, dr) in self._foothold_offsets(samples[0].active).items():
+            # the ground under a standing contact is not where the robot believes (a shim, a tilted tile)
+            rest[ci] = pin.SE3(pin.exp3(dr) @ rest[ci].rotation, rest[ci].translation + dp)
         R, tr = self._equilibrium(samples[0], rest)
         quat = pin.Quaternion(R)
         y = np.concatenate([[quat.w, quat.x, quat.y, quat.z], tr, np.zeros(6)])
@@ -933,10 +957,10 @@ class Simulator:
         disturbance = None
         # The world's rest placement of each contact in force (the spring's anchor), and the local
         # placement the robot believes in (the recording's contact placement).
-        local_rest: list[Any] = [pin.SE3(M) if M is not None else None for M in rest]  # pin.SE3 or None
+        local_rest: list[Any] = [pin.SE3(M) if M is not None else None for M in nominal_rest]  # pin.SE3 or None
         episodes = [{"contact": robot.contact_names[ci], "start": 0.0, "end": None,
                      "world_p": rest[ci].translation.tolist(), "world_R": rest[ci].rotation.tolist(),
-                     "local_p": rest[ci].translation.tolist()} if rest[ci] is not None else None
+                     "local_p": local_rest[ci].translation.tolist()} if rest[ci] is not None else None
                     for ci in range(nc)]
         closed = []
         scheduled = [bool(a) for a in samples[0].active]
@@ -944,7 +968,7 @@ class Simulator:
         releasing = [False] * nc
         floor_mode = self.touchdown == "floor"
         # The floor: the plane of the contacts in force at the start (z = 0 for the built-in robots).
-        floor_z = float(np.mean([M.translation[2] for M in rest if M is not None]))
+        floor_z = float(np.mean([M.translation[2] for M in nominal_rest if M is not None]))
         # Each sole's normal to the floor, in its own frame (from the standing posture).
         floor_normal = [M.rotation.T @ E_Z for M in self.motion.placements0]
         replanned = [False]  # an early touch-down changed the local motion in the current interval

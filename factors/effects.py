@@ -1482,7 +1482,8 @@ EFFECTS: dict[str, type] = {
     "mass-scale": MassScale,
     "ft-offset": FtOffset,
 }
-"""Effect name -> class (the names are the simulator's hidden-effect types)."""
+"""Effect name -> class (the names are the simulator's hidden-effect types); ``foothold``
+(:class:`flexforce.factors.footholds.Footholds`) is added below."""
 
 
 def make_effect(name: str, **params):
@@ -1500,3 +1501,8 @@ def make_effect(name: str, **params):
         return cls(**params)
     except TypeError as err:
         raise ConfigError(f"effect '{name}': bad parameters {sorted(params)}: {err}") from None
+
+
+from flexforce.factors.footholds import Footholds  # noqa: E402  (it reads this module's protocols)
+
+EFFECTS["foothold"] = Footholds

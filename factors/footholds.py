@@ -43,13 +43,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from flexforce.errors import ConfigError
 from flexforce.factors import core
-from flexforce.factors.effects import ProblemView
 from flexforce.options import check_choice, check_finite, check_positive, invalid
+
+if TYPE_CHECKING:
+    from flexforce.factors.effects import ProblemView
 
 __all__ = ["FootholdPrior", "Footholds", "episode_starts", "held_rest"]
 
@@ -170,27 +173,76 @@ def _jl_all(phi, inverse=False):
 
 class Footholds:
     """Per-contact foothold corrections (module docstring): ``6 C`` unknowns per step, ``(dp_i m,
-    dr_i rad)`` world axes, each contact's in turn."""
+    dr_i rad)`` world axes, each contact's in turn.
+
+    Also the diagnosis' ``foothold`` candidate (the simulator's hidden ``foothold``): a contact
+    resting elsewhere than the recording's local frame says -- a shim or a tilted tile under a
+    standing foot, a landing the leg odometry places wrong, the local frame's drift in tilt at
+    every touch-down of a real walk.  Without it the smoothers read such an error as a deflection
+    of the flexibility, and the forces and the tilt follow it.  The diagnosis makes one per
+    recording (:meth:`bind`: one per contact, the robot's ``[footholds]`` priors).
+    """
 
     name = "foothold"
     constant = False
     unit = "m, rad"
+    what = "foothold error"
+    hint = ("shift the weight between the contacts, or step: a foothold error is a deflection that stays with "
+            "its contact episode whatever the load, while a bias, a CoM offset or a stiffness error follows "
+            "the motion")
+    plausible_position = 0.05
+    """m: a correction beyond this is no foothold error (the leg kinematics are not 5 cm off)."""
+    plausible_rotation = 0.35
+    """rad (20 deg): a correction beyond this is no foothold error."""
 
-    def __init__(self, n_contacts: int, prior: FootholdPrior | None = None):
-        if int(n_contacts) < 1:
-            raise ConfigError(f"Footholds: n_contacts = {n_contacts!r}; expected at least one contact")
-        self.nc = int(n_contacts)
+    def __init__(self, n_contacts: int = 2, prior: FootholdPrior | None = None):
+        try:
+            nc = int(n_contacts)
+        except (TypeError, ValueError):
+            nc = 0
+        if nc < 1 or isinstance(n_contacts, bool):
+            raise ConfigError(f"foothold: n_contacts = {n_contacts!r}; expected a positive count of contacts "
+                              "(default 2, a biped's feet)")
+        self.nc = nc
         self.dim = 6 * self.nc
+        self._prior_given = prior is not None
         self.prior_config = FootholdPrior() if prior is None else prior
         self.labels = tuple(f"c{i} {kind}{a} [{u}]" for i in range(self.nc)
                             for kind, u in (("dp_", "m"), ("dr_", "rad")) for a in "xyz")
+        per = ("the contact's fore-aft load moment and the base's pitch at rest on it",
+               "the contact's sideways load moment and the base's roll at rest on it",
+               "the contact's share of the load (weight shifts, steps)",
+               "the base's roll while the contact bears load",
+               "the base's pitch while the contact bears load",
+               "twisting about the contact")
+        self.excites = per * self.nc
         self._cache: tuple | None = None
+
+    def bind(self, rec, model) -> Footholds:
+        """This effect for ``rec`` and ``model``: one correction per contact of the recording, the
+        priors the effect was given or else the model's (the robot's ``[footholds]`` table)."""
+        prior = self.prior_config if self._prior_given else getattr(model, "foothold_prior", None)
+        return Footholds(len(rec.contact_names), prior)
+
+    def plausible(self, report: dict, problem: ProblemView) -> str | None:
+        """None, or why the estimated corrections are no foothold error."""
+        p, r = float(report.get("max_position_m", 0.0)), float(report.get("max_rotation_rad", 0.0))
+        if p > self.plausible_position:
+            return (f"a foothold {1e3 * p:.0f} mm off the kinematics' (beyond {1e3 * self.plausible_position:.0f} mm: "
+                    "the leg kinematics are not that wrong)")
+        if r > self.plausible_rotation:
+            return (f"a foothold turned {math.degrees(r):.1f} deg from the kinematics' (beyond "
+                    f"{math.degrees(self.plausible_rotation):.0f} deg)")
+        return None
 
     # -- set-up ---------------------------------------------------------------------------------
     def _setup(self, problem: ProblemView):
         """Plane, kinematic whiteners and episode starts of ``problem`` (cached per problem)."""
         if self._cache is not None and self._cache[0] is problem:
             return self._cache[1]
+        if int(problem.nc) != self.nc:
+            raise ConfigError(f"foothold: made for {self.nc} contacts, the recording has {int(problem.nc)}; "
+                              "make it with n_contacts = the recording's contacts (or let the diagnosis bind it)")
         cfg = self.prior_config
         active = np.asarray(problem.active, dtype=bool)
         rest_p = np.asarray(problem.rest_p, dtype=float)

@@ -420,7 +420,8 @@ class Problem:
         """Args:
             rest_p, rest_R: (N, C, 3) and (N, C, 3, 3) the contacts' rest placements in the world
                 (footholds) per step; default: the recording's local placements ``contact_p``,
-                ``contact_R`` (the spring is at rest where the local frame puts the contact).
+                ``contact_R`` (the spring is at rest where the local frame puts the contact),
+                held over each contact episode when the model estimates the footholds.
             part_of, offset: ``rec`` is the part of a stream from step ``offset`` on, and
                 ``part_of`` the problem of the stream's first part: its noise (derived from the
                 stream's first sample), period and first-step prior are kept, so that every part
@@ -458,6 +459,9 @@ class Problem:
         prob.y_imu = c(np.where(use, np.concatenate([rec.gyro, rec.accel], axis=1), 0.0), float)
         prob.active = c(rec.contact_active, bool)
         prob.contact_p, prob.contact_R = c(rec.contact_p, float), c(rec.contact_R, float)
+        if rest_p is None and rest_R is None and any(isinstance(e, Footholds) for e in model.effects):
+            # estimated footholds correct each episode's nominal placement, held from its first step
+            rest_p, rest_R = held_rest(rec.contact_active, rec.contact_p, rec.contact_R)
         prob.rest_p, prob.rest_R = rest_placements(rec, rest_p, rest_R)
         prob.y_ft = c(rec.ft, float) if use_ft else None  # NaN: not measured (zero rows, factors.core.ft)
         prob.ft_use = c(np.isfinite(rec.ft), float) if use_ft else None
