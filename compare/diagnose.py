@@ -20,9 +20,12 @@ Three steps (DESIGN.md, "Diagnostics"; docs/diagnostics.md explains how to read 
    constant ``p``-vector the data determine, less when its prior does; 0 for per-step unknowns,
    whose Occam factor is already in ``E``) and ``n`` the number of scalar residuals.  An effect is
    *significant* when its score is positive and the likelihood-ratio p-value of ``2 (E_0 - E_1)``
-   against chi-square with the effect's effective dof is below ``alpha`` (0.01).  Several
-   effects: greedy forward selection -- add the best significant one, rescore the rest on top of
-   it, stop when none is significant.
+   against chi-square with the effect's effective dof is below ``alpha / m`` (``alpha`` 0.01),
+   ``m`` the candidates in the round.  Several effects: greedy forward selection -- add the best
+   significant one, rescore the rest on top of it, stop when none is significant.  Each round
+   tests its ``m`` candidates (every one not selected yet) at ``alpha / m``: Holm's step-down
+   procedure: a recording without a hidden effect selects one with probability at most ``alpha``
+   (at ``alpha`` per candidate, 11 candidates would give up to 10 %).
 
    Why the marginal and not the joint likelihood: the joint optimum over states and parameters
    is biased for every parameter that enters the dynamics (the trajectory prior's normaliser
@@ -39,7 +42,7 @@ residuals of a few seconds of data, the smoothed residuals' small departures fro
 and its penalty is negligible against a random-walk effect that can absorb anything.  BIC's
 ``ln n`` per dof (about 10 for 3 s at 200 Hz) only lets an effect in when the data demand it,
 and it is consistent: with more data it picks the true model with probability one.  The
-likelihood-ratio p-value is the second guard: it bounds the false-alarm rate of each test at
+likelihood-ratio p-value is the second guard: it bounds the false-alarm rate of each round at
 ``alpha`` whatever ``n``.
 
 Fitting goes through :func:`flexforce.smoother.fit`: its :class:`~flexforce.smoother.FitStatistics`
@@ -71,7 +74,8 @@ if TYPE_CHECKING:
     from flexforce.smoother.screening import Identifiability, ScoreTest
 
 ALPHA = 0.01
-"""Level of the likelihood-ratio test of an effect (and of the windowed residual tests)."""
+"""Family-wise level of each selection round's likelihood-ratio tests (each candidate at ``ALPHA / m``,
+``m`` the round's candidates: :func:`score`), and the level of the windowed residual tests."""
 
 SCREEN_LEVEL = 0.01
 """Level of the score test that decides which candidates are refitted (:func:`screen`)."""
@@ -274,6 +278,7 @@ class Candidate:
                 "parameters": _jsonable(self.parameters), "summary": self.summary, "round": self.round,
                 "base": list(self.base), "likelihood_ratio": _clean(self.lr),
                 "effective_dof": _clean(self.effective_dof), "p_value": _clean(self.p_value),
+                "level": _clean(self.level),
                 "indistinguishable_from": list(self.rivals), "refitted": bool(self.refitted),
                 "status": self.status, "finding": self.finding or self.summary,
                 **({"implausible": self.implausible} if self.implausible else {}),
@@ -291,6 +296,9 @@ class Candidate:
     refits (``diagnose(refit_best=...)``) until the selection stopped."""
     error_detail: str | None = None
     """The solver's own message when the fit failed (``error`` says it in the recording's terms)."""
+    level: float | None = None
+    """Level its likelihood-ratio p-value was tested at: ``alpha / m``, ``m`` the candidates in its
+    round (Holm: :func:`score`); None when not scored (not refitted, or the fit failed)."""
 
 
 @dataclass
@@ -488,7 +496,8 @@ def summarize_effect(report: dict, effect) -> str:
     return ", ".join(parts)
 
 
-def score(base: Fit, fit: Fit, effect: str, alpha: float = ALPHA) -> tuple[float, float, float, float, bool]:
+def score(base: Fit, fit: Fit, effect: str, alpha: float = ALPHA,
+          tests: int = 1) -> tuple[float, float, float, float, bool]:
     """``(score, lr, nu, p, significant)`` of ``fit`` (base + ``effect``) against ``base``.
 
     With the evidence of both fits (:attr:`Fit.cost_evidence`), ``lr`` is twice the gain in log
@@ -496,6 +505,12 @@ def score(base: Fit, fit: Fit, effect: str, alpha: float = ALPHA) -> tuple[float
     (its states, e.g. a random-walk wrench, are integrated out: their Occam factor is already in
     the evidence).  Without it, the data cost's likelihood ratio with every effective dof
     penalised.  ``p``: ``lr`` against chi-square(``nu``), ``nu`` the effective dof.
+
+    Significant: ``score > 0`` and ``p < alpha / tests``.  ``tests``: the candidates tested in the
+    same selection round.  Testing the best of ``m`` candidates at ``alpha`` each would select a
+    false effect with probability up to ``m alpha``; at ``alpha / m`` in every round (Holm's
+    step-down procedure: the ``m`` of a later round is smaller by the effects already selected), a
+    recording without a hidden effect selects one with probability at most ``alpha``.
     """
     use_evidence = base.cost_evidence is not None and fit.cost_evidence is not None
     if use_evidence:  # both evidences checked not None just above
@@ -507,7 +522,7 @@ def score(base: Fit, fit: Fit, effect: str, alpha: float = ALPHA) -> tuple[float
     n = max(fit.n_residuals, 2)
     bic = lr - penalised * math.log(n)
     p = float(stats.chi2.sf(lr, nu)) if nu > 0 else (0.0 if lr > 0 else 1.0)
-    return bic, lr, nu, p, bool(bic > 0 and p < alpha)
+    return bic, lr, nu, p, bool(bic > 0 and p < alpha / max(tests, 1))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -650,7 +665,8 @@ def finding(c: Candidate, rep: dict, effect) -> str:
         return f"implausible: {c.implausible} (estimate {summary}); not a finding: another effect in disguise"
     if c.score is None:
         return summary
-    evidence = (f"evidence 2ΔE = {c.lr:.1f} for {c.effective_dof:.1f} dof (p = {c.p_value:.2g}), "
+    level = f", level {c.level:.2g}" if c.level is not None else ""
+    evidence = (f"evidence 2ΔE = {c.lr:.1f} for {c.effective_dof:.1f} dof (p = {c.p_value:.2g}{level}), "
                 f"BIC score {c.score:.1f}")
     null_text = ("consistent with" in summary) or summary.startswith("no significant")
     if c.significant:
@@ -774,7 +790,9 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
         rank: score the candidates (greedy forward selection); False only refits with ``add``.
         max_effects: at most this many greedy selection rounds add an effect (with screening, the
             candidates left once it is reached are screened at the final base, not refitted).
-        alpha: level of the likelihood-ratio test and of the windowed residual tests.
+        alpha: family-wise level of each selection round: its ``m`` candidates (those not selected
+            yet, screened out or not) are each tested at ``alpha / m`` (Holm); also the level of the
+            windowed residual tests.
         window: length of the residual windows, s.
         skip: seconds left out at the start of the error statistics (filter convergence).
         ekf: also run the EKF on the nominal model (innovations, NIS).
@@ -977,6 +995,9 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                         waited(k, len(rounds) + 1, f"its score test passed at the final base, but {max_effects} "
                                                    "effects (max_effects) are selected")
                     break
+            # Holm: the round's tests at alpha / m, m every candidate not selected yet (those the
+            # screening dropped were tested too)
+            m = len(cands) - len(selected)
             this_round = _refit_choice(remaining, latest, ident, refit_best if screen_level is not None else None)
             fit_all([tuple(selected) + (name,) for name in this_round])
             row = []
@@ -991,13 +1012,13 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                                          error=reason, error_detail=detail, finding=f"cannot be fitted: {reason}"))
                     say(label, f"{name}: cannot be fitted: {reason}", t0)
                     continue
-                s, lr, nu, p, sig = score(base, f, name, alpha)
+                s, lr, nu, p, sig = score(base, f, name, alpha, tests=m)
                 rep = f.estimate.effects.get(name, {})
                 test = screened.get(name)
                 eff = makers[name]()
                 c = Candidate(name, tuple(selected), len(rounds) + 1, s, lr, nu, p, sig, rep,
                               summarize_effect(rep, eff), screen=None if isinstance(test, str) else test,
-                              screen_level=screen_level)
+                              screen_level=screen_level, level=alpha / m)
                 c.implausible = _plausibility(eff, rep, prob) if sig else None
                 if c.implausible:
                     c.significant = False
@@ -1058,7 +1079,10 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                                 consistency(est), residual_rms(est), float("nan"), 0)
     criterion = {"name": "Laplace evidence + BIC for constants",
                  "score": "2 (E_base - E) - nu_constant ln(n), E the negative log marginal likelihood",
-                 "alpha": alpha, "tie": TIE,
+                 "alpha": alpha,
+                 "significant": ("score > 0 and likelihood-ratio p < alpha / m; alpha: family-wise level of each round "
+                                 "(Holm: alpha / candidates in the round, m those not selected yet)"),
+                 "tie": TIE,
                  "n_residuals": nominal.n_residuals, "penalty_per_dof": math.log(max(nominal.n_residuals, 2)),
                  "fit": "flexforce.smoother.fit",
                  "screen_level": screen_level, "screen_window_s": screen_window if screen_level is not None else None,

@@ -115,6 +115,7 @@ def test_two_hidden_effects_are_both_found():
     assert sorted(d.selected) == ["accel-bias", "gyro-bias"]
     assert len(d.rounds) == 2 and all(c.significant for c in d.ranking[:2])
     assert d.ranking[1].base == (d.ranking[0].effect,)  # rescored on top of the first
+    assert [c.level for c in d.ranking[:2]] == pytest.approx([0.01 / 2, 0.01 / 1])  # Holm: alpha / m per round
     assert not d.after.flags
     assert_errors_fall("gyro_accel", d, ("force_N", "cop_m", "rotation_rad"))
 
@@ -172,6 +173,33 @@ def test_score_is_bic_with_a_likelihood_ratio_test():
     assert s < 0 and not sig
 
 
+def test_score_holm_level_refuses_what_one_test_alone_accepts():
+    """A round of 11 candidates tests each at alpha / 11: an evidence gain just above ln n (BIC
+    positive, p about 0.002) is significant alone, not as one of 11 (a clean recording's false
+    time offset had p = 0.0013)."""
+    n = 10000
+    lr = np.log(n) + 0.25
+    base = Fit((), None, 1000.0, n, {}, cost_evidence=500.0)
+    fit = Fit(("x",), None, 995.0, n, {"x": 1.0}, cost_evidence=500.0 - lr / 2, global_effects=("x",))
+    s, got, nu, p, sig = score(base, fit, "x")
+    assert got == pytest.approx(lr) and nu == 1.0 and s == pytest.approx(0.25)
+    assert 0.01 / 11 < p < 0.01 and sig
+    *_, sig11 = score(base, fit, "x", tests=11)
+    assert not sig11
+    *_, sig11 = score(base, fit, "x", alpha=0.011 * 11, tests=11)  # the level is alpha / tests
+    assert sig11
+
+
+def test_candidates_carry_the_holm_level_of_their_round(gyro_diag):
+    """Round 1 tests both candidates, the one screened out included: the gyro bias at 0.01 / 2."""
+    first = gyro_diag.ranking[0]
+    assert first.effect == "gyro-bias" and first.round == 1
+    assert first.level == pytest.approx(0.01 / 2) and first.to_dict()["level"] == pytest.approx(0.005)
+    assert "level 0.005" in first.finding and "level 0.005" in gyro_diag.ranking_table()
+    assert gyro_diag.ranking[1].level is None  # not refitted: no likelihood-ratio test
+    assert "alpha / m" in gyro_diag.criterion["significant"]
+
+
 def test_effects_the_data_do_not_tell_apart_are_reported():
     """Scores within TIE of the best (and significant) make it ambiguous; in the table and JSON."""
     from flexforce.compare.diagnose import TIE, Candidate, Diagnosis, mark_rivals
@@ -219,7 +247,7 @@ def test_report_and_json(gyro_diag, gyro_rec, tmp_path):
     assert gyro_rms["after"] < gyro_rms["before"]
     page = (out / "index.html").read_text()
     for text in ("Which effect is missing", "gyro-bias", "gyro_y [rad/s]", "rad/s", "residuals_before.png",
-                 "before_after.png", "residuals_after.png", "EKF mean NIS"):
+                 "before_after.png", "residuals_after.png", "EKF mean NIS", "0.01 / m", "(0.005)"):
         assert text in page, text
     for png in ("residuals_before.png", "before_after.png", "residuals_after.png", "scores.png"):
         assert (out / png).stat().st_size > 1000
