@@ -411,5 +411,13 @@ class Footholds:
             worst = [max(worst[0], float(np.linalg.norm(e[:3]))), max(worst[1], float(np.linalg.norm(e[3:])))]
         summary = (f"{len(episodes)} footholds estimated; largest correction {1e3 * worst[0]:.1f} mm, "
                    f"{math.degrees(worst[1]):.2f} deg")
+        if episodes:  # the episode moved most, its height and tilt (what the forces and the tilt feel)
+            big = max(episodes, key=lambda ep: float(np.linalg.norm(ep["dp_m"])) / 0.005
+                      + float(np.linalg.norm(ep["dr_rad"])) / 0.017)
+            sd = big["std"] or [math.nan] * 6
+            when = f" at {big['t']:.2f} s" if big["t"] is not None else ""
+            summary += (f" (contact {big['contact']}{when}: height {1e3 * big['dp_m'][2]:+.1f} ± {1e3 * sd[2]:.1f} mm, "
+                        f"roll {math.degrees(big['dr_rad'][0]):+.2f} ± {math.degrees(sd[3]):.2f} deg, "
+                        f"pitch {math.degrees(big['dr_rad'][1]):+.2f} ± {math.degrees(sd[4]):.2f} deg)")
         return {"value": v[-1].tolist(), "unit": self.unit, "labels": list(self.labels), "episodes": episodes,
                 "max_position_m": worst[0], "max_rotation_rad": worst[1], "summary": summary}
