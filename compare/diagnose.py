@@ -835,6 +835,8 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
         if name in {e.name for e in model.effects}:
             del cands[name]  # already in the model
     skipped = inapplicable(rec, model, cands) if rank else {}
+    if candidates is None and rank:  # the default catalogue: a costly candidate may opt out here
+        skipped.update(left_out_by_default(rec, cands))
     for name in skipped:
         del cands[name]  # nothing to act on in this model (an F/T offset without F/T fusion)
     add_makers: dict[str, Callable[[], object]] = {}
@@ -1121,6 +1123,22 @@ def inapplicable(rec, model, makers: dict[str, Callable[[], object]]) -> dict[st
         try:
             why = eff.applicable(prob)
         except Exception:
+            continue
+        if why:
+            out[name] = f"{name}: {why}"
+    return out
+
+
+def left_out_by_default(rec, makers: dict[str, Callable[[], object]]) -> dict[str, str]:
+    """Name -> ``"<name>: <reason>"`` for the candidates whose optional ``by_default(rec)`` says
+    they are not worth their cost on this recording unless asked for (the footholds without a
+    touch-down); they are tested when named in ``candidates``."""
+    out = {}
+    for name, make in makers.items():
+        try:
+            check = getattr(make(), "by_default", None)
+            why = check(rec) if callable(check) else None
+        except Exception:  # the fit says what is wrong with it
             continue
         if why:
             out[name] = f"{name}: {why}"
