@@ -202,9 +202,14 @@ def test_identifiability_on_the_benchmark_sway_matches_the_rankings_confusions()
         assert p is not None and p.inseparable and p.largest > INSEPARABLE, (a, b, p)
     assert ident.pair("anisotropic-stiffness", "com-offset").direction_a == "k_ts y"
     # the gyro bias is told from every constant effect: measured at most 0.12 (damping scale); margin 0.1
+    windowed = {k for k, c in ident.candidates.items() if c.kind == "windowed"}
+    assert windowed == {"external-wrench", "foothold"}, windowed
     for p in ident.pairs:
-        if "gyro-bias" in (p.a, p.b) and "external-wrench" not in (p.a, p.b):
+        if "gyro-bias" in (p.a, p.b) and not windowed & {p.a, p.b}:
             assert p.largest < 0.12 + 0.1, p.text()
+    # and from a foothold (a window's): measured 0.289 (the left foot's pitch); margin 0.1
+    p = ident.pair("gyro-bias", "foothold")
+    assert p is not None and p.largest < 0.289 + 0.1, p
     # measured: a prior-sized anisotropy along the contacts' fore-aft shear gains 0.055 in 2 ln L
     # (a sideways sway barely shears them fore-aft): partly seen; the biases are seen (> 1e4)
     assert ident.candidates["anisotropic-stiffness"].status == "partly seen"
