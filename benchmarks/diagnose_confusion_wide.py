@@ -4,6 +4,7 @@ identifiability table.
 Usage::
 
     python benchmarks/diagnose_confusion_wide.py [--jobs 2] [--duration 3] [--only NAME ...] [--fresh]
+        [--catalogue default|all] [--out PATH]
 
 Prints a summary as JSON and writes ``benchmarks/results/diagnose_confusion_wide.json`` (every
 recording) and ``diagnose_confusion_wide.md`` (the tables).
@@ -22,7 +23,8 @@ Recordings (simulated, 3 s, the IMU bias random walk off so that "clean" means c
 The F/T sensors are fused (``use_ft``) for the mass-scale and F/T-offset recordings (without
 them a mass scale is a stiffness scale, and an F/T offset acts on nothing); the others use the
 IMU and the encoders only, as the paper.  :func:`flexforce.compare.diagnose.diagnose` ranks every
-registered effect, the footholds named (none of these recordings has a touch-down): screening,
+candidate of its default catalogue (``--catalogue all``: every registered one, the footholds
+named; by default they are left out, none of these recordings having a touch-down): screening,
 refits, greedy forward selection, ``add=["auto"]``, at most two.
 
 Scored as the targets read:
@@ -126,9 +128,10 @@ def _one(job):
     rec = Simulator(sc).run()
     model = ModelConfig.from_recording(rec, use_ft=job["ft"])
     t0 = time.perf_counter()
-    # every registered candidate, the footholds too (the default catalogue leaves them out of a
-    # recording without a touch-down)
-    d = diagnose(rec, model, candidates=list(registered_effects()), add=["auto"], ekf=False, max_effects=2)
+    # the default catalogue (the footholds left out: no recording here has a touch-down), or with
+    # --catalogue all every registered candidate, the footholds named
+    cands = list(registered_effects()) if job.get("catalogue") == "all" else None
+    d = diagnose(rec, model, candidates=cands, add=["auto"], ekf=False, max_effects=2)
     ident = d.identifiability
     return {**job, "key": key(job), "selected": list(d.selected), "first": d.selected[0] if d.selected else "none",
             "inseparable": [[p.a, p.b, float(p.largest)] for p in ident.inseparable()] if ident else None,
@@ -239,9 +242,14 @@ def main():
     ap.add_argument("--only", nargs="*", default=None, help="truths to run (effect names or 'none')")
     ap.add_argument("--fresh", action="store_true", help="ignore the results already in --out")
     ap.add_argument("--list", action="store_true", help="list the recordings and stop")
+    ap.add_argument("--catalogue", choices=("default", "all"), default="default",
+                    help="the diagnosis's default candidates (default), or every registered one, the footholds "
+                         "named (all)")
     ap.add_argument("--out", default=str(Path(__file__).with_name("results") / "diagnose_confusion_wide.json"))
     args = ap.parse_args()
     jobs = jobs_of(args.duration, args.only)
+    for job in jobs:
+        job["catalogue"] = args.catalogue
     if args.list:
         print("\n".join(key(j) + (" (F/T fused)" if j["ft"] else "") for j in jobs))
         print(f"{len(jobs)} recordings")
@@ -270,7 +278,8 @@ def main():
                   flush=True)
     runs = [done[key(j)] for j in jobs]
     summary = score(runs)
-    result = {"benchmark": "diagnose_confusion_wide", "duration_s": args.duration, "cases": WIDE_CASES,
+    result = {"benchmark": "diagnose_confusion_wide", "catalogue": args.catalogue, "duration_s": args.duration,
+              "cases": WIDE_CASES,
               "combos": COMBOS, "pairs": PAIRS, "fuse_ft": FUSE_FT, "summary": summary, "details": runs,
               "wall_s": earlier + time.perf_counter() - t0,
               "machine": {"python": platform.python_version(), "cpus": os.cpu_count(),
