@@ -218,6 +218,11 @@ class Footholds:
         self.excites = per * self.nc
         self._cache: tuple | None = None
 
+    def constant_on(self, problem: ProblemView) -> bool:
+        """True when no contact touches down in the recording: one episode per contact, the
+        corrections constant over it (the identifiability table compares them as constants)."""
+        return not bool(self._setup(problem)["starts"].any())
+
     def by_default(self, rec) -> str | None:
         """Why the diagnosis leaves this candidate out of its default catalogue on ``rec`` (None:
         it is in): without a touch-down the footholds' refit converges slowly (measured 519 s on a

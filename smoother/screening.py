@@ -489,6 +489,14 @@ class Identifiability:
         return "\n".join(lines)
 
 
+def _constant_here(eff, prob) -> bool:
+    """A per-step effect constant on this recording (its ``constant_on(prob)``: the footholds of a
+    recording without a touch-down, one episode per contact), compared as a constant: window by
+    window it would be a window's worth of itself."""
+    check = getattr(eff, "constant_on", None)
+    return bool(check(prob)) if callable(check) else False
+
+
 def _pair_hint(ea, eb) -> str:
     parts = [f"{e.name}: {h}" for e in (ea, eb) if (h := str(getattr(e, "hint", "") or ""))]
     return "; ".join(parts)
@@ -582,7 +590,7 @@ def identifiability(prob_base: Problem, traj: Trajectory, effects, rule: NoiseRu
         dim = int(eff.dim)
         _, s0 = eff.prior(prob)
         s0 = np.broadcast_to(np.asarray(s0, dtype=float), (dim,))
-        if is_global(eff, prob):
+        if is_global(eff, prob) or _constant_here(eff, prob):
             const.append((eff, np.arange(len(ccols) - m0, len(ccols) - m0 + dim), s0))
             ccols.extend(range(col, col + dim))
         else:

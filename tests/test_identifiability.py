@@ -202,14 +202,17 @@ def test_identifiability_on_the_benchmark_sway_matches_the_rankings_confusions()
         assert p is not None and p.inseparable and p.largest > INSEPARABLE, (a, b, p)
     assert ident.pair("anisotropic-stiffness", "com-offset").direction_a == "k_ts y"
     # the gyro bias is told from every constant effect: measured at most 0.12 (damping scale); margin 0.1
+    # (the footholds of a recording without a touch-down are constants here)
     windowed = {k for k, c in ident.candidates.items() if c.kind == "windowed"}
-    assert windowed == {"external-wrench", "foothold"}, windowed
+    assert windowed == {"external-wrench"}, windowed
     for p in ident.pairs:
         if "gyro-bias" in (p.a, p.b) and not windowed & {p.a, p.b}:
             assert p.largest < 0.12 + 0.1, p.text()
-    # and from a foothold (a window's): measured 0.289 (the left foot's pitch); margin 0.1
-    p = ident.pair("gyro-bias", "foothold")
-    assert p is not None and p.largest < 0.289 + 0.1, p
+    # standing, a height and tilt per foot is what a bias, a turned IMU or a CoM offset does: the
+    # footholds cannot be told from them (measured 0.999, 0.998, 0.996 on a CoM step)
+    for other in ("accel-bias", "com-offset", "imu-mounting"):
+        p = ident.pair("foothold", other)
+        assert p is not None and p.inseparable, (other, p)
     # measured: a prior-sized anisotropy along the contacts' fore-aft shear gains 0.055 in 2 ln L
     # (a sideways sway barely shears them fore-aft): partly seen; the biases are seen (> 1e4)
     assert ident.candidates["anisotropic-stiffness"].status == "partly seen"
