@@ -151,7 +151,10 @@ def partners(r, name) -> set[str]:
 
 def seen(r, name) -> bool:
     """The table sees ``name`` at least partly (a direction of it pays for its dof: the external
-    wrench's vertical force never does on these robots, its horizontal push does)."""
+    wrench's vertical force never does on these robots, its horizontal push does); a truth that was
+    no candidate (the footholds, left out of the default catalogue here) is not in the table."""
+    if r.get("status") is not None and r.get("not_seen") is not None and name not in r["status"]:
+        return False
     return (r.get("status") or {}).get(name, "seen" if name not in (r.get("not_seen") or []) else "not seen") != \
         "not seen"
 
@@ -214,6 +217,8 @@ def markdown(runs: list[dict], summary: dict) -> str:
             t = r["truth"][0]
             p = partners(r, t)
             status = (r.get("status") or {}).get(t, "not seen" if t in r["not_seen"] else "seen")
+            if r.get("status") is not None and t not in r["status"]:
+                status = "not a candidate"
             sep = status + (f"; inseparable from {', '.join(sorted(p))}" if p else "")
         ratio = "—"
         if r.get("after") and r["truth"]:
