@@ -54,7 +54,7 @@ from flexforce.options import check_choice, check_finite, check_positive, invali
 if TYPE_CHECKING:
     from flexforce.factors.effects import ProblemView
 
-__all__ = ["FootholdPrior", "Footholds", "episode_starts", "held_rest"]
+__all__ = ["FootholdPrior", "Footholds", "episode_starts", "held_rest", "touches_down"]
 
 WALK_WITHIN = 1e-3
 """Random-walk sigma of a foothold within an episode, relative to its kinematic sigma."""
@@ -130,6 +130,11 @@ def episode_starts(active: np.ndarray) -> np.ndarray:
     out = np.zeros_like(active, dtype=bool)
     out[1:] = active[1:] & ~active[:-1]
     return out
+
+
+def touches_down(active: np.ndarray) -> bool:
+    """Whether some contact comes into force during the recording (an episode starts after step 0)."""
+    return bool(episode_starts(np.asarray(active, dtype=bool)).any())
 
 
 def held_rest(active: np.ndarray, contact_p: np.ndarray, contact_R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -221,14 +226,14 @@ class Footholds:
     def constant_on(self, problem: ProblemView) -> bool:
         """True when no contact touches down in the recording: one episode per contact, the
         corrections constant over it (the identifiability table compares them as constants)."""
-        return not bool(self._setup(problem)["starts"].any())
+        return not touches_down(problem.active)
 
     def by_default(self, rec) -> str | None:
         """Why the diagnosis leaves this candidate out of its default catalogue on ``rec`` (None:
         it is in): without a touch-down the footholds' refit converges slowly (measured 519 s on a
         60 s standing sway, the nominal fit 16 s), and a standing robot's foothold errors are rare
         beside the walks' (named in ``candidates``, it is tested)."""
-        if np.asarray(episode_starts(np.asarray(rec.contact_active, dtype=bool))).any():
+        if touches_down(rec.contact_active):
             return None
         return ("left out by default: no contact touches down in this recording (its refit is the costliest); "
                 "name it in the candidates (--candidates foothold,...) to test a foothold error")
@@ -427,8 +432,9 @@ class Footholds:
         summary = (f"{len(episodes)} footholds estimated; largest correction {1e3 * worst[0]:.1f} mm, "
                    f"{math.degrees(worst[1]):.2f} deg")
         if episodes:  # the episode moved most, its height and tilt (what the forces and the tilt feel)
-            big = max(episodes, key=lambda ep: float(np.linalg.norm(ep["dp_m"])) / 0.005
-                      + float(np.linalg.norm(ep["dr_rad"])) / 0.017)
+            cfg = self.prior_config  # in kinematic sigmas: millimetres and degrees weighed alike
+            big = max(episodes, key=lambda ep: float(np.linalg.norm(ep["dp_m"])) / cfg.kinematics_sigma_position
+                      + float(np.linalg.norm(ep["dr_rad"])) / cfg.kinematics_sigma_tilt)
             sd = big["std"] or [math.nan] * 6
             when = f" at {big['t']:.2f} s" if big["t"] is not None else ""
             summary += (f" (contact {big['contact']}{when}: height {1e3 * big['dp_m'][2]:+.1f} ± {1e3 * sd[2]:.1f} mm, "

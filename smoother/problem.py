@@ -336,13 +336,11 @@ def rest_placements(rec, rest_p=None, rest_R=None):
 def with_footholds(rec, model, rest_p=None, rest_R=None):
     """``(model, rest_p, rest_R)`` with the footholds of the contact episodes as unknowns
     (:class:`~flexforce.factors.footholds.Footholds`, its priors from ``model.foothold_prior``; the
-    model unchanged when they already are) and, unless given, the nominal rest placements held over
-    each episode (:func:`~flexforce.factors.footholds.held_rest`)."""
+    model unchanged when they already are); the rest placements as given (None: :meth:`Problem.build`
+    holds the nominal ones over each episode, as for any model with footholds)."""
     if not any(isinstance(e, Footholds) for e in model.effects):
         eff = Footholds(len(rec.contact_names), model.foothold_prior)
         model = replace(model, effects=tuple(model.effects) + (eff,))
-    if rest_p is None and rest_R is None:
-        rest_p, rest_R = held_rest(rec.contact_active, rec.contact_p, rec.contact_R)
     return model, rest_p, rest_R
 
 
