@@ -194,11 +194,16 @@ class Fit:
     """The fitted ModelConfig."""
 
 
-def fit_model(rec, model, progress: Callable[[float], None] | None = None) -> Fit:
-    """Fit ``model`` (with its effects) to ``rec`` with :func:`flexforce.smoother.fit`."""
+def fit_model(rec, model, progress: Callable[[float], None] | None = None, start: Fit | None = None) -> Fit:
+    """Fit ``model`` (with its effects) to ``rec`` with :func:`flexforce.smoother.fit`; ``start``: a
+    fit of the same recording with some of these effects, to start from (the smoother's
+    ``start``)."""
     from flexforce.smoother import fit
 
-    est, stats = fit(rec, model, progress=progress)
+    begin = None
+    if start is not None and start.trajectory is not None and start.model is not None:
+        begin = (tuple(getattr(start.model, "effects", ())), start.trajectory)
+    est, stats = fit(rec, model, progress=progress, start=begin)
     ev = stats.cost_evidence
     return Fit(tuple(e.name for e in model.effects), est, float(stats.cost_data), int(stats.n_residuals),
                {k: float(v) for k, v in stats.effective_dof.items()},
@@ -866,9 +871,12 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
     cache: dict[tuple[str, ...], Fit] = {}
 
     def fit_with(names: tuple[str, ...], progress=None) -> Fit:
-        """The model with the candidates ``names`` added, fitted."""
+        """The model with the candidates ``names`` added, fitted, from the fit of the most of them
+        there is (the round's base: the refit only moves what the new effect explains)."""
         effects = tuple(model.effects) + tuple(makers[n]() for n in names)
-        return fit_model(rec, dataclasses.replace(model, effects=effects), progress=progress)
+        within = [key for key in cache if set(key) < set(names)]
+        start = cache[max(within, key=len)] if within else None
+        return fit_model(rec, dataclasses.replace(model, effects=effects), progress=progress, start=start)
 
     def fitted(names: tuple[str, ...]) -> Fit:
         key = tuple(sorted(names))
