@@ -32,6 +32,9 @@ Scored as the targets read:
 * right effect first, among the single-effect recordings whose truth the identifiability table
   (computed by the diagnosis at the nominal fit, before any refit) calls seen (at least partly:
   some direction of it pays for its dof) and separable from every other candidate;
+* the same among those whose hidden size reaches, along one of its unknowns, the smallest size
+  the table says the recording detects (:attr:`~flexforce.smoother.screening.CandidateInformation.
+  detectable`; the truths that map one to one to their candidate's unknowns; the others counted);
 * no significant effect on the clean recordings;
 * no wrong candidate in the final selection: a selected effect that is not a truth and not
   called inseparable from one by the table;
@@ -137,6 +140,8 @@ def _one(job):
             "inseparable": [[p.a, p.b, float(p.largest)] for p in ident.inseparable()] if ident else None,
             "not_seen": [c.effect for c in ident.not_seen()] if ident else None,
             "status": {t: ident.candidates[t].status for t in job["truth"] if t in ident.candidates} if ident else None,
+            "detectable": {t: [float(x) for x in ident.candidates[t].detectable] for t in job["truth"]
+                           if t in ident.candidates} if ident else None,
             "ranking": [{"effect": c.effect, "score": c.score, "significant": c.significant}
                         for c in d.rounds[0]] if d.rounds else [],
             "before": {k: d.before.rmse[k] for k in KEYS},
@@ -157,6 +162,38 @@ def seen(r, name) -> bool:
         return False
     return (r.get("status") or {}).get(name, "seen" if name not in (r.get("not_seen") or []) else "not seen") != \
         "not seen"
+
+
+def truth_size(name: str, level: int) -> list[float] | None:
+    """The hidden effect's size in its candidate's unknowns (the labels' order), where they map
+    one to one (None: the wrench, the anisotropic stiffness, the F/T offset, the foothold)."""
+    spec = WIDE_CASES[name][level]
+    if name in ("gyro-bias", "accel-bias"):
+        return [float(x) for x in spec["value"]]
+    if name == "imu-mounting":
+        return [float(x) for x in spec["rotation"]]
+    if name == "com-offset":
+        return [float(x) for x in spec["offset"][:2]]
+    if name == "time-offset":
+        return [float(spec["delay"])]
+    if name == "mass-scale":
+        return [float(spec["scale"]) - 1.0]
+    if name == "stiffness":
+        return [float(spec["stiffness"]) - 1.0, float(spec.get("damping", 1.0)) - 1.0]
+    if name == "nonlinear-stiffness":
+        return [float(spec["beta_f"]), float(spec["beta_t"])]
+    return None
+
+
+def above_size(r) -> bool | None:
+    """Whether a single hidden effect is at or above the size the recording's table says it
+    detects along some unknown (None: no one-to-one size, or no table)."""
+    name = r["truth"][0]
+    size = truth_size(name, r["level"])
+    d = (r.get("detectable") or {}).get(name)
+    if size is None or not d or len(d) != len(size):
+        return None
+    return any(abs(v) >= x for v, x in zip(size, d))
 
 
 def score(runs: list[dict]) -> dict:
@@ -192,6 +229,13 @@ def score(runs: list[dict]) -> dict:
         "recordings": len(runs), "errors": [r["key"] for r in runs if r["first"] == "error"],
         "right_first_separable": frac(sum(r["first"] == r["truth"][0] for r in separable), len(separable)),
         "right_first_all_single": frac(sum(r["first"] == r["truth"][0] for r in singles), len(singles)),
+        # of the separable ones, those whose size the table says it detects (or has no size for)
+        "right_first_separable_above_detectable_size": frac(
+            sum(r["first"] == r["truth"][0] for r in separable if above_size(r) is not False),
+            sum(above_size(r) is not False for r in separable)),
+        "separable_below_detectable_size": [[r["key"], truth_size(r["truth"][0], r["level"]),
+                                             (r.get("detectable") or {}).get(r["truth"][0]), r["first"]]
+                                            for r in separable if above_size(r) is False],
         "right_first_separable_by_level": {
             str(lv): frac(sum(r["first"] == r["truth"][0] for r in separable if r["level"] == lv),
                           sum(r["level"] == lv for r in separable)) for lv in (0, 1)},
@@ -227,6 +271,9 @@ def markdown(runs: list[dict], summary: dict) -> str:
                      f'{", ".join(r["selected"]) or "none"} | {ratio} |')
     head = [f"- right effect first, seen and separable: {summary['right_first_separable'][0]} of "
             f"{summary['right_first_separable'][1]}",
+            f"- of those, at or above the size the table says the recording detects (where the truth maps to the "
+            f"candidate's unknowns): {summary['right_first_separable_above_detectable_size'][0]} of "
+            f"{summary['right_first_separable_above_detectable_size'][1]}",
             f"- right effect first, every single-effect recording: {summary['right_first_all_single'][0]} of "
             f"{summary['right_first_all_single'][1]}",
             f"- clean recordings without a selection: {summary['clean_without_selection'][0]} of "

@@ -231,7 +231,9 @@ def _write_diagnosis(diag, out: Path, title: str) -> None:
     else:
         identifiability = {"computed": True, "threshold": ident.threshold,
                            "items": [f"{c.effect}: {c.text()}" for c in ident.not_seen()]
-                           + list(diag.identifiability_notes())}
+                           + list(diag.identifiability_notes()),
+                           "detectable": [f"{c.effect}: {c.detectable_text()}" for c in ident.candidates.values()
+                                          if c.detectable]}
     page = environment().get_template("diagnosis.html.j2").render(
         identifiability=identifiability,
         title=title, info=diag.recording, crit=crit, level=level,

@@ -35,6 +35,7 @@ columns as right-hand sides: seconds, against minutes for a refit.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -382,6 +383,23 @@ class CandidateInformation:
     """What motion excites the weakest unknown (the effect's ``excites``)."""
     strongest: float = float("inf")
     """Largest eigenvalue of the same scaled information (the best-seen direction)."""
+    detectable: tuple[float, ...] = ()
+    """Per unknown (in its own unit, the :attr:`labels`' order), the smallest value this recording
+    detects: the size whose gain in ``2 ln L``, the candidate's other unknowns fitted with it,
+    reaches :attr:`threshold` -- ``sqrt(threshold / s_i)``, ``s_i`` the Schur complement of the
+    unknown in the candidate's information (inf: not seen alone).  For a windowed candidate, an
+    effect lasting one window (the median window)."""
+
+    def detectable_text(self) -> str:
+        """``accel bias x >= 0.012 m/s^2, ...``: the detectable sizes, one per unknown."""
+        out = []
+        for i, size in enumerate(self.detectable):
+            label = self.labels[i] if i < len(self.labels) else f"#{i}"
+            name, _, unit = label.partition(" [")
+            unit = unit.rstrip("]")
+            out.append(f"{name} {'not alone' if not math.isfinite(size) else f'>= {size:.2g}'}"
+                       f"{' ' + unit if unit and unit != '-' and math.isfinite(size) else ''}")
+        return ", ".join(out)
 
     @property
     def seen(self) -> bool:
@@ -403,14 +421,34 @@ class CandidateInformation:
     def text(self) -> str:
         if self.seen:
             return (f"seen (a prior-sized {self.weakest} gains {self.detectability:.3g} in 2 ln L, "
-                    f">= {self.threshold:.1f})")
+                    f">= {self.threshold:.1f}; detects {self.detectable_text()})")
         return (f"{self.status}: {self.unexcited()} (a prior-sized value gains {self.detectability:.2g} in 2 ln L, "
-                f"below {self.threshold:.1f})")
+                f"below {self.threshold:.1f}; detects {self.detectable_text()})")
 
     def to_dict(self) -> dict:
         return {"effect": self.effect, "dim": self.dim, "kind": self.kind, "detectability": _f(self.detectability),
                 "strongest": _f(self.strongest), "threshold": _f(self.threshold), "seen": self.seen,
+                "detectable": [_f(x) for x in self.detectable], "detectable_text": self.detectable_text(),
                 "status": self.status, "weakest": self.weakest, "excites": self.excites, "summary": self.text()}
+
+
+def detectable_sizes(S: np.ndarray, sigma: np.ndarray, threshold: float) -> tuple[float, ...]:
+    """Per unknown of a candidate whose data information is ``S`` (raw units; ``sigma`` its prior
+    sigmas, for the scaling only), the smallest value whose gain in ``2 ln L`` with the other
+    unknowns fitted reaches ``threshold``: ``sqrt(threshold / s_i)``, ``s_i = S_ii - S_io S_oo^+
+    S_oi`` (inf where ``s_i`` vanishes: that unknown is not seen apart from the others)."""
+    sigma = np.asarray(sigma, dtype=float)
+    Z = sigma[:, None] * np.asarray(S, dtype=float) * sigma[None, :]  # scaled: conditioned
+    Z = 0.5 * (Z + Z.T)
+    scale = max(float(np.max(np.abs(np.diag(Z)))) if Z.size else 0.0, 1e-300)
+    out = []
+    for i in range(Z.shape[0]):
+        o = [j for j in range(Z.shape[0]) if j != i]
+        s_i = float(Z[i, i])
+        if o:
+            s_i -= float(Z[i, o] @ np.linalg.pinv(Z[np.ix_(o, o)], rcond=1e-12, hermitian=True) @ Z[o, i])
+        out.append(float(sigma[i] * np.sqrt(threshold / s_i)) if s_i > 1e-12 * scale else float("inf"))
+    return tuple(out)
 
 
 @dataclass
@@ -627,7 +665,8 @@ def identifiability(prob_base: Problem, traj: Trajectory, effects, rule: NoiseRu
         i = int(np.argmax(np.abs(V[:, 0])))
         cands[eff.name] = CandidateInformation(eff.name, int(eff.dim), tuple(getattr(eff, "labels", ())), kind,
                                                float(max(wv[0], 0.0)), _label(eff, i).split(" [")[0], i, thr,
-                                               _excites(eff, i), float(max(wv[-1], 0.0)))
+                                               _excites(eff, i), float(max(wv[-1], 0.0)),
+                                               detectable_sizes(Sb, s0, thr))
 
     for eff, blk, s0 in const:
         info(eff, "constant", Jc[np.ix_(blk, blk)], s0)
