@@ -60,6 +60,13 @@ def test_the_hidden_foothold_moves_the_true_rest_not_the_recorded_one():
         sc.effects = [bad]
         with pytest.raises(ConfigError, match=what):
             Simulator(sc).run()
+    # a contact in the air at the first sample has no rest placement to move
+    sc = Scenario.load("step")
+    sc.duration = 0.1
+    sc.swing[0]["lift"] = 0.0
+    sc.effects = [{**SHIM, "contact": sc.swing[0]["contact"]}]
+    with pytest.raises(ConfigError, match="'right_foot', which is not in contact at the start"):
+        Simulator(sc).run()
 
 
 def test_the_twin_is_the_term_at_the_truth():
