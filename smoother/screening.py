@@ -391,13 +391,13 @@ class CandidateInformation:
     effect lasting one window (the median window)."""
 
     def detectable_text(self) -> str:
-        """``accel bias x >= 0.012 m/s^2, ...``: the detectable sizes, one per unknown."""
+        """``x ≥ 0.012 m/s^2, ...``: the detectable sizes, one per unknown."""
         out = []
         for i, size in enumerate(self.detectable):
             label = self.labels[i] if i < len(self.labels) else f"#{i}"
             name, _, unit = label.partition(" [")
             unit = unit.rstrip("]")
-            out.append(f"{name} {'not alone' if not math.isfinite(size) else f'>= {size:.2g}'}"
+            out.append(f"{name} {'not alone' if not math.isfinite(size) else f'≥ {size:.2g}'}"
                        f"{' ' + unit if unit and unit != '-' and math.isfinite(size) else ''}")
         return ", ".join(out)
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from flexforce.compare.diagnose import diagnose
+from flexforce.compare.diagnose_report import write_diagnosis
 from flexforce.datasets.scenario import Scenario
 from flexforce.datasets.simulator import Simulator
 from flexforce.smoother.screening import detectable_sizes
@@ -43,11 +44,16 @@ def _sway(gyro_y: float):
     return Simulator(sc).run()
 
 
-def test_a_gyro_bias_is_found_above_its_detectable_size_and_missed_well_below():
+def test_a_gyro_bias_is_found_above_its_detectable_size_and_missed_well_below(tmp_path):
     cands = ["gyro-bias", "accel-bias", "com-offset"]
     clean = diagnose(_sway(0.0), candidates=cands, ekf=False, max_effects=1)
     size = clean.identifiability.candidates["gyro-bias"].detectable[1]  # y
     assert np.isfinite(size) and 1e-4 < size < 1e-2, size
+    # stated in the JSON and the report
+    row = next(c for c in clean.to_json()["identifiability"]["candidates"] if c["effect"] == "gyro-bias")
+    assert row["detectable"][1] == pytest.approx(size) and "y ≥ " in row["detectable_text"]
+    page = (write_diagnosis(clean, tmp_path / "d") / "index.html").read_text()
+    assert f"gyro-bias: {clean.identifiability.candidates['gyro-bias'].detectable_text()}" in page
     above = diagnose(_sway(3.0 * size), candidates=cands, ekf=False, max_effects=1)
     below = diagnose(_sway(0.3 * size), candidates=cands, ekf=False, max_effects=1)
     assert above.selected == ["gyro-bias"], [(c.effect, c.status) for c in above.rounds[0]]
