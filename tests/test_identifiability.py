@@ -23,6 +23,7 @@ def _problem(mass=40.0, com=(0.0, 0.0, 0.6)):
     """What the plausibility checks read of a problem: mass, gravity, CoM, springs, contacts."""
     return SimpleNamespace(rec=SimpleNamespace(mass=mass), g=9.81, com=np.array([com]),
                            K_fs=np.array([np.eye(3) * 1e5, np.eye(3) * 1e5]),
+                           K_ts=np.array([np.eye(3) * 450.0, np.eye(3) * 450.0]),
                            contact_p=np.array([[[0.0, 0.1, 0.0], [0.0, -0.1, 0.0]]]))
 
 
@@ -34,6 +35,8 @@ def _problem(mass=40.0, com=(0.0, 0.0, 0.6)):
     ("gyro-bias", [0.0, 0.011, 0.0], False), ("gyro-bias", [0.2, 0.0, 0.0], True),
     ("com-offset", [0.02, 0.0], False), ("com-offset", [0.3, 0.0], True),
     ("nonlinear-stiffness", [4000.0, 0.0], False), ("nonlinear-stiffness", [-1e7, 0.0], True),
+    # rotational: the reference tilt m g l / K_ts = 40 * 9.81 * 0.1 / 900 = 0.0436 rad
+    ("nonlinear-stiffness", [0.0, 400.0], False), ("nonlinear-stiffness", [0.0, 1000.0], True),
 ])
 def test_each_effect_says_when_its_estimate_is_implausible(name, value, bad):
     eff = make_effect(name)
