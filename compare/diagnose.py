@@ -19,9 +19,10 @@ Three steps (DESIGN.md, "Diagnostics"; docs/diagnostics.md explains how to read 
    information), ``nu_c`` the effective dof of the effect's constant unknowns (``p`` for a
    constant ``p``-vector the data determine, less when its prior does; 0 for per-step unknowns,
    whose Occam factor is already in ``E``) and ``n`` the number of scalar residuals.  An effect is
-   *significant* when its score is positive and the likelihood-ratio p-value of ``2 (E_0 - E_1)``
-   against chi-square with the effect's effective dof is below ``alpha / m`` (``alpha`` 0.01),
-   ``m`` the candidates in the round.  Several effects: greedy forward selection -- add the best
+   *significant* when its score is positive and its p-value is below ``alpha / m`` (``alpha``
+   0.01), ``m`` the candidates in the round: for constant unknowns the likelihood-ratio p-value
+   of ``2 (E_0 - E_1)`` against chi-square with the effect's effective dof, for per-step ones
+   (integrated out: ``2 (E_0 - E_1)`` is twice a log Bayes factor) ``1 / BF``.  Several effects: greedy forward selection -- add the best
    significant one, rescore the rest on top of it, stop when none is significant.  Each round
    tests its ``m`` candidates (every one not selected yet) at ``alpha / m``: Holm's step-down
    procedure: a recording without a hidden effect selects one with probability at most ``alpha``
@@ -381,8 +382,14 @@ class Diagnosis:
         if self.identifiability is None:
             return []
         out = []
+        tested = {t.effect for t in self.screening} | {c.effect for row in self.rounds for c in row}
         for p in self.identifiability.inseparable():
             text = p.text()
+            if self.screening or self.rounds:
+                aside = [n for n in (p.a, p.b) if n not in tested]
+                if aside:
+                    text += (f"; {' and '.join(aside)} in the table only, not tested (left out of the default "
+                             "catalogue: name it in the candidates to test it)")
             for row in self.rounds:
                 ca = next((c for c in row if c.effect == p.a and c.score is not None), None)
                 cb = next((c for c in row if c.effect == p.b and c.score is not None), None)
@@ -526,7 +533,12 @@ def score(base: Fit, fit: Fit, effect: str, alpha: float = ALPHA,
     penalised = nu if (not use_evidence or effect in fit.global_effects) else 0.0
     n = max(fit.n_residuals, 2)
     bic = lr - penalised * math.log(n)
-    p = float(stats.chi2.sf(lr, nu)) if nu > 0 else (0.0 if lr > 0 else 1.0)
+    if use_evidence and effect not in fit.global_effects:
+        # per-step unknowns integrated out: 2 dE is twice the log Bayes factor, whose expectation
+        # under the base model is 1, so P(BF >= 1/p) <= p (Markov): p = 1/BF is a valid p-value
+        p = float(math.exp(-0.5 * lr)) if lr > 0 else 1.0
+    else:
+        p = float(stats.chi2.sf(lr, nu)) if nu > 0 else (0.0 if lr > 0 else 1.0)
     return bic, lr, nu, p, bool(bic > 0 and p < alpha / max(tests, 1))
 
 
@@ -689,12 +701,14 @@ def finding(c: Candidate, rep: dict, effect) -> str:
 
 
 def screen(rec, fit: Fit, makers: dict[str, Callable[[], object]], window: float = SCREEN_WINDOW,
-           progress: Callable[..., None] | None = None, problem=None, jobs: int = 1, identify: bool = False):
+           progress: Callable[..., None] | None = None, problem=None, jobs: int = 1, identify: bool = False,
+           table_only: dict[str, Callable[[], object]] | None = None):
     """The score test of every candidate at ``fit`` (name -> :class:`ScoreTest`, or the reason
     when the test failed): one linearisation each, no refit (:mod:`flexforce.smoother.screening`);
     in ``jobs`` forked processes (:func:`flexforce.compare.runner.fork_map`), the same results.
     ``identify``: also the identifiability table of every candidate (:func:`identify_candidates`),
-    as one more task; returns ``(tests, (table, reason))``.
+    as one more task; returns ``(tests, (table, reason))``.  ``table_only``: more candidates for
+    the table alone, not tested (those left out of the default catalogue).
 
     ``progress(fraction)`` or ``progress(fraction, message)`` (a callable made by
     :func:`progress_caller` takes the message): one call per candidate, the message naming it
@@ -711,7 +725,7 @@ def screen(rec, fit: Fit, makers: dict[str, Callable[[], object]], window: float
     def task(item):
         name, make = item
         if name is None:
-            return identify_candidates(prob, fit, makers, window)
+            return identify_candidates(prob, fit, {**makers, **(table_only or {})}, window)
         return score_test(prob, fit.trajectory, make(), window=window)
 
     found: dict[str, ScoreTest | str] = {}
@@ -840,8 +854,12 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
         if name in {e.name for e in model.effects}:
             del cands[name]  # already in the model
     skipped = inapplicable(rec, model, cands) if rank else {}
+    table_only: dict[str, Callable[[], object]] = {}
     if candidates is None and rank:  # the default catalogue: a costly candidate may opt out here
-        skipped.update(left_out_by_default(rec, cands))
+        left_out = left_out_by_default(rec, cands)
+        skipped.update(left_out)
+        # not refitted, but in the identifiability table: a selection it cannot be told from says so
+        table_only = {k: cands[k] for k in left_out}
     for name in skipped:
         del cands[name]  # nothing to act on in this model (an F/T offset without F/T fusion)
     add_makers: dict[str, Callable[[], object]] = {}
@@ -938,16 +956,16 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                 # the table beside the score tests, on every candidate (the longest task first); formed
                 # again below only if a test failed (the table leaves out the failed ones)
                 screened, early = screen(rec, nominal, cands, screen_window, progress=cb_message("screening"),
-                                         problem=prob, jobs=jobs, identify=True)
+                                         problem=prob, jobs=jobs, identify=True, table_only=table_only)
             else:
                 screened = screen(rec, nominal, cands, screen_window, progress=cb_message("screening"), problem=prob,
                                   jobs=jobs)
         if identify and cands and prob is not None:
             if early is None or any(isinstance(v, str) for v in screened.values()):
                 t0 = time.perf_counter()
-                ident, ident_error = identify_candidates(prob, nominal, {k: v for k, v in cands.items()
-                                                                         if not isinstance(screened.get(k), str)},
-                                                         screen_window)
+                ident, ident_error = identify_candidates(prob, nominal, {**{k: v for k, v in cands.items()
+                                                                            if not isinstance(screened.get(k), str)},
+                                                                         **table_only}, screen_window)
             else:
                 ident, ident_error = early
             if ident is not None:
@@ -1090,8 +1108,9 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
     criterion = {"name": "Laplace evidence + BIC for constants",
                  "score": "2 (E_base - E) - nu_constant ln(n), E the negative log marginal likelihood",
                  "alpha": alpha,
-                 "significant": ("score > 0 and likelihood-ratio p < alpha / m; alpha: family-wise level of each round "
-                                 "(Holm: alpha / candidates in the round, m those not selected yet)"),
+                 "significant": ("score > 0 and p < alpha / m (constant unknowns: likelihood-ratio p against "
+                                 "chi-square(effective dof); per-step ones: p = 1 / Bayes factor); alpha: family-wise "
+                                 "level of each round (Holm: alpha / candidates in the round, m those not selected yet)"),
                  "tie": TIE,
                  "n_residuals": nominal.n_residuals, "penalty_per_dof": math.log(max(nominal.n_residuals, 2)),
                  "fit": "flexforce.smoother.fit",

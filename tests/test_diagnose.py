@@ -190,6 +190,29 @@ def test_score_holm_level_refuses_what_one_test_alone_accepts():
     assert sig11
 
 
+def test_score_of_a_per_step_effect_is_its_bayes_factor():
+    """A per-step effect (a random-walk wrench) is integrated out: ``2 dE`` is twice the log Bayes
+    factor, tested by ``p = 1/BF`` (Markov: the Bayes factor's mean is 1 under the base model), not
+    against chi-square with its effective dof, which counts its Occam factor twice (a 15 N push on
+    TALOS: 2 dE = 91 for 166 effective dof, p = 1 by chi-square).  A constant effect with the same
+    numbers is still tested by chi-square."""
+    n = 10000
+    base = Fit((), None, 1000.0, n, {}, cost_evidence=500.0)
+    push = Fit(("w",), None, 900.0, n, {"w": 166.0}, cost_evidence=500.0 - 91.0 / 2)
+    s, lr, nu, p, sig = score(base, push, "w", tests=10)
+    assert lr == pytest.approx(91.0) and s == pytest.approx(91.0)  # no BIC charge: integrated out
+    assert p == pytest.approx(np.exp(-91.0 / 2)) and sig
+    weak = Fit(("w",), None, 990.0, n, {"w": 166.0}, cost_evidence=500.0 - 10.0 / 2)
+    *_, p, sig = score(base, weak, "w", tests=10)
+    assert p == pytest.approx(np.exp(-5.0)) and not sig  # 0.0067 > 0.01 / 10
+    worse = Fit(("w",), None, 1000.0, n, {"w": 166.0}, cost_evidence=503.0)
+    *_, p, sig = score(base, worse, "w")
+    assert p == 1.0 and not sig
+    const = Fit(("w",), None, 900.0, n, {"w": 166.0}, cost_evidence=500.0 - 91.0 / 2, global_effects=("w",))
+    *_, p, sig = score(base, const, "w", tests=10)
+    assert p > 0.5 and not sig
+
+
 def test_candidates_carry_the_holm_level_of_their_round(gyro_diag):
     """Round 1 tests both candidates, the one screened out included: the gyro bias at 0.01 / 2."""
     first = gyro_diag.ranking[0]

@@ -176,3 +176,19 @@ def test_on_a_walk_the_diagnosis_finds_the_footholds_not_an_imu_error():
     assert d.selected == ["foothold"], d.ranking_table()
     ratio = _rotation_ratio(d)
     assert ratio <= upper("foothold.walk.tilt_ratio", ratio, rel=0.5, add=0.02), (d.before.rmse, d.after.rmse)
+
+
+def test_the_default_catalogue_keeps_the_footholds_in_the_table():
+    """Left out of the default catalogue's refits on a recording without a touch-down, the footholds
+    stay in the identifiability table: standing, a shim under a foot reads like a CoM offset, an
+    accelerometer bias or a turned IMU, and the notes say so beside what the ranking chose."""
+    rec = simulate([SHIM])
+    d = diagnose(rec, ekf=False, screen_level=1e-300)  # the table, no refit
+    assert any(line.startswith("foothold: left out by default") for line in d.skipped), d.skipped
+    tested = {t.effect for t in d.screening} | {c.effect for c in d.ranking}
+    assert "foothold" not in tested and "foothold" in d.identifiability.candidates
+    partners = {p.b if p.a == "foothold" else p.a for p in d.identifiability.inseparable() if "foothold" in (p.a, p.b)}
+    assert partners & {"com-offset", "accel-bias", "imu-mounting"}, d.identifiability.text()
+    notes = [n for n in d.identifiability_notes() if "foothold" in n]
+    assert notes and all("foothold in the table only, not tested" in n for n in notes), notes
+    assert notes == [n for n in d.to_json()["identifiability"]["notes"] if "foothold" in n]
