@@ -22,8 +22,9 @@ Three steps (DESIGN.md, "Diagnostics"; docs/diagnostics.md explains how to read 
    *significant* when its score is positive and its p-value is below ``alpha / m`` (``alpha``
    0.01), ``m`` the candidates in the round: for constant unknowns the likelihood-ratio p-value
    of ``2 (E_0 - E_1)`` against chi-square with the effect's effective dof, for per-step ones
-   (integrated out: ``2 (E_0 - E_1)`` is twice a log Bayes factor) ``1 / BF``.  Several effects: greedy forward selection -- add the best
-   significant one, rescore the rest on top of it, stop when none is significant.  Each round
+   (integrated out: ``2 (E_0 - E_1)`` is twice a log Bayes factor) ``1 / BF``.  Several effects:
+   greedy forward selection -- add the best significant one, rescore the rest on top of it, stop
+   when none is significant.  Each round
    tests its ``m`` candidates (every one not selected yet) at ``alpha / m``: Holm's step-down
    procedure: a recording without a hidden effect selects one with probability at most ``alpha``
    (at ``alpha`` per candidate, 11 candidates would give up to 10 %).
@@ -1109,8 +1110,9 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                  "score": "2 (E_base - E) - nu_constant ln(n), E the negative log marginal likelihood",
                  "alpha": alpha,
                  "significant": ("score > 0 and p < alpha / m (constant unknowns: likelihood-ratio p against "
-                                 "chi-square(effective dof); per-step ones: p = 1 / Bayes factor); alpha: family-wise "
-                                 "level of each round (Holm: alpha / candidates in the round, m those not selected yet)"),
+                                 "chi-square(effective dof); per-step ones: p = 1 / Bayes factor); alpha: "
+                                 "family-wise level of each round (Holm: alpha / candidates in the round, m those "
+                                 "not selected yet)"),
                  "tie": TIE,
                  "n_residuals": nominal.n_residuals, "penalty_per_dof": math.log(max(nominal.n_residuals, 2)),
                  "fit": "flexforce.smoother.fit",
