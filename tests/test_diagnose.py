@@ -225,7 +225,7 @@ def test_second_look_replaces_a_per_step_effect_that_loses_as_a_model():
     n = 10000
     charge = 0.5 * np.log(n)
 
-    def run(evidence_ck: float, first: str = "w", implausible: bool = False):
+    def run(evidence_ck: float, first: str = "w", implausible: bool = False, strongest=None):
         class Eff:
             def __init__(self, constant):
                 self.constant = constant
@@ -246,7 +246,7 @@ def test_second_look_replaces_a_per_step_effect_that_loses_as_a_model():
         tried = []
         selected = ["w", "k"]
         out = _second_look(selected, rounds, makers, lambda names: fits[tuple(sorted(names))],
-                           lambda trials: tried.extend(trials), None, lambda *a: None)
+                           lambda trials: tried.extend(trials), None, lambda *a: None, strongest)
         return selected, out, tried
 
     # J(w, k) = 1000 + 2 charge; J(c, k) = evidence + 4 charge
@@ -257,6 +257,17 @@ def test_second_look_replaces_a_per_step_effect_that_loses_as_a_model():
                    {"evidence_ck": 900.0, "first": "c-is-not-w"}):
         selected, out, _ = run(**kwargs)
         assert selected == ["w", "k"] and out == [], kwargs
+    # with the score tests at the rest of the selection (w out, k in): those are tried, in their order
+    asked = []
+
+    def strongest(without, names):
+        asked.append((without, sorted(names)))
+        return ["c"]
+
+    selected, out, tried = run(900.0, strongest=strongest)
+    assert asked == [(("k",), ["c", "x"])] and tried == [("c", "k")] and selected == ["c", "k"]
+    selected, out, tried = run(900.0, strongest=lambda without, names: [])  # nothing passes: no trial
+    assert selected == ["w", "k"] and tried == [] and out == []
 
 
 def test_candidates_carry_the_holm_level_of_their_round(gyro_diag):
