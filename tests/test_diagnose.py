@@ -219,6 +219,7 @@ def test_second_look_replaces_a_per_step_effect_that_loses_as_a_model():
     (evidence plus ln n / 2 per constant dof): ``c`` replaces ``w``, with one sentence.  A worse
     or implausible replacement, or a constant first choice, changes nothing."""
     from types import SimpleNamespace
+    from typing import Any
 
     from flexforce.compare.diagnose import Candidate, _second_look
 
@@ -239,9 +240,10 @@ def test_second_look_replaces_a_per_step_effect_that_loses_as_a_model():
                    Candidate("c", (), 1, 400.0, 410.0, 2.0, 0.0, True),
                    Candidate("x", (), 1, -3.0, 5.0, 1.0, 0.1, False)],
                   [Candidate("k", ("w",), 2, 50.0, 60.0, 2.0, 0.0, True)]]
-        fits = {("k", "w"): Fit(("w", "k"), SimpleNamespace(effects={}), 0.0, n, {"w": 90.0, "k": 2.0}, 1000.0,
+        blank: Any = SimpleNamespace(effects={})  # an estimate with no effect report
+        fits = {("k", "w"): Fit(("w", "k"), blank, 0.0, n, {"w": 90.0, "k": 2.0}, 1000.0,
                                 ("k",) if first == "w" else ("k", "w")),
-                ("c", "k"): Fit(("c", "k"), SimpleNamespace(effects={}), 0.0, n, {"c": 2.0, "k": 2.0}, evidence_ck,
+                ("c", "k"): Fit(("c", "k"), blank, 0.0, n, {"c": 2.0, "k": 2.0}, evidence_ck,
                                 ("c", "k"))}
         tried = []
         selected = ["w", "k"]
