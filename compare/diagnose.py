@@ -1168,8 +1168,8 @@ def _criterion(f: Fit) -> float | None:
 def _second_look(selected: list[str], rounds: list[list[Candidate]], makers: dict, fitted, fit_all, prob,
                  say, strongest=None) -> list[str]:
     """Replace, in ``selected`` (in place), a per-step effect the greedy selection took before its
-    last round by a constant candidate of that round, when the whole selection with the
-    replacement has the better criterion (:func:`_criterion`) and its estimate is plausible.
+    last round by a constant candidate, when the whole selection with the replacement has the
+    better criterion (:func:`_criterion`) and the replacement's estimate is plausible.
 
     A random-walk wrench can absorb part of every constant effect, so it can win a round against
     each of them alone and still lose, as a model, once the later rounds' effects are in: on the
