@@ -1183,8 +1183,10 @@ def _second_look(selected: list[str], rounds: list[list[Candidate]], makers: dic
     out: list[str] = []
     current = fitted(tuple(selected))
     for i, name in enumerate(list(selected[:-1])):
-        if name in current.global_effects or i >= len(rounds):
-            continue  # a constant: the greedy choice stands (its rivals are the table's business)
+        if name in current.global_effects or i >= len(rounds) or getattr(makers[name](), "per_episode", False):
+            # a constant (its rivals are the table's business), or constant per contact episode (the
+            # footholds: not a random walk that can follow whatever the model misses): the choice stands
+            continue
         constants = [k for k in makers if k not in selected and getattr(makers[k](), "constant", False) is True]
         # the strongest score tests with the rest of the selection in and this effect out; without
         # them, the round's strongest significant, plausible refits
@@ -1217,14 +1219,14 @@ def _second_look(selected: list[str], rounds: list[list[Candidate]], makers: dic
             assert here is not None
             value, alt, f = best
             others = [s for s in selected if s != name]
-            if not any(c.effect == alt for c in rounds[i]):
-                # not refitted in its round: its row, scored against the rest of the selection
-                rep = f.estimate.effects.get(alt, {})
-                eff = makers[alt]()
-                sc, lr, nu, p, sig = score(fitted(tuple(others)), f, alt)
-                row = Candidate(alt, tuple(others), i + 1, sc, lr, nu, p, sig, rep, summarize_effect(rep, eff))
-                row.finding = finding(row, rep, eff)
-                rounds[i].append(row)
+            # its row: the replacement as fitted with the rest of the selection, scored against it
+            # (its round's own row, if it had one, judged it alone)
+            rep = f.estimate.effects.get(alt, {})
+            eff = makers[alt]()
+            sc, lr, nu, p, sig = score(fitted(tuple(others)), f, alt)
+            row = Candidate(alt, tuple(others), i + 1, sc, lr, nu, p, sig, rep, summarize_effect(rep, eff))
+            row.finding = finding(row, rep, eff)
+            rounds[i][:] = [c for c in rounds[i] if c.effect != alt] + [row]
             out.append(f"second look: {alt} in place of {name} beside {', '.join(others)} (2ΔE = "
                        f"{2.0 * (here - value):.1f} in favour, constant unknowns charged): round {i + 1} took "
                        f"{name}, a per-step effect, which stood in for part of what the later rounds' effects "

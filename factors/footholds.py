@@ -190,6 +190,9 @@ class Footholds:
 
     name = "foothold"
     constant = False
+    per_episode = True
+    """Per-step unknowns, but constant over each contact episode (the diagnosis's second look
+    leaves them be: they cannot follow whatever the model misses, as a random-walk wrench can)."""
     unit = "m, rad"
     what = "foothold error"
     hint = ("shift the weight between the contacts, or step: a foothold error is a deflection that stays with "

@@ -217,7 +217,8 @@ def test_second_look_replaces_a_per_step_effect_that_loses_as_a_model():
     """The greedy selection took a per-step effect ``w`` in round 1 and ``k`` in round 2; the whole
     selection with the round's best constant ``c`` in place of ``w`` has the better criterion
     (evidence plus ln n / 2 per constant dof): ``c`` replaces ``w``, with one sentence.  A worse
-    or implausible replacement, or a constant first choice, changes nothing."""
+    or implausible replacement, a constant first choice, or one constant per contact episode
+    (the footholds), changes nothing."""
     from types import SimpleNamespace
     from typing import Any
 
@@ -226,15 +227,17 @@ def test_second_look_replaces_a_per_step_effect_that_loses_as_a_model():
     n = 10000
     charge = 0.5 * np.log(n)
 
-    def run(evidence_ck: float, first: str = "w", implausible: bool = False, strongest=None):
+    def run(evidence_ck: float, first: str = "w", implausible: bool = False, strongest=None,
+            per_episode: bool = False):
         class Eff:
-            def __init__(self, constant):
+            def __init__(self, constant, episodic=False):
                 self.constant = constant
+                self.per_episode = episodic
 
             def plausible(self, report, problem):
                 return "no" if implausible else None
 
-        makers = {"w": lambda: Eff(first != "w"), "c": lambda: Eff(True), "x": lambda: Eff(True),
+        makers = {"w": lambda: Eff(first != "w", per_episode), "c": lambda: Eff(True), "x": lambda: Eff(True),
                   "k": lambda: Eff(True)}
         rounds = [[Candidate("w", (), 1, 500.0, 500.0, 90.0, 0.0, True),
                    Candidate("c", (), 1, 400.0, 410.0, 2.0, 0.0, True),
@@ -243,12 +246,16 @@ def test_second_look_replaces_a_per_step_effect_that_loses_as_a_model():
         blank: Any = SimpleNamespace(effects={})  # an estimate with no effect report
         fits = {("k", "w"): Fit(("w", "k"), blank, 0.0, n, {"w": 90.0, "k": 2.0}, 1000.0,
                                 ("k",) if first == "w" else ("k", "w")),
+                ("k",): Fit(("k",), blank, 0.0, n, {"k": 2.0}, 1100.0, ("k",)),
                 ("c", "k"): Fit(("c", "k"), blank, 0.0, n, {"c": 2.0, "k": 2.0}, evidence_ck,
                                 ("c", "k"))}
         tried = []
         selected = ["w", "k"]
         out = _second_look(selected, rounds, makers, lambda names: fits[tuple(sorted(names))],
                            lambda trials: tried.extend(trials), None, lambda *a: None, strongest)
+        if out:  # the replacement's row: fitted with the rest of the selection, scored against it
+            row = next(c for c in rounds[0] if c.effect == "c")
+            assert row.base == ("k",) and row.lr == pytest.approx(2 * (1100.0 - evidence_ck))
         return selected, out, tried
 
     # J(w, k) = 1000 + 2 charge; J(c, k) = evidence + 4 charge
@@ -256,7 +263,7 @@ def test_second_look_replaces_a_per_step_effect_that_loses_as_a_model():
     assert selected == ["c", "k"] and tried == [("c", "k")]  # x is not significant: not tried
     assert len(out) == 1 and out[0].startswith("second look: c in place of w beside k (2ΔE = 2.0 in favour")
     for kwargs in ({"evidence_ck": 1000.0 - 2 * charge + 1.0}, {"evidence_ck": 900.0, "implausible": True},
-                   {"evidence_ck": 900.0, "first": "c-is-not-w"}):
+                   {"evidence_ck": 900.0, "first": "c-is-not-w"}, {"evidence_ck": 900.0, "per_episode": True}):
         selected, out, _ = run(**kwargs)
         assert selected == ["w", "k"] and out == [], kwargs
     # with the score tests at the rest of the selection (w out, k in): those are tried, in their order
