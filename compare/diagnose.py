@@ -539,10 +539,11 @@ def score(base: Fit, fit: Fit, effect: str, alpha: float = ALPHA,
     else:
         lr = 2.0 * (base.cost_data - fit.cost_data)
     nu = float(fit.effective_dof.get(effect, 0.0))
-    penalised = nu if (not use_evidence or effect in fit.global_effects) else 0.0
+    integrated = use_evidence and effect not in fit.global_effects
+    penalised = 0.0 if integrated else nu
     n = max(fit.n_residuals, 2)
     bic = lr - penalised * math.log(n)
-    if use_evidence and effect not in fit.global_effects:
+    if integrated:
         # per-step unknowns integrated out: 2 dE is twice the log Bayes factor, whose expectation
         # under the base model is 1, so P(BF >= 1/p) <= p (Markov): p = 1/BF is a valid p-value
         p = float(math.exp(-0.5 * lr)) if lr > 0 else 1.0
@@ -1092,11 +1093,8 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
             base_fit = fitted(without)
             if screen_level is None or base_fit.trajectory is None or base_fit.model is None or not names:
                 return None
-            from flexforce.smoother import NoiseRule, Problem
-
             got = screen(rec, base_fit, {k: makers[k] for k in names}, screen_window,
-                         progress=cb_message("second look: screening at + " + " + ".join(without)),
-                         problem=Problem.build(rec, base_fit.model, NoiseRule()), jobs=jobs)
+                         progress=cb_message("second look: screening at + " + " + ".join(without)), jobs=jobs)
             ok = {k: v for k, v in got.items() if not isinstance(v, str) and v.p_value < screen_level}
             return sorted(ok, key=lambda k: _strength(ok[k]))
 
@@ -1165,6 +1163,17 @@ def _criterion(f: Fit) -> float | None:
     return float(f.cost_evidence) + 0.5 * math.log(max(f.n_residuals, 2)) * charge
 
 
+def _constant(effect, prob) -> bool:
+    """Whether the smoothers fit ``effect``'s unknowns as one global block
+    (:func:`flexforce.smoother.linearize.is_global`); False when a user's effect cannot say."""
+    from flexforce.smoother.linearize import is_global
+
+    try:
+        return is_global(effect, prob)
+    except Exception:  # a user's effect may raise anything: not taken for a constant
+        return False
+
+
 def _second_look(selected: list[str], rounds: list[list[Candidate]], makers: dict, fitted, fit_all, prob,
                  say, strongest=None) -> list[str]:
     """Replace, in ``selected`` (in place), a per-step effect the greedy selection took before its
@@ -1187,7 +1196,7 @@ def _second_look(selected: list[str], rounds: list[list[Candidate]], makers: dic
             # a constant (its rivals are the table's business), or constant per contact episode (the
             # footholds: not a random walk that can follow whatever the model misses): the choice stands
             continue
-        constants = [k for k in makers if k not in selected and getattr(makers[k](), "constant", False) is True]
+        constants = [k for k in makers if k not in selected and _constant(makers[k](), prob)]
         # the strongest score tests with the rest of the selection in and this effect out; without
         # them, the round's strongest significant, plausible refits
         alternatives = strongest(tuple(s for s in selected if s != name), constants) if strongest else None

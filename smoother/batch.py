@@ -132,10 +132,10 @@ def _levenberg_marquardt(prob, traj, lin, cidx, freeze, max_iterations, rel_tol,
     cost = lin.cost
     log = []
     grow = 2.0
+    Hd, B, g = _system(prob, lin, cidx)  # assembled once per linearisation point (a rejection keeps it)
     for it in range(max_iterations):
         if give_up_above is not None and it >= TRIAL_PATIENCE and cost > give_up_above:
             break
-        Hd, B, g = _system(prob, lin, cidx)
         dx, _, _ = solve_arrow(Hd, B, g, cidx, damping=lam, freeze=freeze)
         if not np.all(np.isfinite(dx)):
             raise EstimatorError("batch smoother: the Gauss-Newton step is not finite (singular system)")
@@ -149,11 +149,11 @@ def _levenberg_marquardt(prob, traj, lin, cidx, freeze, max_iterations, rel_tol,
             log.append(cost)
             lam = max(lam * max(0.1, 1.0 - (2.0 * rho - 1.0) ** 3), 1e-12)
             grow = 2.0
+            if decrease <= rel_tol * max(cost, 1.0) and lam <= 1e-12:
+                break
+            Hd, B, g = _system(prob, lin, cidx)
             if decrease <= rel_tol * max(cost, 1.0):
-                if lam <= 1e-12:
-                    break
                 # damped: converged only if the undamped step has nothing more to give
-                Hd, B, g = _system(prob, lin, cidx)
                 dx, _, _ = solve_arrow(Hd, B, g, cidx, damping=0.0, freeze=freeze)
                 if not np.all(np.isfinite(dx)) or _quadratic_decrease(Hd, B, g, dx) <= rel_tol * max(cost, 1.0):
                     break
