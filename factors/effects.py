@@ -674,22 +674,58 @@ def _propagate(R, q, h):
     return Rp, np.ascontiguousarray(qp), P
 
 
+def _model_acceleration(problem: ProblemView, steps, R, q) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The accelerations ``(dw, a)`` (n, 6) the nominal model gives the states: the forward dynamics
+    (eq. 24, 25) under the contacts' spring-damper wrench (eq. 6-12) at each state, with the
+    recording's inputs at ``steps``; and their Jacobian on the state (n, 6, 18) (through the pose
+    and velocities only); and (n,) False where the acceleration block is singular (zeros there)."""
+    from flexforce.factors import core
+
+    steps = np.asarray(steps)
+    n = len(steps)
+    cc = np.ascontiguousarray
+    R = cc(R, dtype=float)
+    q = cc(q, dtype=float)
+    f, df = problem.contact_law_terms(steps, R, q, problem.K_fs, problem.K_fd, problem.K_ts, problem.K_td)
+    Wc, dWc = cc(f.sum(axis=1)), df.sum(axis=1)
+    acc, Jx, Jw = np.empty((n, 6)), np.empty((n, 6, 12)), np.empty((n, 6, 6))
+    ok = np.empty(n, dtype=bool)
+    core.forward_dynamics_all(R, q, Wc, float(problem.rec.mass), cc(problem.com[steps], dtype=float),
+                              cc(problem.com_vel[steps], dtype=float), cc(problem.com_acc[steps], dtype=float),
+                              cc(problem.inertia[steps], dtype=float), cc(problem.inertia_dot[steps], dtype=float),
+                              cc(problem.sigma_l[steps], dtype=float), cc(problem.sigma_dot[steps], dtype=float),
+                              float(problem.g), acc, Jx, Jw, ok)
+    J = Jw @ dWc
+    J[:, :, :12] += Jx
+    return acc, J, ok
+
+
 class TimeOffset(_Constant):
     r"""Time offset ``tau`` (s) of the IMU against the joint encoders: the IMU sample stamped ``t``
     was taken at ``t - tau`` (``tau > 0``: the IMU is late), the simulator's ``time-offset``
     (which really delays the IMU: its readings are those of the simulated sensor ``tau`` earlier).
 
     First order, ``y(t - tau) = y(t) - tau dy/dt``: the term on the ``imu`` family is
-    ``-tau dy/dt`` (gyro and accelerometer rows).  The derivative of the prediction is a central
-    difference over one sample on each side, ``dy/dt = (y(s+, in_k+1) - y(s-, in_k-1)) / (2 dt)``
-    (one-sided at the ends), where ``in_k+-1`` are the recording's IMU placement and motion at the
-    neighbouring samples (the robot's own motion, from the encoders) and ``s+-`` the step's
-    flexibility state carried ``+-dt`` on at constant acceleration (:func:`_propagate`: the state of
-    one step has no jerk, and an effect's term sees one step at a time, as in the fixed-lag
-    smoother).  So ``dy/dt`` is exact for the robot's own motion up to the difference's
-    ``O(dt^2)`` and for the flexibility's motion up to its jerk, which the sensor sees as
-    ``dt jerk`` on the accelerometer: the flexibility's own vibration is underestimated.
-    Jacobians: ``dr/dtau = -dy/dt``, ``dr/ds = -tau (dy/ds(s+) P+ - dy/ds(s-) P-) / (2 dt)``.
+    ``-tau dy/dt`` (gyro and accelerometer rows).  ``dy/dt`` is the rate of the prediction along
+    the model's own motion through the step (an effect's term sees one step at a time, as in the
+    fixed-lag smoother): a central difference over one sample on each side,
+    ``dy/dt = (y(s+, in_k+1) - y(s-, in_k-1)) / (2 dt)`` (one-sided at the ends), where
+    ``in_k+-1`` are the recording's IMU placement and motion at the neighbouring samples (the
+    robot's own motion, from the encoders) and ``s+-`` the step's pose and velocities carried
+    ``+-dt`` on (:func:`_propagate`) with the accelerations the model gives them there,
+    ``A(s+-, in_k+-1)`` (:func:`_model_acceleration`: the forward dynamics under the spring-damper
+    wrench), the carrying itself at the model's accelerations ``A(s, in_k)``.  So the flexibility's
+    jerk is the model's (``d/dt`` of ``K x + D v`` is ``K v + D a``: the accelerometer sees it,
+    one step's state does not hold it), and the state's own accelerations are not read: they also
+    hold what the model does not (a world that shakes, unmodelled forces, noise), fast content
+    whose reading ``tau`` earlier a first-order shift cannot follow (``omega tau`` near 1 and
+    beyond): regressed on it, the delay came out biased towards zero.  Exact for the robot's own
+    motion up to the difference's ``O(dt^2)``, and for the flexibility's motion up to what the
+    nominal contact law and dynamics miss of it (effects in the model, an external wrench, are not
+    in ``A``).  Jacobians: ``dr/dtau = -dy/dt``, ``dr/ds = -tau (dy/ds(s+) D+ - dy/ds(s-) D-) /
+    (2 dt)``, ``D+- = P'+- S``: ``S`` the state with its accelerations replaced by ``A(s)``
+    (``dA/ds`` in their rows), ``P'`` the propagation's Jacobian with ``dA(s+-)/ds+- P`` in the
+    accelerations' rows.
 
     The neglected second order is ``tau^2 / 2 d^2y/dt^2``: relative to the first-order term
     ``tau omega / 2`` at a frequency ``omega``, 6 % for 20 ms at 1 Hz.
@@ -723,19 +759,31 @@ class TimeOffset(_Constant):
     def rate(self, problem: ProblemView, steps, R, q) -> tuple[np.ndarray, np.ndarray]:
         """``dy/dt`` (n, 6) of the IMU prediction and its Jacobian (n, 6, 18) (class documentation)."""
         steps = np.asarray(steps)
+        n = len(steps)
         N = len(problem.imu_p)
         kp = np.minimum(steps + 1, N - 1)
         km = np.maximum(steps - 1, 0)
         hp = (kp - steps) * float(problem.dt)
         hm = (km - steps) * float(problem.dt)
         span = np.where(hp - hm > 0, hp - hm, 1.0)
-        Rp, qp, Pp = _propagate(R, q, hp)
-        Rm, qm, Pm = _propagate(R, q, hm)
-        yp, Jp = _imu_prediction(problem, kp, Rp, qp)
-        ym, Jm = _imu_prediction(problem, km, Rm, qm)
-        ydot = (yp - ym) / span[:, None]
-        J = (Jp @ Pp - Jm @ Pm) / span[:, None, None]
-        return ydot, J
+        # the model's own motion through the step's pose and velocities: its accelerations in place
+        # of the state's (where the model has none -- a massless model -- the state's are kept)
+        A0, JA0, ok0 = _model_acceleration(problem, steps, R, q)
+        qm = np.array(q, dtype=float)
+        qm[ok0, 9:15] = A0[ok0]
+        S = np.broadcast_to(np.eye(18), (n, 18, 18)).copy()
+        S[ok0, 12:18, :] = JA0[ok0]
+        side = []
+        for k1, h in ((kp, hp), (km, hm)):
+            R1, q1, P = _propagate(R, qm, h)
+            A1, JA1, ok1 = _model_acceleration(problem, k1, R1, q1)
+            use = ok0 & ok1
+            q1[use, 9:15] = A1[use]
+            P[use, 12:18, :] = JA1[use] @ P[use]
+            y, Jy = _imu_prediction(problem, k1, R1, q1)
+            side.append((y, Jy @ P @ S))
+        (yp, Jp), (ym, Jm) = side
+        return (yp - ym) / span[:, None], (Jp - Jm) / span[:, None, None]
 
     def residual_terms(self, family, problem: ProblemView, steps, R, q, W, e):
         if family != "imu":
