@@ -390,9 +390,11 @@ class CandidateInformation:
     detectable: tuple[float, ...] = ()
     """Per unknown (in its own unit, the :attr:`labels`' order), the smallest value this recording
     detects: the size whose gain in ``2 ln L``, the candidate's other unknowns fitted with it,
-    reaches :attr:`threshold` -- ``sqrt(threshold / s_i)``, ``s_i`` the Schur complement of the
-    unknown in the candidate's information (inf: not seen alone).  For a windowed candidate, an
-    effect lasting one window (the median window)."""
+    pays for the candidate's ``dim`` unknowns, ``dim`` times :attr:`threshold` (the selection's
+    score charges ``ln n`` per unknown) -- ``sqrt(dim threshold / s_i)``, ``s_i`` the Schur
+    complement of the unknown in the candidate's information (inf: not seen alone).  For a windowed
+    candidate (scored by its Bayes factor), an effect lasting one window (the median window) whose
+    gain reaches :attr:`threshold`."""
 
     def detectable_text(self) -> str:
         """``x ≥ 0.012 m/s^2, ...``: the detectable sizes, one per unknown."""
@@ -667,10 +669,13 @@ def identifiability(prob_base: Problem, traj: Trajectory, effects, rule: NoiseRu
     def info(eff, kind, Sb, s0):
         wv, V = np.linalg.eigh(s0[:, None] * Sb * s0[None, :])
         i = int(np.argmax(np.abs(V[:, 0])))
+        # a constant's size pays for all its unknowns (the selection charges dim ln n); a per-step
+        # one's score is its Bayes factor, one window at a time
+        charge = thr * (int(eff.dim) if kind == "constant" else 1)
         cands[eff.name] = CandidateInformation(eff.name, int(eff.dim), tuple(getattr(eff, "labels", ())), kind,
                                                float(max(wv[0], 0.0)), _label(eff, i).split(" [")[0], i, thr,
                                                _excites(eff, i), float(max(wv[-1], 0.0)),
-                                               detectable_sizes(Sb, s0, thr))
+                                               detectable_sizes(Sb, s0, charge))
 
     for eff, blk, s0 in const:
         info(eff, "constant", Jc[np.ix_(blk, blk)], s0)
