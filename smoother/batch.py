@@ -257,8 +257,10 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
     log += costs
     if cidx.size:
         # theta by the marginal likelihood (smoother/evidence.py): J + occam
-        pen = evidence.occam(prob, lin, cidx)
-        gpen = evidence.occam_gradient(prob, traj, cidx)
+        keep: dict = {}  # the evidence's factors at the current point, for its gradient there
+        pen = evidence.occam(prob, lin, cidx, keep)
+        gpen = evidence.occam_gradient(prob, traj, cidx, lin=lin, keep=keep)
+        keep.clear()
         M = np.zeros((cidx.size, cidx.size))  # the secant's estimate of what the Schur complement misses
         last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         for it in range(max_iterations):
@@ -334,9 +336,10 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
                                                           max_iterations, rel_tol, lam=1e-12,
                                                           give_up_above=lin.cost + 2.0 * predicted)
                 try:
-                    pen_c = evidence.occam(prob, lin_c, cidx)
+                    pen_c = evidence.occam(prob, lin_c, cidx, keep)
                 except EstimatorError:  # e.g. a stiffness scale driven negative: unstable dynamics
                     pen_c = np.inf
+                    keep.clear()
                 if lin_c.cost + pen_c <= phi:
                     accepted = True
                     break
@@ -365,7 +368,8 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
                 stopped = watch(traj)
                 if stopped:
                     break
-            gpen = evidence.occam_gradient(prob, traj, cidx)
+            gpen = evidence.occam_gradient(prob, traj, cidx, lin=lin, keep=keep)
+            keep.clear()
     P = None
     if want_cov:
         Hd, B, g = _system(prob, lin, cidx)

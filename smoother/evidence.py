@@ -165,11 +165,13 @@ def _scaled_states(prob, lin: Linearization, cidx: np.ndarray):
     return aidx, s, Hs, Bs
 
 
-def log_dets(prob, lin: Linearization, cidx: np.ndarray) -> tuple[float, float]:
+def log_dets(prob, lin: Linearization, cidx: np.ndarray, keep: dict | None = None) -> tuple[float, float]:
     """``(ln det H_post, ln det H_model)`` over the per-step states (the columns ``cidx`` held):
     ``H_post``'s by its block Cholesky pivots, ``H_model``'s from the model factors' rows by QR
-    (:func:`_qr_logdet`); the columns Jacobi-scaled by ``H_post``'s diagonal (the scale cancels
-    in the difference)."""
+    (:func:`_qr_factor`); the columns Jacobi-scaled by ``H_post``'s diagonal (the scale cancels
+    in the difference).  ``keep``: a dict that receives what :func:`occam_gradient` at the same
+    linearisation reuses (the scaled system and the prior's QR factor)."""
+    full = lin
     lin = drop_global_walks(prob, lin) if cidx.size else lin
     n = prob.n
     aidx, s, Hs, Bs = _scaled_states(prob, lin, cidx)
@@ -181,7 +183,13 @@ def log_dets(prob, lin: Linearization, cidx: np.ndarray) -> tuple[float, float]:
     except np.linalg.LinAlgError:
         post = -np.inf
     model_u = [k for k in lin.unary if _family(k) not in MEASUREMENT_FAMILIES]
-    prior = float(_qr_logdet(*_stacked(lin, model_u, list(lin.binary), n, aidx, s)))
+    d = len(aidx)
+    Rd, Ru = np.empty((n, d, d)), np.empty((max(n - 1, 0), d, d))
+    prior = float(_qr_factor(*_stacked(lin, model_u, list(lin.binary), n, aidx, s), Rd, Ru))
+    if keep is not None:
+        keep.clear()
+        if np.isfinite(prior) and np.isfinite(post):
+            keep.update(lin=full, base=lin, aidx=aidx, s=s, Hs=Hs, Bs=Bs, Rd=Rd, Ru=Ru)
     out = []
     for val, what in ((post, "posterior"), (prior, "trajectory prior")):
         if not np.isfinite(val):
@@ -191,9 +199,10 @@ def log_dets(prob, lin: Linearization, cidx: np.ndarray) -> tuple[float, float]:
     return out[0], out[1]
 
 
-def occam(prob, lin: Linearization, cidx: np.ndarray) -> float:
-    """``1/2 (ln det H_post - ln det H_model)``: what the states' integral adds to ``J``."""
-    post, model = log_dets(prob, lin, cidx)
+def occam(prob, lin: Linearization, cidx: np.ndarray, keep: dict | None = None) -> float:
+    """``1/2 (ln det H_post - ln det H_model)``: what the states' integral adds to ``J``
+    (``keep``: :func:`log_dets`')."""
+    post, model = log_dets(prob, lin, cidx, keep)
     return 0.5 * (post - model)
 
 
@@ -246,7 +255,8 @@ def _trace_term(P, Pc, lin0: Linearization, lin_p: Linearization, lin_m: Lineari
     return 2.0 * out
 
 
-def occam_gradient(prob, traj, cidx: np.ndarray, rel_step: float = 1e-3) -> np.ndarray:
+def occam_gradient(prob, traj, cidx: np.ndarray, rel_step: float = 1e-3, lin: Linearization | None = None,
+                   keep: dict | None = None) -> np.ndarray:
     """Gradient of :func:`occam` in the global parameters, the states held, by
     ``d ln det H = tr(H^-1 dH)`` for both Hessians: ``dH = J^T dJ + dJ^T J`` with ``dJ`` the
     central difference of the Jacobians (steps of ``rel_step`` of each parameter's prior sigma),
@@ -256,15 +266,22 @@ def occam_gradient(prob, traj, cidx: np.ndarray, rel_step: float = 1e-3) -> np.n
     (:func:`_qr_factor`, :func:`_factor_selected_inverse`; a Cholesky factor of the prior would
     square its 1e15 spread).  Each inverse is formed once for every parameter.
 
-    Equal to the central difference of :func:`occam` to the differences' truncation error (tested)."""
+    Equal to the central difference of :func:`occam` to the differences' truncation error (tested).
+    ``lin`` (the linearisation at ``traj``) with the ``keep`` of :func:`occam` at it: their scaled
+    system and QR factor are reused (the same numbers, formed once)."""
     off = prob.state_dim - prob.effect_dim
     sig = global_prior_sigma(prob)
     grad = np.zeros(cidx.size)
     if not cidx.size:
         return grad
     n = prob.n
-    base = drop_global_walks(prob, linearize(prob, traj))
-    aidx, s, Hs, Bs = _scaled_states(prob, base, cidx)
+    reuse = keep is not None and lin is not None and keep.get("lin") is lin
+    if reuse:
+        assert keep is not None
+        base, aidx, s, Hs, Bs = keep["base"], keep["aidx"], keep["s"], keep["Hs"], keep["Bs"]
+    else:
+        base = drop_global_walks(prob, lin if lin is not None else linearize(prob, traj))
+        aidx, s, Hs, Bs = _scaled_states(prob, base, cidx)
     d = len(aidx)
     model_u = [k for k in base.unary if _family(k) not in MEASUREMENT_FAMILIES]
     post_inv: tuple[np.ndarray, np.ndarray] | None = None
@@ -289,6 +306,9 @@ def occam_gradient(prob, traj, cidx: np.ndarray, rel_step: float = 1e-3) -> np.n
         model = 0.0
         mkeys = [k for k in keys if _family(k) not in MEASUREMENT_FAMILIES]
         if mkeys:
+            if model_inv is None and reuse:
+                assert keep is not None
+                model_inv = _factor_selected_inverse(keep["Rd"], keep["Ru"])
             if model_inv is None:
                 Rd, Ru = np.empty((n, d, d)), np.empty((max(n - 1, 0), d, d))
                 if not np.isfinite(_qr_factor(*_stacked(base, model_u, list(base.binary), n, aidx, s), Rd, Ru)):

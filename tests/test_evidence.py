@@ -141,3 +141,13 @@ def test_occam_gradient_is_the_derivative_of_the_occam_term(null_sway):
             vals.append(occam(prob, linearize(prob, type(traj)(traj.R, traj.q, traj.W, e)), cidx))
         ref = (vals[0] - vals[1]) / (2 * h)
         assert grad[j] == pytest.approx(ref, rel=5e-4), (j, grad[j], ref)
+    # with the factors the Occam term formed at the same linearisation (the smoother's outer steps)
+    lin = linearize(prob, traj)
+    keep: dict = {}
+    pen = occam(prob, lin, cidx, keep)
+    assert pen == occam(prob, lin, cidx) and keep["lin"] is lin
+    np.testing.assert_allclose(occam_gradient(prob, traj, cidx, lin=lin, keep=keep), grad, rtol=1e-12, atol=0.0)
+    # a keep formed at another linearisation is not used
+    other = linearize(prob, type(traj)(traj.R, traj.q, traj.W, traj.e + 1e-3))
+    np.testing.assert_allclose(occam_gradient(prob, traj, cidx, lin=lin, keep={**keep, "lin": other}), grad,
+                               rtol=1e-12, atol=0.0)
