@@ -22,7 +22,7 @@ with ``x*`` the states' optimum for ``theta``, ``H_post`` the Gauss-Newton Hessi
 per-step states (the constant parameters held) and ``H_model`` that of the model factors alone
 (``ln Z = -1/2 ln det H_model`` + const: the model factors have as many rows as the states have
 unknowns, so their minimum is zero).  Both are block tridiagonal; their log-determinants come
-from the factors' rows by a step-by-step QR (a square-root information filter, :func:`_qr_logdet`),
+from the factors' rows by a step-by-step QR (a square-root information filter, :func:`_qr_factor`),
 not from a Cholesky factorisation of ``H``: the trajectory prior's per-step blocks span 1e15 in
 eigenvalue, and squaring that left its log-determinant's derivative in a parameter to noise.
 
@@ -98,13 +98,6 @@ def _qr_factor(Ju, J0, J1, Jf, Rd, Ru):
 
 
 @njit
-def _qr_logdet(Ju, J0, J1, Jf):
-    """``ln det (J^T J)`` of the stacked rows of a chain by :func:`_qr_factor`."""
-    n, d = Ju.shape[0], Ju.shape[2]
-    return _qr_factor(Ju, J0, J1, Jf, np.empty((n, d, d)), np.empty((max(n - 1, 0), d, d)))
-
-
-@njit
 def _factor_selected_inverse(Rd, Ru):
     """Diagonal blocks ``P`` and upper blocks ``Pc`` (``Pc[k] = Sigma[k, k+1]``) of ``Sigma = (R^T
     R)^-1`` for ``R`` block upper bidiagonal (:func:`_qr_factor`), by the backward recursion of
@@ -128,7 +121,7 @@ def _factor_selected_inverse(Rd, Ru):
 
 def _stacked(lin: Linearization, keys_u, keys_b, n: int, aidx, s):
     """The rows of the families ``keys_u`` (unary) and ``keys_b`` (binary), on the columns ``aidx``
-    scaled by ``s``: ``(Ju, J0, J1, Jf)`` for :func:`_qr_logdet`."""
+    scaled by ``s``: ``(Ju, J0, J1, Jf)`` for :func:`_qr_factor`."""
     d = len(aidx)
     first = [k for k in keys_u if lin.unary[k][1].shape[0] == 1 and n > 1]  # the first step's priors
     keys_u = [k for k in keys_u if k not in first]
