@@ -1268,7 +1268,9 @@ def _second_look(selected: list[str], rounds: list[list[Candidate]], makers: dic
     Tried: for each such effect, the :data:`SWAP_ALTERNATIVES` constant candidates whose score
     tests are strongest at the fit of the rest of the selection (``strongest(without, names)``;
     on TALOS's weight shift the CoM offset was not among round 1's refits), or, without the test,
-    the round's strongest significant, plausible refits.  Returns one sentence per replacement."""
+    the round's strongest significant, plausible refits; one the last round found implausible is
+    not tried again (on the iCub sway, the anisotropic stiffness: 23 s).  Returns one sentence per
+    replacement."""
     out: list[str] = []
     current = fitted(tuple(selected))
     for i, name in enumerate(list(selected[:-1])):
@@ -1283,7 +1285,10 @@ def _second_look(selected: list[str], rounds: list[list[Candidate]], makers: dic
         if alternatives is None:
             alternatives = [c.effect for c in rounds[i] if c.significant and not c.implausible and c.score is not None
                             and c.effect in constants]
-        alternatives = alternatives[:SWAP_ALTERNATIVES]
+        # of those, one the last round refitted beside the whole selection and found implausible
+        # is not tried again (the swap takes a plausible replacement only)
+        gone = {c.effect for c in rounds[-1] if c.implausible} if rounds else set()
+        alternatives = [a for a in alternatives[:SWAP_ALTERNATIVES] if a not in gone]
         if not alternatives:
             continue
         trials = [tuple(alt if s == name else s for s in selected) for alt in alternatives]

@@ -530,8 +530,12 @@ class FitStatistics:
     """``ln det`` of the states' prior information (:func:`flexforce.smoother.evidence.log_dets`)."""
     cost_evidence: float
     """Negative log marginal likelihood of the data given the constant parameters, up to a
-    constant (:mod:`.evidence`, Laplace): ``cost_data + cost_state_prior + (log_det_posterior -
-    log_det_prior) / 2``."""
+    constant (:mod:`.evidence`, Laplace): ``cost_data_robust + cost_state_prior +
+    (log_det_posterior - log_det_prior) / 2``: the optimised objective without ``theta``'s prior."""
+    cost_data_robust: float = float("nan")
+    """The data term of the evidence: as ``cost_data`` with the objective's robust losses (the
+    Huber Newton-Euler rows, a robust IMU loss when set) -- the negative log of their densities,
+    whose normalisers do not depend on the model."""
     global_effects: tuple[str, ...] = ()
     """Effects whose unknowns were one global block: the constants the evidence is conditioned on
     (empty without ``global_constants``)."""
@@ -583,11 +587,13 @@ def fit(rec, model, progress: Callable[[float], None] | None = None, rule: Noise
         n_res += int(ok.sum())
     post, prior = evidence.log_dets(prob, lin, cidx)
     state_prior = evidence.state_prior_cost(prob, lin)
+    # the evidence's data term is the objective's: robust (Huber) Newton-Euler rows
+    cost_robust = float(lin.cost) - evidence.theta_prior_cost(prob, lin) - state_prior
     stats = FitStatistics(
         cost_data=cost_data, cost_total=float(lin.cost), n_residuals=n_res,
         effective_dof=effective_dof(prob, P, Pc), cost_state_prior=float(state_prior),
         log_det_posterior=float(post), log_det_prior=float(prior),
-        cost_evidence=float(cost_data + state_prior + 0.5 * (post - prior)),
+        cost_evidence=float(cost_robust + state_prior + 0.5 * (post - prior)), cost_data_robust=cost_robust,
         global_effects=tuple(e.name for e in prob.effects if is_global(e, prob)) if cidx.size else (),
         trajectory=traj, stopped=info.get("stopped"))
     est.total_time = time.perf_counter() - t0

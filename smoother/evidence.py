@@ -26,6 +26,13 @@ from the factors' rows by a step-by-step QR (a square-root information filter, :
 not from a Cholesky factorisation of ``H``: the trajectory prior's per-step blocks span 1e15 in
 eigenvalue, and squaring that left its log-determinant's derivative in a parameter to noise.
 
+With robust losses (the Huber loss of the Newton-Euler rows, a robust IMU loss) ``J`` is the
+robust objective and ``H_post`` its Gauss-Newton Hessian with the IRLS weights; ``H_model`` stays
+that of the *plain* model rows: the prior over trajectories is the density of the model
+residuals carried to the states by a change of variables, whose Jacobian determinant does not
+see the residuals' density (:func:`plain_model_rows`).  The losses' normalisers do not depend on
+``theta``.
+
 :func:`flexforce.smoother.batch.optimize` estimates ``theta`` by minimising this (type-II maximum
 likelihood, with ``theta``'s own prior), the states by MAP given it; the diagnostics score an
 effect by the gain in it (:mod:`flexforce.compare.diagnose`).
@@ -145,6 +152,21 @@ def _stacked(lin: Linearization, keys_u, keys_b, n: int, aidx, s):
     return Ju, J0, J1, np.ascontiguousarray(Jf)
 
 
+def plain_model_rows(lin: Linearization) -> Linearization:
+    """``lin`` with the Newton-Euler rows unweighted (their Huber IRLS weights divided out): the
+    trajectory prior's normaliser is the Jacobian determinant of the change of variables from the
+    states to the model residuals, whatever the residuals' density (Gaussian or Huber), so its
+    ``ln det H_model`` is that of the plain rows.  The posterior's ``H_post`` keeps the weights
+    (the Gauss-Newton Hessian of the robust objective)."""
+    if lin.ne_weights is None or "newton_euler" not in lin.unary:
+        return lin
+    sw = np.sqrt(lin.ne_weights)
+    r, J = lin.unary["newton_euler"]
+    unary = dict(lin.unary)
+    unary["newton_euler"] = (r / sw[:, None], J / sw[:, None, None])
+    return Linearization(unary=unary, binary=lin.binary, cost=lin.cost, weights=lin.weights)
+
+
 def _scaled_states(prob, lin: Linearization, cidx: np.ndarray):
     """``(aidx, s, Hs, Bs)``: the per-step states' columns (``cidx`` held), their Jacobi scale
     from ``H``'s diagonal, and ``H``'s diagonal and upper blocks on them, scaled."""
@@ -178,7 +200,8 @@ def log_dets(prob, lin: Linearization, cidx: np.ndarray, keep: dict | None = Non
     model_u = [k for k in lin.unary if _family(k) not in MEASUREMENT_FAMILIES]
     d = len(aidx)
     Rd, Ru = np.empty((n, d, d)), np.empty((max(n - 1, 0), d, d))
-    prior = float(_qr_factor(*_stacked(lin, model_u, list(lin.binary), n, aidx, s), Rd, Ru))
+    plain = plain_model_rows(lin)
+    prior = float(_qr_factor(*_stacked(plain, model_u, list(plain.binary), n, aidx, s), Rd, Ru))
     if keep is not None:
         keep.clear()
         if np.isfinite(prior) and np.isfinite(post):
@@ -275,6 +298,7 @@ def occam_gradient(prob, traj, cidx: np.ndarray, rel_step: float = 1e-3, lin: Li
     else:
         base = drop_global_walks(prob, lin if lin is not None else linearize(prob, traj))
         aidx, s, Hs, Bs = _scaled_states(prob, base, cidx)
+    mbase = plain_model_rows(base)
     d = len(aidx)
     model_u = [k for k in base.unary if _family(k) not in MEASUREMENT_FAMILIES]
     post_inv: tuple[np.ndarray, np.ndarray] | None = None
@@ -304,11 +328,12 @@ def occam_gradient(prob, traj, cidx: np.ndarray, rel_step: float = 1e-3, lin: Li
                 model_inv = _factor_selected_inverse(keep["Rd"], keep["Ru"])
             if model_inv is None:
                 Rd, Ru = np.empty((n, d, d)), np.empty((max(n - 1, 0), d, d))
-                if not np.isfinite(_qr_factor(*_stacked(base, model_u, list(base.binary), n, aidx, s), Rd, Ru)):
+                if not np.isfinite(_qr_factor(*_stacked(mbase, model_u, list(mbase.binary), n, aidx, s), Rd, Ru)):
                     raise EstimatorError("smoother: the trajectory prior information of the states is not positive "
                                          "definite (an unobservable direction: check contacts and stiffness)")
                 model_inv = _factor_selected_inverse(Rd, Ru)
-            model = _trace_term(model_inv[0], model_inv[1], base, lins[0], lins[1], mkeys, aidx, s, h)
+            model = _trace_term(model_inv[0], model_inv[1], mbase, plain_model_rows(lins[0]),
+                                plain_model_rows(lins[1]), mkeys, aidx, s, h)
         grad[j] = 0.5 * (post - model)
     return grad
 
@@ -321,6 +346,17 @@ def global_prior_sigma(prob) -> np.ndarray:
             _, s0 = eff.prior(prob)
             out.extend(np.broadcast_to(np.asarray(s0, dtype=float), (int(eff.dim),)))
     return np.asarray(out, dtype=float)
+
+
+def theta_prior_cost(prob, lin: Linearization) -> float:
+    """Half the squared residuals of ``theta``'s own prior (the global effects' priors and random
+    walks): what the objective adds to the negative log evidence."""
+    keys = theta_prior_keys(prob) | {f"effect_walk/{e.name}" for e in prob.effects if is_global(e, prob)}
+    total = 0.0
+    for key, (r, *_) in list(lin.unary.items()) + list(lin.binary.items()):
+        if key in keys:
+            total += 0.5 * float(np.sum(r * r))
+    return total
 
 
 def state_prior_cost(prob, lin: Linearization) -> float:

@@ -59,6 +59,9 @@ class Linearization:
     """Half the sum of squared whitened residuals."""
     weights: dict = field(default_factory=dict)
     """family -> (n, sensors) robust weights of the sensor families (``imu``, ``ft/<i>``)."""
+    ne_weights: np.ndarray | None = None
+    """(n,) Huber (IRLS) weights of the Newton-Euler rows, whose residuals and Jacobians in
+    ``unary`` are scaled by their square root; None without a robust Newton-Euler loss."""
 
 
 def _whiten_rows(r, J, sigma):
@@ -181,6 +184,7 @@ def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True) -> Linea
         sw = np.sqrt(w)
         extra_cost += float(np.sum(rho)) - 0.5 * float(np.sum(w * np.sum(r * r, axis=1)))
         r, J = r * sw[:, None], J * sw[:, None, None]
+        lin.ne_weights = w
     lin.unary["newton_euler"] = (r, J)
 
     # Contact law (eq. 6-12), one factor per contact; an inactive contact's wrench is held at zero.
@@ -542,7 +546,7 @@ def drop_global_walks(prob, lin: Linearization) -> Linearization:
     if not drop:
         return lin
     return Linearization(unary=lin.unary, binary={k: v for k, v in lin.binary.items() if k not in drop},
-                         cost=lin.cost)
+                         cost=lin.cost, weights=lin.weights, ne_weights=lin.ne_weights)
 
 
 def arrow_reduce(Hd, B, g, cidx):

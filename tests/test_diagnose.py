@@ -228,7 +228,7 @@ def test_second_look_replaces_a_per_step_effect_that_loses_as_a_model():
     charge = 0.5 * np.log(n)
 
     def run(evidence_ck: float, first: str = "w", implausible: bool = False, strongest=None,
-            per_episode: bool = False):
+            per_episode: bool = False, last_implausible: str | None = None):
         class Eff:
             def __init__(self, constant, episodic=False):
                 self.constant = constant
@@ -243,12 +243,16 @@ def test_second_look_replaces_a_per_step_effect_that_loses_as_a_model():
                    Candidate("c", (), 1, 400.0, 410.0, 2.0, 0.0, True),
                    Candidate("x", (), 1, -3.0, 5.0, 1.0, 0.1, False)],
                   [Candidate("k", ("w",), 2, 50.0, 60.0, 2.0, 0.0, True)]]
+        if last_implausible:
+            rounds[-1].append(Candidate(last_implausible, ("w",), 2, 80.0, 90.0, 2.0, 0.0, False,
+                                        implausible="its estimate is at a bound"))
         blank: Any = SimpleNamespace(effects={})  # an estimate with no effect report
         fits = {("k", "w"): Fit(("w", "k"), blank, 0.0, n, {"w": 90.0, "k": 2.0}, 1000.0,
                                 ("k",) if first == "w" else ("k", "w")),
                 ("k",): Fit(("k",), blank, 0.0, n, {"k": 2.0}, 1100.0, ("k",)),
                 ("c", "k"): Fit(("c", "k"), blank, 0.0, n, {"c": 2.0, "k": 2.0}, evidence_ck,
-                                ("c", "k"))}
+                                ("c", "k")),
+                ("k", "x"): Fit(("x", "k"), blank, 0.0, n, {"x": 1.0, "k": 2.0}, 1200.0, ("k", "x"))}
         tried = []
         selected = ["w", "k"]
         out = _second_look(selected, rounds, makers, lambda names: fits[tuple(sorted(names))],
@@ -277,6 +281,10 @@ def test_second_look_replaces_a_per_step_effect_that_loses_as_a_model():
     assert asked == [(("k",), ["c", "x"])] and tried == [("c", "k")] and selected == ["c", "k"]
     selected, out, tried = run(900.0, strongest=lambda without, names: [])  # nothing passes: no trial
     assert selected == ["w", "k"] and tried == [] and out == []
+    # an alternative the last round refitted beside the whole selection and found implausible is
+    # not tried again: x's trial alone is made
+    selected, out, tried = run(900.0, strongest=lambda without, names: ["c", "x"], last_implausible="c")
+    assert tried == [("x", "k")] and selected == ["w", "k"] and out == []
 
 
 def test_candidates_carry_the_holm_level_of_their_round(gyro_diag):
