@@ -234,6 +234,11 @@ def fit_model(rec, model, progress: Callable[[float], None] | None = None, start
                getattr(stats, "trajectory", None), model, getattr(stats, "stopped", None))
 
 
+def _scored(c: Candidate) -> str:
+    """``name (score S)``, with ``, implausible`` when its estimate is."""
+    return f"{c.effect} (score {c.score:.1f}{', implausible' if c.implausible else ''})"
+
+
 class LeavingPlausible:
     """A refit's watch (:func:`flexforce.smoother.fit`'s ``watch``): it ends the refit once an
     added constant effect's estimate (``names``) has been implausible (its ``plausible`` verdict)
@@ -471,13 +476,17 @@ class Diagnosis:
                 if aside:
                     text += (f"; {' and '.join(aside)} in the table only, not tested (left out of the default "
                              "catalogue: name it in the candidates to test it)")
-            for row in self.rounds:
+            for i, row in enumerate(self.rounds):
                 ca = next((c for c in row if c.effect == p.a and c.score is not None), None)
                 cb = next((c for c in row if c.effect == p.b and c.score is not None), None)
                 if ca is not None and cb is not None:
                     hi, lo = (ca, cb) if ca.score >= cb.score else (cb, ca)  # type: ignore[operator]
-                    text += (f"; round {hi.round} chose {hi.effect} (score {hi.score:.1f}) over {lo.effect} "
-                             f"({lo.score:.1f})")
+                    taken = self.selected[i] if i < len(self.selected) else None
+                    if lo.effect == taken:
+                        hi, lo = lo, hi
+                    # "chose" only for the round's choice; otherwise the two scores as they stand
+                    verb = "chose" if hi.effect == taken else "scored"
+                    text += f"; round {hi.round} {verb} {_scored(hi)} over {_scored(lo)}"
                     break
             out.append(text)
         return out
@@ -525,7 +534,7 @@ class Diagnosis:
         lines += [f"   {w}" for w in self.skipped]
         if self.identifiability is not None:
             lines.append(self.identifiability.table())
-            lines += [f"   {w}" for w in self.identifiability_notes() if "chose" in w]
+            lines += [f"   {w}" for w in self.identifiability_notes() if "; round " in w]
         elif self.identifiability_error:
             lines.append(f"identifiability: not computed ({self.identifiability_error})")
         return "\n".join(lines)

@@ -464,3 +464,30 @@ def test_second_look_finds_the_com_offset_the_wrench_stood_in_for(tmp_path):
         # margin 50 % + 0.02: ratios this small move by a few hundredths with either error
         assert ratio <= upper(f"diagnose.second_look.{key}_ratio", ratio, rel=0.5, add=0.02), (d.before.rmse,
                                                                                                 d.after.rmse)
+
+
+def test_identifiability_notes_say_chose_only_for_the_rounds_choice():
+    """A pair the table cannot tell apart, both refitted in one round: "chose" names the effect the
+    round selected; when it selected neither (a third effect won, or the higher score was
+    implausible), the note gives the two scores as they stand, marking an implausible one."""
+    from types import SimpleNamespace
+
+    from flexforce.compare.diagnose import Candidate, Diagnosis
+
+    pair = SimpleNamespace(a="a", b="b", text=lambda: "a and b: cannot be told apart")
+    ident = SimpleNamespace(inseparable=lambda: [pair])
+
+    def notes(selected, implausible_a=False):
+        row = [Candidate("a", (), 1, 300.0, 310.0, 2.0, 0.0, not implausible_a,
+                         implausible="at a bound" if implausible_a else None),
+               Candidate("b", (), 1, 200.0, 210.0, 2.0, 0.0, True),
+               Candidate("c", (), 1, 400.0, 410.0, 2.0, 0.0, True)]
+        d = Diagnosis({}, [], [row], selected, [], None, None, identifiability=ident)  # type: ignore[arg-type]
+        return d.identifiability_notes()[0]
+
+    assert notes(["a"]).endswith("; round 1 chose a (score 300.0) over b (score 200.0)")
+    assert notes(["b"], implausible_a=True).endswith(
+        "; round 1 chose b (score 200.0) over a (score 300.0, implausible)")
+    assert notes(["c"]).endswith("; round 1 scored a (score 300.0) over b (score 200.0)")
+    assert notes(["c"], implausible_a=True).endswith(
+        "; round 1 scored a (score 300.0, implausible) over b (score 200.0)")
