@@ -482,7 +482,7 @@ def test_identifiability_notes_say_chose_only_for_the_rounds_choice():
                          implausible="at a bound" if implausible_a else None),
                Candidate("b", (), 1, 200.0, 210.0, 2.0, 0.0, True),
                Candidate("c", (), 1, 400.0, 410.0, 2.0, 0.0, True)]
-        d = Diagnosis({}, [], [row], selected, [], None, None, identifiability=ident)  # type: ignore[arg-type]
+        d = Diagnosis({}, [], [row], selected, [], None, None, identifiability=ident)
         return d.identifiability_notes()[0]
 
     assert notes(["a"]).endswith("; round 1 chose a (score 300.0) over b (score 200.0)")
