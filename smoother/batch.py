@@ -231,7 +231,8 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
     gradients of the accepted full steps, is added to it (on the 20 s iCub sway, a CoM offset
     beside the accelerometer bias and the wrench: 7 outer steps and 48 s -> 3 and 19 s; an IMU
     rotation 5 -> 4; a stiffness 6 -> 6, 7 nats lower); a shortened step resets it, and a step
-    it makes that does not descend falls back to the Gauss-Newton one.  The outer iterations end
+    it makes that does not descend, or that promises less than the tolerance where the
+    Gauss-Newton one promises more, gives way to the Gauss-Newton one.  The outer iterations end
     once a full step gains less than ``rel_tol`` of the cost or ``evidence_tol`` (nats of the
     marginal likelihood), whichever is larger, or when the step promises less (both the secant's
     and the Gauss-Newton model); ``watch(trajectory)``, called after each accepted outer step,
@@ -283,7 +284,6 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
                 if dx is None or not np.all(np.isfinite(dx)) or float(dx[0, cidx] @ gsum) <= 0.0:
                     M[:] = 0.0  # not a descent model: the Gauss-Newton one alone, and start learning again
                     dx = None
-            used = M.copy()
             promised_gn = None
             if dx is None:
                 dx, _, _ = solve_arrow(Hd, B, g, cidx, damping=0.0)
@@ -293,6 +293,14 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
                 # 2.5 s stand's stiffness)
                 dgn, _, _ = solve_arrow(Hd, B, g, cidx, damping=0.0)
                 promised_gn = 0.5 * float(dgn[0, cidx] @ gsum) if np.all(np.isfinite(dgn)) else None
+                tol = max(rel_tol * max(lin.cost, 1.0), evidence_tol)
+                if (promised_gn is not None and promised_gn > tol
+                        and 0.5 * float(dx[0, cidx] @ gsum) <= tol):
+                    # the secant's step promises nothing the Gauss-Newton one still does: take
+                    # that one (the secant's tiny step would end the loop by its gain), and
+                    # learn the curvature again from it
+                    dx, M[:], promised_gn = dgn, 0.0, None
+            used = M.copy()
             if not np.all(np.isfinite(dx)):
                 raise EstimatorError("batch smoother: the Gauss-Newton step is not finite (singular system)")
             step = dx[0, cidx]

@@ -135,3 +135,18 @@ def test_the_outer_steps_reach_the_same_evidence_with_or_without_the_secant(soft
     assert stats.cost_evidence == pytest.approx(ref.cost_evidence, rel=1e-6)
     v, v_ref = np.asarray(est.effects["stiffness"]["value"]), np.asarray(ref_est.effects["stiffness"]["value"])
     assert np.all(np.abs(v - v_ref) <= 0.05 * np.asarray(ref_est.effects["stiffness"]["std"]))
+
+
+def test_a_secant_that_promises_nothing_gives_way_to_the_gauss_newton_step(soft, monkeypatch):
+    """A secant estimate that over-states the curvature (here by 1e12 at every update) makes a
+    step that promises less than the tolerance; where the Gauss-Newton step still promises more,
+    that one is taken, so the outer steps reach the Gauss-Newton optimum instead of ending at the
+    first tiny step (evidence within the tolerance of 0.05 nats, as without the secant)."""
+    rec, model, nominal = soft
+    m = dataclasses.replace(model, effects=(make_effect("stiffness"),))
+    monkeypatch.setattr(batch, "SECANT", False)
+    _, ref = fit(rec, m, start=((), nominal.trajectory), evidence_tol=0.05)
+    monkeypatch.setattr(batch, "SECANT", True)
+    monkeypatch.setattr(batch, "_secant_update", lambda M, s, Ss, g_old, g_new: M + 1e12 * np.eye(M.shape[0]))
+    _, stats = fit(rec, m, start=((), nominal.trajectory), evidence_tol=0.05)
+    assert abs(stats.cost_evidence - ref.cost_evidence) <= 0.05, (stats.cost_evidence, ref.cost_evidence)
