@@ -266,6 +266,7 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
         last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         for it in range(max_iterations):
             phi = lin.cost + pen
+            tol = max(rel_tol * max(lin.cost, 1.0), evidence_tol)
             Hd, B, g = _system(prob, lin, cidx)
             g = g.copy()
             g[0, cidx] -= gpen  # g is minus the gradient; the global block sums its steps
@@ -293,7 +294,6 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
                 # 2.5 s stand's stiffness)
                 dgn, _, _ = solve_arrow(Hd, B, g, cidx, damping=0.0)
                 promised_gn = 0.5 * float(dgn[0, cidx] @ gsum) if np.all(np.isfinite(dgn)) else None
-                tol = max(rel_tol * max(lin.cost, 1.0), evidence_tol)
                 if (promised_gn is not None and promised_gn > tol
                         and 0.5 * float(dx[0, cidx] @ gsum) <= tol):
                     # the secant's step promises nothing the Gauss-Newton one still does: take
@@ -316,7 +316,6 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
                 predicted = 0.5 * float(step @ gsum)
                 response = None
                 fallbacks += 1
-            tol = max(rel_tol * max(lin.cost, 1.0), evidence_tol)
             if predicted <= tol and (promised_gn is None or promised_gn <= tol):
                 break  # the Schur step promises nothing more
             frac = 1.0
@@ -595,13 +594,13 @@ def fit(rec, model, progress: Callable[[float], None] | None = None, rule: Noise
         n_res += int(ok.sum())
     post, prior = evidence.log_dets(prob, lin, cidx)
     state_prior = evidence.state_prior_cost(prob, lin)
-    # the evidence's data term is the objective's: robust (Huber) Newton-Euler rows
-    cost_robust = float(lin.cost) - evidence.theta_prior_cost(prob, lin) - state_prior
+    # the evidence is the objective (robust losses, the Occam term) less theta's own prior
+    cost_evidence = float(lin.cost) - evidence.theta_prior_cost(prob, lin) + 0.5 * (post - prior)
     stats = FitStatistics(
         cost_data=cost_data, cost_total=float(lin.cost), n_residuals=n_res,
         effective_dof=effective_dof(prob, P, Pc), cost_state_prior=float(state_prior),
         log_det_posterior=float(post), log_det_prior=float(prior),
-        cost_evidence=float(cost_robust + state_prior + 0.5 * (post - prior)), cost_data_robust=cost_robust,
+        cost_evidence=cost_evidence, cost_data_robust=cost_evidence - state_prior - 0.5 * (post - prior),
         global_effects=tuple(e.name for e in prob.effects if is_global(e, prob)) if cidx.size else (),
         trajectory=traj, stopped=info.get("stopped"))
     est.total_time = time.perf_counter() - t0

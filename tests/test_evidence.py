@@ -112,6 +112,19 @@ def test_qr_factor_and_its_selected_inverse_match_dense():
         np.testing.assert_allclose(Pc[k], Sigma[k * d:(k + 1) * d, (k + 1) * d:(k + 2) * d], rtol=1e-9, atol=1e-12)
 
 
+def _occam_difference(prob, traj, cidx, j, h):
+    """Central difference of :func:`occam` in the global parameter ``j``, with steps of ``h``."""
+    from flexforce.smoother.evidence import occam
+
+    off = prob.state_dim - prob.effect_dim
+    vals = []
+    for sgn in (1.0, -1.0):
+        e = traj.e.copy()
+        e[:, cidx[j] - off] += sgn * h
+        vals.append(occam(prob, linearize(prob, type(traj)(traj.R, traj.q, traj.W, e)), cidx))
+    return (vals[0] - vals[1]) / (2 * h)
+
+
 def test_occam_gradient_is_the_derivative_of_the_occam_term(null_sway):
     """The trace form of the Occam term's gradient (selected inverses contracted with J^T dJ)
     against central differences of the log-determinants themselves, at a trajectory that is not
@@ -130,16 +143,9 @@ def test_occam_gradient_is_the_derivative_of_the_occam_term(null_sway):
     cidx = np.asarray(global_columns(prob), dtype=int)
     grad = occam_gradient(prob, traj, cidx)
     assert np.all(grad[:3] == 0.0)
-    off = prob.state_dim - prob.effect_dim
     sig = global_prior_sigma(prob)
     for j in range(3, cidx.size):
-        h = 1e-2 * sig[j]
-        vals = []
-        for sgn in (1.0, -1.0):
-            e = traj.e.copy()
-            e[:, cidx[j] - off] += sgn * h
-            vals.append(occam(prob, linearize(prob, type(traj)(traj.R, traj.q, traj.W, e)), cidx))
-        ref = (vals[0] - vals[1]) / (2 * h)
+        ref = _occam_difference(prob, traj, cidx, j, 1e-2 * sig[j])
         assert grad[j] == pytest.approx(ref, rel=5e-4), (j, grad[j], ref)
     # with the factors the Occam term formed at the same linearisation (the smoother's outer steps)
     lin = linearize(prob, traj)
@@ -197,7 +203,7 @@ def test_occam_gradient_with_the_huber_loss_active(null_sway):
     """The Occam term's gradient where the Huber weights are below 1 (they move with the
     parameter: the posterior's Jacobian with them, the prior's without) against central
     differences of :func:`occam` (relative 5e-4, as without the loss)."""
-    from flexforce.smoother.evidence import global_prior_sigma, occam, occam_gradient
+    from flexforce.smoother.evidence import global_prior_sigma, occam_gradient
 
     rec = null_sway.slice(0, 120)
     model = ModelConfig.from_recording(rec)
@@ -205,16 +211,9 @@ def test_occam_gradient_with_the_huber_loss_active(null_sway):
     traj = _huber_active(prob, initial_trajectory(prob))
     cidx = np.asarray(global_columns(prob), dtype=int)
     grad = occam_gradient(prob, traj, cidx)
-    off = prob.state_dim - prob.effect_dim
     sig = global_prior_sigma(prob)
     for j in range(cidx.size):
-        h = 1e-2 * sig[j]
-        vals = []
-        for sgn in (1.0, -1.0):
-            e = traj.e.copy()
-            e[:, cidx[j] - off] += sgn * h
-            vals.append(occam(prob, linearize(prob, type(traj)(traj.R, traj.q, traj.W, e)), cidx))
-        ref = (vals[0] - vals[1]) / (2 * h)
+        ref = _occam_difference(prob, traj, cidx, j, 1e-2 * sig[j])
         assert grad[j] == pytest.approx(ref, rel=5e-4, abs=1e-6 * max(1.0, abs(ref))), (j, grad[j], ref)
 
 
