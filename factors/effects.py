@@ -322,7 +322,10 @@ class Effect(Protocol):
         ``factors(problem, steps, R, q, e) -> {name: (r (n, m), dr_ds (n, m, 18), dr_de (n, m, dim),
         weight (n,))}``: factors of its own on single steps, residuals already whitened, ``weight``
         1 where a factor exists and 0 where not (:class:`flexforce.factors.footholds.Footholds`: the
-        leg kinematics at a touch-down and the ground plane).
+        leg kinematics at a touch-down and the ground plane).  An effect may name the families whose
+        ``residual_terms`` it returns in ``acts_on`` (a tuple of ``newton_euler``, ``contact``,
+        ``imu``, ``ft``): the Occam term's gradient then re-evaluates only those families and the
+        effect's own factors when it varies the effect's values (without it, every family).
 
         For the diagnostics (all optional): ``plausible(report, problem=None) -> str | None``, the
         reason an estimate (this method's dict) is physically implausible (a stiffness a twentieth
@@ -456,6 +459,8 @@ class _Constant:
 
 
 class _ImuBias(_Constant):
+    acts_on = ("imu",)
+    """The residual families its values enter (see :meth:`Effect.report`)."""
     rows = slice(0, 3)
     sensor = 0
 
@@ -587,6 +592,8 @@ class ImuMounting(_Constant):
     what tells it from a bias is that it turns every other reading too: the gyro's rates, the
     horizontal accelerations of a sway (``delta_z a_y`` on x), the vertical ones.
     """
+    acts_on = ("imu",)
+    """The residual families its values enter (see :meth:`Effect.report`)."""
 
     name = "imu-mounting"
     dim = 3
@@ -730,6 +737,8 @@ class TimeOffset(_Constant):
     The neglected second order is ``tau^2 / 2 d^2y/dt^2``: relative to the first-order term
     ``tau omega / 2`` at a frequency ``omega``, 6 % for 20 ms at 1 Hz.
     """
+    acts_on = ("imu",)
+    """The residual families its values enter (see :meth:`Effect.report`)."""
 
     name = "time-offset"
     dim = 1
@@ -805,6 +814,8 @@ class TimeOffset(_Constant):
 
 class _ContactEffect(_Constant):
     """A constant change of the contact law: ``term = sum_j e_j f_j(s)`` (linear in the unknowns)."""
+    acts_on = ("contact",)
+    """The residual families its values enter (see :meth:`Effect.report`)."""
 
     def basis(self, problem: ProblemView, steps, R, q):
         """List of ``(f_j (n, C, 6), df_j/ds (n, C, 6, 18))``, one per unknown."""
@@ -980,6 +991,8 @@ class ExternalWrench:
     component (time constant ``tau``, module documentation), and a zero-mean prior at every step
     (:meth:`step_prior_sigma`).  The report converts back to ``(F [N], T [N m])``.
     """
+    acts_on = ("newton_euler",)
+    """The residual families its values enter (see :meth:`Effect.report`)."""
 
     name = "external-wrench"
     dim = 6
@@ -1169,6 +1182,8 @@ class ComOffset(_Constant):
     ``z = -0.115 +- 0.013 m``, "significant" (likelihood-ratio gain 130 for 3 dof), and the force
     error rises from 1.2 to 5.7 N.  Ask for ``axes="xyz"`` where the motion excites it.
     """
+    acts_on = ("newton_euler",)
+    """The residual families its values enter (see :meth:`Effect.report`)."""
 
     name = "com-offset"
     unit = "m"
@@ -1282,6 +1297,8 @@ class MassScale(_Constant):
     flexibility moves as ``K / m`` dictates): only a measurement of force tells them apart -- the
     F/T sensors (``model.use_ft``), or an external wrench of known size.  Reported as the scale.
     """
+    acts_on = ("newton_euler",)
+    """The residual families its values enter (see :meth:`Effect.report`)."""
 
     name = "mass-scale"
     dim = 1
@@ -1361,6 +1378,8 @@ class FtOffset(_Constant):
     changes (weight shifts between the feet, sway, steps) separates them: the offset is the part
     of the reading that does not change with the load.
     """
+    acts_on = ("ft",)
+    """The residual families its values enter (see :meth:`Effect.report`)."""
 
     name = "ft-offset"
     unit = "N, N m"

@@ -271,13 +271,29 @@ def _trace_term(P, Pc, lin0: Linearization, lin_p: Linearization, lin_m: Lineari
     return 2.0 * out
 
 
+def _varied_groups(prob) -> list[frozenset[str] | None]:
+    """Per effect column (of ``Trajectory.e``), the family groups of
+    :func:`~flexforce.smoother.linearize.linearize` that its values enter: the families the
+    effect names in ``acts_on`` and its own factors (None, every group, for an effect that does
+    not name them)."""
+    out: list[frozenset[str] | None] = []
+    for eff, d in zip(prob.effects, prob.effect_dims):
+        acts = getattr(eff, "acts_on", None)
+        groups = None
+        if acts is not None and set(acts) <= {"newton_euler", "contact", "imu", "ft"}:
+            groups = frozenset(acts) | {"effects"}
+        out += [groups] * int(d)
+    return out
+
+
 def occam_gradient(prob, traj, cidx: np.ndarray, rel_step: float = 1e-3, lin: Linearization | None = None,
                    keep: dict | None = None) -> np.ndarray:
     """Gradient of :func:`occam` in the global parameters, the states held, by
     ``d ln det H = tr(H^-1 dH)`` for both Hessians: ``dH = J^T dJ + dJ^T J`` with ``dJ`` the
     central difference of the Jacobians (steps of ``rel_step`` of each parameter's prior sigma),
     only over the families whose Jacobian moves with the parameter (an additive bias moves none:
-    its gradient is 0), contracted with the block-tridiagonal part of ``H^-1``: the posterior's
+    its gradient is 0; only the families the parameter's effect enters, its ``acts_on``, are
+    evaluated again), contracted with the block-tridiagonal part of ``H^-1``: the posterior's
     from its block Cholesky factor, the trajectory prior's from its QR factor
     (:func:`_qr_factor`, :func:`_factor_selected_inverse`; a Cholesky factor of the prior would
     square its 1e15 spread).  Each inverse is formed once for every parameter.
@@ -303,13 +319,15 @@ def occam_gradient(prob, traj, cidx: np.ndarray, rel_step: float = 1e-3, lin: Li
     model_u = [k for k in base.unary if _family(k) not in MEASUREMENT_FAMILIES]
     post_inv: tuple[np.ndarray, np.ndarray] | None = None
     model_inv: tuple[np.ndarray, np.ndarray] | None = None
+    groups = _varied_groups(prob)
     for j, col in enumerate(cidx):
         h = rel_step * sig[j]
         lins = []
         for sgn in (1.0, -1.0):
             e = traj.e.copy()
             e[:, col - off] += sgn * h
-            lins.append(drop_global_walks(prob, linearize(prob, type(traj)(traj.R, traj.q, traj.W, e))))
+            lins.append(drop_global_walks(prob, linearize(prob, type(traj)(traj.R, traj.q, traj.W, e),
+                                                          families=groups[col - off])))
         keys = _changed(lins[0], lins[1], aidx)
         if not keys:
             continue

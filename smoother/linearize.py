@@ -11,6 +11,7 @@ then ``W_1 .. W_C`` (F N, T N m about the world origin), then the effects' unkno
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -118,7 +119,14 @@ def sensor_reweight(r, J, groups, kind, k, cap=None):
     return r, J, float(np.sum(rho)) - 0.5 * float(np.sum(w * norms**2)), w
 
 
-def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True) -> Linearization:
+FAMILY_GROUPS = ("newton_euler", "contact", "imu", "ft", "prior", "effects", "integration")
+"""The groups of factor families :func:`linearize` can evaluate alone (``families=``): the
+Newton-Euler rows, the contact laws, the IMU, the F/T readings, the first step's prior, the
+effects' own factors (prior, level, random walk, ``factors``) and the integration."""
+
+
+def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True,
+              families: frozenset[str] | None = None) -> Linearization:
     """Evaluate every factor of ``prob`` at ``traj`` (residuals whitened, Jacobians in world increments).
 
     ``traj`` covers steps ``k0 .. k0 + len(traj) - 1`` of the recording (the whole recording by
@@ -127,8 +135,17 @@ def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True) -> Linea
     reweighted (IRLS: ``sqrt(w)`` times residual and Jacobian) and ``cost`` is the robust cost;
     ``robust=False`` gives the plain whitened residuals (the diagnostics).  The IMU (and fused
     F/T) rows of a missing or saturated axis are zero; with a robust sensor loss
-    (``Sigmas.imu_robust``) each sensor's 3-D block is reweighted the same way.
+    (``Sigmas.imu_robust``) each sensor's 3-D block is reweighted the same way.  ``families``
+    (names of :data:`FAMILY_GROUPS`): evaluate only those groups, each exactly as in the full
+    linearisation (``cost`` is then NaN: the cost of a part is no cost of the model).
     """
+    if families is not None and not set(families) <= set(FAMILY_GROUPS):
+        raise ValueError(f"linearize: unknown family groups {sorted(set(families) - set(FAMILY_GROUPS))}; "
+                         f"expected some of {FAMILY_GROUPS}")
+
+    def want(group: str) -> bool:
+        return families is None or group in families
+
     nc = prob.nc
     n = traj.R.shape[0]
     # A problem over a part of a stream holds the steps from ``prob.offset`` on (its row 0); the
@@ -166,75 +183,78 @@ def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True) -> Linea
             J[:, :, :S] += dr_ds
             J[:, :, cols] += dr_de
 
-    # Newton-Euler (eq. 16, 23): required wrench minus the active contacts' wrenches.
-    Wsum = np.ascontiguousarray((W * act[:, :, None]).sum(axis=1))
-    r = np.empty((n, 6))
-    Js = np.empty((n, 6, S))
-    core.newton_euler_all(R, q, Wsum, float(prob.rec.mass), prob.com[sl], prob.com_vel[sl], prob.com_acc[sl],
-                             prob.inertia[sl], prob.inertia_dot[sl], prob.sigma_l[sl], prob.sigma_dot[sl], prob.g,
-                             r, Js)
-    J = np.zeros((n, 6, D))
-    J[:, :, :S] = Js
-    for i in range(nc):
-        J[:, :, w_cols[i]] = -eye6 * act[:, i, None, None]
-    add_effects("newton_euler", r, J)
-    r, J = _whiten_matrix(r, J, prob.ne_whitener)
-    if robust and sig.robust_k is not None:
-        w, rho = huber_weights(r, sig.robust_k)
-        sw = np.sqrt(w)
-        extra_cost += float(np.sum(rho)) - 0.5 * float(np.sum(w * np.sum(r * r, axis=1)))
-        r, J = r * sw[:, None], J * sw[:, None, None]
-        lin.ne_weights = w
-    lin.unary["newton_euler"] = (r, J)
-
-    # Contact law (eq. 6-12), one factor per contact; an inactive contact's wrench is held at zero.
-    rc = np.empty((n, nc, 6))
-    Jc = np.empty((n, nc, 6, S))
-    core.contact_all(R, q, W, act, prob.contact_p[sl], prob.contact_R[sl], prob.rest_p[sl], prob.rest_R[sl],
-                     prob.K_fs, prob.K_fd, prob.K_ts, prob.K_td, prob.beta, prob.iso, rc, Jc, _NO_REST_JAC)
-    # Effects acting on the contact law (stiffness scales, anisotropy, cubic terms): their term,
-    # per contact, is added where the contact is active (an inactive one's wrench stays at zero).
-    c_terms = []
-    for eff, cols, ev in zip(prob.effects, e_cols, e_parts):
-        terms = eff.residual_terms("contact", prob, steps, R, q, W, ev)
-        if terms is not None:
-            c_terms.append((cols, terms))
-    Lc = prob.contact_whitener
-    Li = np.diag(1.0 / (np.sqrt(np.diag(sig.contact_cov)) * sig.inactive_factor))
-    for i in range(nc):
+    if want("newton_euler"):
+        # Newton-Euler (eq. 16, 23): required wrench minus the active contacts' wrenches.
+        Wsum = np.ascontiguousarray((W * act[:, :, None]).sum(axis=1))
+        r = np.empty((n, 6))
+        Js = np.empty((n, 6, S))
+        core.newton_euler_all(R, q, Wsum, float(prob.rec.mass), prob.com[sl], prob.com_vel[sl], prob.com_acc[sl],
+                                 prob.inertia[sl], prob.inertia_dot[sl], prob.sigma_l[sl], prob.sigma_dot[sl], prob.g,
+                                 r, Js)
         J = np.zeros((n, 6, D))
-        J[:, :, :S] = Jc[:, i]
-        J[:, :, w_cols[i]] = -eye6
-        if c_terms:
-            on = act[:, i, None]
-            for cols, (dr, dr_ds, dr_de) in c_terms:
-                rc[:, i] += np.where(on, dr[:, i], 0.0)
-                J[:, :, :S] += np.where(on[:, :, None], dr_ds[:, i], 0.0)
-                J[:, :, cols] += np.where(on[:, :, None], dr_de[:, i], 0.0)
-        Lk = np.where(act[:, i, None, None], Lc, Li)
-        lin.unary[f"contact/{i}"] = ((Lk @ rc[:, i, :, None])[:, :, 0], Lk @ J)
+        J[:, :, :S] = Js
+        for i in range(nc):
+            J[:, :, w_cols[i]] = -eye6 * act[:, i, None, None]
+        add_effects("newton_euler", r, J)
+        r, J = _whiten_matrix(r, J, prob.ne_whitener)
+        if robust and sig.robust_k is not None:
+            w, rho = huber_weights(r, sig.robust_k)
+            sw = np.sqrt(w)
+            extra_cost += float(np.sum(rho)) - 0.5 * float(np.sum(w * np.sum(r * r, axis=1)))
+            r, J = r * sw[:, None], J * sw[:, None, None]
+            lin.ne_weights = w
+        lin.unary["newton_euler"] = (r, J)
 
-    # IMU (eq. 26-28).
-    r = np.empty((n, 6))
-    Js = np.empty((n, 6, S))
-    core.imu_all(R, q, prob.y_imu[sl], prob.imu_R[sl], prob.imu_p[sl], prob.imu_v[sl], prob.imu_a[sl],
-                    prob.imu_w[sl], prob.g, r, Js)
-    J = np.zeros((n, 6, D))
-    J[:, :, :S] = Js
-    add_effects("imu", r, J)
-    r, J = _whiten_rows(r, J, sig.imu)
-    use = prob.imu_use[sl]  # missing or saturated axes: zero weight
-    r, J = r * use, J * use[:, :, None]
-    if robust and sig.imu_robust is not None:
-        cap = prob.weight_cap.get("imu") if prob.weight_cap is not None else None
-        r, J, c, w = sensor_reweight(r, J, ((0, 3), (3, 6)), sig.imu_robust, sig.imu_robust_k,
-                                     None if cap is None else cap[sl])
-        extra_cost += c
-        lin.weights["imu"] = w
-    lin.unary["imu"] = (r, J)
+    if want("contact"):
+        # Contact law (eq. 6-12), one factor per contact; an inactive contact's wrench is held at zero.
+        rc = np.empty((n, nc, 6))
+        Jc = np.empty((n, nc, 6, S))
+        core.contact_all(R, q, W, act, prob.contact_p[sl], prob.contact_R[sl], prob.rest_p[sl], prob.rest_R[sl],
+                         prob.K_fs, prob.K_fd, prob.K_ts, prob.K_td, prob.beta, prob.iso, rc, Jc, _NO_REST_JAC)
+        # Effects acting on the contact law (stiffness scales, anisotropy, cubic terms): their term,
+        # per contact, is added where the contact is active (an inactive one's wrench stays at zero).
+        c_terms = []
+        for eff, cols, ev in zip(prob.effects, e_cols, e_parts):
+            terms = eff.residual_terms("contact", prob, steps, R, q, W, ev)
+            if terms is not None:
+                c_terms.append((cols, terms))
+        Lc = prob.contact_whitener
+        Li = np.diag(1.0 / (np.sqrt(np.diag(sig.contact_cov)) * sig.inactive_factor))
+        for i in range(nc):
+            J = np.zeros((n, 6, D))
+            J[:, :, :S] = Jc[:, i]
+            J[:, :, w_cols[i]] = -eye6
+            if c_terms:
+                on = act[:, i, None]
+                for cols, (dr, dr_ds, dr_de) in c_terms:
+                    rc[:, i] += np.where(on, dr[:, i], 0.0)
+                    J[:, :, :S] += np.where(on[:, :, None], dr_ds[:, i], 0.0)
+                    J[:, :, cols] += np.where(on[:, :, None], dr_de[:, i], 0.0)
+            Lk = np.where(act[:, i, None, None], Lc, Li)
+            lin.unary[f"contact/{i}"] = ((Lk @ rc[:, i, :, None])[:, :, 0], Lk @ J)
+
+    if want("imu"):
+        # IMU (eq. 26-28).
+        r = np.empty((n, 6))
+        Js = np.empty((n, 6, S))
+        core.imu_all(R, q, prob.y_imu[sl], prob.imu_R[sl], prob.imu_p[sl], prob.imu_v[sl], prob.imu_a[sl],
+                        prob.imu_w[sl], prob.g, r, Js)
+        J = np.zeros((n, 6, D))
+        J[:, :, :S] = Js
+        add_effects("imu", r, J)
+        r, J = _whiten_rows(r, J, sig.imu)
+        use = prob.imu_use[sl]  # missing or saturated axes: zero weight
+        r, J = r * use, J * use[:, :, None]
+        if robust and sig.imu_robust is not None:
+            cap = prob.weight_cap.get("imu") if prob.weight_cap is not None else None
+            r, J, c, w = sensor_reweight(r, J, ((0, 3), (3, 6)), sig.imu_robust, sig.imu_robust_k,
+                                         None if cap is None else cap[sl])
+            extra_cost += c
+            lin.weights["imu"] = w
+        lin.unary["imu"] = (r, J)
 
     # F/T readings (optional).
-    if prob.use_ft:
+    if prob.use_ft and want("ft"):
         rf = np.empty((n, nc, 6))
         Jf = np.empty((n, nc, 6, S))
         JW = np.empty((n, nc, 6, 6))
@@ -267,7 +287,7 @@ def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True) -> Linea
             lin.unary[f"ft/{i}"] = (r, J)
 
     # Prior on the first step (core state), around the static equilibrium.
-    if k0 == 0:
+    if k0 == 0 and want("prior"):
         R0, q0 = prob.prior_mean
         phi = core.so3_log(R[0] @ R0.T)
         r = np.concatenate([phi, q[0] - q0])[None, :]
@@ -276,39 +296,40 @@ def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True) -> Linea
         J[0, 3:S, 3:S] = np.eye(S - 3)
         lin.unary["prior"] = _whiten_rows(r, J, sig.prior)
 
-    # Effects' own factors: prior on the first step, random walk between steps.
-    for eff, cols, ev in zip(prob.effects, e_cols, e_parts):
-        if k0 == 0:
-            mean, sigma = eff.prior(prob)
-            J = np.zeros((1, eff.dim, D))
-            J[0, :, cols] = np.eye(eff.dim)
-            lin.unary[f"effect_prior/{eff.name}"] = _whiten_rows((ev[0] - mean)[None, :], J, np.asarray(sigma))
-        level = getattr(eff, "step_prior_sigma", None)
-        if level is not None:
-            mean, _ = eff.prior(prob)
-            sl_ = np.asarray(level(prob), dtype=float)
-            J = np.zeros((n, eff.dim, D))
-            J[:, :, cols] = np.eye(eff.dim)
-            lin.unary[f"effect_level/{eff.name}"] = _whiten_rows(ev - mean, J, sl_)
-        own = getattr(eff, "factors", None)
-        if own is not None:
-            for key, (r, dr_ds, dr_de, weight) in own(prob, steps, R, q, ev).items():
-                w = np.asarray(weight, dtype=float)[:, None]
-                J = np.zeros((n, r.shape[1], D))
-                J[:, :, :S] = dr_ds
-                J[:, :, cols] = dr_de
-                lin.unary[f"effect_factor/{eff.name}/{key}"] = (r * w, J * w[:, :, None])
-        if n > 1:
-            rw = walk_sigma(eff, prob)[k0 - base:k0 - base + n - 1]
-            J0 = np.zeros((n - 1, eff.dim, D))
-            J1 = np.zeros((n - 1, eff.dim, D))
-            J0[:, :, cols] = -np.eye(eff.dim)
-            J1[:, :, cols] = np.eye(eff.dim)
-            r = (ev[1:] - ev[:-1]) / rw
-            lin.binary[f"effect_walk/{eff.name}"] = (r, J0 / rw[:, :, None], J1 / rw[:, :, None])
+    if want("effects"):
+        # Effects' own factors: prior on the first step, random walk between steps.
+        for eff, cols, ev in zip(prob.effects, e_cols, e_parts):
+            if k0 == 0:
+                mean, sigma = eff.prior(prob)
+                J = np.zeros((1, eff.dim, D))
+                J[0, :, cols] = np.eye(eff.dim)
+                lin.unary[f"effect_prior/{eff.name}"] = _whiten_rows((ev[0] - mean)[None, :], J, np.asarray(sigma))
+            level = getattr(eff, "step_prior_sigma", None)
+            if level is not None:
+                mean, _ = eff.prior(prob)
+                sl_ = np.asarray(level(prob), dtype=float)
+                J = np.zeros((n, eff.dim, D))
+                J[:, :, cols] = np.eye(eff.dim)
+                lin.unary[f"effect_level/{eff.name}"] = _whiten_rows(ev - mean, J, sl_)
+            own = getattr(eff, "factors", None)
+            if own is not None:
+                for key, (r, dr_ds, dr_de, weight) in own(prob, steps, R, q, ev).items():
+                    w = np.asarray(weight, dtype=float)[:, None]
+                    J = np.zeros((n, r.shape[1], D))
+                    J[:, :, :S] = dr_ds
+                    J[:, :, cols] = dr_de
+                    lin.unary[f"effect_factor/{eff.name}/{key}"] = (r * w, J * w[:, :, None])
+            if n > 1:
+                rw = walk_sigma(eff, prob)[k0 - base:k0 - base + n - 1]
+                J0 = np.zeros((n - 1, eff.dim, D))
+                J1 = np.zeros((n - 1, eff.dim, D))
+                J0[:, :, cols] = -np.eye(eff.dim)
+                J1[:, :, cols] = np.eye(eff.dim)
+                r = (ev[1:] - ev[:-1]) / rw
+                lin.binary[f"effect_walk/{eff.name}"] = (r, J0 / rw[:, :, None], J1 / rw[:, :, None])
 
     # Integration between successive steps, whitened by the Brownian-bridge covariance.
-    if n > 1:
+    if n > 1 and want("integration"):
         r = np.empty((n - 1, 12))
         J0s = np.empty((n - 1, 12, S))
         J1s = np.empty((n - 1, 12, S))
@@ -325,7 +346,7 @@ def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True) -> Linea
         total += float(np.sum(r * r))
     for r, _, _ in lin.binary.values():
         total += float(np.sum(r * r))
-    lin.cost = 0.5 * total + extra_cost
+    lin.cost = 0.5 * total + extra_cost if families is None else math.nan
     return lin
 
 
@@ -488,18 +509,26 @@ def solve(Hd, B, g, damping: float = 0.0, want_cov: bool = False):
     Bs = np.ascontiguousarray(Bs)
     gs = np.ascontiguousarray(g * scale)
     try:
-        x, P = solvers.block_tridiag_solve(Hs, Bs, gs, want_cov)
-        # One step of iterative refinement: the tight integration factors leave the scaled
-        # system with a condition number near 1e10 (measured), costing ~5 digits.
-        x2, _ = solvers.block_tridiag_solve(Hs, Bs, np.ascontiguousarray(gs - _matvec(Hs, Bs, x)), False)
+        Ld, C = solvers.block_tridiag_factor(Hs, Bs)
     except np.linalg.LinAlgError as err:
         raise EstimatorError("smoother: the Gauss-Newton system is not positive definite "
                              "(an unobservable direction: check contacts and stiffness)") from err
+    x = _substitute(Ld, C, gs)
+    # One step of iterative refinement (the same factor): the tight integration factors leave the
+    # scaled system with a condition number near 1e10 (measured), costing ~5 digits.
+    x2 = _substitute(Ld, C, gs - _matvec(Hs, Bs, x))
     dx = (x + x2) * scale
     if want_cov:
+        P, _ = solvers.block_tridiag_marginals(Ld, C)
         P = P * scale[:, :, None] * scale[:, None, :]
         return dx, P
     return dx, None
+
+
+def _substitute(Ld, C, g):
+    """``H^-1 g`` (N, d) from ``H``'s block Cholesky factor."""
+    n, d = g.shape
+    return solvers.block_tridiag_substitute(Ld, C, np.ascontiguousarray(g).reshape(n, d, 1)).reshape(n, d)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -618,10 +647,10 @@ def solve_arrow(Hd, B, g, cidx, damping: float = 0.0, want_cov: bool = False, fr
     err = ("smoother: the Gauss-Newton system is not positive definite "
            "(an unobservable direction: check contacts and stiffness)")
     try:
-        X, _, _ = solvers.block_tridiag_solve_multi(
-            As, ABs, np.ascontiguousarray(np.concatenate([gas[:, :, None], Fs], axis=2)), False)
+        La, Ca = solvers.block_tridiag_factor(As, ABs)
     except np.linalg.LinAlgError as exc:
         raise EstimatorError(err) from exc
+    X = solvers.block_tridiag_substitute(La, Ca, np.ascontiguousarray(np.concatenate([gas[:, :, None], Fs], axis=2)))
     V = X[:, :, 1:]
     Ssc = Gs - np.einsum("nai,naj->ij", Fs, V)
     Ssc = 0.5 * (Ssc + Ssc.T)
@@ -640,11 +669,7 @@ def solve_arrow(Hd, B, g, cidx, damping: float = 0.0, want_cov: bool = False, fr
     # One step of iterative refinement on the whole arrow system (as :func:`solve`).
     ra = gas - _matvec(As, ABs, xa) - Fs @ xc
     rc = gcs - np.einsum("nai,na->i", Fs, xa) - Gs @ xc
-    try:
-        u2, _ = solvers.block_tridiag_solve(As, ABs, np.ascontiguousarray(ra), False)
-    except np.linalg.LinAlgError as exc:
-        raise EstimatorError(err) from exc
-    xa2, xc2 = schur(u2, rc)
+    xa2, xc2 = schur(_substitute(La, Ca, ra), rc)
     xa, xc = (xa + xa2) * sa, (xc + xc2) * sc
     dx = np.empty((n, D))
     dx[:, aidx] = xa
@@ -653,7 +678,7 @@ def solve_arrow(Hd, B, g, cidx, damping: float = 0.0, want_cov: bool = False, fr
         return dx, None, None
     if damping > 0.0:
         raise ValueError("solve_arrow: covariances of a damped system are not defined")
-    _, Pa, Pca = solvers.block_tridiag_solve_multi(As, ABs, np.zeros((n, As.shape[1], 1)), True)
+    Pa, Pca = solvers.block_tridiag_marginals(La, Ca)
     Minv = np.linalg.solve(Lsc, np.eye(len(cidx)))
     Sinv = Minv.T @ Minv
     VS = V @ Sinv

@@ -20,10 +20,18 @@ from flexforce.factors.core import njit, so3_exp, trsv_lower_inplace, trsv_upper
 
 @njit
 def _trsm_lower(L, B):
-    """L^-1 B for lower-triangular L (d, d) and B (d, m)."""
+    """L^-1 B for lower-triangular L (d, d) and B (d, m), by rows of ``X`` (memory order: each
+    entry the same operations as a column's forward substitution, ``trsv_lower_inplace``)."""
     X = B.copy()
-    for j in range(X.shape[1]):
-        trsv_lower_inplace(L, X[:, j])
+    d, m = X.shape[0], X.shape[1]
+    for i in range(d):
+        for k in range(i):
+            lik = L[i, k]
+            for j in range(m):
+                X[i, j] -= lik * X[k, j]
+        inv = L[i, i]
+        for j in range(m):
+            X[i, j] = X[i, j] / inv
     return X
 
 
@@ -44,10 +52,18 @@ def _trsv_upper_t(L, b):
 
 @njit
 def _trsm_upper_t(L, B):
-    """L^-T B for lower-triangular L (d, d) and B (d, m)."""
+    """L^-T B for lower-triangular L (d, d) and B (d, m), by rows of ``X`` (each entry the same
+    operations as a column's back substitution, ``trsv_upper_t_inplace``)."""
     X = B.copy()
-    for j in range(X.shape[1]):
-        trsv_upper_t_inplace(L, X[:, j])
+    d, m = X.shape[0], X.shape[1]
+    for i in range(d - 1, -1, -1):
+        for k in range(i + 1, d):
+            lki = L[k, i]
+            for j in range(m):
+                X[i, j] -= lki * X[k, j]
+        inv = L[i, i]
+        for j in range(m):
+            X[i, j] = X[i, j] / inv
     return X
 
 
@@ -89,6 +105,40 @@ def _marginals(Ld, C):
 
 
 @njit
+def block_tridiag_factor(D, B):
+    """The block Cholesky factor ``H = L L^T`` of ``H`` as in :func:`block_tridiag_solve_multi`:
+    ``(Ld, C)`` for :func:`block_tridiag_substitute` and :func:`block_tridiag_marginals` (one
+    factorisation for several solves: the iterative refinement's, the covariances).  Raises
+    ``np.linalg.LinAlgError`` when ``H`` is not positive definite."""
+    return _block_cholesky(D, B)
+
+
+@njit
+def block_tridiag_substitute(Ld, C, G):
+    """``X = H^-1 G`` (N, d, m) from ``H``'s block Cholesky factor (:func:`block_tridiag_factor`):
+    forward then back substitution."""
+    n, d, m = G.shape[0], G.shape[1], G.shape[2]
+    Y = np.empty((n, d, m))
+    for k in range(n):
+        rhs = G[k].copy()
+        if k > 0:
+            rhs -= C[k - 1] @ Y[k - 1]
+        Y[k] = _trsm_lower(Ld[k], rhs)
+    X = np.empty((n, d, m))
+    X[n - 1] = _trsm_upper_t(Ld[n - 1], Y[n - 1])
+    for k in range(n - 2, -1, -1):
+        X[k] = _trsm_upper_t(Ld[k], Y[k] - C[k].T @ X[k + 1])
+    return X
+
+
+@njit
+def block_tridiag_marginals(Ld, C):
+    """``(P, Pc)``, the diagonal and lag-one blocks of ``H^-1``, from ``H``'s block Cholesky factor
+    (:func:`block_tridiag_factor`, :func:`_marginals`)."""
+    return _marginals(Ld, C)
+
+
+@njit
 def block_tridiag_solve_multi(D, B, G, want_cov):
     """Solve ``H X = G`` for ``H`` symmetric positive definite, block tridiagonal, with ``m``
     right-hand sides ``G`` (N, d, m) -> ``X`` (N, d, m).
@@ -101,18 +151,9 @@ def block_tridiag_solve_multi(D, B, G, want_cov):
     covariances ``P`` (N, d, d) and the lag-one cross blocks ``Pc`` (N-1, d, d) of ``H^-1`` (see
     :func:`_marginals`).  Raises ``np.linalg.LinAlgError`` when ``H`` is not positive definite.
     """
-    n, d, m = G.shape[0], G.shape[1], G.shape[2]
+    d = G.shape[1]
     Ld, C = _block_cholesky(D, B)
-    Y = np.empty((n, d, m))
-    for k in range(n):
-        rhs = G[k].copy()
-        if k > 0:
-            rhs -= C[k - 1] @ Y[k - 1]
-        Y[k] = _trsm_lower(Ld[k], rhs)
-    X = np.empty((n, d, m))
-    X[n - 1] = _trsm_upper_t(Ld[n - 1], Y[n - 1])
-    for k in range(n - 2, -1, -1):
-        X[k] = _trsm_upper_t(Ld[k], Y[k] - C[k].T @ X[k + 1])
+    X = block_tridiag_substitute(Ld, C, G)
     if want_cov:
         P, Pc = _marginals(Ld, C)
         return X, P, Pc

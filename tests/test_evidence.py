@@ -233,3 +233,71 @@ def test_evidence_is_the_objective_without_the_parameters_prior(pushed_sway):
     objective = lin.cost + occam(prob, lin, cidx)
     assert stats.cost_evidence == pytest.approx(objective - theta_prior_cost(prob, lin), rel=1e-9)
     assert stats.cost_data_robust < stats.cost_data
+
+
+def test_each_effect_names_the_families_it_enters(null_sway):
+    """``acts_on`` of every catalogue effect that declares it is exactly the set of families whose
+    ``residual_terms`` it returns (F/T fused, so that ``ft`` is asked too): the Occam gradient
+    re-evaluates only those, so a missing one would drop a term of it."""
+    from flexforce.factors.effects import EFFECTS
+
+    rec = null_sway.slice(0, 40)
+    model = dataclasses.replace(ModelConfig.from_recording(rec), use_ft=True)
+    prob = Problem.build(rec, model)
+    traj = initial_trajectory(prob)
+    steps = np.arange(prob.n)
+    declared = 0
+    for name in EFFECTS:
+        eff = make_effect(name)
+        acts = getattr(eff, "acts_on", None)
+        if acts is None:
+            continue
+        declared += 1
+        e = np.full((prob.n, int(eff.dim)), 0.01)
+        entered = {fam for fam in ("newton_euler", "contact", "imu", "ft")
+                   if eff.residual_terms(fam, prob, steps, traj.R, traj.q, traj.W, e) is not None}
+        assert set(acts) == entered, (name, acts, entered)
+    assert declared >= 10
+
+
+def test_a_linearisation_of_some_families_is_theirs_in_the_full_one(null_sway):
+    """``linearize(families=...)`` evaluates those groups exactly as the full linearisation does
+    (the same arrays), leaves the others out and gives no cost; an unknown group is refused."""
+    rec = null_sway.slice(0, 60)
+    model = ModelConfig.from_recording(rec)
+    prob = Problem.build(rec, dataclasses.replace(model, effects=(make_effect("com-offset"),)))
+    traj = _huber_active(prob, initial_trajectory(prob))
+    full = linearize(prob, traj)
+    part = linearize(prob, traj, families=frozenset({"newton_euler", "effects"}))
+    assert set(part.unary) == {"newton_euler", "effect_prior/com-offset"}
+    assert set(part.binary) == {"effect_walk/com-offset"}
+    for key, (r, J) in part.unary.items():
+        assert np.array_equal(r, full.unary[key][0]) and np.array_equal(J, full.unary[key][1])
+    assert part.ne_weights is not None and np.array_equal(part.ne_weights, full.ne_weights)
+    assert np.isnan(part.cost)
+    imu = linearize(prob, traj, families=frozenset({"imu"}))
+    assert set(imu.unary) == {"imu"} and not imu.binary
+    with pytest.raises(ValueError, match="unknown family groups"):
+        linearize(prob, traj, families=frozenset({"gps"}))
+
+
+def test_occam_gradient_evaluates_only_the_families_a_parameter_enters(null_sway, monkeypatch):
+    """The gradient formed from the families each effect names (``acts_on``) is the one formed
+    from every family (to rounding: the same numbers), for effects on each family: the gyro bias
+    and the IMU time offset (IMU), the stiffness (contact laws), the CoM offset (Newton-Euler)."""
+    from flexforce.smoother import evidence
+
+    rec = null_sway.slice(0, 120)
+    model = ModelConfig.from_recording(rec)
+    effects = (make_effect("gyro-bias"), make_effect("time-offset"), make_effect("stiffness"),
+               make_effect("com-offset"))
+    prob = Problem.build(rec, dataclasses.replace(model, effects=effects))
+    traj = _huber_active(prob, initial_trajectory(prob))
+    cidx = np.asarray(global_columns(prob), dtype=int)
+    groups = evidence._varied_groups(prob)
+    assert groups[0] == frozenset({"imu", "effects"}) and groups[-1] == frozenset({"newton_euler", "effects"})
+    grad = evidence.occam_gradient(prob, traj, cidx)
+    monkeypatch.setattr(evidence, "_varied_groups", lambda p: [None] * sum(p.effect_dims))
+    every = evidence.occam_gradient(prob, traj, cidx)
+    np.testing.assert_allclose(grad, every, rtol=1e-12, atol=1e-14)
+    assert np.count_nonzero(every) >= 3
