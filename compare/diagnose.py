@@ -807,6 +807,7 @@ def screen(rec, fit: Fit, makers: dict[str, Callable[[], object]], window: float
     with its statistic and time."""
     from flexforce.compare.runner import fork_map
     from flexforce.smoother import NoiseRule, Problem
+    from flexforce.smoother.evidence import forget_states
     from flexforce.smoother.screening import score_test
 
     if fit.trajectory is None or fit.model is None:
@@ -823,24 +824,27 @@ def screen(rec, fit: Fit, makers: dict[str, Callable[[], object]], window: float
     found: dict[str, ScoreTest | str] = {}
     table: tuple = (None, None)
     done = 0
-    for i, ok, res, seconds in fork_map(task, items, jobs):
-        name = items[i][0]
-        if name is None:
-            table = res if ok else (None, _failure("identifiability", res)[0])
-            continue
-        if ok:
-            found[name] = res
-            msg = f"{name}: T = {res.statistic:.1f} (ν {res.dof:.1f}), p = {res.p_value:.2g}"
-        else:  # a user's effect may raise anything: one line, the others go on
-            found[name] = _failure(name, res)[0]
-            msg = f"{name}: failed ({found[name]})"
-        done += 1
-        if progress is not None:
-            frac = done / max(len(makers), 1)
-            if _takes_two(progress):
-                progress(frac, f"{msg} [{seconds:.1f} s]")
-            else:
-                progress(frac)
+    try:
+        for i, ok, res, seconds in fork_map(task, items, jobs):
+            name = items[i][0]
+            if name is None:
+                table = res if ok else (None, _failure("identifiability", res)[0])
+                continue
+            if ok:
+                found[name] = res
+                msg = f"{name}: T = {res.statistic:.1f} (ν {res.dof:.1f}), p = {res.p_value:.2g}"
+            else:  # a user's effect may raise anything: one line, the others go on
+                found[name] = _failure(name, res)[0]
+                msg = f"{name}: failed ({found[name]})"
+            done += 1
+            if progress is not None:
+                frac = done / max(len(makers), 1)
+                if _takes_two(progress):
+                    progress(frac, f"{msg} [{seconds:.1f} s]")
+                else:
+                    progress(frac)
+    finally:
+        forget_states()  # the candidates' shared inverses (jobs = 1: formed in this process)
     tests = {name: found[name] for name in makers}
     return (tests, table) if identify else tests
 

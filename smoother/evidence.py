@@ -308,17 +308,23 @@ def occam_gradient(prob, traj, cidx: np.ndarray, rel_step: float = 1e-3, lin: Li
         return grad
     n = prob.n
     reuse = keep is not None and lin is not None and keep.get("lin") is lin
+    post_inv: tuple[np.ndarray, np.ndarray] | None = None
+    model_inv: tuple[np.ndarray, np.ndarray] | None = None
+    memo_key = None
     if reuse:
         assert keep is not None
         base, aidx, s, Hs, Bs = keep["base"], keep["aidx"], keep["s"], keep["Hs"], keep["Bs"]
     else:
         base = drop_global_walks(prob, lin if lin is not None else linearize(prob, traj))
-        aidx, s, Hs, Bs = _scaled_states(prob, base, cidx)
+        aidx = np.setdiff1d(np.arange(prob.state_dim), cidx)
+        memo_key = _states_fingerprint(prob, base, aidx)
+        if memo_key in _STATES_MEMO:
+            s, Hs, Bs, post_inv, model_inv = _STATES_MEMO[memo_key]
+        else:
+            aidx, s, Hs, Bs = _scaled_states(prob, base, cidx)
     mbase = plain_model_rows(base)
     d = len(aidx)
     model_u = [k for k in base.unary if _family(k) not in MEASUREMENT_FAMILIES]
-    post_inv: tuple[np.ndarray, np.ndarray] | None = None
-    model_inv: tuple[np.ndarray, np.ndarray] | None = None
     groups = _varied_groups(prob)
     for j, col in enumerate(cidx):
         h = rel_step * sig[j]
@@ -353,7 +359,48 @@ def occam_gradient(prob, traj, cidx: np.ndarray, rel_step: float = 1e-3, lin: Li
             model = _trace_term(model_inv[0], model_inv[1], mbase, plain_model_rows(lins[0]),
                                 plain_model_rows(lins[1]), mkeys, aidx, s, h)
         grad[j] = 0.5 * (post - model)
+    if memo_key is not None:
+        _STATES_MEMO.clear()  # one entry: the latest states' (a screening's base)
+        _STATES_MEMO[memo_key] = (s, Hs, Bs, post_inv, model_inv)
     return grad
+
+
+_STATES_MEMO: dict = {}
+"""The per-step states' scaled system and selected inverses of the latest :func:`occam_gradient`
+formed without the ``keep`` of :func:`occam`, by the fingerprint of the rows they come from: a
+screening tests every candidate at one base fit, and a constant candidate at its null value adds
+no rows on the states (its prior is on ``theta``), so the candidates of one base share them
+(formed once per process; the rows differ only by the candidates' zero rows there).  Freed by
+:func:`forget_states`."""
+
+
+def forget_states() -> None:
+    """Free :data:`_STATES_MEMO` (after a screening: its arrays are the size of a fit's covariances)."""
+    _STATES_MEMO.clear()
+
+
+def _states_fingerprint(prob, lin: Linearization, aidx: np.ndarray) -> bytes:
+    """A digest of everything :func:`occam_gradient` forms from ``lin`` before varying a parameter:
+    each family's name and Jacobian on the states' columns ``aidx`` (the families on ``theta``
+    alone, its priors, left out: they are zero there) and the Newton-Euler Huber weights."""
+    import hashlib
+
+    h = hashlib.blake2b(digest_size=20)
+    h.update(np.asarray(aidx, dtype=np.int64).tobytes())
+    on_theta = theta_prior_keys(prob)
+    for key in sorted(lin.unary):
+        if key in on_theta:
+            continue
+        h.update(key.encode())
+        h.update(np.ascontiguousarray(lin.unary[key][1][..., aidx]).tobytes())
+    for key in sorted(lin.binary):
+        _, J0, J1 = lin.binary[key]
+        h.update(key.encode())
+        h.update(np.ascontiguousarray(J0[..., aidx]).tobytes())
+        h.update(np.ascontiguousarray(J1[..., aidx]).tobytes())
+    if lin.ne_weights is not None:
+        h.update(np.ascontiguousarray(lin.ne_weights).tobytes())
+    return h.digest()
 
 
 def global_prior_sigma(prob) -> np.ndarray:

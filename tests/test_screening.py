@@ -120,3 +120,36 @@ def test_calibrated_residuals_on_clean_recordings(robot, seed):
     # 15 axes at 1 % (0.15 expected): measured 0-4 rejections (talos: IMU axes) -- the whiteness
     # test is NOT calibrated yet (docs/diagnostics.md, "The calibrated residual view"); held as measured
     assert sum(c.ljung_box_p < LEVEL for c in tested) <= 4
+
+
+def test_the_candidates_of_one_base_share_the_states_inverses(monkeypatch):
+    """The score tests of one base fit share the per-step states' selected inverses (a constant
+    candidate at its null adds no rows on the states): formed once, by a fingerprint of the rows,
+    the statistics equal those formed for each candidate anew (relative 1e-9); another base (a
+    different trajectory) does not reuse them, and ``forget_states`` frees them."""
+    from flexforce.smoother import evidence
+
+    rec = simulate([GYRO], duration=1.5)
+    model = ModelConfig.from_recording(rec)
+    _, st = fit(rec, model)
+    prob = Problem.build(rec, model, NoiseRule())
+    names = ("com-offset", "stiffness", "imu-mounting", "time-offset")
+    evidence.forget_states()
+    calls = []
+    orig = evidence._scaled_states
+    monkeypatch.setattr(evidence, "_scaled_states", lambda *a: calls.append(1) or orig(*a))
+    shared = {k: score_test(prob, st.trajectory, make_effect(k)) for k in names}
+    assert len(calls) == 1 and len(evidence._STATES_MEMO) == 1
+    monkeypatch.setattr(evidence, "_states_fingerprint", lambda *a: object())  # never the same
+    anew = {k: score_test(prob, st.trajectory, make_effect(k)) for k in names}
+    assert len(calls) == 1 + len(names)
+    for k in names:
+        assert shared[k].statistic == pytest.approx(anew[k].statistic, rel=1e-9), k
+        assert shared[k].dof == pytest.approx(anew[k].dof, rel=1e-9), k
+    monkeypatch.undo()
+    other = type(st.trajectory)(st.trajectory.R, st.trajectory.q * 1.001, st.trajectory.W, st.trajectory.e)
+    key = next(iter(evidence._STATES_MEMO))
+    score_test(prob, other, make_effect("com-offset"))
+    assert next(iter(evidence._STATES_MEMO)) != key
+    evidence.forget_states()
+    assert not evidence._STATES_MEMO
