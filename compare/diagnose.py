@@ -106,6 +106,17 @@ WATCH_PATIENCE = 2
 """Outer steps of an implausible estimate moving away that end a refit, one more in any direction
 (:class:`LeavingPlausible`)."""
 
+CHECK_WORSE = 0.05
+"""An error against the truth or the reference sensors that rises by more than this fraction
+when an effect joins the selection makes the check say they disagree with it
+(:attr:`Candidate.check`)."""
+
+CHECK_LABELS = {"force_N": ("force", 1.0, " N"), "moment_Nm": ("moment", 1.0, " N m"), "cop_m": ("CoP", 1e3, " mm"),
+                "rotation_rad": ("tilt", 180.0 / math.pi, " deg"), "translation_m": ("position", 1e3, " mm"),
+                "hand_m": ("hand", 1e3, " mm"), "vertical_force_N": ("vertical force", 1.0, " N"),
+                "contact_force_N": ("contact force", 1.0, " N")}
+"""How :meth:`Candidate.check_text` names and scales each error."""
+
 AUTO = "auto"
 """``add=["auto"]``: add the effects the greedy selection found significant."""
 
@@ -336,6 +347,36 @@ class Candidate:
     finding: str = ""
     """The row's one sentence: for a significant effect its size, the evidence and when it acts;
     an implausible one says so; one that cannot be fitted, why in the recording's terms."""
+    check: dict | None = None
+    """For an effect the selection took: the errors of its base (:attr:`base`) and of the base
+    with it against what the fit did not use -- the truth of a simulated recording, or the
+    reference sensors of a real one (the F/T readings when not fused, the motion capture):
+    ``{"against": "truth" | "sensors", "before": {key: rmse}, "after": {key: rmse}}``
+    (:data:`CHECK_WORSE`, :meth:`check_text`)."""
+
+    def check_text(self) -> str:
+        """``against the F/T and motion capture (not fitted): vertical force 36.3 -> 31.9 N, ...``,
+        ending with what the check says of the effect ("" without a check)."""
+        c = self.check
+        if not c:
+            return ""
+        parts, worse = [], []
+        for key, b in c["before"].items():
+            a = c["after"].get(key)
+            if b is None or a is None:
+                continue
+            label, scale, unit = CHECK_LABELS.get(key, (key, 1.0, ""))
+            parts.append(f"{label} {b * scale:.3g} -> {a * scale:.3g}{unit}")
+            if a > (1.0 + CHECK_WORSE) * b:
+                worse.append(label)
+        if not parts:
+            return ""
+        what = "the truth" if c["against"] == "truth" else (
+            f"the {' and '.join(c['sensors'])}" if c.get("sensors") else "the reference sensors")
+        verdict = (f"the check disagrees: the {' and '.join(worse)} error{'s' if len(worse) > 1 else ''} "
+                   f"rose by more than {CHECK_WORSE:.0%}" if worse else
+                   f"the check agrees (no error rose by more than {CHECK_WORSE:.0%})")
+        return f"against {what} (not fitted): {', '.join(parts)}; {verdict}"
 
     @property
     def status(self) -> str:
@@ -376,7 +417,8 @@ class Candidate:
                     f"not refitted: score p = {self.screen.p_value:.2g}"}
                    if not self.refitted and self.screen is not None else {}),
                 **({"error": self.error} if self.error else {}),
-                **({"error_detail": self.error_detail} if self.error_detail else {})}
+                **({"error_detail": self.error_detail} if self.error_detail else {}),
+                **({"check": {**_jsonable(self.check), "text": self.check_text()}} if self.check else {})}
 
     screen_level: float | None = None
     """Level of the screening (for the passing windows in :meth:`to_dict`)."""
@@ -412,10 +454,7 @@ class Snapshot:
     @property
     def rmse(self) -> dict[str, float | None]:
         """The comparison's headline errors; on real logs also the errors against the F/T sensors."""
-        keys: tuple[str, ...] = RMSE_KEYS
-        if getattr(self.metrics, "reference", None) == "sensors":
-            keys = keys + ("vertical_force_N", "contact_force_N")
-        return {k: _clean(self.metrics.rmse.get(k)) for k in keys}
+        return headline_errors(self.metrics)
 
     def to_dict(self) -> dict:
         return {"effects": list(self.effects), "residual_rms": _jsonable(self.residual_rms), "rmse": self.rmse,
@@ -529,6 +568,8 @@ class Diagnosis:
                          f"{c.p_value:9.2g}  {mark:3s}  {c.finding or c.summary}")
             if c.screen is not None:
                 lines.append(f"{'':28s}screened: {c.screen_text(level)}")
+            if c.check:
+                lines.append(f"{'':28s}checked {c.check_text()}")
         lines += [f"   {w}" for w in self.swaps]
         lines += [f"   {w}" for w in self.ambiguities()]
         lines += [f"   {w}" for w in self.skipped]
@@ -550,6 +591,40 @@ class Diagnosis:
                            f"the scores differ by less than {TIE:g} (a Bayes factor of 20); "
                            f"more varied motion, or knowledge of the robot, must decide")
         return out
+
+
+def headline_errors(metrics: Metrics) -> dict[str, float | None]:
+    """The comparison's headline errors (``RMSE_KEYS``); on real logs also the errors against the
+    F/T sensors."""
+    keys: tuple[str, ...] = RMSE_KEYS
+    if getattr(metrics, "reference", None) == "sensors":
+        keys = keys + ("vertical_force_N", "contact_force_N")
+    return {k: _clean(metrics.rmse.get(k)) for k in keys}
+
+
+def _check(rec, base: Fit, fit: Fit, skip: float, known: dict) -> dict | None:
+    """:attr:`Candidate.check` of ``fit`` against ``base`` (``known``: errors already computed, by
+    the fits' sorted effects); None when the recording has nothing to check against or an
+    evaluation fails."""
+    errs = []
+    for f in (base, fit):
+        key = tuple(sorted(f.effects))
+        if key not in known:
+            try:
+                m = evaluate(f.estimate, rec, skip=skip)
+            except Exception:  # a check is an aside: the diagnosis goes on without it
+                return None
+            known[key] = (getattr(m, "reference", None), headline_errors(m), dict(getattr(m, "references", {})))
+        errs.append(known[key])
+    (ref, before, refs), (_, after, _) = errs
+    keep = {k: v for k, v in before.items() if v is not None and after.get(k) is not None}
+    if not keep:
+        return None
+    out = {"against": "truth" if ref == "truth" else "sensors", "before": keep, "after": {k: after[k] for k in keep}}
+    names = sorted({str(refs[k]).removeprefix("reference: ") for k in keep if k in refs and refs[k] != "truth"})
+    if out["against"] == "sensors" and names:
+        out["sensors"] = names
+    return out
 
 
 def _clean(x):
@@ -1036,6 +1111,7 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
         raise ConfigError(f"refit_best = {refit_best!r}; expected an integer >= 1 (candidates refitted per round) "
                           "or None (every candidate that passes the screening)")
     nominal = fitted(())
+    checked: dict = {}  # errors against the truth or the reference sensors, by the fit's sorted effects
     rounds: list[list[Candidate]] = []
     selected: list[str] = []
     screened: dict[str, ScoreTest | str] = {}
@@ -1165,6 +1241,7 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                 assert best is not None
                 selected.append(best.effect)
                 remaining.remove(best.effect)
+                best.check = _check(rec, base, fitted(tuple(selected)), skip, checked)
             # the round's other fits are done with (their rows keep what they found): free their
             # estimates, so that memory does not grow with the number of candidates
             keep = {(), tuple(sorted(selected))}
@@ -1190,7 +1267,8 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
             ok = {k: v for k, v in got.items() if not isinstance(v, str) and v.p_value < screen_level}
             return sorted(ok, key=lambda k: _strength(ok[k]))
 
-        swaps = _second_look(selected, rounds, makers, fitted, fit_all, prob, say, strongest)
+        swaps = _second_look(selected, rounds, makers, fitted, fit_all, prob, say, strongest,
+                             check=lambda b, f: _check(rec, b, f, skip, checked))
     ranking: list[Candidate] = []
     for i, name in enumerate(selected):
         ranking.append(next(c for c in rounds[i] if c.effect == name))
@@ -1268,7 +1346,7 @@ def _constant(effect, prob) -> bool:
 
 
 def _second_look(selected: list[str], rounds: list[list[Candidate]], makers: dict, fitted, fit_all, prob,
-                 say, strongest=None) -> list[str]:
+                 say, strongest=None, check=None) -> list[str]:
     """Replace, in ``selected`` (in place), a per-step effect the greedy selection took before its
     last round by a constant candidate, when the whole selection with the replacement has the
     better criterion (:func:`_criterion`) and the replacement's estimate is plausible.
@@ -1333,6 +1411,7 @@ def _second_look(selected: list[str], rounds: list[list[Candidate]], makers: dic
             sc, lr, nu, p, sig = score(fitted(tuple(others)), f, alt)
             row = Candidate(alt, tuple(others), i + 1, sc, lr, nu, p, sig, rep, summarize_effect(rep, eff))
             row.finding = finding(row, rep, eff)
+            row.check = check(fitted(tuple(others)), f) if check is not None else None
             rounds[i][:] = [c for c in rounds[i] if c.effect != alt] + [row]
             out.append(f"second look: {alt} in place of {name} beside {', '.join(others)} (2ΔE = "
                        f"{2.0 * (here - value):.1f} in favour, constant unknowns charged): round {i + 1} took "

@@ -255,7 +255,8 @@ def diagnosis_summary(diag) -> dict:
             "flags_after": len(after["flagged_windows"]) if after else None,
             "rmse_before": data["before"]["rmse"], "rmse_after": after["rmse"] if after else None,
             "ranking": [{"effect": c["effect"], "significant": c["significant"],
-                         "summary": c.get("finding") or c["summary"]} for c in data["ranking"]]}
+                         "summary": c.get("finding") or c["summary"],
+                         **({"check": c["check"]["text"]} if c.get("check") else {})} for c in data["ranking"]]}
 
 
 def write_diagnosis_index(out: str | Path, entries: list[tuple[str, dict]],

@@ -101,6 +101,15 @@ def test_adding_the_effect_makes_residuals_consistent_and_errors_fall(gyro_diag)
     # whitened RMS: one for a consistent residual; 5 % over one is the family's flag level
     assert a.residual_rms["imu"]["gyro_y [rad/s]"] < 1.05 < b.residual_rms["imu"]["gyro_y [rad/s]"]
     assert_errors_fall("gyro", gyro_diag, ("force_N", "cop_m", "rotation_rad"))
+    # the selected effect's own check against the truth, which the fit did not use
+    row = gyro_diag.rounds[0][0]
+    assert row.effect == "gyro-bias" and row.check is not None and row.check["against"] == "truth"
+    b, a = gyro_diag.before.rmse, gyro_diag.after.rmse
+    for key in ("force_N", "cop_m", "rotation_rad"):
+        assert row.check["before"][key] == pytest.approx(b[key]) and row.check["after"][key] == pytest.approx(a[key])
+    assert row.check_text().startswith("against the truth (not fitted): force ")
+    assert "checked against the truth" in gyro_diag.ranking_table()
+    assert gyro_diag.to_json()["rounds"][0][0]["check"]["text"] == row.check_text()
 
 
 def test_no_hidden_effect_raises_no_significant_effect():
@@ -344,7 +353,8 @@ def test_report_and_json(gyro_diag, gyro_rec, tmp_path):
     assert gyro_rms["after"] < gyro_rms["before"]
     page = (out / "index.html").read_text()
     for text in ("Which effect is missing", "gyro-bias", "gyro_y [rad/s]", "rad/s", "residuals_before.png",
-                 "before_after.png", "residuals_after.png", "EKF mean NIS", "0.01 / m", "(0.005)"):
+                 "before_after.png", "residuals_after.png", "EKF mean NIS", "0.01 / m", "(0.005)",
+                 "checked against the truth (not fitted)"):
         assert text in page, text
     for png in ("residuals_before.png", "before_after.png", "residuals_after.png", "scores.png"):
         assert (out / png).stat().st_size > 1000
@@ -491,3 +501,25 @@ def test_identifiability_notes_say_chose_only_for_the_rounds_choice():
     assert notes(["c"]).endswith("; round 1 scored a (score 300.0) over b (score 200.0)")
     assert notes(["c"], implausible_a=True).endswith(
         "; round 1 scored a (score 300.0, implausible) over b (score 200.0)")
+
+
+def test_the_check_of_a_selected_effect_says_when_the_references_disagree():
+    """A selected effect's check names what it is measured against and says "disagrees" when an
+    error rises by more than CHECK_WORSE with the effect (the iCub walk's footholds against the
+    F/T), "agrees" otherwise; a row without a check prints nothing."""
+    from flexforce.compare.diagnose import CHECK_WORSE, Candidate
+
+    c = Candidate("foothold", ("time-offset",), 2, 10.0, 20.0, 2.0, 1e-5, True)
+    assert c.check_text() == ""
+    c.check = {"against": "sensors", "sensors": ["F/T", "Vicon"],
+               "before": {"vertical_force_N": 31.9, "rotation_rad": 0.0141},
+               "after": {"vertical_force_N": 39.8, "rotation_rad": 0.0141 * (1.0 + 0.5 * CHECK_WORSE)}}
+    text = c.check_text()
+    assert text.startswith("against the F/T and Vicon (not fitted): vertical force 31.9 -> 39.8 N, tilt 0.808 -> ")
+    assert text.endswith("the check disagrees: the vertical force error rose by more than 5%")
+    c.check = {"against": "truth", "before": {"cop_m": 0.0065, "rotation_rad": 0.0028},
+               "after": {"cop_m": 0.026, "rotation_rad": 0.0098}}
+    assert c.check_text().endswith("the check disagrees: the CoP and tilt errors rose by more than 5%")
+    c.check = {"against": "truth", "before": {"cop_m": 0.0065}, "after": {"cop_m": 0.0020}}
+    assert c.check_text() == ("against the truth (not fitted): CoP 6.5 -> 2 mm; "
+                              "the check agrees (no error rose by more than 5%)")
