@@ -585,11 +585,23 @@ class Diagnosis:
         out = []
         for row in self.rounds:
             best = row[0] if row else None
-            if best is not None and best.rivals:
-                others = ", ".join(f"{r} ({next(c.score for c in row if c.effect == r):.1f})" for r in best.rivals)
+            if best is None or not best.rivals:
+                continue
+            rows = [next(c for c in row if c.effect == r) for r in best.rivals]
+            close = [c for c in rows if best.score - c.score < TIE]  # type: ignore[operator]
+            if close:
+                others = ", ".join(f"{c.effect} ({c.score:.1f})" for c in close)
                 out.append(f"round {best.round}: {best.effect} ({best.score:.1f}) is not told apart from {others}: "
                            f"the scores differ by less than {TIE:g} (a Bayes factor of 20); "
                            f"more varied motion, or knowledge of the robot, must decide")
+            charged = [c for c in rows if c not in close]
+            if charged:
+                others = ", ".join(f"{c.effect} (2ΔE {c.lr:.1f}, score {c.score:.1f})" for c in charged)
+                out.append(f"round {best.round}: {best.effect} (2ΔE {best.lr:.1f}, score {best.score:.1f}) fits the "
+                           f"data as well as {others}, which the identifiability table calls inseparable from it: "
+                           f"the evidence differs by less than {TIE:g}, and the score prefers {best.effect} only for "
+                           "its count of unknowns; knowledge of the robot, or a motion that separates them, must "
+                           "decide (the check against what the fit did not use may tell)")
         return out
 
 
@@ -714,11 +726,27 @@ def score(base: Fit, fit: Fit, effect: str, alpha: float = ALPHA,
 # ----------------------------------------------------------------------------------------------
 
 
-def mark_rivals(row: list[Candidate], tie: float = TIE) -> None:
-    """Give the best of a sorted round its rivals: significant candidates within ``tie`` of its score."""
-    if row and row[0].significant and row[0].score is not None:
-        row[0].rivals = tuple(c.effect for c in row[1:]
-                              if c.significant and c.score is not None and row[0].score - c.score < tie)
+def mark_rivals(row: list[Candidate], tie: float = TIE, ident=None) -> None:
+    """Give the best of a sorted round its rivals: significant candidates within ``tie`` of its
+    score, and, with the identifiability table ``ident``, those it calls inseparable from the best
+    whose evidence (``lr``, before the unknowns' charge) is within ``tie`` of the best's: the data
+    fit both equally, and only the count of unknowns decides (on a TALOS sway with an
+    accelerometer bias, the CoM offset scored 10 above it with the same evidence to 0.3: one
+    unknown fewer)."""
+    if not row or not row[0].significant or row[0].score is None:
+        return
+    best = row[0]
+
+    def rival(c: Candidate) -> bool:
+        if not c.significant or c.score is None:
+            return False
+        if best.score - c.score < tie:  # type: ignore[operator]
+            return True
+        pair = ident.pair(best.effect, c.effect) if ident is not None else None
+        return (pair is not None and pair.inseparable and best.lr is not None and c.lr is not None
+                and abs(best.lr - c.lr) < tie)
+
+    best.rivals = tuple(c.effect for c in row[1:] if rival(c))
 
 
 def with_residual_sigma(est: Estimate) -> Estimate:
@@ -1232,7 +1260,7 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                 row.append(c)
                 say(label, f"{name}: score {s:.1f}, {c.status}", t0)
             row.sort(key=lambda c: -math.inf if c.score is None else c.score, reverse=True)
-            mark_rivals(row)
+            mark_rivals(row, ident=ident)
             rounds.append(row)
             # the best plausible candidate (an implausible one is no finding, whatever its score)
             best = next((c for c in row if not c.implausible), None)

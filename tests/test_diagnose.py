@@ -326,6 +326,43 @@ def test_effects_the_data_do_not_tell_apart_are_reported():
     assert clear[0].rivals == () and not Diagnosis({}, clear, [clear], [], [], None, None).ambiguities()
 
 
+def test_an_inseparable_candidate_with_the_same_evidence_is_a_rival():
+    """Two candidates the identifiability table calls inseparable whose evidence (2ΔE, before the
+    unknowns' charge) differs by less than TIE are rivals even when their scores differ by more
+    (the count of unknowns decided: a CoM offset, 2 unknowns, over an accelerometer bias, 3, on
+    a sway), and the report says so; the same pair with a clear evidence gap, or not inseparable,
+    is not."""
+    from types import SimpleNamespace
+
+    from flexforce.compare.diagnose import TIE, Candidate, Diagnosis, mark_rivals
+
+    charge = 9.8  # ln n of a 3 s recording's residuals
+
+    def cand(name, lr, dof):
+        return Candidate(name, (), 1, lr - dof * charge, lr, dof, 1e-40, True, {}, "")
+
+    class Table:
+        def __init__(self, inseparable):
+            self.inseparable = inseparable
+
+        def pair(self, a, b):
+            return SimpleNamespace(inseparable=self.inseparable) if {a, b} == {"com-offset", "accel-bias"} else None
+
+    def row(lr_accel):
+        return [cand("com-offset", 1140.3, 2.0), cand("accel-bias", lr_accel, 3.0), cand("imu-mounting", 1134.0, 3.0)]
+
+    r = row(1140.4)
+    assert r[0].score - r[1].score > TIE
+    mark_rivals(r, ident=Table(True))
+    assert r[0].rivals == ("accel-bias",)
+    (sentence,) = Diagnosis({}, r, [r], ["com-offset"], [], None, None).ambiguities()
+    assert "fits the data as well as accel-bias (2ΔE 1140.4" in sentence and "count of unknowns" in sentence
+    for lr, table in ((1140.4, Table(False)), (1140.4, None), (1140.3 - 2 * TIE, Table(True))):
+        r = row(lr)
+        mark_rivals(r, ident=table)
+        assert r[0].rivals == (), (lr, table)
+
+
 def test_candidates_errors():
     with pytest.raises(ConfigError, match="unknown effect 'nope'"):
         resolve_candidates(["nope"])
