@@ -142,8 +142,9 @@ def _one(job):
             "status": {t: ident.candidates[t].status for t in job["truth"] if t in ident.candidates} if ident else None,
             "detectable": {t: [float(x) for x in ident.candidates[t].detectable] for t in job["truth"]
                            if t in ident.candidates} if ident else None,
-            "ranking": [{"effect": c.effect, "score": c.score, "significant": c.significant}
-                        for c in d.rounds[0]] if d.rounds else [],
+            "ranking": [{"effect": c.effect, "score": c.score, "lr": c.lr, "significant": c.significant,
+                         "rivals": list(c.rivals)} for c in d.rounds[0]] if d.rounds else [],
+            "checks": {c.effect: c.check_text() for row in d.rounds for c in row if c.check},
             "before": {k: d.before.rmse[k] for k in KEYS},
             "after": {k: d.after.rmse[k] for k in KEYS} if d.after else None,
             "seconds": time.perf_counter() - t0}

@@ -373,7 +373,8 @@ class Candidate:
             return ""
         what = "the truth" if c["against"] == "truth" else (
             f"the {' and '.join(c['sensors'])}" if c.get("sensors") else "the reference sensors")
-        verdict = (f"the check disagrees: the {' and '.join(worse)} error{'s' if len(worse) > 1 else ''} "
+        names = worse[0] if len(worse) == 1 else ", ".join(worse[:-1]) + " and " + worse[-1]
+        verdict = (f"the check disagrees: the {names} error{'s' if len(worse) > 1 else ''} "
                    f"rose by more than {CHECK_WORSE:.0%}" if worse else
                    f"the check agrees (no error rose by more than {CHECK_WORSE:.0%})")
         return f"against {what} (not fitted): {', '.join(parts)}; {verdict}"
@@ -730,9 +731,9 @@ def mark_rivals(row: list[Candidate], tie: float = TIE, ident=None) -> None:
     """Give the best of a sorted round its rivals: significant candidates within ``tie`` of its
     score, and, with the identifiability table ``ident``, those it calls inseparable from the best
     whose evidence (``lr``, before the unknowns' charge) is within ``tie`` of the best's: the data
-    fit both equally, and only the count of unknowns decides (on a TALOS sway with an
-    accelerometer bias, the CoM offset scored 10 above it with the same evidence to 0.3: one
-    unknown fewer)."""
+    fit both equally, and only the count of unknowns decides (on a 3 s TALOS sway with an
+    accelerometer bias, the CoM offset scored 6.7 above it with 3.3 less evidence: one unknown
+    fewer)."""
     if not row or not row[0].significant or row[0].score is None:
         return
     best = row[0]

@@ -557,6 +557,8 @@ def test_the_check_of_a_selected_effect_says_when_the_references_disagree():
     c.check = {"against": "truth", "before": {"cop_m": 0.0065, "rotation_rad": 0.0028},
                "after": {"cop_m": 0.026, "rotation_rad": 0.0098}}
     assert c.check_text().endswith("the check disagrees: the CoP and tilt errors rose by more than 5%")
+    c.check["before"]["moment_Nm"], c.check["after"]["moment_Nm"] = 5.9, 31.4
+    assert c.check_text().endswith("the check disagrees: the CoP, tilt and moment errors rose by more than 5%")
     c.check = {"against": "truth", "before": {"cop_m": 0.0065}, "after": {"cop_m": 0.0020}}
     assert c.check_text() == ("against the truth (not fitted): CoP 6.5 -> 2 mm; "
                               "the check agrees (no error rose by more than 5%)")
