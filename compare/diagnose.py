@@ -373,7 +373,7 @@ class Candidate:
             return ""
         what = "the truth" if c["against"] == "truth" else (
             f"the {' and '.join(c['sensors'])}" if c.get("sensors") else "the reference sensors")
-        names = worse[0] if len(worse) == 1 else ", ".join(worse[:-1]) + " and " + worse[-1]
+        names = ", ".join(worse[:-1]) + " and " + worse[-1] if len(worse) > 1 else "".join(worse)
         verdict = (f"the check disagrees: the {names} error{'s' if len(worse) > 1 else ''} "
                    f"rose by more than {CHECK_WORSE:.0%}" if worse else
                    f"the check agrees (no error rose by more than {CHECK_WORSE:.0%})")
