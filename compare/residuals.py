@@ -99,6 +99,37 @@ def _satterthwaite(corr, j: int, s0: int, s1: int, ok: np.ndarray) -> float:
     return tot / m
 
 
+def _window_scales(corr, r: np.ndarray, j: int, bounds: list[tuple[int, int]]) -> np.ndarray:
+    """:func:`_satterthwaite` of every window ``(s0, s1)`` of axis ``j`` at once (the residuals
+    ``r`` (N, k) say which rows are finite): each lag's masked squared correlations summed by a
+    running sum, a window's by two of its entries (the same sums, added in another order)."""
+    out = np.ones(len(bounds))
+    if corr is None or not bounds:
+        return out
+    n = r.shape[0]
+    L = corr.shape[2] - 1
+    ok = np.isfinite(r[:, j]).astype(float)
+    rho2 = corr[:, j, 1:] ** 2
+    rho2 = np.where(np.isfinite(rho2), rho2, 0.0)
+    V = np.zeros((n, max(L, 0)))
+    for h in range(1, L + 1):
+        V[:n - h, h - 1] = rho2[:n - h, h - 1] * ok[:n - h] * ok[h:]
+    P = np.zeros((n + 1, max(L, 0)))
+    np.cumsum(V, axis=0, out=P[1:])
+    okc = np.concatenate([[0.0], np.cumsum(ok)])
+    for i, (s0, s1) in enumerate(bounds):
+        m = okc[s1] - okc[s0]
+        if m <= 0:
+            continue
+        hmax = min(L, s1 - s0 - 1)
+        tot = m
+        if hmax > 0:
+            lags = np.arange(hmax)
+            tot += 2.0 * float(np.sum(P[s1 - 1 - lags, lags] - P[s0, lags]))
+        out[i] = tot / m
+    return out
+
+
 def flag_windows(est, window: float = 0.5, alpha: float = 0.01, families: list[str] | None = None,
                  merge: bool = True, raw: dict | None = None, corr: dict | None = None) -> list[FlaggedWindow]:
     """Windows where a whitened residual axis exceeds its chi-square bound.
@@ -131,17 +162,26 @@ def flag_windows(est, window: float = 0.5, alpha: float = 0.01, families: list[s
     if not tests:
         return []
     level = alpha / len(tests)
+    # each window's Satterthwaite scale (an axis's windows at once), then every bound at once
+    scales = np.empty(len(tests))
+    by_axis: dict[tuple[str, int], list[int]] = {}
+    for i, (fam, j, _, _) in enumerate(tests):
+        by_axis.setdefault((fam, j), []).append(i)
+    for (fam, j), idx in by_axis.items():
+        scales[idx] = _window_scales((corr or {}).get(fam), est.residuals[fam], j,
+                                     [(tests[i][2], tests[i][3]) for i in idx])
+    counts = np.array([np.isfinite(est.residuals[fam][s0:s1, j]).sum() for fam, j, s0, s1 in tests], dtype=float)
+    bounds = scales * stats.chi2.isf(level, counts / scales)
     flagged: list[FlaggedWindow] = []
-    for fam, j, s0, s1 in tests:
+    for (fam, j, s0, s1), a, bound in zip(tests, scales, bounds):
         r = est.residuals[fam]
         seg = r[s0:s1, j]
         ok = np.isfinite(seg)
         m = int(ok.sum())
         chi2 = float(np.sum(seg[ok] ** 2))
-        a = _satterthwaite((corr or {}).get(fam), j, s0, s1, ok)
         nu = m / a
         dof = max(1, int(round(nu)))
-        bound = float(a * stats.chi2.isf(level, nu))
+        bound = float(bound)
         if chi2 <= bound:
             continue
         labels = est.residual_labels.get(fam, ())
