@@ -633,7 +633,8 @@ def _check(rec, base: Fit, fit: Fit, skip: float, known: dict) -> dict | None:
     keep = {k: v for k, v in before.items() if v is not None and after.get(k) is not None}
     if not keep:
         return None
-    out = {"against": "truth" if ref == "truth" else "sensors", "before": keep, "after": {k: after[k] for k in keep}}
+    out: dict[str, Any] = {"against": "truth" if ref == "truth" else "sensors", "before": keep,
+                           "after": {k: after[k] for k in keep}}
     names = sorted({str(refs[k]).removeprefix("reference: ") for k in keep if k in refs and refs[k] != "truth"})
     if out["against"] == "sensors" and names:
         out["sensors"] = names
