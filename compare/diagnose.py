@@ -731,13 +731,19 @@ def score(base: Fit, fit: Fit, effect: str, alpha: float = ALPHA,
 def mark_rivals(row: list[Candidate], tie: float = TIE, ident=None) -> None:
     """Give the best of a sorted round its rivals: significant candidates within ``tie`` of its
     score, and, with the identifiability table ``ident``, those it calls inseparable from the best
-    whose evidence (``lr``, before the unknowns' charge) is within ``tie`` of the best's: the data
-    fit both equally, and only the count of unknowns decides (on a 3 s TALOS sway with an
+    whose evidence (``lr``, before the unknowns' charge) is within ``tie`` of the best's, both
+    charged for constant unknowns: the data fit both equally, and only the count of unknowns
+    decides (on a 3 s TALOS sway with an
     accelerometer bias, the CoM offset scored 6.7 above it with 3.3 less evidence: one unknown
     fewer)."""
     if not row or not row[0].significant or row[0].score is None:
         return
     best = row[0]
+
+    def charged(c: Candidate) -> bool:
+        """Whether its score charged constant unknowns (a per-step effect's evidence already
+        integrates its own: its score is its 2ΔE, and comparing 2ΔE would leave that out)."""
+        return c.lr is not None and c.score is not None and c.lr - c.score > 0.0
 
     def rival(c: Candidate) -> bool:
         if not c.significant or c.score is None:
@@ -745,8 +751,8 @@ def mark_rivals(row: list[Candidate], tie: float = TIE, ident=None) -> None:
         if best.score - c.score < tie:  # type: ignore[operator]
             return True
         pair = ident.pair(best.effect, c.effect) if ident is not None else None
-        return (pair is not None and pair.inseparable and best.lr is not None and c.lr is not None
-                and abs(best.lr - c.lr) < tie)
+        return (pair is not None and pair.inseparable and charged(best) and charged(c)
+                and abs(best.lr - c.lr) < tie)  # type: ignore[operator]
 
     best.rivals = tuple(c.effect for c in row[1:] if rival(c))
 

@@ -361,6 +361,11 @@ def test_an_inseparable_candidate_with_the_same_evidence_is_a_rival():
         r = row(lr)
         mark_rivals(r, ident=table)
         assert r[0].rivals == (), (lr, table)
+    # a per-step best (its 2ΔE integrates its own unknowns, its score is its 2ΔE: a foothold shim
+    # against a CoM offset) is compared by score only
+    r = [Candidate("com-offset", (), 1, 1170.0, 1170.0, 23.4, 1e-40, True, {}, ""), cand("accel-bias", 1167.0, 2.0)]
+    mark_rivals(r, ident=Table(True))
+    assert r[0].rivals == ()
 
 
 def test_candidates_errors():
