@@ -733,9 +733,8 @@ def mark_rivals(row: list[Candidate], tie: float = TIE, ident=None) -> None:
     score, and, with the identifiability table ``ident``, those it calls inseparable from the best
     whose evidence (``lr``, before the unknowns' charge) is within ``tie`` of the best's, both
     charged for constant unknowns: the data fit both equally, and only the count of unknowns
-    decides (on a 3 s TALOS sway with an
-    accelerometer bias, the CoM offset scored 6.7 above it with 3.3 less evidence: one unknown
-    fewer)."""
+    decides (on a 3 s TALOS sway with an accelerometer bias, the CoM offset scored 6.7 above it
+    with 3.3 less evidence: one unknown fewer)."""
     if not row or not row[0].significant or row[0].score is None:
         return
     best = row[0]
@@ -1444,10 +1443,11 @@ def _second_look(selected: list[str], rounds: list[list[Candidate]], makers: dic
             # (its round's own row, if it had one, judged it alone)
             rep = f.estimate.effects.get(alt, {})
             eff = makers[alt]()
-            sc, lr, nu, p, sig = score(fitted(tuple(others)), f, alt)
+            rest = fitted(tuple(others))
+            sc, lr, nu, p, sig = score(rest, f, alt)
             row = Candidate(alt, tuple(others), i + 1, sc, lr, nu, p, sig, rep, summarize_effect(rep, eff))
             row.finding = finding(row, rep, eff)
-            row.check = check(fitted(tuple(others)), f) if check is not None else None
+            row.check = check(rest, f) if check is not None else None
             rounds[i][:] = [c for c in rounds[i] if c.effect != alt] + [row]
             out.append(f"second look: {alt} in place of {name} beside {', '.join(others)} (2ΔE = "
                        f"{2.0 * (here - value):.1f} in favour, constant unknowns charged): round {i + 1} took "

@@ -173,11 +173,11 @@ def flag_windows(est, window: float = 0.5, alpha: float = 0.01, families: list[s
     counts = np.array([np.isfinite(est.residuals[fam][s0:s1, j]).sum() for fam, j, s0, s1 in tests], dtype=float)
     bounds = scales * stats.chi2.isf(level, counts / scales)
     flagged: list[FlaggedWindow] = []
-    for (fam, j, s0, s1), a, bound in zip(tests, scales, bounds):
+    for (fam, j, s0, s1), a, bound, count in zip(tests, scales, bounds, counts):
         r = est.residuals[fam]
         seg = r[s0:s1, j]
         ok = np.isfinite(seg)
-        m = int(ok.sum())
+        m = int(count)
         chi2 = float(np.sum(seg[ok] ** 2))
         nu = m / a
         dof = max(1, int(round(nu)))

@@ -19,12 +19,11 @@ from flexforce.factors.core import njit, so3_exp, trsv_lower_inplace, trsv_upper
 
 
 @njit
-def _trsm_lower(L, B):
-    """L^-1 B for lower-triangular L (d, d) and B (d, m), by rows of ``X`` (memory order: each
-    entry the same operations as a column's forward substitution, ``trsv_lower_inplace``)."""
-    X = B.copy()
-    d, m = X.shape[0], X.shape[1]
-    for i in range(d):
+def _forward_rows(L, X, m):
+    """``X[:, :m] <- L^-1 X[:, :m]`` for lower-triangular ``L`` (d, d), by rows of ``X`` (memory
+    order: each entry the same operations as a column's forward substitution,
+    ``trsv_lower_inplace``)."""
+    for i in range(L.shape[0]):
         for k in range(i):
             lik = L[i, k]
             for j in range(m):
@@ -32,6 +31,13 @@ def _trsm_lower(L, B):
         inv = L[i, i]
         for j in range(m):
             X[i, j] = X[i, j] / inv
+
+
+@njit
+def _trsm_lower(L, B):
+    """L^-1 B for lower-triangular L (d, d) and B (d, m) (:func:`_forward_rows`)."""
+    X = B.copy()
+    _forward_rows(L, X, X.shape[1])
     return X
 
 
@@ -222,13 +228,7 @@ def _trsm_lower_rows_t(L, B, X, out):
     for i in range(d):
         for j in range(ncol):
             X[i, j] = B[i, j]
-        for k in range(i):
-            lik = L[i, k]
-            for j in range(ncol):
-                X[i, j] -= lik * X[k, j]
-        inv = L[i, i]
-        for j in range(ncol):
-            X[i, j] = X[i, j] / inv
+    _forward_rows(L, X, ncol)
     for i in range(d):
         for j in range(ncol):
             out[j, i] = X[i, j]

@@ -137,18 +137,24 @@ def test_the_outer_steps_reach_the_same_evidence_with_or_without_the_secant(soft
     assert np.all(np.abs(v - v_ref) <= 0.05 * np.asarray(ref_est.effects["stiffness"]["std"]))
 
 
+def _with_an_overstated_secant(soft, monkeypatch, excess: float):
+    """The stiffness refit of ``soft`` from its nominal fit with the Gauss-Newton step alone, then
+    with a secant that adds ``excess`` times the identity at every update: both ``fit`` results."""
+    rec, model, nominal = soft
+    m = dataclasses.replace(model, effects=(make_effect("stiffness"),))
+    monkeypatch.setattr(batch, "SECANT", False)
+    ref = fit(rec, m, start=((), nominal.trajectory), evidence_tol=0.05)
+    monkeypatch.setattr(batch, "SECANT", True)
+    monkeypatch.setattr(batch, "_secant_update", lambda M, s, Ss, g_old, g_new: M + excess * np.eye(M.shape[0]))
+    return ref, fit(rec, m, start=((), nominal.trajectory), evidence_tol=0.05)
+
+
 def test_a_secant_that_promises_nothing_gives_way_to_the_gauss_newton_step(soft, monkeypatch):
     """A secant estimate that over-states the curvature (here by 1e12 at every update) makes a
     step that promises less than the tolerance; where the Gauss-Newton step still promises more,
     that one is taken, so the outer steps reach the Gauss-Newton optimum instead of ending at the
     first tiny step (evidence within the tolerance of 0.05 nats, as without the secant)."""
-    rec, model, nominal = soft
-    m = dataclasses.replace(model, effects=(make_effect("stiffness"),))
-    monkeypatch.setattr(batch, "SECANT", False)
-    _, ref = fit(rec, m, start=((), nominal.trajectory), evidence_tol=0.05)
-    monkeypatch.setattr(batch, "SECANT", True)
-    monkeypatch.setattr(batch, "_secant_update", lambda M, s, Ss, g_old, g_new: M + 1e12 * np.eye(M.shape[0]))
-    _, stats = fit(rec, m, start=((), nominal.trajectory), evidence_tol=0.05)
+    (_, ref), (_, stats) = _with_an_overstated_secant(soft, monkeypatch, 1e12)
     assert abs(stats.cost_evidence - ref.cost_evidence) <= 0.05, (stats.cost_evidence, ref.cost_evidence)
 
 
@@ -158,12 +164,6 @@ def test_a_secant_that_over_states_the_curvature_does_not_crawl(soft, monkeypatc
     OVERSTATED rule: 17 outer steps against the Gauss-Newton-only 4); after OVERSTATED[1] of them
     the secant is dropped, and the fit ends within the tolerance of the Gauss-Newton-only evidence
     (measured: 6 outer steps; asserted at most twice GN's plus 2)."""
-    rec, model, nominal = soft
-    m = dataclasses.replace(model, effects=(make_effect("stiffness"),))
-    monkeypatch.setattr(batch, "SECANT", False)
-    est_ref, ref = fit(rec, m, start=((), nominal.trajectory), evidence_tol=0.05)
-    monkeypatch.setattr(batch, "SECANT", True)
-    monkeypatch.setattr(batch, "_secant_update", lambda M, s, Ss, g_old, g_new: M + 1e6 * np.eye(M.shape[0]))
-    est, stats = fit(rec, m, start=((), nominal.trajectory), evidence_tol=0.05)
+    (est_ref, ref), (est, stats) = _with_an_overstated_secant(soft, monkeypatch, 1e6)
     assert abs(stats.cost_evidence - ref.cost_evidence) <= 0.05, (stats.cost_evidence, ref.cost_evidence)
     assert est.meta["outer"] <= 2 * est_ref.meta["outer"] + 2, (est.meta["outer"], est_ref.meta["outer"])
