@@ -1100,7 +1100,10 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
         there is (the round's base: the refit only moves what the new effect explains)."""
         effects = tuple(model.effects) + tuple(makers[n]() for n in names)
         within = [key for key in cache if set(key) < set(names)]
-        start = cache[max(within, key=len)] if within else None
+        # the round's base when it is there (a round's refit adds the last name to it), else the most
+        start = cache.get(tuple(sorted(names[:-1]))) if names else None
+        if start is None and within:
+            start = cache[max(within, key=len)]
         # the effects this refit adds are watched: an estimate leaving the plausible range ends it
         new = set(names) - set(start.effects if start is not None else ())
         return fit_model(rec, dataclasses.replace(model, effects=effects), progress=progress, start=start,
@@ -1201,6 +1204,7 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                                              screen_level=screen_level))
         latest: dict[str, ScoreTest | str] = dict(screened)
         this_round: list[str] = []
+        last_keys: set[tuple[str, ...]] = set()  # the fits of the previous round (kept one round more)
 
         def waited(k: str, round_: int, why: str) -> None:
             """A candidate that passed the screening but was not refitted: listed with why."""
@@ -1210,6 +1214,18 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                                      screen_level=screen_level, deferred=why))
 
         while remaining:
+            # a candidate whose refit came out implausible in the previous round is neither screened
+            # nor refitted again (its estimate stood in for something the effect just selected
+            # explains better; on the iCub sway, the anisotropic stiffness beside the accelerometer
+            # bias, then beside the wrench too: 17 s): listed with that refit's word
+            for c in (rounds[-1] if rounds else []):
+                if c.implausible and c.effect in remaining:
+                    remaining.remove(c.effect)
+                    waited(c.effect, len(rounds) + 1, f"its refit in round {c.round} was implausible ("
+                                                      + (f"score {c.score:.1f}: " if c.score is not None else "")
+                                                      + f"{c.implausible})")
+            if not remaining:
+                break
             base = fitted(tuple(selected))
             if selected and screen_level is not None and base.trajectory is not None and base.model is not None:
                 # screen the remaining candidates again at the new base: an effect that only stood in
@@ -1238,7 +1254,8 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
             # screening dropped were tested too)
             m = len(cands) - len(selected)
             this_round = _refit_choice(remaining, latest, ident, refit_best if screen_level is not None else None)
-            fit_all([tuple(selected) + (name,) for name in this_round])
+            round_base = tuple(selected)
+            fit_all([round_base + (name,) for name in this_round])
             row = []
             for name in this_round:
                 t0 = time.perf_counter() - fit_seconds.pop(tuple(sorted(tuple(selected) + (name,))), 0.0)
@@ -1277,11 +1294,17 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                 selected.append(best.effect)
                 remaining.remove(best.effect)
                 best.check = _check(rec, base, fitted(tuple(selected)), skip, checked)
-            # the round's other fits are done with (their rows keep what they found): free their
-            # estimates, so that memory does not grow with the number of candidates
-            keep = {(), tuple(sorted(selected))}
+            # the fits of the rounds before the previous one are done with (their rows keep what
+            # they found): free their estimates, so that memory does not grow with the number of
+            # candidates.  The previous round's are kept: the second look fits the selection without
+            # a per-step effect taken before the last round, which is one of them when the last
+            # round is this one (on the iCub sway: the accelerometer and gyro biases without the
+            # wrench, 5 s)
+            this_keys = {tuple(sorted(round_base + (n,))) for n in this_round}
+            keep = {(), tuple(sorted(selected))} | this_keys | last_keys
             for key in [k for k in cache if k not in keep]:
                 del cache[key]
+            last_keys = this_keys
             if stop:
                 # those that passed the screening but waited behind stronger ones
                 for k in remaining:
@@ -1394,7 +1417,7 @@ def _second_look(selected: list[str], rounds: list[list[Candidate]], makers: dic
     Tried: for each such effect, the :data:`SWAP_ALTERNATIVES` constant candidates whose score
     tests are strongest at the fit of the rest of the selection (``strongest(without, names)``;
     on TALOS's weight shift the CoM offset was not among round 1's refits), or, without the test,
-    the round's strongest significant, plausible refits; one the last round found implausible is
+    the round's strongest significant, plausible refits; one found implausible at its last refit is
     not tried again (on the iCub sway, the anisotropic stiffness: 23 s).  Returns one sentence per
     replacement."""
     out: list[str] = []
@@ -1411,9 +1434,9 @@ def _second_look(selected: list[str], rounds: list[list[Candidate]], makers: dic
         if alternatives is None:
             alternatives = [c.effect for c in rounds[i] if c.significant and not c.implausible and c.score is not None
                             and c.effect in constants]
-        # of those, one the last round refitted beside the whole selection and found implausible
-        # is not tried again (the swap takes a plausible replacement only)
-        gone = {c.effect for c in rounds[-1] if c.implausible} if rounds else set()
+        # of those, one whose last refit found it implausible is not tried again (the swap takes a
+        # plausible replacement only; a round does not refit one its previous round found implausible)
+        gone = {c.effect for row in rounds for c in row if c.implausible}
         alternatives = [a for a in alternatives[:SWAP_ALTERNATIVES] if a not in gone]
         if not alternatives:
             continue

@@ -249,7 +249,9 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
 
     Returns ``(trajectory, P, info)`` with ``P`` the (N, D, D) marginal covariances at the optimum
     (None without ``want_cov``) and ``info`` the iteration log (``iterations``: LM steps accepted,
-    ``outer``: global steps accepted, ``stopped``: the watch's reason or None).
+    ``outer``: global steps accepted, ``stopped``: the watch's reason or None, ``final``: the
+    linearisation at the returned trajectory and its :func:`~flexforce.smoother.evidence.log_dets`,
+    with constants; None without).
     """
     start = traj
     if traj is None:
@@ -268,7 +270,8 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
     if cidx.size:
         # theta by the marginal likelihood (smoother/evidence.py): J + occam
         keep: dict = {}  # the evidence's factors at the current point, for its gradient there
-        pen = evidence.occam(prob, lin, cidx, keep)
+        dets = evidence.log_dets(prob, lin, cidx, keep)
+        pen = 0.5 * (dets[0] - dets[1])
         gpen = evidence.occam_gradient(prob, traj, cidx, lin=lin, keep=keep)
         keep.clear()
         M = np.zeros((cidx.size, cidx.size))  # the secant's estimate of what the Schur complement misses
@@ -354,7 +357,8 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
                                                           max_iterations, rel_tol, lam=1e-12,
                                                           give_up_above=lin.cost + 2.0 * predicted)
                 try:
-                    pen_c = evidence.occam(prob, lin_c, cidx, keep)
+                    dets_c = evidence.log_dets(prob, lin_c, cidx, keep)
+                    pen_c = 0.5 * (dets_c[0] - dets_c[1])
                 except EstimatorError:  # e.g. a stiffness scale driven negative: unstable dynamics
                     pen_c = np.inf
                     keep.clear()
@@ -382,7 +386,7 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
                 overstated = overstated + 1 if gain > OVERSTATED[0] * predicted else 0
                 if overstated >= OVERSTATED[1]:
                     secant_on, M, last = False, np.zeros_like(M), None
-            traj, lin, pen = cand, lin_c, pen_c
+            traj, lin, pen, dets = cand, lin_c, pen_c, dets_c
             log += costs
             outer += 1
             if progress is not None:
@@ -400,7 +404,7 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
         Hd, B, g = _system(prob, lin, cidx)
         _, P, _ = solve_arrow(Hd, B, g, cidx, damping=0.0, want_cov=True)
     return traj, P, {"iterations": len(log) - 1, "outer": outer, "gradient_fallbacks": fallbacks, "cost": log,
-                     "stopped": stopped}
+                     "stopped": stopped, "final": (lin, dets) if cidx.size else None}
 
 
 @dataclass(frozen=True)
@@ -594,8 +598,9 @@ def fit(rec, model, progress: Callable[[float], None] | None = None, rule: Noise
     traj, _, info = optimize(prob, traj0, max_iterations=max_iterations, progress=progress, want_cov=False,
                              global_constants=global_constants, evidence_tol=evidence_tol,
                              watch=None if watch is None else (lambda tr: watch(prob, tr)))
-    lin = linearize(prob, traj)
     cidx = _global_columns(prob, global_constants)
+    final = info.get("final")
+    lin = final[0] if final is not None else linearize(prob, traj)
     Hd, B, g = _system(prob, lin, cidx)
     _, P, Pc = solve_arrow(Hd, B, g, cidx, want_cov=True)
     est = make_estimate(prob, "batch", traj, P, total_time=time.perf_counter() - t0,
@@ -610,7 +615,8 @@ def fit(rec, model, progress: Callable[[float], None] | None = None, rule: Noise
         ok = np.isfinite(r)
         cost_data += 0.5 * float(np.sum(r[ok] ** 2))
         n_res += int(ok.sum())
-    post, prior = evidence.log_dets(prob, lin, cidx)
+    # the log-determinants optimize formed at this linearisation (its last Occam term), or anew
+    post, prior = final[1] if final is not None else evidence.log_dets(prob, lin, cidx)
     state_prior = evidence.state_prior_cost(prob, lin)
     # the evidence is the objective (robust losses, the Occam term) less theta's own prior
     cost_evidence = float(lin.cost) - evidence.theta_prior_cost(prob, lin) + 0.5 * (post - prior)

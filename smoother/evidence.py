@@ -40,6 +40,8 @@ effect by the gain in it (:mod:`flexforce.compare.diagnose`).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from flexforce.errors import EstimatorError
@@ -287,7 +289,7 @@ def _varied_groups(prob) -> list[frozenset[str] | None]:
 
 
 def occam_gradient(prob, traj, cidx: np.ndarray, rel_step: float = 1e-3, lin: Linearization | None = None,
-                   keep: dict | None = None) -> np.ndarray:
+                   keep: dict | None = None, states: SharedStates | None = None) -> np.ndarray:
     """Gradient of :func:`occam` in the global parameters, the states held, by
     ``d ln det H = tr(H^-1 dH)`` for both Hessians: ``dH = J^T dJ + dJ^T J`` with ``dJ`` the
     central difference of the Jacobians (steps of ``rel_step`` of each parameter's prior sigma),
@@ -300,7 +302,9 @@ def occam_gradient(prob, traj, cidx: np.ndarray, rel_step: float = 1e-3, lin: Li
 
     Equal to the central difference of :func:`occam` to the differences' truncation error (tested).
     ``lin`` (the linearisation at ``traj``) with the ``keep`` of :func:`occam` at it: their scaled
-    system and QR factor are reused (the same numbers, formed once)."""
+    system and QR factor are reused (the same numbers, formed once).  Without ``keep``, the
+    states' part comes from ``states`` or :func:`shared_states` (the candidates of one screening
+    share it), and the inverses formed here are kept in it."""
     off = prob.state_dim - prob.effect_dim
     sig = global_prior_sigma(prob)
     grad = np.zeros(cidx.size)
@@ -308,20 +312,17 @@ def occam_gradient(prob, traj, cidx: np.ndarray, rel_step: float = 1e-3, lin: Li
         return grad
     n = prob.n
     reuse = keep is not None and lin is not None and keep.get("lin") is lin
-    post_inv: tuple[np.ndarray, np.ndarray] | None = None
-    model_inv: tuple[np.ndarray, np.ndarray] | None = None
-    memo_key = None
+    entry: SharedStates | None = states
     if reuse:
         assert keep is not None
         base, aidx, s, Hs, Bs = keep["base"], keep["aidx"], keep["s"], keep["Hs"], keep["Bs"]
     else:
         base = drop_global_walks(prob, lin if lin is not None else linearize(prob, traj))
-        aidx = np.setdiff1d(np.arange(prob.state_dim), cidx)
-        memo_key = _states_fingerprint(prob, base, aidx)
-        if memo_key in _STATES_MEMO:
-            s, Hs, Bs, post_inv, model_inv = _STATES_MEMO[memo_key]
-        else:
-            aidx, s, Hs, Bs = _scaled_states(prob, base, cidx)
+        if entry is None:
+            entry = shared_states(prob, base, cidx)
+        aidx, s, Hs, Bs = entry.aidx, entry.s, entry.Hs, entry.Bs
+    post_inv = None if entry is None else entry.post_inv
+    model_inv = None if entry is None else entry.model_inv
     mbase = plain_model_rows(base)
     d = len(aidx)
     model_u = [k for k in base.unary if _family(k) not in MEASUREMENT_FAMILIES]
@@ -359,19 +360,59 @@ def occam_gradient(prob, traj, cidx: np.ndarray, rel_step: float = 1e-3, lin: Li
             model = _trace_term(model_inv[0], model_inv[1], mbase, plain_model_rows(lins[0]),
                                 plain_model_rows(lins[1]), mkeys, aidx, s, h)
         grad[j] = 0.5 * (post - model)
-    if memo_key is not None:
-        _STATES_MEMO.clear()  # one entry: the latest states' (a screening's base)
-        _STATES_MEMO[memo_key] = (s, Hs, Bs, post_inv, model_inv)
+    if entry is not None:
+        entry.post_inv, entry.model_inv = post_inv, model_inv
     return grad
 
 
+@dataclass
+class SharedStates:
+    """The per-step states' part of a linearisation that the candidates of one base fit share
+    (:func:`shared_states`): the states' columns ``aidx``, their Jacobi scale ``s``, the scaled
+    diagonal and upper blocks ``Hs``, ``Bs``, and, formed the first time one is needed, their
+    block Cholesky factor (the screening's elimination) and the selected inverses of the posterior
+    and of the trajectory prior (:func:`occam_gradient`)."""
+
+    aidx: np.ndarray
+    s: np.ndarray
+    Hs: np.ndarray
+    Bs: np.ndarray
+    factor: tuple[np.ndarray, np.ndarray] | None = None
+    post_inv: tuple[np.ndarray, np.ndarray] | None = None
+    model_inv: tuple[np.ndarray, np.ndarray] | None = None
+
+    def cholesky(self) -> tuple[np.ndarray, np.ndarray]:
+        """The block Cholesky factor of ``Hs``/``Bs`` (:func:`~flexforce.smoother.solvers.block_tridiag_factor`)."""
+        if self.factor is None:
+            try:
+                self.factor = solvers.block_tridiag_factor(self.Hs, self.Bs)
+            except np.linalg.LinAlgError as err:
+                raise EstimatorError("smoother: the posterior information of the states is not positive definite "
+                                     "(an unobservable direction: check contacts and stiffness)") from err
+        return self.factor
+
+
+def shared_states(prob, base: Linearization, cidx: np.ndarray) -> SharedStates:
+    """The states' part of ``base`` (a linearisation without the global walks, ``cidx`` its
+    global columns), from :data:`_STATES_MEMO` when the latest one formed has the same fingerprint
+    (:func:`_states_fingerprint`); formed and kept there otherwise."""
+    aidx = np.setdiff1d(np.arange(prob.state_dim), cidx)
+    key = _states_fingerprint(prob, base, aidx)
+    entry = _STATES_MEMO.get(key)
+    if entry is None:
+        aidx, s, Hs, Bs = _scaled_states(prob, base, cidx)
+        entry = SharedStates(aidx, s, Hs, Bs)
+        _STATES_MEMO.clear()  # one entry: the latest states' (a screening's base)
+        _STATES_MEMO[key] = entry
+    return entry
+
+
 _STATES_MEMO: dict = {}
-"""The per-step states' scaled system and selected inverses of the latest :func:`occam_gradient`
-formed without the ``keep`` of :func:`occam`, by the fingerprint of the rows they come from: a
-screening tests every candidate at one base fit, and a constant candidate at its null value adds
-no rows on the states (its prior is on ``theta``), so the candidates of one base share them
-(formed once per process; the rows differ only by the candidates' zero rows there).  Freed by
-:func:`forget_states`."""
+"""The latest :class:`SharedStates` formed by :func:`shared_states`, by the fingerprint of the rows
+they come from: a screening tests every candidate at one base fit, and a constant candidate at its
+null value adds no rows on the states (its prior is on ``theta``), so the candidates of one base
+share them (formed once per process; the rows differ only by the candidates' zero rows there).
+Freed by :func:`forget_states`."""
 
 
 def forget_states() -> None:
@@ -380,24 +421,34 @@ def forget_states() -> None:
 
 
 def _states_fingerprint(prob, lin: Linearization, aidx: np.ndarray) -> bytes:
-    """A digest of everything :func:`occam_gradient` forms from ``lin`` before varying a parameter:
-    each family's name and Jacobian on the states' columns ``aidx`` (the families on ``theta``
-    alone, its priors, left out: they are zero there) and the Newton-Euler Huber weights."""
+    """A digest of everything the states' part of ``lin`` is formed from: each family's name and
+    Jacobian on the states' columns ``aidx`` (the families on ``theta`` alone, its priors, left
+    out: they are zero there) and the Newton-Euler Huber weights.  Each Jacobian enters by its
+    product with two fixed random vectors that vanish off ``aidx`` (the same rows give the same
+    bytes; rows that differ give other bytes unless the difference is below the products' rounding),
+    which reads each Jacobian once without copying it."""
     import hashlib
 
     h = hashlib.blake2b(digest_size=20)
     h.update(np.asarray(aidx, dtype=np.int64).tobytes())
+    V = np.zeros((prob.state_dim, 2))
+    V[aidx] = np.random.default_rng(20151001).standard_normal((len(aidx), 2))
     on_theta = theta_prior_keys(prob)
+
+    def add(J: np.ndarray) -> None:
+        h.update(np.asarray(J.shape[:-1], dtype=np.int64).tobytes())  # not the columns: a candidate's add none on aidx
+        h.update(np.ascontiguousarray(J @ V).tobytes())
+
     for key in sorted(lin.unary):
         if key in on_theta:
             continue
         h.update(key.encode())
-        h.update(np.ascontiguousarray(lin.unary[key][1][..., aidx]).tobytes())
+        add(lin.unary[key][1])
     for key in sorted(lin.binary):
         _, J0, J1 = lin.binary[key]
         h.update(key.encode())
-        h.update(np.ascontiguousarray(J0[..., aidx]).tobytes())
-        h.update(np.ascontiguousarray(J1[..., aidx]).tobytes())
+        add(J0)
+        add(J1)
     if lin.ne_weights is not None:
         h.update(np.ascontiguousarray(lin.ne_weights).tobytes())
     return h.digest()

@@ -162,13 +162,24 @@ def _border_schur(Hd, B, g, aidx, sel, T):
     return gbar, Sc
 
 
-def _eliminate_border(Hd, B, g, aidx, sel, T):
+def _eliminate_border(Hd, B, g, aidx, sel, T, states=None):
     """:func:`_border_schur`'s ``(gbar, S)`` and the scaled elimination it ran: ``(s, As, ABs, X)``
-    with ``X`` (N, len(aidx), 1 + m) the scaled states' solution for ``[g, F]``."""
+    with ``X`` (N, len(aidx), 1 + m) the scaled states' solution for ``[g, F]``.  ``states``: the
+    states' scaled blocks and factor when they are known already
+    (:class:`~flexforce.smoother.evidence.SharedStates` of this system, the same ``aidx``)."""
     F, G, gc = _border_terms(Hd, B, g, aidx, sel, T)
-    s, As, ABs = _scaled_states(Hd, B, aidx)
+    if states is not None:
+        s, As, ABs = states.s, states.Hs, states.Bs
+    else:
+        s, As, ABs = _scaled_states(Hd, B, aidx)
     rhs = np.concatenate([(g[:, aidx] * s)[:, :, None], F * s[:, :, None]], axis=2)
-    X = _solve_states(As, ABs, rhs)
+    if states is not None:
+        try:
+            X = solvers.block_tridiag_substitute(*states.cholesky(), np.ascontiguousarray(rhs))
+        except EstimatorError as exc:
+            raise EstimatorError("screening: the information of the states is not positive definite") from exc
+    else:
+        X = _solve_states(As, ABs, rhs)
     Fs = F * s[:, :, None]
     Sc = G - np.einsum("kai,kaj->ij", Fs, X[:, :, 1:])
     gbar = gc - np.einsum("kai,ka->i", Fs, X[:, :, 0])
@@ -303,15 +314,17 @@ def score_test(prob_base: Problem, traj: Trajectory, effect, rule: NoiseRule | N
         lin = drop_global_walks(prob, lin)
         Hd, B, g = assemble(lin, n, D)
         cidx = np.asarray(gcols + list(ecols), dtype=int)
+        # the states' part, shared by the candidates of this base (evidence.shared_states)
+        states = evidence.shared_states(prob, lin, cidx)
         if occam:
             # minus the Occam term's gradient (g is minus the cost's gradient); summed over steps,
             # so put it on the first step
-            grad = evidence.occam_gradient(prob, tr, cidx)
+            grad = evidence.occam_gradient(prob, tr, cidx, lin=lin, states=states)
             g = g.copy()
             g[0, cidx] -= grad
-        aidx = np.setdiff1d(np.arange(D), cidx)
+        aidx = states.aidx
         T = np.broadcast_to(np.eye(len(cidx)), (n, len(cidx), len(cidx)))
-        gbar, Sc = _border_schur(Hd, B, g, aidx, cidx, np.ascontiguousarray(T))
+        gbar, Sc, _ = _eliminate_border(Hd, B, g, aidx, cidx, np.ascontiguousarray(T), states=states)
         m0 = len(gcols)
         full, Si = _quad(gbar, Sc, np.arange(len(cidx)))
         held, _ = _quad(gbar, Sc, np.arange(m0))

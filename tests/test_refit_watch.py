@@ -167,3 +167,24 @@ def test_a_secant_that_over_states_the_curvature_does_not_crawl(soft, monkeypatc
     (est_ref, ref), (est, stats) = _with_an_overstated_secant(soft, monkeypatch, 1e6)
     assert abs(stats.cost_evidence - ref.cost_evidence) <= 0.05, (stats.cost_evidence, ref.cost_evidence)
     assert est.meta["outer"] <= 2 * est_ref.meta["outer"] + 2, (est.meta["outer"], est_ref.meta["outer"])
+
+
+def test_a_candidate_implausible_in_one_round_is_not_refitted_in_the_next(monkeypatch):
+    """Round 1 selects the gyro bias and finds the (narrowed) stiffness implausible: round 2 neither
+    screens nor refits the stiffness again, and lists it with that refit's word."""
+    sc = Scenario.load("stand")
+    sc.duration, sc.seed = 2.5, 3
+    sc.imu_noise = {"gyro_bias_rw": 0.0, "accel_bias_rw": 0.0}
+    sc.effects = [{"type": "stiffness", "stiffness": 0.5, "damping": 1.0},
+                  {"type": "gyro-bias", "value": [0.0, 0.01, 0.0]}]
+    rec = Simulator(sc).run()
+    monkeypatch.setattr(diagnose_mod, "WATCH_PATIENCE", 1)
+    d = diagnose(rec, candidates=[make_effect("gyro-bias"), narrow_stiffness()], ekf=False, calibrated=False)
+    assert d.selected == ["gyro-bias"], d.ranking_table()
+    first = {c.effect: c for c in d.rounds[0]}
+    assert first["stiffness"].implausible, d.ranking_table()
+    assert len(d.rounds) == 1  # no round refitted the stiffness beside the gyro bias
+    later = [c for c in d.ranking if c.effect == "stiffness" and not c.refitted]
+    assert len(later) == 1 and later[0].round == 2, d.ranking_table()
+    assert "its refit in round 1 was implausible" in (later[0].deferred or "")
+    assert "its refit in round 1 was implausible" in d.ranking_table()
