@@ -608,11 +608,15 @@ class Diagnosis:
 
 def headline_errors(metrics: Metrics) -> dict[str, float | None]:
     """The comparison's headline errors (``RMSE_KEYS``); on real logs also the errors against the
-    F/T sensors."""
+    F/T sensors (the vertical force's, and the force's when the sensors measure more than it)."""
     keys: tuple[str, ...] = RMSE_KEYS
     if getattr(metrics, "reference", None) == "sensors":
         keys = keys + ("vertical_force_N", "contact_force_N")
-    return {k: _clean(metrics.rmse.get(k)) for k in keys}
+    out = {k: _clean(metrics.rmse.get(k)) for k in keys}
+    if "contact_force_N" in out and out["contact_force_N"] == out.get("vertical_force_N"):
+        # F/T that measure the vertical force alone (the iCub logs): the force error is that one
+        del out["contact_force_N"]
+    return out
 
 
 def _check(rec, base: Fit, fit: Fit, skip: float, known: dict) -> dict | None:

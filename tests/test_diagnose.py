@@ -567,3 +567,16 @@ def test_the_check_of_a_selected_effect_says_when_the_references_disagree():
     c.check = {"against": "truth", "before": {"cop_m": 0.0065}, "after": {"cop_m": 0.0020}}
     assert c.check_text() == ("against the truth (not fitted): CoP 6.5 -> 2 mm; "
                               "the check agrees (no error rose by more than 5%)")
+
+
+def test_the_check_names_the_force_error_once_when_the_sensors_measure_only_the_vertical_force():
+    """On real logs the check lists the error against the F/T: the force's norm is left out when it
+    equals the vertical force's (sensors that measure the vertical force alone), kept otherwise."""
+    from flexforce.compare.diagnose import headline_errors
+    from flexforce.compare.metrics import Metrics
+
+    only_z = Metrics("batch", rmse={"vertical_force_N": 31.9, "contact_force_N": 31.9}, reference="sensors")
+    full = Metrics("batch", rmse={"vertical_force_N": 31.9, "contact_force_N": 40.2}, reference="sensors")
+    assert "contact_force_N" not in headline_errors(only_z) and headline_errors(only_z)["vertical_force_N"] == 31.9
+    assert headline_errors(full)["contact_force_N"] == 40.2
+    assert "vertical_force_N" not in headline_errors(Metrics("batch", rmse={"force_N": 1.0}))
