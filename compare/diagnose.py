@@ -396,7 +396,7 @@ class Candidate:
         if s is None:
             return ""
         out = f"score T = {s.statistic:.1f} (nu {s.dof:.1f}), p = {s.p_value:.2g}"
-        if self.base and not self.refitted:
+        if self.base:  # a later round's test: at that round's base
             out += " at + " + " + ".join(self.base)
         if s.kind == "windowed" and level is not None:
             spans = [f"{w.start_s:.2f}-{w.end_s:.2f} s" for w in s.passing_windows(level)]
@@ -1274,7 +1274,7 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                     continue
                 s, lr, nu, p, sig = score(base, f, name, alpha, tests=m)
                 rep = f.estimate.effects.get(name, {})
-                test = screened.get(name)
+                test = latest.get(name)  # its score test at this round's base (the nominal fit's in round 1)
                 eff = makers[name]()
                 c = Candidate(name, tuple(selected), len(rounds) + 1, s, lr, nu, p, sig, rep,
                               summarize_effect(rep, eff), screen=None if isinstance(test, str) else test,

@@ -124,6 +124,11 @@ def test_two_hidden_effects_are_both_found():
     assert sorted(d.selected) == ["accel-bias", "gyro-bias"]
     assert len(d.rounds) == 2 and all(c.significant for c in d.ranking[:2])
     assert d.ranking[1].base == (d.ranking[0].effect,)  # rescored on top of the first
+    # the second round's row carries its score test at that round's base, not the nominal fit's
+    second = d.rounds[1][0]
+    nominal = next(c for c in d.rounds[0] if c.effect == second.effect).screen
+    assert second.screen is not None and nominal is not None and second.screen.statistic != nominal.statistic
+    assert second.screen_text().endswith(" at + " + d.ranking[0].effect)
     assert [c.level for c in d.ranking[:2]] == pytest.approx([0.01 / 2, 0.01 / 1])  # Holm: alpha / m per round
     assert not d.after.flags
     assert_errors_fall("gyro_accel", d, ("force_N", "cop_m", "rotation_rad"))
