@@ -622,7 +622,8 @@ def headline_errors(metrics: Metrics) -> dict[str, float | None]:
 def _check(rec, base: Fit, fit: Fit, skip: float, known: dict) -> dict | None:
     """:attr:`Candidate.check` of ``fit`` against ``base`` (``known``: errors already computed, by
     the fits' sorted effects); None when the recording has nothing to check against or an
-    evaluation fails."""
+    evaluation fails.  With the F/T fused (``use_ft``) the errors against them are left out: the
+    fit used them."""
     errs = []
     for f in (base, fit):
         key = tuple(sorted(f.effects))
@@ -634,7 +635,9 @@ def _check(rec, base: Fit, fit: Fit, skip: float, known: dict) -> dict | None:
             known[key] = (getattr(m, "reference", None), headline_errors(m), dict(getattr(m, "references", {})))
         errs.append(known[key])
     (ref, before, refs), (_, after, _) = errs
-    keep = {k: v for k, v in before.items() if v is not None and after.get(k) is not None}
+    fused = bool(getattr(fit.model, "use_ft", False))  # --ft: the F/T are data of the fit, no check
+    keep = {k: v for k, v in before.items() if v is not None and after.get(k) is not None
+            and not (fused and refs.get(k) == "reference: F/T")}
     if not keep:
         return None
     out: dict[str, Any] = {"against": "truth" if ref == "truth" else "sensors", "before": keep,

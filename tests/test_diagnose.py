@@ -585,3 +585,20 @@ def test_the_check_names_the_force_error_once_when_the_sensors_measure_only_the_
     assert "contact_force_N" not in headline_errors(only_z) and headline_errors(only_z)["vertical_force_N"] == 31.9
     assert headline_errors(full)["contact_force_N"] == 40.2
     assert "vertical_force_N" not in headline_errors(Metrics("batch", rmse={"force_N": 1.0}))
+
+
+def test_with_the_ft_fused_the_check_leaves_their_errors_out():
+    """With the F/T fused (``--ft``) the fit used them: the check keeps only what it did not use
+    (the motion capture); without fusion it keeps both."""
+    from types import SimpleNamespace
+
+    from flexforce.compare.diagnose import _check
+
+    refs = {"vertical_force_N": "reference: F/T", "rotation_rad": "reference: motion capture"}
+    known = {(): ("sensors", {"rotation_rad": 0.0138, "vertical_force_N": 14.6}, refs),
+             ("foothold",): ("sensors", {"rotation_rad": 0.0142, "vertical_force_N": 13.7}, refs)}
+    base = SimpleNamespace(effects=(), model=SimpleNamespace(use_ft=True))
+    fused = _check(None, base, SimpleNamespace(effects=("foothold",), model=SimpleNamespace(use_ft=True)), 0.5, known)
+    assert fused is not None and set(fused["before"]) == {"rotation_rad"} and fused["sensors"] == ["motion capture"]
+    plain = _check(None, base, SimpleNamespace(effects=("foothold",), model=SimpleNamespace(use_ft=False)), 0.5, known)
+    assert plain is not None and set(plain["before"]) == {"rotation_rad", "vertical_force_N"}
