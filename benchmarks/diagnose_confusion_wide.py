@@ -145,11 +145,11 @@ def _one(job):
             "ranking": [{"effect": c.effect, "score": c.score, "lr": c.lr, "significant": c.significant,
                          "rivals": list(c.rivals)} for c in d.rounds[0]] if d.rounds else [],
             "checks": {c.effect: c.check_text() for row in d.rounds for c in row if c.check},
-            # every round's refits with their score tests at the nominal fit (what a refit policy bounded by
-            # the test would have decided in round 1 can be read from them)
+            # every round's refits with their score tests at the round's base (what a refit policy
+            # bounded by the test would have decided can be read from them)
             "rounds": [[{"effect": c.effect, "score": c.score, "lr": c.lr, "significant": c.significant,
                          "implausible": bool(c.implausible),
-                         "T_nominal": None if c.screen is None else float(c.screen.statistic),
+                         "T": None if c.screen is None else float(c.screen.statistic),
                          "nu": None if c.screen is None else float(c.screen.dof),
                          "kind": None if c.screen is None else c.screen.kind} for c in row] for row in d.rounds],
             "before": {k: d.before.rmse[k] for k in KEYS},
