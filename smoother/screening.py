@@ -152,34 +152,27 @@ def _solve_states(As, ABs, rhs):
     return X
 
 
-def _border_schur(Hd, B, g, aidx, sel, T):
+def _eliminate_border(Hd, B, g, aidx, sel, T, states=None):
     """Eliminate the per-step columns ``aidx`` of a block-tridiagonal system whose columns ``sel``
     are tied to ``m`` border unknowns by ``x_k[sel] = T_k c`` (``T`` (N, len(sel), m)).
 
-    Returns the reduced gradient ``gbar`` (m,) and the Schur complement ``S`` (m, m).
-    """
-    gbar, Sc, _ = _eliminate_border(Hd, B, g, aidx, sel, T)
-    return gbar, Sc
-
-
-def _eliminate_border(Hd, B, g, aidx, sel, T, states=None):
-    """:func:`_border_schur`'s ``(gbar, S)`` and the scaled elimination it ran: ``(s, As, ABs, X)``
-    with ``X`` (N, len(aidx), 1 + m) the scaled states' solution for ``[g, F]``.  ``states``: the
-    states' scaled blocks and factor when they are known already
-    (:class:`~flexforce.smoother.evidence.SharedStates` of this system, the same ``aidx``)."""
+    Returns the reduced gradient ``gbar`` (m,), the Schur complement ``S`` (m, m) and the scaled
+    elimination it ran, ``(s, As, ABs, X)`` with ``X`` (N, len(aidx), 1 + m) the scaled states'
+    solution for ``[g, F]``.  ``states``: the states' scaled blocks and factor when they are known
+    already (:class:`~flexforce.smoother.evidence.SharedStates` of this system, the same ``aidx``)."""
     F, G, gc = _border_terms(Hd, B, g, aidx, sel, T)
-    if states is not None:
-        s, As, ABs = states.s, states.Hs, states.Bs
-    else:
+    if states is None:
         s, As, ABs = _scaled_states(Hd, B, aidx)
+    else:
+        s, As, ABs = states.s, states.Hs, states.Bs
     rhs = np.concatenate([(g[:, aidx] * s)[:, :, None], F * s[:, :, None]], axis=2)
-    if states is not None:
+    if states is None:
+        X = _solve_states(As, ABs, rhs)
+    else:
         try:
             X = solvers.block_tridiag_substitute(*states.cholesky(), np.ascontiguousarray(rhs))
         except EstimatorError as exc:
             raise EstimatorError("screening: the information of the states is not positive definite") from exc
-    else:
-        X = _solve_states(As, ABs, rhs)
     Fs = F * s[:, :, None]
     Sc = G - np.einsum("kai,kaj->ij", Fs, X[:, :, 1:])
     gbar = gc - np.einsum("kai,ka->i", Fs, X[:, :, 0])
