@@ -576,7 +576,9 @@ class Diagnosis:
         lines += [f"   {w}" for w in self.skipped]
         if self.identifiability is not None:
             lines.append(self.identifiability.table())
-            lines += [f"   {w}" for w in self.identifiability_notes() if "; round " in w]
+            # the table just printed each pair's sentence: what the rounds made of it, under the pair's name
+            lines += [f"   {w.split(':', 1)[0]}: {w[w.index('; round ') + 2:]}"
+                      for w in self.identifiability_notes() if "; round " in w]
         elif self.identifiability_error:
             lines.append(f"identifiability: not computed ({self.identifiability_error})")
         return "\n".join(lines)

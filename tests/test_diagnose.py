@@ -548,6 +548,12 @@ def test_identifiability_notes_say_chose_only_for_the_rounds_choice():
     assert notes(["c"]).endswith("; round 1 scored a (score 300.0) over b (score 200.0)")
     assert notes(["c"], implausible_a=True).endswith(
         "; round 1 scored a (score 300.0, implausible) over b (score 200.0)")
+    # the printed ranking shows the pair's sentence once (in the table), then what the round made of it
+    ident.table = lambda: "TABLE: a and b: cannot be told apart"
+    row = [Candidate("a", (), 1, 300.0, 310.0, 2.0, 0.0, True), Candidate("b", (), 1, 200.0, 210.0, 2.0, 0.0, True)]
+    text = Diagnosis({}, [], [row], ["a"], [], None, None, identifiability=ident).ranking_table()
+    assert text.count("cannot be told apart") == 1, text
+    assert text.splitlines()[-1] == "   a and b: round 1 chose a (score 300.0) over b (score 200.0)", text
 
 
 def test_the_check_of_a_selected_effect_says_when_the_references_disagree():
