@@ -348,7 +348,8 @@ class Candidate:
     """The row's one sentence: for a significant effect its size, the evidence and when it acts;
     an implausible one says so; one that cannot be fitted, why in the recording's terms."""
     check: dict | None = None
-    """For an effect the selection took: the errors of its base (:attr:`base`) and of the base
+    """For an effect the selection took, and for the candidates of its round the data do not tell
+    from it (:meth:`Diagnosis.partner_checks`): the errors of its base (:attr:`base`) and of the base
     with it against what the fit did not use -- the truth of a simulated recording, or the
     reference sensors of a real one (the F/T readings when not fused, the motion capture):
     ``{"against": "truth" | "sensors", "before": {key: rmse}, "after": {key: rmse}}``
@@ -536,7 +537,7 @@ class Diagnosis:
                "ranking": [c.to_dict() for c in self.ranking],
                "rounds": [[c.to_dict() for c in r] for r in self.rounds],
                "selected": list(self.selected), "added": list(self.added),
-               "ambiguities": self.ambiguities(),
+               "ambiguities": self.ambiguities(), "partner_checks": self.partner_checks(),
                "screening": [s.to_dict(self.criterion.get("screen_level")) for s in self.screening],
                "identifiability": ({**self.identifiability.to_dict(), "notes": self.identifiability_notes()}
                                    if self.identifiability is not None else
@@ -573,6 +574,7 @@ class Diagnosis:
                 lines.append(f"{'':28s}checked {c.check_text()}")
         lines += [f"   {w}" for w in self.swaps]
         lines += [f"   {w}" for w in self.ambiguities()]
+        lines += [f"   {w}" for w in self.partner_checks()]
         lines += [f"   {w}" for w in self.skipped]
         if self.identifiability is not None:
             lines.append(self.identifiability.table())
@@ -582,6 +584,50 @@ class Diagnosis:
         elif self.identifiability_error:
             lines.append(f"identifiability: not computed ({self.identifiability_error})")
         return "\n".join(lines)
+
+    def partner_checks(self) -> list[str]:
+        """One sentence per selected effect whose round also refitted a candidate the data do not tell
+        from it (a rival within :data:`TIE`, or a pair the identifiability table calls inseparable,
+        significant and plausible): each one's errors against what the fits did not use (the truth,
+        or the reference sensors), and which of them those favour.  The selection stands (the data
+        chose); the sentence shows the user what the independent references say of the choice."""
+        out = []
+        for i, name in enumerate(self.selected):
+            if i >= len(self.rounds):
+                break
+            row = self.rounds[i]
+            chosen = next((c for c in row if c.effect == name), None)
+            partners = [c for c in row if c.effect != name and c.check]
+            if chosen is None or not chosen.check or not partners:
+                continue
+            parts = [f"{chosen.effect} {_check_after(chosen.check)}"]
+            favoured = []
+            for c in partners:
+                assert c.check is not None
+                parts.append(f"{c.effect} {_check_after(c.check)}")
+                verdict = _check_preference(chosen.check, c.check)
+                if verdict is not None:
+                    favoured.append((c.effect, verdict))
+            what = "the truth" if chosen.check["against"] == "truth" else (
+                f"the {' and '.join(chosen.check['sensors'])}" if chosen.check.get("sensors")
+                else "the reference sensors")
+            names = ", ".join(c.effect for c in partners)
+            one = what in ("the truth", "the motion capture")  # "the truth favours", "the F/T ... favour"
+            if any(v == "partner" for _, v in favoured):
+                better = [e for e, v in favoured if v == "partner"]
+                tail = (f"{what} favour{'s' if one else ''} {' and '.join(better)} over the choice: the data cannot "
+                        "tell them apart, the references can (a motion that separates them, or knowledge of the "
+                        "robot, settles it)")
+            elif any(v == "chosen" for _, v in favoured):
+                worse = [e for e, v in favoured if v == "chosen"]
+                alike = [c.effect for c in partners if c.effect not in worse]
+                tail = (f"{what} agree{'s' if one else ''} with the choice over {' and '.join(worse)}"
+                        + (f", not over {' and '.join(alike)}" if alike else ""))
+            else:
+                tail = f"{what} do{'es' if one else ''} not decide between them"
+            out.append(f"round {i + 1} took {name}, which the data do not tell from {names}; against {what} "
+                       f"(not fitted), each added to the round's base: {'; '.join(parts)}: {tail}")
+        return out
 
     def ambiguities(self) -> list[str]:
         """One sentence per round whose best effect the data cannot tell from another."""
@@ -648,6 +694,38 @@ def _check(rec, base: Fit, fit: Fit, skip: float, known: dict) -> dict | None:
     if out["against"] == "sensors" and names:
         out["sensors"] = names
     return out
+
+
+def _check_after(check: dict) -> str:
+    """``tilt 0.61 -> 0.3 deg, vertical force 36.3 -> 35 N`` of a :attr:`Candidate.check`."""
+    parts = []
+    for key, b in check["before"].items():
+        a = check["after"].get(key)
+        if b is None or a is None:
+            continue
+        label, scale, unit = CHECK_LABELS.get(key, (key, 1.0, ""))
+        parts.append(f"{label} {b * scale:.3g} -> {a * scale:.3g}{unit}")
+    return "(" + ", ".join(parts) + ")"
+
+
+def _check_preference(chosen: dict, partner: dict) -> str | None:
+    """Which of two checks of one base the errors favour: ``"partner"`` when the partner's are lower
+    by more than :data:`CHECK_WORSE` on some error and higher by no more than it on any, ``"chosen"``
+    the other way round, ``"split"`` when each wins one, None when they are alike."""
+    lower = higher = False
+    for key, a in chosen["after"].items():
+        b = partner["after"].get(key)
+        if a is None or b is None:
+            continue
+        if b < (1.0 - CHECK_WORSE) * a:
+            lower = True
+        elif b > (1.0 + CHECK_WORSE) * a:
+            higher = True
+    if lower and not higher:
+        return "partner"
+    if higher and not lower:
+        return "chosen"
+    return "split" if lower else None
 
 
 def _clean(x):
@@ -1005,8 +1083,9 @@ def _takes_two(fn) -> bool:
     return True
 
 
-def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable = (), *, rank: bool = True,
-             max_effects: int = 3, alpha: float = ALPHA, window: float = 0.5, skip: float = 0.5,
+def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable = (), *,
+             extra_candidates: Iterable = (), rank: bool = True, max_effects: int = 3, alpha: float = ALPHA,
+             window: float = 0.5, skip: float = 0.5,
              ekf: bool = True, progress: Callable[[str, float], None] | None = None,
              screen_level: float | None = SCREEN_LEVEL, screen_window: float = SCREEN_WINDOW,
              calibrated: bool = True, identify: bool = True, refit_best: int | None = REFIT_BEST,
@@ -1018,7 +1097,10 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
         model: the nominal ModelConfig (the recording's if None); effects it already has stay in.
         candidates: effect names (of ``flexforce.factors.effects.EFFECTS``), Effect classes or
             instances -- a user's effects are treated like the built-in ones.  Default: every
-            registered effect.
+            registered effect, less those whose ``by_default(rec)`` opts out on this recording
+            (the footholds without a touch-down: :func:`left_out_by_default`).
+        extra_candidates: further candidates ranked beside ``candidates`` (a user's plugins beside
+            the default catalogue); named by the user, they never opt out.
         add: effects to add for the before/after comparison (names of candidates, or further
             effect specs); ``"auto"`` stands for the significant effects found by the ranking.
         rank: score the candidates (greedy forward selection); False only refits with ``add``.
@@ -1062,6 +1144,12 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
     want_auto = AUTO in add
     add = [a for a in add if a != AUTO]
     cands = resolve_candidates(candidates) if candidates is not None or registered_effects() else {}
+    extra = resolve_candidates(list(extra_candidates)) if extra_candidates else {}
+    for name in extra:
+        if name in cands:
+            raise ConfigError(f"two candidate effects are named '{name}'; effect names must be unique "
+                              "(an extra candidate beside the catalogue's)")
+    cands.update(extra)
     cands = {k: bound(m, rec, model) for k, m in cands.items()}
     if rank and not cands:
         raise ConfigError("no candidate effects to rank: flexforce.factors.effects is not available; pass candidates")
@@ -1071,7 +1159,7 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
     skipped = inapplicable(rec, model, cands) if rank else {}
     table_only: dict[str, Callable[[], object]] = {}
     if candidates is None and rank:  # the default catalogue: a costly candidate may opt out here
-        left_out = left_out_by_default(rec, cands)
+        left_out = left_out_by_default(rec, {k: v for k, v in cands.items() if k not in extra})
         skipped.update(left_out)
         # not refitted, but in the identifiability table: a selection it cannot be told from says so
         table_only = {k: cands[k] for k in left_out}
@@ -1303,6 +1391,16 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                 selected.append(best.effect)
                 remaining.remove(best.effect)
                 best.check = _check(rec, base, fitted(tuple(selected)), skip, checked)
+                # the candidates the data do not tell from it, refitted in this round: held against
+                # the same references (Diagnosis.partner_checks)
+                for c in row:
+                    if c is best or c.implausible or not c.significant or c.score is None:
+                        continue
+                    pair = ident.pair(best.effect, c.effect) if ident is not None else None
+                    if c.effect in best.rivals or (pair is not None and pair.inseparable):
+                        key = tuple(sorted(round_base + (c.effect,)))
+                        if key in cache:
+                            c.check = _check(rec, base, cache[key], skip, checked)
             # the fits of the rounds before the previous one are done with (their rows keep what
             # they found): free their estimates, so that memory does not grow with the number of
             # candidates.  The previous round's are kept: the second look fits the selection without

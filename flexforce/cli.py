@@ -585,7 +585,7 @@ def _diagnose_job(args, job) -> dict:
     """Diagnose one recording (here or in a worker process of --jobs) and write its report; returns
     what the terminal shows and the index lists."""
     global PROGRESS_PREFIX
-    from flexforce.compare.diagnose import diagnose, load_plugin, registered_effects
+    from flexforce.compare.diagnose import diagnose, load_plugin
     from flexforce.compare.diagnose_report import diagnosis_summary, write_diagnosis
 
     label, source, out = job
@@ -594,11 +594,9 @@ def _diagnose_job(args, job) -> dict:
         rec = _window(_load_or_simulate(str(source), args.seed, args.quiet, args.robot, args.contacts), args)
         model = _model(rec, args)
         plugins = [eff for path in args.plugin for eff in load_plugin(path)]
-        if args.candidates:
-            names = [c.strip() for c in args.candidates.split(",") if c.strip()]
-        else:
-            names = list(registered_effects())
-        candidates = names + plugins
+        # without --candidates the default catalogue, whose costly members may opt out on this
+        # recording (the footholds without a touch-down), and the plugins' effects beside it
+        candidates = [c.strip() for c in args.candidates.split(",") if c.strip()] if args.candidates else None
         bars = {}
 
         def progress(label, fraction, message=None):
@@ -609,9 +607,9 @@ def _diagnose_job(args, job) -> dict:
             bars[label](fraction)
 
         level = None if args.no_screen else args.screen_level
-        diag = diagnose(rec, model, candidates=candidates, add=args.add, rank=not args.no_rank,
-                        max_effects=args.max_effects, ekf=not args.no_ekf, progress=progress, screen_level=level,
-                        refit_best=args.refit_best or None, jobs=args.jobs if label is None else 1)
+        diag = diagnose(rec, model, candidates=candidates, extra_candidates=plugins, add=args.add,
+                        rank=not args.no_rank, max_effects=args.max_effects, ekf=not args.no_ekf, progress=progress,
+                        screen_level=level, refit_best=args.refit_best or None, jobs=args.jobs if label is None else 1)
         write_diagnosis(diag, out)
     finally:
         PROGRESS_PREFIX = ""
