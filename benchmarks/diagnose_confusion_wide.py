@@ -38,6 +38,10 @@ Scored as the targets read:
 * no significant effect on the clean recordings;
 * no wrong candidate in the final selection: a selected effect that is not a truth and not
   called inseparable from one by the table;
+* where round 1 took an inseparable partner of the truth: whether the partners' check (each
+  candidate the data do not tell from the choice, held against the truth:
+  :meth:`~flexforce.compare.diagnose.Diagnosis.partner_checks`) names the hidden effect as the
+  one the truth favours;
 * the errors (force, CoP, tilt against the simulated truth) after adding the selected effects,
   as a ratio to before, when a truth was selected.
 """
@@ -145,6 +149,7 @@ def _one(job):
             "ranking": [{"effect": c.effect, "score": c.score, "lr": c.lr, "significant": c.significant,
                          "rivals": list(c.rivals)} for c in d.rounds[0]] if d.rounds else [],
             "checks": {c.effect: c.check_text() for row in d.rounds for c in row if c.check},
+            "partner_checks": d.partner_checks(),
             # every round's refits with their score tests at the round's base (what a refit policy
             # bounded by the test would have decided can be read from them)
             "rounds": [[{"effect": c.effect, "score": c.score, "lr": c.lr, "significant": c.significant,
@@ -223,6 +228,17 @@ def score(runs: list[dict]) -> dict:
         extra = [s for s in r["selected"] if s not in allowed]
         if extra:
             wrong.append([r["key"], extra])
+    # a partner taken for the truth: does the round's partner sentence (the truth as the reference)
+    # favour the hidden effect over the choice?
+    taken = [r for r in singles if r["first"] != r["truth"][0] and r["first"] in partners(r, r["truth"][0])]
+
+    def favours_truth(r) -> bool:
+        t = r["truth"][0]
+        for sentence in r.get("partner_checks") or []:
+            if sentence.startswith(f"round 1 took {r['first']},") and " favours " in sentence:
+                return t in sentence.split(" favours ", 1)[1].split(" over the choice", 1)[0].split(" and ")
+        return False
+
     ratios: dict = {}
     for r in runs:
         if r["truth"] and r.get("after") and set(r["truth"]) & set(r["selected"]):
@@ -247,6 +263,7 @@ def score(runs: list[dict]) -> dict:
         "right_first_separable_by_level": {
             str(lv): frac(sum(r["first"] == r["truth"][0] for r in separable if r["level"] == lv),
                           sum(r["level"] == lv for r in separable)) for lv in (0, 1)},
+        "partner_taken_first_truth_favoured": frac(sum(favours_truth(r) for r in taken), len(taken)),
         "clean_without_selection": frac(sum(not r["selected"] for r in clean), len(clean)),
         "two_effects_both_found": frac(sum(set(r["truth"]) <= set(r["selected"]) for r in pairs), len(pairs)),
         "two_effects_both_found_or_a_partner": frac(sum(all(found(r, t) for t in r["truth"]) for r in pairs),
@@ -284,6 +301,9 @@ def markdown(runs: list[dict], summary: dict) -> str:
             f"{summary['right_first_separable_above_detectable_size'][1]}",
             f"- right effect first, every single-effect recording: {summary['right_first_all_single'][0]} of "
             f"{summary['right_first_all_single'][1]}",
+            f"- an inseparable partner first, the partners' check naming the hidden effect as the one the truth "
+            f"favours: {summary['partner_taken_first_truth_favoured'][0]} of "
+            f"{summary['partner_taken_first_truth_favoured'][1]}",
             f"- clean recordings without a selection: {summary['clean_without_selection'][0]} of "
             f"{summary['clean_without_selection'][1]}",
             f"- two effects, both selected: {summary['two_effects_both_found'][0]} of "
