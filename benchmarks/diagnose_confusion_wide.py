@@ -230,7 +230,9 @@ def score(runs: list[dict]) -> dict:
             wrong.append([r["key"], extra])
     # a partner taken for the truth: does the round's partner sentence (the truth as the reference)
     # favour the hidden effect over the choice?
-    taken = [r for r in singles if r["first"] != r["truth"][0] and r["first"] in partners(r, r["truth"][0])]
+    # (the hidden effect refitted in that round: a truth left out of the catalogue cannot be named)
+    taken = [r for r in singles if r["first"] != r["truth"][0] and r["first"] in partners(r, r["truth"][0])
+             and any(c["effect"] == r["truth"][0] and c["score"] is not None for c in r.get("ranking") or [])]
 
     def favours_truth(r) -> bool:
         t = r["truth"][0]
@@ -301,8 +303,8 @@ def markdown(runs: list[dict], summary: dict) -> str:
             f"{summary['right_first_separable_above_detectable_size'][1]}",
             f"- right effect first, every single-effect recording: {summary['right_first_all_single'][0]} of "
             f"{summary['right_first_all_single'][1]}",
-            f"- an inseparable partner first, the partners' check naming the hidden effect as the one the truth "
-            f"favours: {summary['partner_taken_first_truth_favoured'][0]} of "
+            f"- an inseparable partner first (the hidden effect refitted beside it), the partners' check naming the "
+            f"hidden effect as the one the truth favours: {summary['partner_taken_first_truth_favoured'][0]} of "
             f"{summary['partner_taken_first_truth_favoured'][1]}",
             f"- clean recordings without a selection: {summary['clean_without_selection'][0]} of "
             f"{summary['clean_without_selection'][1]}",
