@@ -52,6 +52,7 @@ import argparse
 import json
 import os
 import platform
+import re
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -140,6 +141,21 @@ def _one(job):
     cands = list(registered_effects()) if job.get("catalogue") == "all" else None
     d = diagnose(rec, model, candidates=cands, add=["auto"], ekf=False, max_effects=2)
     ident = d.identifiability
+    seconds = time.perf_counter() - t0
+    # round 1 took an inseparable partner of the single truth, refitted beside it: the same
+    # diagnosis with the truth withheld, its checks against the simulated F/T (not fused) -- what a
+    # user with six-axis F/T sees
+    ft_checks = None
+    if len(job["truth"]) == 1 and d.selected and ident is not None and not job["ft"]:
+        t = job["truth"][0]
+        pair = ident.pair(t, d.selected[0]) if t in ident.candidates else None
+        if d.selected[0] != t and pair is not None and pair.inseparable and \
+                any(c.effect == t and c.score is not None for c in d.rounds[0]):
+            import dataclasses
+
+            blind = diagnose(dataclasses.replace(rec, truth=None), model, candidates=cands, add=["auto"], ekf=False,
+                             max_effects=2)
+            ft_checks = {"selected": list(blind.selected), "partner_checks": blind.partner_checks()}
     return {**job, "key": key(job), "selected": list(d.selected), "first": d.selected[0] if d.selected else "none",
             "inseparable": [[p.a, p.b, float(p.largest)] for p in ident.inseparable()] if ident else None,
             "not_seen": [c.effect for c in ident.not_seen()] if ident else None,
@@ -150,6 +166,7 @@ def _one(job):
                          "rivals": list(c.rivals)} for c in d.rounds[0]] if d.rounds else [],
             "checks": {c.effect: c.check_text() for row in d.rounds for c in row if c.check},
             "partner_checks": d.partner_checks(),
+            "partner_checks_ft": ft_checks,
             # every round's refits with their score tests at the round's base (what a refit policy
             # bounded by the test would have decided can be read from them)
             "rounds": [[{"effect": c.effect, "score": c.score, "lr": c.lr, "significant": c.significant,
@@ -159,7 +176,7 @@ def _one(job):
                          "kind": None if c.screen is None else c.screen.kind} for c in row] for row in d.rounds],
             "before": {k: d.before.rmse[k] for k in KEYS},
             "after": {k: d.after.rmse[k] for k in KEYS} if d.after else None,
-            "seconds": time.perf_counter() - t0}
+            "seconds": seconds}
 
 
 def partners(r, name) -> set[str]:
@@ -234,12 +251,24 @@ def score(runs: list[dict]) -> dict:
     taken = [r for r in singles if r["first"] != r["truth"][0] and r["first"] in partners(r, r["truth"][0])
              and any(c["effect"] == r["truth"][0] and c["score"] is not None for c in r.get("ranking") or [])]
 
-    def favours_truth(r) -> bool:
+    def favours_truth(r, sentences) -> bool:
         t = r["truth"][0]
-        for sentence in r.get("partner_checks") or []:
-            if sentence.startswith(f"round 1 took {r['first']},") and " favours " in sentence:
-                return t in sentence.split(" favours ", 1)[1].split(" over the choice", 1)[0].split(" and ")
+        for sentence in sentences or []:
+            got = re.search(r" favours? (.*?) over the choice", sentence)
+            if sentence.startswith(f"round 1 took {r['first']},") and got:
+                return t in got.group(1).split(" and ")
         return False
+
+    def verdict_ft(r) -> str:
+        """What the F/T's sentence says: the truth favoured, another partner, the choice, neither, or
+        no sentence."""
+        got = r.get("partner_checks_ft") or {}
+        if favours_truth(r, got.get("partner_checks")):
+            return "truth"
+        text = " ".join(got.get("partner_checks") or [])
+        if re.search(r" favours? (.*?) over the choice", text):
+            return "another"
+        return "choice" if re.search(r"agrees? with the choice", text) else ("neither" if text else "none")
 
     ratios: dict = {}
     for r in runs:
@@ -265,7 +294,10 @@ def score(runs: list[dict]) -> dict:
         "right_first_separable_by_level": {
             str(lv): frac(sum(r["first"] == r["truth"][0] for r in separable if r["level"] == lv),
                           sum(r["level"] == lv for r in separable)) for lv in (0, 1)},
-        "partner_taken_first_truth_favoured": frac(sum(favours_truth(r) for r in taken), len(taken)),
+        "partner_taken_first_truth_favoured": frac(sum(favours_truth(r, r.get("partner_checks")) for r in taken),
+                                                   len(taken)),
+        # the same recordings, the truth withheld: the check against the simulated F/T (not fused)
+        "partner_taken_first_ft_verdicts": {r["key"]: verdict_ft(r) for r in taken if not r.get("ft")},
         "clean_without_selection": frac(sum(not r["selected"] for r in clean), len(clean)),
         "two_effects_both_found": frac(sum(set(r["truth"]) <= set(r["selected"]) for r in pairs), len(pairs)),
         "two_effects_both_found_or_a_partner": frac(sum(all(found(r, t) for t in r["truth"]) for r in pairs),
@@ -306,6 +338,11 @@ def markdown(runs: list[dict], summary: dict) -> str:
             f"- an inseparable partner first (the hidden effect refitted beside it), the partners' check naming the "
             f"hidden effect as the one the truth favours: {summary['partner_taken_first_truth_favoured'][0]} of "
             f"{summary['partner_taken_first_truth_favoured'][1]}",
+            "- the same, the truth withheld, against the simulated six-axis F/T (not fused): "
+            + (", ".join(f"{v} {sum(x == v for x in summary['partner_taken_first_ft_verdicts'].values())}"
+                         for v in ("truth", "another", "choice", "neither", "none"))
+               + " (the F/T favour the hidden effect, another partner, agree with the choice, do not decide, "
+               "no sentence)"),
             f"- clean recordings without a selection: {summary['clean_without_selection'][0]} of "
             f"{summary['clean_without_selection'][1]}",
             f"- two effects, both selected: {summary['two_effects_both_found'][0]} of "

@@ -114,7 +114,8 @@ when an effect joins the selection makes the check say they disagree with it
 CHECK_LABELS = {"force_N": ("force", 1.0, " N"), "moment_Nm": ("moment", 1.0, " N m"), "cop_m": ("CoP", 1e3, " mm"),
                 "rotation_rad": ("tilt", 180.0 / math.pi, " deg"), "translation_m": ("position", 1e3, " mm"),
                 "hand_m": ("hand", 1e3, " mm"), "vertical_force_N": ("vertical force", 1.0, " N"),
-                "contact_force_N": ("contact force", 1.0, " N")}
+                "contact_force_N": ("contact force", 1.0, " N"), "contact_moment_Nm": ("contact moment", 1.0, " N m"),
+                "contact_cop_m": ("sole CoP", 1e3, " mm")}
 """How :meth:`Candidate.check_text` names and scales each error."""
 
 AUTO = "auto"
@@ -656,14 +657,18 @@ class Diagnosis:
 
 def headline_errors(metrics: Metrics) -> dict[str, float | None]:
     """The comparison's headline errors (``RMSE_KEYS``); on real logs also the errors against the
-    F/T sensors (the vertical force's, and the force's when the sensors measure more than it)."""
+    F/T sensors (the vertical force's, the force's when the sensors measure more than it, and the
+    contacts' moment and sole CoP when they measure moments)."""
     keys: tuple[str, ...] = RMSE_KEYS
     if getattr(metrics, "reference", None) == "sensors":
-        keys = keys + ("vertical_force_N", "contact_force_N")
+        keys = keys + ("vertical_force_N", "contact_force_N", "contact_moment_Nm", "contact_cop_m")
     out = {k: _clean(metrics.rmse.get(k)) for k in keys}
     if "contact_force_N" in out and out["contact_force_N"] == out.get("vertical_force_N"):
         # F/T that measure the vertical force alone (the iCub logs): the force error is that one
         del out["contact_force_N"]
+    for k in ("contact_moment_Nm", "contact_cop_m"):
+        if k in out and out[k] is None:  # F/T without moments: nothing to say
+            del out[k]
     return out
 
 

@@ -350,3 +350,13 @@ def _against_sensors(m: Metrics, est, rec, keep):
             m.references["contact_force_N"] = "reference: F/T"
         m.references["vertical_force_N"] = "reference: F/T"
         _per_contact(m, local, rec.ft, rec, keep)
+        # where the F/T measure moments too (six-axis sensors): the contacts' moment and sole-CoP
+        # errors -- the quantities the estimator is for -- over the contacts and the steps
+        for key, name in (("moment_Nm", "contact_moment_Nm"), ("cop_m", "contact_cop_m")):
+            series = [m.contact_errors[c][key] for c in rec.contact_names if key in m.contact_errors.get(c, {})]
+            if not series:
+                continue
+            e = np.stack(series, axis=1)
+            e[~keep] = np.nan
+            m.rmse[name], m.max[name] = _summ(e.ravel())
+            m.references[name] = "reference: F/T"

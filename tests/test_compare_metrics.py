@@ -103,3 +103,28 @@ def test_estimate_save_load_round_trip(rec, tmp_path):
     np.testing.assert_array_equal(back.cov, est.cov)
     np.testing.assert_array_equal(back.residuals["imu"], est.residuals["imu"])
     assert back.contact_names == est.contact_names and back.estimator == "x"
+
+
+def test_six_axis_ft_give_the_contacts_moment_and_sole_cop_errors(rec):
+    """Without a truth the errors are against the reference sensors; six-axis F/T measure the
+    contacts' moments too, so the contact moment and sole-CoP errors come with the forces'."""
+    import dataclasses
+
+    real = dataclasses.replace(rec, truth=None)  # the simulated F/T, noiseless: the true wrenches
+    est = truth_estimate(rec)
+    m = evaluate(est, real, skip=0.0)
+    assert m.reference == "sensors"
+    for key in ("vertical_force_N", "contact_force_N", "contact_moment_Nm", "contact_cop_m"):
+        assert m.rmse[key] == pytest.approx(0.0, abs=1e-6), key
+        assert m.references[key] == "reference: F/T"
+    est.wrench = est.wrench.copy()
+    est.wrench[:, 0, 3] += 2.0  # 2 N m more about the left sole's x (world and sole axes alike here)
+    m = evaluate(est, real, skip=0.0)
+    on = rec.contact_active
+    # the RMS over every (step, contact) the F/T read: 2 N m on the left foot's, 0 on the right's
+    assert m.rmse["contact_moment_Nm"] == pytest.approx(2.0 * np.sqrt(on[:, 0].sum() / on.sum()), rel=0.05)
+    assert m.rmse["contact_cop_m"] > 0.0 and m.rmse["vertical_force_N"] == pytest.approx(0.0, abs=1e-6)
+    # F/T reading the vertical force alone (the iCub's): no moment, no sole CoP
+    only_z = dataclasses.replace(real, ft=np.where(np.arange(6) == 2, rec.ft, np.nan))
+    m = evaluate(est, only_z, skip=0.0)
+    assert "contact_moment_Nm" not in m.rmse and "contact_cop_m" not in m.rmse
