@@ -421,7 +421,8 @@ class Candidate:
                    if not self.refitted and self.screen is not None else {}),
                 **({"error": self.error} if self.error else {}),
                 **({"error_detail": self.error_detail} if self.error_detail else {}),
-                **({"check": {**_jsonable(self.check), "text": self.check_text()}} if self.check else {})}
+                **({"check": {**_jsonable(self.check), "text": self.check_text()}} if self.check else {}),
+                **({"partner_of": self.partner_of} if self.partner_of else {})}
 
     screen_level: float | None = None
     """Level of the screening (for the passing windows in :meth:`to_dict`)."""
@@ -430,6 +431,10 @@ class Candidate:
     refits (``diagnose(refit_best=...)``) until the selection stopped."""
     error_detail: str | None = None
     """The solver's own message when the fit failed (``error`` says it in the recording's terms)."""
+    partner_of: str | None = None
+    """The effect its round selected, which the data do not tell from it (a rival, or a pair the
+    identifiability table calls inseparable): its :attr:`check` is then held beside that one's
+    (:meth:`Diagnosis.partner_checks`)."""
     level: float | None = None
     """Level its likelihood-ratio p-value was tested at: ``alpha / m``, ``m`` the candidates in its
     round (Holm: :func:`score`); None when not scored (not refitted, or the fit failed)."""
@@ -598,7 +603,7 @@ class Diagnosis:
                 break
             row = self.rounds[i]
             chosen = next((c for c in row if c.effect == name), None)
-            partners = [c for c in row if c.effect != name and c.check]
+            partners = [c for c in row if c.effect != name and c.check and c.partner_of == name]
             if chosen is None or not chosen.check or not partners:
                 continue
             parts = [f"{chosen.effect} {_check_after(chosen.check)}"]
@@ -1406,6 +1411,7 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                         key = tuple(sorted(round_base + (c.effect,)))
                         if key in cache:
                             c.check = _check(rec, base, cache[key], skip, checked)
+                            c.partner_of = best.effect
             # the fits of the rounds before the previous one are done with (their rows keep what
             # they found): free their estimates, so that memory does not grow with the number of
             # candidates.  The previous round's are kept: the second look fits the selection without

@@ -626,6 +626,7 @@ def test_partner_checks_say_which_inseparable_candidate_the_references_favour():
         other = Candidate("gyro-bias", (), 1, 100.0, 105.0, 3.0, 0.0, True)  # not a partner: no check
         chosen.check = check(0.012, 30.0)
         partner.check = check(partner_tilt, partner_force)
+        partner.partner_of = "com-offset"
         d = Diagnosis({}, [], [[chosen, partner, other]], ["com-offset"], [], None, None)
         out = d.partner_checks()
         assert len(out) == 1 and "gyro-bias" not in out[0], out
@@ -643,8 +644,15 @@ def test_partner_checks_say_which_inseparable_candidate_the_references_favour():
     # without a check on the choice (a recording with nothing to check against): no sentence
     bare = Candidate("com-offset", (), 1, 310.0, 312.0, 2.0, 0.0, True)
     partner = Candidate("accel-bias", (), 1, 305.0, 314.0, 3.0, 0.0, True)
-    partner.check = check(0.006, 30.0)
+    partner.check, partner.partner_of = check(0.006, 30.0), "com-offset"
     assert Diagnosis({}, [], [[bare, partner]], ["com-offset"], [], None, None).partner_checks() == []
+    # a checked row that is no partner of the choice (a per-step effect the second look replaced
+    # by the choice): no sentence
+    chosen = Candidate("com-offset", (), 1, 310.0, 312.0, 2.0, 0.0, True)
+    chosen.check = check(0.012, 30.0)
+    replaced = Candidate("external-wrench", (), 1, 320.0, 320.0, 40.0, 0.0, True)
+    replaced.check = check(0.006, 30.0)
+    assert Diagnosis({}, [], [[replaced, chosen]], ["com-offset"], [], None, None).partner_checks() == []
 
 
 def test_the_check_of_a_selected_effect_says_when_the_references_disagree():
