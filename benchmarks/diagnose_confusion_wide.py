@@ -255,7 +255,7 @@ def score(runs: list[dict]) -> dict:
         t = r["truth"][0]
         for sentence in sentences or []:
             got = re.search(r" favours? (.*?) over the choice", sentence)
-            if sentence.startswith(f"round 1 took {r['first']},") and got:
+            if sentence.startswith(f"round 1 took {r['first']}") and got:
                 return t in got.group(1).split(" and ")
         return False
 

@@ -432,8 +432,8 @@ class Candidate:
     error_detail: str | None = None
     """The solver's own message when the fit failed (``error`` says it in the recording's terms)."""
     partner_of: str | None = None
-    """The effect its round selected, which the data do not tell from it (a rival, or a pair the
-    identifiability table calls inseparable): its :attr:`check` is then held beside that one's
+    """The effect its round selected, for which it may stand (a rival within :data:`TIE`, or a
+    pair the identifiability table calls inseparable): its :attr:`check` is then held beside that one's
     (:meth:`Diagnosis.partner_checks`)."""
     level: float | None = None
     """Level its likelihood-ratio p-value was tested at: ``alpha / m``, ``m`` the candidates in its
@@ -592,8 +592,8 @@ class Diagnosis:
         return "\n".join(lines)
 
     def partner_checks(self) -> list[str]:
-        """One sentence per selected effect whose round also refitted a candidate the data do not tell
-        from it (a rival within :data:`TIE`, or a pair the identifiability table calls inseparable,
+        """One sentence per selected effect whose round also refitted a candidate that may stand for
+        it (a rival within :data:`TIE`, or a pair the identifiability table calls inseparable,
         significant and plausible): each one's errors against what the fits did not use (the truth,
         or the reference sensors), and which of them those favour.  The selection stands (the data
         chose); the sentence shows the user what the independent references say of the choice."""
@@ -617,13 +617,16 @@ class Diagnosis:
             what = "the truth" if chosen.check["against"] == "truth" else (
                 f"the {' and '.join(chosen.check['sensors'])}" if chosen.check.get("sensors")
                 else "the reference sensors")
-            names = ", ".join(c.effect for c in partners)
+            rivals = [c.effect for c in partners if c.effect in chosen.rivals]
+            table = [c.effect for c in partners if c.effect not in chosen.rivals]
+            why = ([f"{' and '.join(rivals)} (score{'s' if len(rivals) > 1 else ''} within {TIE:g} of it)"]
+                   if rivals else []) + ([f"{' and '.join(table)} (which the identifiability table cannot tell "
+                                          "from it)"] if table else [])
             one = what in ("the truth", "the motion capture")  # "the truth favours", "the F/T ... favour"
             if any(v == "partner" for _, v in favoured):
                 better = [e for e, v in favoured if v == "partner"]
-                tail = (f"{what} favour{'s' if one else ''} {' and '.join(better)} over the choice: the data cannot "
-                        "tell them apart, the references can (a motion that separates them, or knowledge of the "
-                        "robot, settles it)")
+                tail = (f"{what} favour{'s' if one else ''} {' and '.join(better)} over the choice (a motion that "
+                        "separates them, or knowledge of the robot, settles it)")
             elif any(v == "chosen" for _, v in favoured):
                 worse = [e for e, v in favoured if v == "chosen"]
                 alike = [c.effect for c in partners if c.effect not in worse]
@@ -631,8 +634,8 @@ class Diagnosis:
                         + (f", not over {' and '.join(alike)}" if alike else ""))
             else:
                 tail = f"{what} do{'es' if one else ''} not decide between them"
-            out.append(f"round {i + 1} took {name}, which the data do not tell from {names}; against {what} "
-                       f"(not fitted), each added to the round's base: {'; '.join(parts)}: {tail}")
+            out.append(f"round {i + 1} took {name}; beside it, {'; '.join(why)} refitted in that round; against "
+                       f"{what} (not fitted), each added to the round's base: {'; '.join(parts)}: {tail}")
         return out
 
     def ambiguities(self) -> list[str]:

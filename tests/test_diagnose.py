@@ -421,7 +421,7 @@ def test_the_truth_favours_the_hidden_effect_over_its_inseparable_partner():
     sc.effects = [{"type": "accel-bias", "value": [0.08, -0.05, 0.0]}]
     d = diagnose(Simulator(sc).run(), ekf=False, max_effects=1)
     (sentence,) = d.partner_checks()
-    assert sentence.startswith(f"round 1 took {d.selected[0]}, which the data do not tell from"), sentence
+    assert sentence.startswith(f"round 1 took {d.selected[0]}; beside it, "), sentence
     if d.selected[0] == "com-offset":
         assert "the truth favours accel-bias" in sentence, sentence
     else:
@@ -630,14 +630,14 @@ def test_partner_checks_say_which_inseparable_candidate_the_references_favour():
         d = Diagnosis({}, [], [[chosen, partner, other]], ["com-offset"], [], None, None)
         out = d.partner_checks()
         assert len(out) == 1 and "gyro-bias" not in out[0], out
-        assert "round 1 took com-offset, which the data do not tell from accel-bias" in out[0], out
+        assert out[0].startswith("round 1 took com-offset; beside it, accel-bias (which the identifiability table "
+                                 "cannot tell from it) refitted in that round; against the F/T and motion capture"), out
         return out[0]
 
     favoured = sentence(0.006, 30.5)  # tilt 40 % lower, force within 5 %
     assert "accel-bias (tilt 0.573 -> 0.344 deg, vertical force 36 -> 30.5 N)" in favoured, favoured
-    assert favoured.endswith("the F/T and motion capture favour accel-bias over the choice: the data cannot tell "
-                             "them apart, the references can (a motion that separates them, or knowledge of the "
-                             "robot, settles it)"), favoured
+    assert favoured.endswith("the F/T and motion capture favour accel-bias over the choice (a motion that separates "
+                             "them, or knowledge of the robot, settles it)"), favoured
     assert sentence(0.02, 30.0).endswith("the F/T and motion capture agree with the choice over accel-bias")
     assert sentence(0.006, 40.0).endswith("the F/T and motion capture do not decide between them")
     assert sentence(0.0121, 30.2).endswith("the F/T and motion capture do not decide between them")
@@ -646,6 +646,13 @@ def test_partner_checks_say_which_inseparable_candidate_the_references_favour():
     partner = Candidate("accel-bias", (), 1, 305.0, 314.0, 3.0, 0.0, True)
     partner.check, partner.partner_of = check(0.006, 30.0), "com-offset"
     assert Diagnosis({}, [], [[bare, partner]], ["com-offset"], [], None, None).partner_checks() == []
+    # a rival by the score (within TIE) is named as such
+    chosen = Candidate("com-offset", (), 1, 310.0, 312.0, 2.0, 0.0, True, rivals=("accel-bias",))
+    chosen.check = check(0.012, 30.0)
+    partner = Candidate("accel-bias", (), 1, 305.0, 314.0, 3.0, 0.0, True)
+    partner.check, partner.partner_of = check(0.006, 30.0), "com-offset"
+    (text,) = Diagnosis({}, [], [[chosen, partner]], ["com-offset"], [], None, None).partner_checks()
+    assert text.startswith("round 1 took com-offset; beside it, accel-bias (score within 6 of it) refitted"), text
     # a checked row that is no partner of the choice (a per-step effect the second look replaced
     # by the choice): no sentence
     chosen = Candidate("com-offset", (), 1, 310.0, 312.0, 2.0, 0.0, True)
