@@ -1404,8 +1404,8 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                 selected.append(best.effect)
                 remaining.remove(best.effect)
                 best.check = _check(rec, base, fitted(tuple(selected)), skip, checked)
-                # the candidates the data do not tell from it, refitted in this round: held against
-                # the same references (Diagnosis.partner_checks)
+                # the candidates that may stand for it (rivals, the table's inseparable ones), refitted
+                # in this round: held against the same references (Diagnosis.partner_checks)
                 for c in row:
                     if c is best or c.implausible or not c.significant or c.score is None:
                         continue
