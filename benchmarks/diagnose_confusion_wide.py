@@ -49,6 +49,7 @@ Scored as the targets read:
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
@@ -151,8 +152,6 @@ def _one(job):
         pair = ident.pair(t, d.selected[0]) if t in ident.candidates else None
         if d.selected[0] != t and pair is not None and pair.inseparable and \
                 any(c.effect == t and c.score is not None for c in d.rounds[0]):
-            import dataclasses
-
             blind = diagnose(dataclasses.replace(rec, truth=None), model, candidates=cands, add=["auto"], ekf=False,
                              max_effects=2)
             ft_checks = {"selected": list(blind.selected), "partner_checks": blind.partner_checks()}

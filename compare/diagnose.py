@@ -359,22 +359,12 @@ class Candidate:
     def check_text(self) -> str:
         """``against the F/T and motion capture (not fitted): vertical force 36.3 -> 31.9 N, ...``,
         ending with what the check says of the effect ("" without a check)."""
-        c = self.check
-        if not c:
+        items = _check_items(self.check) if self.check else []
+        if not self.check or not items:
             return ""
-        parts, worse = [], []
-        for key, b in c["before"].items():
-            a = c["after"].get(key)
-            if b is None or a is None:
-                continue
-            label, scale, unit = CHECK_LABELS.get(key, (key, 1.0, ""))
-            parts.append(f"{label} {b * scale:.3g} -> {a * scale:.3g}{unit}")
-            if a > (1.0 + CHECK_WORSE) * b:
-                worse.append(label)
-        if not parts:
-            return ""
-        what = "the truth" if c["against"] == "truth" else (
-            f"the {' and '.join(c['sensors'])}" if c.get("sensors") else "the reference sensors")
+        parts = [text for _, _, _, text in items]
+        worse = [label for label, b, a, _ in items if a > (1.0 + CHECK_WORSE) * b]
+        what = _check_reference(self.check)
         names = ", ".join(worse[:-1]) + " and " + worse[-1] if len(worse) > 1 else "".join(worse)
         verdict = (f"the check disagrees: the {names} error{'s' if len(worse) > 1 else ''} "
                    f"rose by more than {CHECK_WORSE:.0%}" if worse else
@@ -614,9 +604,7 @@ class Diagnosis:
                 verdict = _check_preference(chosen.check, c.check)
                 if verdict is not None:
                     favoured.append((c.effect, verdict))
-            what = "the truth" if chosen.check["against"] == "truth" else (
-                f"the {' and '.join(chosen.check['sensors'])}" if chosen.check.get("sensors")
-                else "the reference sensors")
+            what = _check_reference(chosen.check)
             rivals = [c.effect for c in partners if c.effect in chosen.rivals]
             table = [c.effect for c in partners if c.effect not in chosen.rivals]
             why = ([f"{' and '.join(rivals)} (score{'s' if len(rivals) > 1 else ''} within {TIE:g} of it)"]
@@ -709,16 +697,29 @@ def _check(rec, base: Fit, fit: Fit, skip: float, known: dict) -> dict | None:
     return out
 
 
-def _check_after(check: dict) -> str:
-    """``tilt 0.61 -> 0.3 deg, vertical force 36.3 -> 35 N`` of a :attr:`Candidate.check`."""
-    parts = []
+def _check_items(check: dict) -> list[tuple[str, float, float, str]]:
+    """``(label, before, after, "tilt 0.61 -> 0.3 deg")`` of each error a :attr:`Candidate.check`
+    holds both numbers of, in its order (:data:`CHECK_LABELS`)."""
+    out = []
     for key, b in check["before"].items():
         a = check["after"].get(key)
         if b is None or a is None:
             continue
         label, scale, unit = CHECK_LABELS.get(key, (key, 1.0, ""))
-        parts.append(f"{label} {b * scale:.3g} -> {a * scale:.3g}{unit}")
-    return "(" + ", ".join(parts) + ")"
+        out.append((label, b, a, f"{label} {b * scale:.3g} -> {a * scale:.3g}{unit}"))
+    return out
+
+
+def _check_reference(check: dict) -> str:
+    """What a check holds the fit against: ``the truth``, ``the F/T and motion capture``, ..."""
+    if check["against"] == "truth":
+        return "the truth"
+    return f"the {' and '.join(check['sensors'])}" if check.get("sensors") else "the reference sensors"
+
+
+def _check_after(check: dict) -> str:
+    """``(tilt 0.61 -> 0.3 deg, vertical force 36.3 -> 35 N)`` of a :attr:`Candidate.check`."""
+    return "(" + ", ".join(text for _, _, _, text in _check_items(check)) + ")"
 
 
 def _check_preference(chosen: dict, partner: dict) -> str | None:
