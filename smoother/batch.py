@@ -33,6 +33,7 @@ from flexforce.smoother.linearize import (
     is_global,
     linearize,
     solve_arrow,
+    solve_arrow_pair,
     walk_sigma,
 )
 from flexforce.smoother.problem import NoiseRule, Problem, with_footholds
@@ -288,25 +289,22 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
             if secant_on and last is not None:
                 M = _secant_update(M, *last, gsum)
             dx = None
+            dgn = None
             if np.any(M):
-                Hq = Hd.copy()
-                Hq[0][np.ix_(cidx, cidx)] += M  # the global block is the sum of the steps' blocks
-                try:
-                    with np.errstate(all="ignore"):  # an indefinite estimate is caught below
-                        dx = solve_arrow(Hq, B, g, cidx, damping=0.0)[0]
-                except EstimatorError:
-                    dx = None
+                # the secant's step (M added to the global block) and the Gauss-Newton one, from one
+                # elimination of the per-step part
+                dx, dgn = solve_arrow_pair(Hd, B, g, cidx, M)
                 if dx is None or not np.all(np.isfinite(dx)) or float(dx[0, cidx] @ gsum) <= 0.0:
                     M[:] = 0.0  # not a descent model: the Gauss-Newton one alone, and start learning again
                     dx = None
             promised_gn = None
             if dx is None:
-                dx, _, _ = solve_arrow(Hd, B, g, cidx, damping=0.0)
+                dx = dgn if dgn is not None else solve_arrow(Hd, B, g, cidx, damping=0.0)[0]
             else:
                 # the Gauss-Newton model's promise too: the secant's estimate alone can call a
                 # slope converged that it has learnt wrongly (measured: 0.15 nats short on a
                 # 2.5 s stand's stiffness)
-                dgn, _, _ = solve_arrow(Hd, B, g, cidx, damping=0.0)
+                assert dgn is not None
                 promised_gn = 0.5 * float(dgn[0, cidx] @ gsum) if np.all(np.isfinite(dgn)) else None
                 if (promised_gn is not None and promised_gn > tol
                         and 0.5 * float(dx[0, cidx] @ gsum) <= tol):

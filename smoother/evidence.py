@@ -47,7 +47,14 @@ import numpy as np
 from flexforce.errors import EstimatorError
 from flexforce.factors.core import njit
 from flexforce.smoother import solvers
-from flexforce.smoother.linearize import Linearization, assemble, drop_global_walks, is_global, linearize
+from flexforce.smoother.linearize import (
+    Linearization,
+    _scaled_blocks,
+    assemble,
+    drop_global_walks,
+    is_global,
+    linearize,
+)
 from flexforce.smoother.solvers import _trsm_lower, _trsm_upper_t
 
 MEASUREMENT_FAMILIES = ("imu", "ft")
@@ -61,6 +68,46 @@ def _family(key: str) -> str:
 def theta_prior_keys(prob) -> set[str]:
     """Keys of the global effects' own priors (on ``theta``, not on the states)."""
     return {f"effect_prior/{eff.name}" for eff in prob.effects if is_global(eff, prob)}
+
+
+def _geqrf_external():
+    """numba's own LAPACK ``geqrf`` binding (the one ``np.linalg.qr`` calls), or None if this numba
+    does not have it (then :func:`_r_factor` falls back to ``np.linalg.qr``)."""
+    try:
+        from numba import types
+        from numba.np.linalg import _LAPACK
+
+        return _LAPACK().numba_ez_geqrf(types.float64)
+    except Exception:  # pragma: no cover - a numba without the binding
+        return None
+
+
+_GEQRF = _geqrf_external()
+_HAVE_GEQRF = _GEQRF is not None
+
+
+@njit
+def _r_factor(M):
+    """The ``R`` of a QR factorisation of ``M`` (m, n), by LAPACK's ``geqrf`` alone: ``np.linalg.qr``
+    also forms ``Q``, which :func:`_qr_factor` does not use, for as much again (measured: 2025
+    factorisations of 110 x 72 in 215 ms against 418).  Non-finite entries give a NaN ``R``."""
+    m, n = M.shape
+    if not _HAVE_GEQRF:
+        return np.linalg.qr(M)[1]
+    k = min(m, n)
+    for i in range(m):
+        for j in range(n):
+            if not np.isfinite(M[i, j]):
+                return np.full((k, n), np.nan)
+    A = np.asfortranarray(M)
+    tau = np.empty(k)
+    if _GEQRF(ord("d"), m, n, A.ctypes, m, tau.ctypes) < 0:
+        return np.full((k, n), np.nan)
+    R = np.zeros((k, n))
+    for i in range(k):
+        for j in range(i, n):
+            R[i, j] = A[i, j]
+    return R
 
 
 @njit
@@ -90,10 +137,10 @@ def _qr_factor(Ju, J0, J1, Jf, Rd, Ru):
         if not last:
             M[top:, :d] = J0[k]
             M[top:, d:] = J1[k]
-        R = np.linalg.qr(M)[1]
+        R = _r_factor(M)
         for i in range(d):
             v = abs(R[i, i])
-            if v == 0.0:
+            if v == 0.0 or not np.isfinite(v):
                 return -np.inf
             total += np.log(v)
         Rd[k] = R[:d, :d]
@@ -174,11 +221,8 @@ def _scaled_states(prob, lin: Linearization, cidx: np.ndarray):
     from ``H``'s diagonal, and ``H``'s diagonal and upper blocks on them, scaled."""
     n, D = prob.n, prob.state_dim
     aidx = np.setdiff1d(np.arange(D), cidx)
-    Hd, B, _ = assemble(lin, n, D)
-    Ha, Ba = Hd[:, aidx][:, :, aidx], B[:, aidx][:, :, aidx]
-    s = 1.0 / np.sqrt(np.maximum(np.diagonal(Ha, axis1=1, axis2=2), 1e-300))
-    Hs = np.ascontiguousarray(Ha * s[:, :, None] * s[:, None, :])
-    Bs = np.ascontiguousarray(Ba * s[:-1, :, None] * s[1:, None, :])
+    Hd, B, g = assemble(lin, n, D)
+    Hs, Bs, _, s = _scaled_blocks(Hd, B, g, aidx.astype(np.int64), 0.0)
     return aidx, s, Hs, Bs
 
 

@@ -138,6 +138,46 @@ def block_tridiag_substitute(Ld, C, G):
 
 
 @njit
+def block_tridiag_substitute_vec(Ld, C, g):
+    """``x = H^-1 g`` for one right-hand side ``g`` (N, d), as :func:`block_tridiag_substitute`:
+    the products written as row dot products (forward) and column updates (back) on one array, a
+    third of the time of the matrix form, whose per-step products are too small for BLAS to pay
+    for its calls and temporaries (measured: 9 against 29 ms at N = 2025, d = 37)."""
+    n, d = g.shape[0], g.shape[1]
+    x = g.copy()
+    for k in range(n):  # forward: y_k = L_kk^-1 (g_k - C_k-1 y_k-1)
+        if k > 0:
+            for i in range(d):
+                acc0 = 0.0
+                acc1 = 0.0
+                j = 0
+                while j + 1 < d:  # two accumulators: the additions' latency, not their count, bounds it
+                    acc0 += C[k - 1, i, j] * x[k - 1, j]
+                    acc1 += C[k - 1, i, j + 1] * x[k - 1, j + 1]
+                    j += 2
+                if j < d:
+                    acc0 += C[k - 1, i, j] * x[k - 1, j]
+                x[k, i] -= acc0 + acc1
+        for i in range(d):
+            acc = x[k, i]
+            for j in range(i):
+                acc -= Ld[k, i, j] * x[k, j]
+            x[k, i] = acc / Ld[k, i, i]
+    for k in range(n - 1, -1, -1):  # back: x_k = L_kk^-T (y_k - C_k^T x_k+1)
+        if k < n - 1:
+            for j in range(d):
+                xj = x[k + 1, j]
+                for i in range(d):
+                    x[k, i] -= C[k, j, i] * xj
+        for i in range(d - 1, -1, -1):
+            xi = x[k, i] / Ld[k, i, i]
+            x[k, i] = xi
+            for j in range(i):
+                x[k, j] -= Ld[k, i, j] * xi
+    return x
+
+
+@njit
 def block_tridiag_marginals(Ld, C):
     """``(P, Pc)``, the diagonal and lag-one blocks of ``H^-1``, from ``H``'s block Cholesky factor
     (:func:`block_tridiag_factor`, :func:`_marginals`)."""

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from flexforce.smoother import solvers
-from flexforce.smoother.linearize import Linearization, assemble, covariances, solve, solve_arrow
+from flexforce.smoother.linearize import Linearization, assemble, covariances, solve, solve_arrow, solve_arrow_pair
 
 RTOL = 1e-9
 
@@ -209,6 +209,89 @@ def test_arrow_solve_without_global_columns_is_the_block_tridiagonal_solve():
     Hd, B, g = _random_chain(rng, 10, 5)
     dx, _, _ = solve_arrow(Hd, B, g, np.array([], dtype=int))
     _close(dx.ravel(), np.linalg.solve(_dense(Hd, B), g.ravel()))
+
+
+def test_arrow_pair_gives_both_steps_of_the_dense_solve():
+    """The secant's step (a curvature added to the global block) and the Gauss-Newton one from one
+    elimination equal two dense solves; an indefinite addition gives None and keeps the other."""
+    rng = np.random.default_rng(21)
+    n, d = 9, 6
+    Hd, B, g = _random_chain(rng, n, d)
+    cidx = np.array([2, 5])
+    M = rng.normal(size=(2, 2))
+    M = M @ M.T
+    Hq = Hd.copy()
+    Hq[0][np.ix_(cidx, cidx)] += M  # the global block is the sum of the steps' blocks
+    with_m, plain = solve_arrow_pair(Hd, B, g, cidx, M)
+    _close(with_m, _arrow_dense(Hq, B, g, cidx)[0])
+    _close(plain, _arrow_dense(Hd, B, g, cidx)[0])
+    worse, plain2 = solve_arrow_pair(Hd, B, g, cidx, -1e6 * np.eye(2))
+    assert worse is None
+    _close(plain2, plain)
+
+
+@pytest.mark.parametrize("n,d", [(1, 3), (30, 7)])
+def test_single_right_hand_side_substitution_equals_the_matrix_form(n, d):
+    rng = np.random.default_rng(30 + n)
+    Hd, B, g = _random_chain(rng, n, d)
+    Ld, C = solvers.block_tridiag_factor(Hd, B)
+    x = solvers.block_tridiag_substitute_vec(Ld, C, g)
+    _close(x, solvers.block_tridiag_substitute(Ld, C, g[:, :, None])[:, :, 0])
+    _close(x.ravel(), np.linalg.solve(_dense(Hd, B), g.ravel()))
+
+
+def test_assembly_step_by_step_equals_the_dense_normal_equations():
+    """``assemble`` (every family formed step by step) equals ``J^T J`` and ``-J^T r`` of the
+    stacked rows written densely: unary families over every step and over the first step only
+    (a prior), binary ones over successive steps, with columns they never touch."""
+    rng = np.random.default_rng(5)
+    n, D = 7, 5
+    J_u = rng.normal(size=(n, 3, D))
+    J_u[:, :, 4] = 0.0  # a column this family never touches
+    J_p = rng.normal(size=(1, 2, D))
+    J0, J1 = rng.normal(size=(n - 1, 4, D)), rng.normal(size=(n - 1, 4, D))
+    J0[:, :, 0] = 0.0
+    r_u, r_p, r_b = rng.normal(size=(n, 3)), rng.normal(size=(1, 2)), rng.normal(size=(n - 1, 4))
+    lin = Linearization(unary={"u": (r_u, J_u), "prior": (r_p, J_p)}, binary={"b": (r_b, J0, J1)})
+    rows, res = [], []
+    for k in range(n):
+        row = np.zeros((3, n * D))
+        row[:, k * D:(k + 1) * D] = J_u[k]
+        rows.append(row)
+        res.append(r_u[k])
+    row = np.zeros((2, n * D))
+    row[:, :D] = J_p[0]
+    rows.append(row)
+    res.append(r_p[0])
+    for k in range(n - 1):
+        row = np.zeros((4, n * D))
+        row[:, k * D:(k + 1) * D] = J0[k]
+        row[:, (k + 1) * D:(k + 2) * D] = J1[k]
+        rows.append(row)
+        res.append(r_b[k])
+    J, r = np.vstack(rows), np.concatenate(res)
+    Hd, B, g = assemble(lin, n, D)
+    diag, upper = _blocks(J.T @ J, n, D)
+    _close(Hd, diag)
+    _close(B, upper)
+    _close(g.ravel(), -J.T @ r)
+
+
+def test_r_factor_is_the_triangular_factor_of_a_qr():
+    """The R-only QR (LAPACK's geqrf) gives ``R^T R = M^T M`` with ``R`` upper triangular, as
+    ``np.linalg.qr``'s up to the signs of its rows; a NaN gives a NaN factor, not an exception."""
+    from flexforce.smoother.evidence import _r_factor
+
+    rng = np.random.default_rng(8)
+    for shape in ((9, 5), (4, 6)):
+        M = rng.normal(size=shape)
+        R = _r_factor(M)
+        assert R.shape == (min(shape), shape[1])
+        assert np.allclose(np.tril(R, -1), 0.0)
+        _close(R.T @ R, M.T @ M)
+        _close(np.abs(R), np.abs(np.linalg.qr(M)[1]))
+    M[1, 2] = np.nan
+    assert np.isnan(_r_factor(M)).all()
 
 
 # ----------------------------------------------------------------------------------------------
