@@ -264,6 +264,7 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
     outer = 0
     fallbacks = 0
     stopped: str | None = None
+    held: tuple = (None, None)  # (linearisation, its assembled system) when log_dets formed it
     traj, lin, costs = _levenberg_marquardt(prob, traj, lin, cidx, cidx.size > 0, max_iterations, rel_tol,
                                             lam=1e-6 if start is None else 1e-12,
                                             progress=progress if cidx.size == 0 else None)
@@ -274,6 +275,7 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
         dets = evidence.log_dets(prob, lin, cidx, keep)
         pen = 0.5 * (dets[0] - dets[1])
         gpen = evidence.occam_gradient(prob, traj, cidx, lin=lin, keep=keep)
+        held = (lin, keep.get("system"))  # the system log_dets assembled at lin, for the step below
         keep.clear()
         M = np.zeros((cidx.size, cidx.size))  # the secant's estimate of what the Schur complement misses
         overstated = 0  # full secant steps in a row that gained well over their promise (OVERSTATED)
@@ -282,7 +284,7 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
         for it in range(max_iterations):
             phi = lin.cost + pen
             tol = max(rel_tol * max(lin.cost, 1.0), evidence_tol)
-            Hd, B, g = _system(prob, lin, cidx)
+            Hd, B, g = held[1] if held[0] is lin and held[1] is not None else _system(prob, lin, cidx)
             g = g.copy()
             g[0, cidx] -= gpen  # g is minus the gradient; the global block sums its steps
             gsum = g[:, cidx].sum(axis=0)
@@ -396,13 +398,17 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
                 if stopped:
                     break
             gpen = evidence.occam_gradient(prob, traj, cidx, lin=lin, keep=keep)
+            held = (lin, keep.get("system"))
             keep.clear()
+        if keep.get("lin") is lin and keep.get("system") is not None:  # the loop ended after log_dets at lin
+            held = (lin, keep["system"])
+    final_system = held[1] if cidx.size and held[0] is lin else None
     P = None
     if want_cov:
-        Hd, B, g = _system(prob, lin, cidx)
+        Hd, B, g = final_system if final_system is not None else _system(prob, lin, cidx)
         _, P, _ = solve_arrow(Hd, B, g, cidx, damping=0.0, want_cov=True)
     return traj, P, {"iterations": len(log) - 1, "outer": outer, "gradient_fallbacks": fallbacks, "cost": log,
-                     "stopped": stopped, "final": (lin, dets) if cidx.size else None}
+                     "stopped": stopped, "final": (lin, dets) if cidx.size else None, "final_system": final_system}
 
 
 @dataclass(frozen=True)
@@ -599,7 +605,8 @@ def fit(rec, model, progress: Callable[[float], None] | None = None, rule: Noise
     cidx = _global_columns(prob, global_constants)
     final = info.get("final")
     lin = final[0] if final is not None else linearize(prob, traj)
-    Hd, B, g = _system(prob, lin, cidx)
+    system = info.get("final_system") if final is not None else None
+    Hd, B, g = system if system is not None else _system(prob, lin, cidx)
     _, P, Pc = solve_arrow(Hd, B, g, cidx, want_cov=True)
     est = make_estimate(prob, "batch", traj, P, total_time=time.perf_counter() - t0,
                         meta={"iterations": info["iterations"], "outer": info["outer"], "final_cost": info["cost"][-1],

@@ -219,11 +219,16 @@ def plain_model_rows(lin: Linearization) -> Linearization:
 def _scaled_states(prob, lin: Linearization, cidx: np.ndarray):
     """``(aidx, s, Hs, Bs)``: the per-step states' columns (``cidx`` held), their Jacobi scale
     from ``H``'s diagonal, and ``H``'s diagonal and upper blocks on them, scaled."""
+    return _scaled_system(prob, lin, cidx)[:4]
+
+
+def _scaled_system(prob, lin: Linearization, cidx: np.ndarray):
+    """:func:`_scaled_states` and the unscaled system ``(Hd, B, g)`` it comes from."""
     n, D = prob.n, prob.state_dim
     aidx = np.setdiff1d(np.arange(D), cidx)
     Hd, B, g = assemble(lin, n, D)
     Hs, Bs, _, s = _scaled_blocks(Hd, B, g, aidx.astype(np.int64), 0.0)
-    return aidx, s, Hs, Bs
+    return aidx, s, Hs, Bs, (Hd, B, g)
 
 
 def log_dets(prob, lin: Linearization, cidx: np.ndarray, keep: dict | None = None) -> tuple[float, float]:
@@ -235,12 +240,14 @@ def log_dets(prob, lin: Linearization, cidx: np.ndarray, keep: dict | None = Non
     full = lin
     lin = drop_global_walks(prob, lin) if cidx.size else lin
     n = prob.n
-    aidx, s, Hs, Bs = _scaled_states(prob, lin, cidx)
+    aidx, s, Hs, Bs, system = _scaled_system(prob, lin, cidx)
     shift = -2.0 * float(np.sum(np.log(s)))
     # the posterior (the measurements make it well conditioned) by the block Cholesky pivots of
     # H; the trajectory prior by QR of its rows
+    factor = None
     try:
-        post = float(solvers.block_tridiag_logdet(Hs, Bs))
+        factor = solvers.block_tridiag_factor(Hs, Bs)
+        post = float(solvers.block_factor_logdet(factor[0]))
     except np.linalg.LinAlgError:
         post = -np.inf
     model_u = [k for k in lin.unary if _family(k) not in MEASUREMENT_FAMILIES]
@@ -251,7 +258,10 @@ def log_dets(prob, lin: Linearization, cidx: np.ndarray, keep: dict | None = Non
     if keep is not None:
         keep.clear()
         if np.isfinite(prior) and np.isfinite(post):
-            keep.update(lin=full, base=lin, aidx=aidx, s=s, Hs=Hs, Bs=Bs, Rd=Rd, Ru=Ru)
+            # the system itself too: the next Gauss-Newton step of the constants at this point
+            # assembles the same one (flexforce.smoother.batch.optimize)
+            keep.update(lin=full, base=lin, aidx=aidx, s=s, Hs=Hs, Bs=Bs, Rd=Rd, Ru=Ru, factor=factor,
+                        system=system)
     out = []
     for val, what in ((post, "posterior"), (prior, "trajectory prior")):
         if not np.isfinite(val):
@@ -384,7 +394,8 @@ def occam_gradient(prob, traj, cidx: np.ndarray, rel_step: float = 1e-3, lin: Li
             continue
         if post_inv is None:
             try:
-                post_inv = solvers.block_tridiag_covariances(Hs, Bs)
+                post_inv = (solvers.block_tridiag_marginals(*keep["factor"]) if reuse and keep is not None
+                            and keep.get("factor") is not None else solvers.block_tridiag_covariances(Hs, Bs))
             except np.linalg.LinAlgError as err:
                 raise EstimatorError("smoother: the posterior information of the states is not positive definite "
                                      "(an unobservable direction: check contacts and stiffness)") from err

@@ -224,6 +224,17 @@ def block_tridiag_covariances(D, B):
 
 
 @njit
+def block_factor_logdet(Ld):
+    """``log det H`` from the diagonal blocks ``Ld`` of ``H``'s block Cholesky factor
+    (:func:`block_tridiag_factor`): twice the sum of the logs of their pivots."""
+    out = 0.0
+    for k in range(Ld.shape[0]):
+        for i in range(Ld.shape[1]):
+            out += 2.0 * np.log(Ld[k, i, i])
+    return out
+
+
+@njit
 def block_tridiag_logdet(D, B):
     """``log det H`` for ``H`` symmetric positive definite, block tridiagonal (as
     :func:`block_tridiag_solve_multi`): twice the sum of the logs of the block Cholesky pivots.
