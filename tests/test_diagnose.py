@@ -714,3 +714,21 @@ def test_with_the_ft_fused_the_check_leaves_their_errors_out():
     assert fused is not None and set(fused["before"]) == {"rotation_rad"} and fused["sensors"] == ["motion capture"]
     plain = _check(None, base, SimpleNamespace(effects=("foothold",), model=SimpleNamespace(use_ft=False)), 0.5, known)
     assert plain is not None and set(plain["before"]) == {"rotation_rad", "vertical_force_N"}
+
+
+def test_screening_in_workers_gives_the_statistics_of_one_process(gyro_rec):
+    """The score tests in two workers (the first constant candidate tested before they fork, so
+    that they share its states' factor and inverses) equal those of one process, test by test."""
+    from flexforce.compare.diagnose import bound, fit_model, screen
+    from flexforce.factors.model import ModelConfig
+
+    model = ModelConfig.from_recording(gyro_rec)
+    nominal = fit_model(gyro_rec, model)
+    makers = {k: bound(m, gyro_rec, model) for k, m in
+              resolve_candidates(["gyro-bias", "accel-bias", "com-offset", "external-wrench"]).items()}
+    one = screen(gyro_rec, nominal, makers, jobs=1)
+    two = screen(gyro_rec, nominal, makers, jobs=2)
+    assert list(two) == list(one)
+    for name in one:
+        assert two[name].kind == one[name].kind, name
+        assert two[name].statistic == one[name].statistic and two[name].dof == one[name].dof, name
