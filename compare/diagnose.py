@@ -1042,9 +1042,7 @@ def screen(rec, fit: Fit, makers: dict[str, Callable[[], object]], window: float
     # 1.3 and 0.6 s one after the other in one process).  The same results (jobs = 1 shares them so).
     first: list[tuple[str | None, Any]] = []
     if jobs > 1:
-        from flexforce.smoother.linearize import is_global
-
-        constant = [it for it in items if it[0] is not None and _constant_effect(it[1], prob, is_global)]
+        constant = [it for it in items if it[0] is not None and _constant_effect(it[1], prob)]
         if len(constant) >= 2:
             first = constant[:1]
             items = [it for it in items if it is not constant[0]]
@@ -1080,9 +1078,11 @@ def screen(rec, fit: Fit, makers: dict[str, Callable[[], object]], window: float
     return (tests, table) if identify else tests
 
 
-def _constant_effect(make: Callable[[], object], prob, is_global) -> bool:
+def _constant_effect(make: Callable[[], object], prob) -> bool:
     """Whether the effect ``make()`` is one global block (a constant) in ``prob``'s smoother; False
     for a per-step effect or one that cannot be made (its test reports that)."""
+    from flexforce.smoother.linearize import is_global
+
     try:
         return bool(is_global(make(), prob))
     except Exception:  # a user's effect may raise anything: its own test says what

@@ -25,6 +25,10 @@ S = core.STATE_DIM
 _NO_REST_JAC = np.empty((0, 1, 6, 6))
 
 
+_NOT_PD = ("smoother: the Gauss-Newton system is not positive definite "
+           "(an unobservable direction: check contacts and stiffness)")
+
+
 @dataclass
 class Trajectory:
     """Values of every variable: ``R`` (N, 3, 3), ``q`` (N, 15) = (t, w, v, dw, a), ``W`` (N, C, 6),
@@ -533,8 +537,7 @@ def covariances(Hd, B):
     try:
         P, Pc = solvers.block_tridiag_covariances(Hs, Bs)
     except np.linalg.LinAlgError as err:
-        raise EstimatorError("smoother: the Gauss-Newton system is not positive definite "
-                             "(an unobservable direction: check contacts and stiffness)") from err
+        raise EstimatorError(_NOT_PD) from err
     P = P * scale[:, :, None] * scale[:, None, :]
     Pc = Pc * scale[:-1, :, None] * scale[1:, None, :]
     return P, Pc
@@ -616,8 +619,7 @@ def _solve_columns(Hd, B, g, idx, damping: float = 0.0, want_cov: bool = False):
     try:
         Ld, C = solvers.block_tridiag_factor(Hs, Bs)
     except np.linalg.LinAlgError as err:
-        raise EstimatorError("smoother: the Gauss-Newton system is not positive definite "
-                             "(an unobservable direction: check contacts and stiffness)") from err
+        raise EstimatorError(_NOT_PD) from err
     x = _substitute(Ld, C, gs)
     # One step of iterative refinement (the same factor): the tight integration factors leave the
     # scaled system with a condition number near 1e10 (measured), costing ~5 digits.
@@ -682,34 +684,14 @@ def drop_global_walks(prob, lin: Linearization) -> Linearization:
                          cost=lin.cost, weights=lin.weights, ne_weights=lin.ne_weights)
 
 
-def arrow_reduce(Hd, B, g, cidx):
-    """The Gauss-Newton system of the per-step layout restricted to ``x_k = (a_k, c)``: the columns
-    ``cidx`` of every step are one global block ``c``.
-
-    Returns ``Ad`` (N, Da, Da), ``AB`` (N-1, Da, Da) (block tridiagonal per-step part), the border
-    ``F`` (N, Da, Dc), the global block ``G`` (Dc, Dc) and the right-hand sides ``ga`` (N, Da),
-    ``gc`` (Dc,).  With ``x_k = T (a_k, c)``: ``F_k = H_kk[a, c] + H_k,k+1[a, c] + H_k-1,k[c, a]^T``,
-    ``G = sum_k H_kk[c, c] + H_k,k+1[c, c] + H_k,k+1[c, c]^T``, ``gc = sum_k g_k[c]``.
-    """
-    D = Hd.shape[1]
-    aidx = np.setdiff1d(np.arange(D), cidx)
-    Ad = Hd[:, aidx][:, :, aidx]
-    AB = B[:, aidx][:, :, aidx]
-    F = Hd[:, aidx][:, :, cidx].copy()
-    if B.shape[0]:
-        F[:-1] += B[:, aidx][:, :, cidx]
-        F[1:] += B[:, cidx][:, :, aidx].transpose(0, 2, 1)
-        Bcc = B[:, cidx][:, :, cidx].sum(axis=0)
-    else:
-        Bcc = np.zeros((len(cidx), len(cidx)))
-    G = Hd[:, cidx][:, :, cidx].sum(axis=0) + Bcc + Bcc.T
-    return aidx, Ad, AB, F, G, g[:, aidx], g[:, cidx].sum(axis=0)
-
-
 @core.njit
 def _arrow_scaled(Hd, B, g, aidx, cidx, damping):
-    """:func:`arrow_reduce` and the Jacobi scaling and damping of :func:`solve_arrow` in two passes
-    with no temporaries: ``(As, ABs, R, Gs, gcs, sa, sc)``, the scaled per-step blocks, the
+    """The Gauss-Newton system of the per-step layout restricted to ``x_k = (a_k, c)`` (the columns
+    ``cidx`` of every step one global block ``c``), Jacobi-scaled and damped as :func:`solve_arrow`
+    needs it, with no temporaries: with ``x_k = T (a_k, c)``, the border ``F_k = H_kk[a, c] +
+    H_k,k+1[a, c] + H_k-1,k[c, a]^T``, the global block ``G = sum_k H_kk[c, c] + H_k,k+1[c, c] +
+    H_k,k+1[c, c]^T`` and ``gc = sum_k g_k[c]``; the per-step blocks by :func:`_scaled_blocks`.
+    Returns ``(As, ABs, R, Gs, gcs, sa, sc)``, the scaled per-step blocks, the
     right-hand sides ``R`` (N, Da, 1 + Dc) of the per-step elimination (the scaled ``ga`` then the
     scaled border ``F``), the scaled global block and its right-hand side, and the two scales."""
     n, da, dc = Hd.shape[0], aidx.shape[0], cidx.shape[0]
@@ -732,39 +714,20 @@ def _arrow_scaled(Hd, B, g, aidx, cidx, damping):
             Gs[i, j] = G[i, j] * sc[i] * sc[j]
         Gs[i, i] *= 1.0 + damping
     gcs = gc * sc
-    sa = np.empty((n, da))
-    for k in range(n):
-        for a in range(da):
-            sa[k, a] = 1.0 / math.sqrt(max(Hd[k, aidx[a], aidx[a]], 1e-300))
-    As = np.empty((n, da, da))
+    As, ABs, gas, sa = _scaled_blocks(Hd, B, g, aidx, damping)
     R = np.empty((n, da, 1 + dc))
     for k in range(n):
         for a in range(da):
             ia = aidx[a]
-            s_a = sa[k, a]
-            for b in range(da):
-                As[k, a, b] = Hd[k, ia, aidx[b]] * s_a * sa[k, b]
-            As[k, a, a] *= 1.0 + damping
-            R[k, a, 0] = g[k, ia] * s_a
+            R[k, a, 0] = gas[k, a]
             for j in range(dc):
                 f = Hd[k, ia, cidx[j]]
                 if k < nb:
                     f += B[k, ia, cidx[j]]
                 if k > 0:
                     f += B[k - 1, cidx[j], ia]
-                R[k, a, 1 + j] = f * s_a * sc[j]
-    ABs = np.empty((nb, da, da))
-    for k in range(nb):
-        for a in range(da):
-            ia = aidx[a]
-            s_a = sa[k, a]
-            for b in range(da):
-                ABs[k, a, b] = B[k, ia, aidx[b]] * s_a * sa[k + 1, b]
+                R[k, a, 1 + j] = f * sa[k, a] * sc[j]
     return As, ABs, R, Gs, gcs, sa, sc
-
-
-_NOT_PD = ("smoother: the Gauss-Newton system is not positive definite "
-           "(an unobservable direction: check contacts and stiffness)")
 
 
 class _ArrowElimination:
@@ -834,7 +797,7 @@ def solve_arrow_pair(Hd, B, g, cidx, extra):
 
 
 def solve_arrow(Hd, B, g, cidx, damping: float = 0.0, want_cov: bool = False, freeze: bool = False):
-    """Solve the Gauss-Newton system with the columns ``cidx`` one global block (:func:`arrow_reduce`).
+    """Solve the Gauss-Newton system with the columns ``cidx`` one global block (:func:`_arrow_scaled`).
 
     Block tridiagonal plus a dense border (an "arrow"): the per-step part is eliminated by the
     block-tridiagonal solver with ``1 + Dc`` right-hand sides (the state's and the border's

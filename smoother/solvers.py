@@ -239,12 +239,7 @@ def block_tridiag_logdet(D, B):
     """``log det H`` for ``H`` symmetric positive definite, block tridiagonal (as
     :func:`block_tridiag_solve_multi`): twice the sum of the logs of the block Cholesky pivots.
     Raises ``np.linalg.LinAlgError`` when ``H`` is not positive definite."""
-    Ld, _ = _block_cholesky(D, B)
-    out = 0.0
-    for k in range(Ld.shape[0]):
-        for i in range(Ld.shape[1]):
-            out += 2.0 * np.log(Ld[k, i, i])
-    return out
+    return block_factor_logdet(_block_cholesky(D, B)[0])
 
 
 # ----------------------------------------------------------------------------------------------
