@@ -57,6 +57,7 @@ a copy held by its own :class:`Snapshot`.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import inspect
 import math
 import time
@@ -1004,25 +1005,27 @@ def finding(c: Candidate, rep: dict, effect) -> str:
 
 
 def screen(rec, fit: Fit, makers: dict[str, Callable[[], object]], window: float = SCREEN_WINDOW,
-           progress: Callable[..., None] | None = None, problem=None, jobs: int = 1, identify: bool = False,
+           progress: Callable[..., None] | None = None, problem=None, jobs: int | str = 1, identify: bool = False,
            table_only: dict[str, Callable[[], object]] | None = None):
     """The score test of every candidate at ``fit`` (name -> :class:`ScoreTest`, or the reason
     when the test failed): one linearisation each, no refit (:mod:`flexforce.smoother.screening`);
-    in ``jobs`` forked processes (:func:`flexforce.compare.runner.fork_map`), the same results.
-    ``identify``: also the identifiability table of every candidate (:func:`identify_candidates`),
-    as one more task; returns ``(tests, (table, reason))``.  ``table_only``: more candidates for
-    the table alone, not tested (those left out of the default catalogue).
+    in ``jobs`` forked processes (:func:`flexforce.compare.runner.fork_map`; ``"auto"``:
+    :func:`~flexforce.compare.runner.resolve_jobs`), the same results.  ``identify``: also the
+    identifiability table of every candidate (:func:`identify_candidates`), as one more task;
+    returns ``(tests, (table, reason))``.  ``table_only``: more candidates for the table alone,
+    not tested (those left out of the default catalogue).
 
     ``progress(fraction)`` or ``progress(fraction, message)`` (a callable made by
     :func:`progress_caller` takes the message): one call per candidate, the message naming it
     with its statistic and time."""
-    from flexforce.compare.runner import fork_map
+    from flexforce.compare.runner import fork_map, resolve_jobs
     from flexforce.smoother import NoiseRule, Problem
     from flexforce.smoother.evidence import forget_states
     from flexforce.smoother.screening import score_test
 
     if fit.trajectory is None or fit.model is None:
         raise ConfigError("screening needs the fitted trajectory (flexforce.smoother.fit returns it)")
+    jobs = resolve_jobs(jobs)
     prob = problem if problem is not None else Problem.build(rec, fit.model, NoiseRule())
     items: list[tuple[str | None, Any]] = ([(None, None)] if identify else []) + list(makers.items())
 
@@ -1132,7 +1135,7 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
              ekf: bool = True, progress: Callable[[str, float], None] | None = None,
              screen_level: float | None = SCREEN_LEVEL, screen_window: float = SCREEN_WINDOW,
              calibrated: bool = True, identify: bool = True, refit_best: int | None = REFIT_BEST,
-             jobs: int = 1) -> Diagnosis:
+             jobs: int | str = 1) -> Diagnosis:
     """Fit the nominal model, rank the candidate effects, and refit with the ``add``-ed ones.
 
     Args:
@@ -1175,9 +1178,12 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
             passes.  On real logs every candidate passes (the model is never exact).
         jobs: worker processes (forked: :func:`flexforce.compare.runner.fork_map`) for the
             candidates' score tests, a round's refits and the before/after views; the same results
-            as ``jobs=1``, each worker taking about the memory of one fit.
+            as ``jobs=1``, each worker taking about the memory of one fit.  ``"auto"``: one per
+            usable core, as the memory available holds them, decided once the nominal model is
+            fitted (:func:`flexforce.compare.runner.resolve_jobs`; each worker assumed to need what
+            this process then holds).
     """
-    from flexforce.compare.runner import check_jobs, describe, fork_map
+    from flexforce.compare.runner import check_jobs, describe, fork_map, resolve_jobs
     from flexforce.factors.model import ModelConfig
 
     rec.validate()
@@ -1264,14 +1270,26 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
     fit_errors: dict[tuple[str, ...], Exception] = {}
     fit_seconds: dict[tuple[str, ...], float] = {}
 
-    def fit_all(names_list: list[tuple[str, ...]]) -> None:
-        """Fit the models not fitted yet, in ``jobs`` worker processes (into ``cache``; a failure
-        into ``fit_errors``, raised by :func:`fitted`)."""
-        todo = [n for n in dict.fromkeys(names_list) if tuple(sorted(n)) not in cache]
-        if jobs == 1 or len(todo) < 2:
-            return
+    side: dict[tuple[str, ...], Snapshot] = {}  # before/after views formed beside refits, by fit
 
-        for i, ok, value, seconds in fork_map(fit_with, todo, jobs):
+    def fit_all(names_list: list[tuple[str, ...]], views: Iterable[tuple[str, ...]] = ()) -> None:
+        """Fit the models not fitted yet, in ``jobs`` worker processes (into ``cache``; a failure
+        into ``fit_errors``, raised by :func:`fitted`).  Beside them, as more tasks (the last to
+        be taken: they fill a process the refits leave idle), the before/after views of the
+        nominal fit (the first time) and of the fitted ``views``, which ran alone at the end (3 s
+        each on the iCub sway); a view that fails is left to the end, formed again there, where
+        it raises."""
+        todo = [n for n in dict.fromkeys(names_list) if tuple(sorted(n)) not in cache]
+        shown = [k for k in dict.fromkeys([(), *(tuple(sorted(v)) for v in views)]) if k in cache and k not in side]
+        if jobs == 1 or not todo or len(todo) + len(shown) < 2:
+            return
+        tasks: list[Callable[[], Any]] = [functools.partial(fit_with, n) for n in todo]
+        tasks += [functools.partial(_snapshot, rec, cache[k], window, alpha, skip, calibrated) for k in shown]
+        for i, ok, value, seconds in fork_map(lambda task: task(), tasks, jobs):
+            if i >= len(todo):
+                if ok:
+                    side[shown[i - len(todo)]] = value
+                continue
             key = tuple(sorted(todo[i]))
             if ok:
                 cache[key] = value
@@ -1289,6 +1307,7 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
         raise ConfigError(f"refit_best = {refit_best!r}; expected an integer >= 1 (candidates refitted per round) "
                           "or None (every candidate that passes the screening)")
     nominal = fitted(())
+    jobs = resolve_jobs(jobs)  # "auto": decided with the nominal fit in memory (what a worker starts from)
     checked: dict = {}  # errors against the truth or the reference sensors, by the fit's sorted effects
     rounds: list[list[Candidate]] = []
     selected: list[str] = []
@@ -1476,7 +1495,11 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
             ok = {k: v for k, v in got.items() if not isinstance(v, str) and v.p_value < screen_level}
             return sorted(ok, key=lambda k: _strength(ok[k]))
 
-        swaps = _second_look(selected, rounds, makers, fitted, fit_all, prob, say, strongest,
+        def fit_trials(trials: list[tuple[str, ...]]) -> None:
+            # the view of the selection as it stands is formed beside the trials (used unless one replaces it)
+            fit_all(trials, views=[tuple(dict.fromkeys((selected if want_auto else []) + list(add_makers)))])
+
+        swaps = _second_look(selected, rounds, makers, fitted, fit_trials, prob, say, strongest,
                              check=lambda b, f: _check(rec, b, f, skip, checked))
     ranking: list[Candidate] = []
     for i, name in enumerate(selected):
@@ -1489,11 +1512,12 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
     added = list(dict.fromkeys((selected if want_auto else []) + list(add_makers)))
     watching = False
     fits = [nominal] + ([fitted(tuple(added))] if added else [])
-    views: list[Snapshot | None] = [None] * len(fits)
-    for i, ok, value, _ in fork_map(lambda f: _snapshot(rec, f, window, alpha, skip, calibrated), fits, jobs):
+    views: list[Snapshot | None] = [side.get(k) for k in [(), tuple(sorted(added))][:len(fits)]]
+    left = [i for i, v in enumerate(views) if v is None]
+    for i, ok, value, _ in fork_map(lambda k: _snapshot(rec, fits[k], window, alpha, skip, calibrated), left, jobs):
         if not ok:
             raise value
-        views[i] = value
+        views[left[i]] = value
     before, after = views[0], (views[1] if added else None)
     assert before is not None
     ekf_snap = None

@@ -490,10 +490,21 @@ def _compare(args) -> int:
     return 0
 
 
+def _jobs(text: str) -> int | str:
+    """The value of --jobs: a number, or 'auto' (one worker per usable core, as memory allows)."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}; expected a number of worker processes or 'auto'") from None
+
+
 def _check_jobs(args) -> None:
     jobs = getattr(args, "jobs", 1)
-    if jobs < 1:
-        raise ConfigError(f"--jobs {jobs}; expected a positive number of worker processes (1: one at a time, here)")
+    if jobs != "auto" and jobs < 1:
+        raise ConfigError(f"--jobs {jobs}; expected a positive number of worker processes (1: one at a time, here) "
+                          "or auto")
 
 
 def _unique_labels(sources: list) -> list:
@@ -748,8 +759,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ft", action="store_true", help="fuse the recording's F/T readings as measurements")
     p.add_argument("--footholds", action="store_true",
                    help="smoothers: estimate every contact episode's foothold (docs/smoother.md)")
-    p.add_argument("--jobs", "-j", type=int, default=1, metavar="N",
-                   help="compare N recordings at a time, in worker processes (default 1); the results are the same")
+    p.add_argument("--jobs", "-j", type=_jobs, default=1, metavar="N",
+                   help="compare N recordings at a time, in worker processes (default 1; 'auto': one per usable "
+                        "core, as memory allows); the results are the same")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_cmd_compare)
 
@@ -764,9 +776,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("recording", nargs="+", help="bags, or built-in scenario names / scenario files to simulate "
                                                 "(several: one report folder each, and an index)")
     p.add_argument("-o", "--output", required=True, type=Path, help="report folder (index.html, diagnosis.json)")
-    p.add_argument("--jobs", "-j", type=int, default=1, metavar="N",
-                   help="worker processes (default 1; the results are the same): several recordings, N at a time; "
-                        "one recording, its candidates' tests and refits N at a time")
+    p.add_argument("--jobs", "-j", type=_jobs, default="auto", metavar="N",
+                   help="worker processes (default auto: one per usable core, as memory allows; 1: none; the "
+                        "results are the same): several recordings, N at a time; one recording, its candidates' "
+                        "tests and refits N at a time")
     p.add_argument("--add", action="append", default=[], metavar="NAME",
                    help="refit with this effect and compare before/after (repeatable; 'auto': the significant ones)")
     p.add_argument("--candidates", help="comma-separated effect names to rank (default: every built-in effect)")

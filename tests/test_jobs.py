@@ -128,12 +128,52 @@ def test_fork_map_returns_each_result_or_exception():
         assert got[2][0] is False and isinstance(got[2][1], ValueError) and str(got[2][1]) == "two"
 
 
+def test_fork_map_shares_the_items_between_this_process_and_its_workers():
+    """jobs = 2: this process and one forked worker each take the next item left, every item once."""
+    import os
+    import time
+
+    from flexforce.compare.runner import fork_map
+    from flexforce.errors import EstimatorError
+
+    def fn(x):
+        time.sleep(0.05)
+        return x, os.getpid()
+
+    got = list(fork_map(fn, list(range(12)), 2))
+    assert sorted(i for i, *_ in got) == list(range(12))
+    assert all(ok and value[0] == i for i, ok, value, _ in got)
+    pids = {value[1] for _, _, value, _ in got}
+    assert os.getpid() in pids and len(pids) == 2, pids  # both worked: this one and its worker
+    # stopped early by the caller: no error, and a later map starts afresh
+    it = fork_map(fn, list(range(6)), 2)
+    next(it)
+    it.close()
+    assert sorted(i for i, *_ in fork_map(fn, list(range(3)), 2)) == [0, 1, 2]
+
+    # a worker that dies: one clear error, not a hang
+    def die(x):
+        if os.getpid() != parent:
+            os._exit(3)
+        time.sleep(0.2)
+        return x
+
+    parent = os.getpid()
+    with pytest.raises(EstimatorError, match="a worker process of jobs = 2 ended abruptly"):
+        list(fork_map(die, list(range(4)), 2))
+
+
 def test_bad_jobs_is_one_line(bags, tmp_path, capsys):
     for command in ("compare", "diagnose"):
         assert main([command, str(bags[0]), "--jobs", "0", "-o", str(tmp_path / "r"), "-q"]) == 1
         err = capsys.readouterr().err
         assert err == f"flexforce {command}: error: --jobs 0; expected a positive number of worker processes " \
-                      "(1: one at a time, here)\n"
+                      "(1: one at a time, here) or auto\n"
+        assert not (tmp_path / "r").exists()
+        with pytest.raises(SystemExit) as exc:  # not a number: a usage error (exit 2)
+            main([command, str(bags[0]), "--jobs", "many", "-o", str(tmp_path / "r"), "-q"])
+        assert exc.value.code == 2
+        assert "argument --jobs/-j: 'many'; expected a number of worker processes or 'auto'" in capsys.readouterr().err
         assert not (tmp_path / "r").exists()
     # a worker's error is the command's one line, and no report folder is left
     missing = tmp_path / "missing-bag"
@@ -161,3 +201,30 @@ def test_progress_off_a_terminal_is_one_line_per_stage(bags, tmp_path, capsys):
     lines = capsys.readouterr().err.splitlines()
     assert lines and "\r" not in "".join(lines)
     assert any(re.fullmatch(r"\[ *\d+\.\d s\] ekf: done \(\d+\.\d s\)", line) for line in lines), lines
+
+
+def test_auto_jobs_is_the_usable_cores_as_memory_allows(monkeypatch):
+    from flexforce.compare import runner
+
+    monkeypatch.setattr(runner, "usable_cores", lambda: 8)
+    monkeypatch.setattr(runner, "available_memory", lambda: 10 << 30)
+    monkeypatch.setattr(runner, "resident_memory", lambda: 3 << 30)
+    # 80 % of 10 GiB holds two workers of 3 GiB (this process's size, above WORKER_MEMORY)
+    assert runner.resolve_jobs("auto") == 2
+    assert runner.resolve_jobs("auto", per_worker=1 << 30) == 8
+    assert runner.resolve_jobs("auto", items=3, per_worker=1 << 30) == 3
+    monkeypatch.setattr(runner, "resident_memory", lambda: 1 << 20)  # a small process: WORKER_MEMORY each
+    assert runner.resolve_jobs("auto") == int(0.8 * (10 << 30) // runner.WORKER_MEMORY)
+    monkeypatch.setattr(runner, "available_memory", lambda: 1 << 29)  # too little for one: still one
+    assert runner.resolve_jobs("auto") == 1
+    monkeypatch.setattr(runner, "available_memory", lambda: None)  # unknown: the cores
+    assert runner.resolve_jobs("auto") == 8
+    assert runner.resolve_jobs(3) == 3  # a number is taken as given
+    for bad in (0, -1, "some", 2.0, True):
+        with pytest.raises(ConfigError, match="expected a positive number of worker processes .* or 'auto'"):
+            runner.resolve_jobs(bad)
+    # the real machine: at least one, no more than its cores
+    monkeypatch.undo()
+    assert 1 <= runner.resolve_jobs("auto") <= runner.usable_cores()
+    assert list(runner.run_jobs(abs, [-3, 2, -1], jobs="auto")) == [3, 2, 1]
+    assert sorted(v for _, ok, v, _ in runner.fork_map(abs, [-3, 2, -1], "auto")) == [1, 2, 3]
