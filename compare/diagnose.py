@@ -1274,13 +1274,18 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
 
     def fit_all(names_list: list[tuple[str, ...]], views: Iterable[tuple[str, ...]] = ()) -> None:
         """Fit the models not fitted yet, in ``jobs`` worker processes (into ``cache``; a failure
-        into ``fit_errors``, raised by :func:`fitted`).  Beside them, as more tasks (the last to
-        be taken: they fill a process the refits leave idle), the before/after views of the
-        nominal fit (the first time) and of the fitted ``views``, which ran alone at the end (3 s
-        each on the iCub sway); a view that fails is left to the end, formed again there, where
-        it raises."""
+        into ``fit_errors``, raised by :func:`fitted`).  With ``views`` (fitted effect sets),
+        their before/after views and the nominal fit's are formed beside them, as more tasks
+        (the last to be taken): the second look's trials, the diagnosis's last fits, often one
+        alone, then share the processes with the views that would follow them (on the iCub sway
+        a 2.5 s refit, then two views of 2.2 s).  Not earlier: a view formed beside a round's
+        refits lengthens that round when it does not fit in a process they leave idle (on a
+        60 s recording a view takes 14 s, a refit 14-16 s).  A view that fails is left to the
+        end, formed again there, where it raises."""
         todo = [n for n in dict.fromkeys(names_list) if tuple(sorted(n)) not in cache]
-        shown = [k for k in dict.fromkeys([(), *(tuple(sorted(v)) for v in views)]) if k in cache and k not in side]
+        views = list(views)
+        wanted = [(), *(tuple(sorted(v)) for v in views)] if views else []
+        shown = [k for k in dict.fromkeys(wanted) if k in cache and k not in side]
         if jobs == 1 or not todo or len(todo) + len(shown) < 2:
             return
         tasks: list[Callable[[], Any]] = [functools.partial(fit_with, n) for n in todo]

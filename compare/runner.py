@@ -332,7 +332,7 @@ def _fork_task(_: int) -> tuple[int, bool, Any, float] | None:
     import pickle
 
     fn, items, claim = _FORK_TASKS[-1]
-    i = claim()
+    i = claim()  # from the front
     if i is None:
         return None
     ok, value, seconds = _timed_call(fn, items[i])
@@ -352,7 +352,8 @@ def _fork_task(_: int) -> tuple[int, bool, Any, float] | None:
 def fork_map(fn: Callable[[Any], Any], items: list, jobs: int | str = 1) -> Iterator[tuple[int, bool, Any, float]]:
     """``fn(item)`` for every item, as ``(index, ok, result or exception, seconds)`` in the order
     they finish; in ``jobs`` processes when ``jobs`` > 1 (and the platform forks): this one and
-    ``jobs - 1`` forked workers, each taking the next item no other has taken.
+    ``jobs - 1`` forked workers, the workers taking the items from the first, this process from
+    the last, each item once.
 
     Unlike :func:`run_jobs` nothing is sent to the workers: they are forked with ``fn`` and the
     items in memory (a closure over a fitted model is fine), and only the results are pickled
@@ -381,15 +382,33 @@ def fork_map(fn: Callable[[Any], Any], items: list, jobs: int | str = 1) -> Iter
     from flexforce.errors import EstimatorError
 
     ctx = multiprocessing.get_context("fork")
-    counter = ctx.Value("i", 0)  # the next item to take, shared with the workers forked below
+    # the items not taken yet are [front, back): the workers (forked below, sharing this array)
+    # take from the front, this process from the back -- the first items, often the longest (a
+    # caller puts them first), start at once in a worker, and this process, working through the
+    # shorter ones, passes on the workers' results between two of its own
+    bounds = ctx.Array("i", [0, len(items)])
 
-    def claim() -> int | None:
-        with counter.get_lock():
-            i = counter.value
-            if i >= len(items):
+    def claim(back: bool = False) -> int | None:
+        with bounds.get_lock():
+            front, end = bounds[0], bounds[1]
+            if front >= end:
                 return None
-            counter.value = i + 1
-            return i
+            if back:
+                bounds[1] = end - 1
+                return end - 1
+            bounds[0] = front + 1
+            return front
+
+    def received(future) -> tuple[int, bool, Any, float] | None:
+        got = future.result()
+        if got is None:
+            return None
+        i, ok, value, seconds = got
+        if ok and value is None:
+            ok, value, seconds = _timed_call(fn, items[i])
+        elif ok:
+            value = pickle.loads(value)
+        return i, ok, value, seconds
 
     _FORK_TASKS.append((fn, items, claim))
     try:
@@ -397,25 +416,24 @@ def fork_map(fn: Callable[[Any], Any], items: list, jobs: int | str = 1) -> Iter
         with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
             # one request per item: a worker's request takes the next item left, or none
             futures = [pool.submit(_fork_task, k) for k in range(len(items))]
+            passed: set[int] = set()
             try:
-                while (mine := claim()) is not None:
+                while (mine := claim(back=True)) is not None:
                     yield (mine, *_timed_call(fn, items[mine]))
-                for future in as_completed(futures):
-                    got = future.result()
-                    if got is None:
-                        continue
-                    i, ok, value, seconds = got
-                    if ok and value is None:
-                        ok, value, seconds = _timed_call(fn, items[i])
-                    elif ok:
-                        value = pickle.loads(value)
-                    yield i, ok, value, seconds
+                    for k, future in enumerate(futures):
+                        if k not in passed and future.done():
+                            passed.add(k)
+                            if (got := received(future)) is not None:
+                                yield got
+                for future in as_completed([f for k, f in enumerate(futures) if k not in passed]):
+                    if (got := received(future)) is not None:
+                        yield got
             except BrokenProcessPool as err:
                 raise EstimatorError(f"a worker process of jobs = {jobs} ended abruptly ({err}: out of memory?); "
                                      "expected it to return its result: run with jobs = 1") from None
             finally:
-                with counter.get_lock():  # stopped early (an error, an interrupt): no more items taken
-                    counter.value = len(items)
+                with bounds.get_lock():  # stopped early (an error, an interrupt): no more items taken
+                    bounds[0] = bounds[1]
                 for future in futures:
                     future.cancel()
     finally:
