@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import threading
 import time
@@ -223,13 +224,30 @@ def check_jobs(jobs) -> None:
                           f"or {AUTO_JOBS!r} (one per usable core, as memory allows)")
 
 
-def usable_cores() -> int:
-    """The cores this process may run on (its CPU affinity where the platform tells it, else the
-    machine's count), at least 1."""
+def cpu_quota(path: str = "/sys/fs/cgroup/cpu.max") -> float | None:
+    """The cores' worth of CPU time a cgroup (v2) quota allows this process (``cpu.max``: quota
+    and period, e.g. ``200000 100000`` for 2; ``max`` for none), as in a container started with
+    ``--cpus``; None without a quota or where it cannot be read."""
     try:
-        return max(1, len(os.sched_getaffinity(0)))
+        with open(path) as f:
+            quota, period = f.read().split()[:2]
+        return None if quota == "max" else max(float(quota) / float(period), 0.0)
+    except (OSError, ValueError):
+        return None
+
+
+def usable_cores() -> int:
+    """The cores this process may run on: its CPU affinity where the platform tells it (else the
+    machine's count), no more than a container's CPU quota (:func:`cpu_quota`, rounded up), at
+    least 1."""
+    try:
+        n = len(os.sched_getaffinity(0))
     except (AttributeError, OSError):
-        return max(1, os.cpu_count() or 1)
+        n = os.cpu_count() or 1
+    quota = cpu_quota()
+    if quota is not None:
+        n = min(n, math.ceil(quota))
+    return max(1, n)
 
 
 def available_memory() -> int | None:

@@ -230,3 +230,23 @@ def test_auto_jobs_is_the_usable_cores_as_memory_allows(monkeypatch):
     assert 1 <= runner.resolve_jobs("auto") <= runner.usable_cores()
     assert list(runner.run_jobs(abs, [-3, 2, -1], jobs="auto")) == [3, 2, 1]
     assert sorted(v for _, ok, v, _ in runner.fork_map(abs, [-3, 2, -1], "auto")) == [1, 2, 3]
+
+
+def test_a_container_cpu_quota_bounds_the_usable_cores(tmp_path, monkeypatch):
+    from flexforce.compare import runner
+
+    quota = tmp_path / "cpu.max"
+    quota.write_text("150000 100000\n")  # 1.5 cores' worth: two processes may share it
+    assert runner.cpu_quota(str(quota)) == 1.5
+    quota.write_text("max 100000\n")
+    assert runner.cpu_quota(str(quota)) is None
+    quota.write_text("garbage")
+    assert runner.cpu_quota(str(quota)) is None
+    assert runner.cpu_quota(str(tmp_path / "none")) is None
+    monkeypatch.setattr(runner, "cpu_quota", lambda: 1.5)
+    monkeypatch.setattr(runner.os, "sched_getaffinity", lambda pid: set(range(64)), raising=False)
+    assert runner.usable_cores() == 2
+    monkeypatch.setattr(runner, "cpu_quota", lambda: 0.2)
+    assert runner.usable_cores() == 1
+    monkeypatch.setattr(runner, "cpu_quota", lambda: None)
+    assert runner.usable_cores() == 64
