@@ -232,6 +232,10 @@ class Recording:
         span = f"the recording covers 0 to {duration:.3f} s"
         lo = 0.0 if start is None else float(start)
         hi = duration if end is None else float(end)
+        for name, value in (("start", lo), ("end", hi)):
+            if not np.isfinite(value):
+                raise DataError(f"{name} = {value:g} s is not a finite time; expected seconds from the first sample "
+                                f"({span})")
         if start is not None and not (0.0 <= lo < duration):
             raise DataError(f"start = {lo:g} s is outside the recording; {span}")
         if end is not None and not (0.0 < hi <= duration + 0.5 * self.dt):

@@ -68,6 +68,9 @@ def test_window_open_ends(rec):
     (0.5, 0.5, r"start = 0.5 s is not before end = 0.5 s"),
     (-1.0, 0.5, r"start = -1 s is outside the recording; the recording covers 0 to"),
     (0.2, 5.0, r"end = 5 s is outside the recording; the recording covers 0 to"),
+    (float("nan"), None, r"start = nan s is not a finite time; expected seconds from the first sample \(the "
+                         r"recording covers 0 to"),
+    (None, float("inf"), r"end = inf s is not a finite time"),
     (0.5, 0.51, r"window 0.5 to 0.51 s holds \d sample\(s\) at \d+ Hz; at least 10 are needed"),
 ])
 def test_window_refuses_bad_bounds(rec, start, end, match):
