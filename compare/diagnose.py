@@ -1272,7 +1272,11 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
 
     side: dict[tuple[str, ...], Snapshot] = {}  # before/after views formed beside refits, by fit
 
-    def fit_all(names_list: list[tuple[str, ...]], views: Iterable[tuple[str, ...]] = ()) -> None:
+    def after_effects() -> list[str]:
+        """The effects of the after fit: the selection (with ``add=["auto"]``), then those added."""
+        return list(dict.fromkeys((selected if want_auto else []) + list(add_makers)))
+
+    def fit_all(names_list: list[tuple[str, ...]], views: list[tuple[str, ...]] | None = None) -> None:
         """Fit the models not fitted yet, in ``jobs`` worker processes (into ``cache``; a failure
         into ``fit_errors``, raised by :func:`fitted`).  With ``views`` (fitted effect sets),
         their before/after views and the nominal fit's are formed beside them, as more tasks
@@ -1283,7 +1287,6 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
         60 s recording a view takes 14 s, a refit 14-16 s).  A view that fails is left to the
         end, formed again there, where it raises."""
         todo = [n for n in dict.fromkeys(names_list) if tuple(sorted(n)) not in cache]
-        views = list(views)
         wanted = [(), *(tuple(sorted(v)) for v in views)] if views else []
         shown = [k for k in dict.fromkeys(wanted) if k in cache and k not in side]
         if jobs == 1 or not todo or len(todo) + len(shown) < 2:
@@ -1502,7 +1505,7 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
 
         def fit_trials(trials: list[tuple[str, ...]]) -> None:
             # the view of the selection as it stands is formed beside the trials (used unless one replaces it)
-            fit_all(trials, views=[tuple(dict.fromkeys((selected if want_auto else []) + list(add_makers)))])
+            fit_all(trials, views=[tuple(after_effects())])
 
         swaps = _second_look(selected, rounds, makers, fitted, fit_trials, prob, say, strongest,
                              check=lambda b, f: _check(rec, b, f, skip, checked))
@@ -1514,10 +1517,11 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
         later = {d.effect for d in dropped if d.round > len(rounds)}
         ranking += [c for c in rounds[-1] if c.effect not in selected and c.effect not in later]
     ranking += dropped
-    added = list(dict.fromkeys((selected if want_auto else []) + list(add_makers)))
+    added = after_effects()
     watching = False
-    fits = [nominal] + ([fitted(tuple(added))] if added else [])
-    views: list[Snapshot | None] = [side.get(k) for k in [(), tuple(sorted(added))][:len(fits)]]
+    shown = [()] + ([tuple(added)] if added else [])  # the before and after fits
+    fits = [fitted(k) for k in shown]
+    views: list[Snapshot | None] = [side.get(tuple(sorted(k))) for k in shown]
     left = [i for i, v in enumerate(views) if v is None]
     for i, ok, value, _ in fork_map(lambda k: _snapshot(rec, fits[k], window, alpha, skip, calibrated), left, jobs):
         if not ok:

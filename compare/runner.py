@@ -342,7 +342,7 @@ def _timed_call(fn: Callable[[Any], Any], item) -> tuple[bool, Any, float]:
         return False, err, time.perf_counter() - t0
 
 
-def _fork_task(_: int) -> tuple[int, bool, Any, float] | None:
+def _fork_task() -> tuple[int, bool, Any, float] | None:
     """In a worker: the next item of the innermost :func:`fork_map` no process has claimed yet
     (its shared counter), as (index, ok, the pickled result or the exception, seconds); None once
     every item is claimed.  A result that does not pickle comes back as None (computed again in
@@ -433,17 +433,17 @@ def fork_map(fn: Callable[[Any], Any], items: list, jobs: int | str = 1) -> Iter
         workers = min(jobs, len(items)) - 1
         with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
             # one request per item: a worker's request takes the next item left, or none
-            futures = [pool.submit(_fork_task, k) for k in range(len(items))]
-            passed: set[int] = set()
+            futures = [pool.submit(_fork_task) for _ in items]
+            pending = list(futures)
             try:
                 while (mine := claim(back=True)) is not None:
                     yield (mine, *_timed_call(fn, items[mine]))
-                    for k, future in enumerate(futures):
-                        if k not in passed and future.done():
-                            passed.add(k)
-                            if (got := received(future)) is not None:
-                                yield got
-                for future in as_completed([f for k, f in enumerate(futures) if k not in passed]):
+                    done = [f for f in pending if f.done()]
+                    pending = [f for f in pending if f not in done]
+                    for future in done:
+                        if (got := received(future)) is not None:
+                            yield got
+                for future in as_completed(pending):
                     if (got := received(future)) is not None:
                         yield got
             except BrokenProcessPool as err:
