@@ -392,6 +392,17 @@ def so3_jl(phi, inverse=False):
 
 
 @njit
+def so3_exp_jl_all(phi, E, Jl):
+    """``E[i] = exp(phi[i])`` and ``Jl[i] = J_l(phi[i])`` for (n, 3) rotation vectors, in one pass
+    (per row, :func:`so3_exp` and :func:`so3_jl` called from Python cost 2 us each: 16 ms a
+    linearisation of the IMU mounting on 4000 steps)."""
+    for i in range(phi.shape[0]):
+        p = ld3(phi[i], 0)
+        stm(E[i], 0, 0, exp_t(p))
+        stm(Jl[i], 0, 0, jl_t(p))
+
+
+@njit
 def so3_jl_inv(phi):
     return so3_jl(phi, True)
 

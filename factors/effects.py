@@ -325,7 +325,11 @@ class Effect(Protocol):
         leg kinematics at a touch-down and the ground plane).  An effect may name the families whose
         ``residual_terms`` it returns in ``acts_on`` (a tuple of ``newton_euler``, ``contact``,
         ``imu``, ``ft``): the Occam term's gradient then re-evaluates only those families and the
-        effect's own factors when it varies the effect's values (without it, every family).
+        effect's own factors when it varies the effect's values (without it, every family).  An
+        effect whose terms are its values on fixed rows (``dr_ds`` zero, ``dr_de`` the same at
+        every value) and that has no factors of its own may say so with ``additive = True`` (the
+        IMU biases, the F/T offsets): the Occam term's gradient then skips its columns wherever
+        no robust weight can move with them.
 
         For the diagnostics (all optional): ``plausible(report, problem=None) -> str | None``, the
         reason an estimate (this method's dict) is physically implausible (a stiffness a twentieth
@@ -461,6 +465,8 @@ class _Constant:
 class _ImuBias(_Constant):
     acts_on = ("imu",)
     """The residual families its values enter (see :meth:`Effect.report`)."""
+    additive = True
+    """Its term is its value on fixed rows (see :meth:`Effect.report`)."""
     rows = slice(0, 3)
     sensor = 0
 
@@ -568,9 +574,9 @@ def _exp_jl(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``exp(phi)`` and the left Jacobian ``J_l(phi)`` for (n, 3) rotation vectors."""
     from flexforce.factors import core
 
-    phi = np.ascontiguousarray(phi, dtype=float)
-    E = np.array([core.so3_exp(p) for p in phi]).reshape(-1, 3, 3)
-    Jl = np.array([core.so3_jl(p) for p in phi]).reshape(-1, 3, 3)
+    phi = np.ascontiguousarray(np.reshape(phi, (-1, 3)), dtype=float)
+    E, Jl = np.empty((len(phi), 3, 3)), np.empty((len(phi), 3, 3))
+    core.so3_exp_jl_all(phi, E, Jl)
     return E, Jl
 
 
@@ -1380,6 +1386,8 @@ class FtOffset(_Constant):
     """
     acts_on = ("ft",)
     """The residual families its values enter (see :meth:`Effect.report`)."""
+    additive = True
+    """Its term is its value on fixed rows (see :meth:`Effect.report`)."""
 
     name = "ft-offset"
     unit = "N, N m"

@@ -295,9 +295,50 @@ def test_occam_gradient_evaluates_only_the_families_a_parameter_enters(null_sway
     traj = _huber_active(prob, initial_trajectory(prob))
     cidx = np.asarray(global_columns(prob), dtype=int)
     groups = evidence._varied_groups(prob)
-    assert groups[0] == frozenset({"imu", "effects"}) and groups[-1] == frozenset({"newton_euler", "effects"})
+    assert groups[0] == frozenset({"imu"}) and groups[-1] == frozenset({"newton_euler"})
     grad = evidence.occam_gradient(prob, traj, cidx)
     monkeypatch.setattr(evidence, "_varied_groups", lambda p: [None] * sum(p.effect_dims))
     every = evidence.occam_gradient(prob, traj, cidx)
     np.testing.assert_allclose(grad, every, rtol=1e-12, atol=1e-14)
     assert np.count_nonzero(every) >= 3
+
+
+def test_occam_gradient_skips_an_additive_bias_only_where_no_weight_can_move(null_sway, monkeypatch):
+    """An IMU bias (``additive``) moves no Jacobian while every IMU sample keeps its full robust
+    weight short of the threshold: its columns are skipped, and the gradient is the one formed with
+    the differences for every column (the same numbers; the biases' are 0, the stiffness's not).
+    With accelerometer samples in the log-tail loss's tail their weights move with the bias: no
+    column is skipped, and the accelerometer bias's gradient is not 0."""
+    from flexforce.smoother import evidence
+
+    rec = null_sway.slice(0, 120)
+    model = ModelConfig.from_recording(rec)
+    effects = (make_effect("accel-bias"), make_effect("gyro-bias"), make_effect("stiffness"))
+    prob = Problem.build(rec, dataclasses.replace(model, effects=effects))
+    assert prob.sigmas.imu_robust == "log-tail"
+    traj = initial_trajectory(prob)
+    cidx = np.asarray(global_columns(prob), dtype=int)
+    real = evidence._jacobians_held
+    held: list[bool] = []
+
+    def spy(*args):
+        held.append(real(*args))
+        return held[-1]
+
+    monkeypatch.setattr(evidence, "_jacobians_held", spy)
+    grad = evidence.occam_gradient(prob, traj, cidx)
+    assert held == [True] * 6 + [False] * 2
+    monkeypatch.setattr(evidence, "_jacobians_held", lambda *args: False)
+    every = evidence.occam_gradient(prob, traj, cidx)
+    np.testing.assert_array_equal(grad, every)
+    assert np.all(every[:6] == 0.0) and np.all(every[6:] != 0.0)
+
+    q = traj.q.copy()
+    q[40:45, 12:15] += 50.0  # the accelerations of five steps 50 m/s^2 off: far in the tail
+    tail = type(traj)(traj.R, q, traj.W, traj.e)
+    assert np.any(linearize(prob, tail).weights["imu"][:, 1] < 1.0)
+    held.clear()
+    monkeypatch.setattr(evidence, "_jacobians_held", spy)
+    moved = evidence.occam_gradient(prob, tail, cidx)
+    assert held == [False] * 8
+    assert np.all(moved[:3] != 0.0)
