@@ -342,3 +342,41 @@ def test_occam_gradient_skips_an_additive_bias_only_where_no_weight_can_move(nul
     moved = evidence.occam_gradient(prob, tail, cidx)
     assert held == [False] * 8
     assert np.all(moved[:3] != 0.0)
+
+
+def test_an_effects_level_and_walk_rows_are_formed_once_and_follow_the_window(null_sway):
+    """An effect's prior level and random-walk rows have the same Jacobians at every point: the
+    second linearisation of a problem shares the first one's arrays (its residuals are its own),
+    equal to those of a problem formed afresh; a window of steps further on (the fixed-lag
+    smoother's ``k0``) gets rows of its own length with the walk's sigma of its steps."""
+    from flexforce.smoother.linearize import Trajectory, walk_sigma
+
+    rec = null_sway.slice(0, 60)
+    model = dataclasses.replace(ModelConfig.from_recording(rec),
+                                effects=(make_effect("external-wrench"), make_effect("gyro-bias")))
+    prob = Problem.build(rec, model)
+    traj = initial_trajectory(prob)
+    first = linearize(prob, traj)
+    moved = Trajectory(traj.R, traj.q, traj.W, traj.e + 0.01)
+    second = linearize(prob, moved)
+    fresh = linearize(Problem.build(rec, model), moved)
+    for key in ("effect_walk/external-wrench", "effect_walk/gyro-bias"):
+        assert second.binary[key][1] is first.binary[key][1] and second.binary[key][2] is first.binary[key][2]
+        for a, b in zip(second.binary[key], fresh.binary[key]):
+            np.testing.assert_array_equal(a, b)
+    key = "effect_level/external-wrench"
+    assert second.unary[key][1] is first.unary[key][1]
+    for a, b in zip(second.unary[key], fresh.unary[key]):
+        np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(second.unary[key][0], first.unary[key][0])
+
+    k0, m = 20, 15
+    part = Trajectory(traj.R[k0:k0 + m], traj.q[k0:k0 + m], traj.W[k0:k0 + m], traj.e[k0:k0 + m])
+    window = linearize(prob, part, k0=k0)
+    eff = prob.effects[0]
+    r, J0, J1 = window.binary["effect_walk/external-wrench"]
+    assert J0.shape[0] == m - 1 and window.unary[key][1].shape[0] == m
+    cols = slice(prob.state_dim - prob.effect_dim, prob.state_dim - prob.effect_dim + eff.dim)
+    rw = walk_sigma(eff, prob)[k0:k0 + m - 1]
+    np.testing.assert_array_equal(J1[:, :, cols], np.eye(eff.dim)[None] / rw[:, :, None])
+    assert linearize(prob, traj).binary["effect_walk/external-wrench"][1].shape[0] == prob.n - 1
