@@ -7,6 +7,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from conftest import occam_gradient_skips
 
 from flexforce.datasets.scenario import Scenario
 from flexforce.datasets.simulator import Simulator
@@ -309,27 +310,14 @@ def test_occam_gradient_skips_an_additive_bias_only_where_no_weight_can_move(nul
     the differences for every column (the same numbers; the biases' are 0, the stiffness's not).
     With accelerometer samples in the log-tail loss's tail their weights move with the bias: no
     column is skipped, and the accelerometer bias's gradient is not 0."""
-    from flexforce.smoother import evidence
-
     rec = null_sway.slice(0, 120)
     model = ModelConfig.from_recording(rec)
     effects = (make_effect("accel-bias"), make_effect("gyro-bias"), make_effect("stiffness"))
     prob = Problem.build(rec, dataclasses.replace(model, effects=effects))
     assert prob.sigmas.imu_robust == "log-tail"
     traj = initial_trajectory(prob)
-    cidx = np.asarray(global_columns(prob), dtype=int)
-    real = evidence._jacobians_held
-    held: list[bool] = []
-
-    def spy(*args):
-        held.append(real(*args))
-        return held[-1]
-
-    monkeypatch.setattr(evidence, "_jacobians_held", spy)
-    grad = evidence.occam_gradient(prob, traj, cidx)
+    held, grad, every = occam_gradient_skips(prob, traj, monkeypatch)
     assert held == [True] * 6 + [False] * 2
-    monkeypatch.setattr(evidence, "_jacobians_held", lambda *args: False)
-    every = evidence.occam_gradient(prob, traj, cidx)
     np.testing.assert_array_equal(grad, every)
     assert np.all(every[:6] == 0.0) and np.all(every[6:] != 0.0)
 
@@ -337,9 +325,7 @@ def test_occam_gradient_skips_an_additive_bias_only_where_no_weight_can_move(nul
     q[40:45, 12:15] += 50.0  # the accelerations of five steps 50 m/s^2 off: far in the tail
     tail = type(traj)(traj.R, q, traj.W, traj.e)
     assert np.any(linearize(prob, tail).weights["imu"][:, 1] < 1.0)
-    held.clear()
-    monkeypatch.setattr(evidence, "_jacobians_held", spy)
-    moved = evidence.occam_gradient(prob, tail, cidx)
+    held, moved, _ = occam_gradient_skips(prob, tail, monkeypatch)
     assert held == [False] * 8
     assert np.all(moved[:3] != 0.0)
 

@@ -14,6 +14,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from conftest import occam_gradient_skips
 
 from flexforce.compare.diagnose import diagnose
 from flexforce.datasets.scenario import Scenario
@@ -222,20 +223,11 @@ def test_occam_gradient_skips_the_offsets_only_as_the_differences_would(monkeypa
     """The F/T offsets are ``additive``: with the F/T fused and no reading in the robust loss's
     tail their columns are skipped, and the Occam gradient is the one the differences give for
     every column (the same numbers: 0 for the offsets, not for the stiffness)."""
-    from flexforce.smoother import evidence
     from flexforce.smoother.batch import initial_trajectory
-    from flexforce.smoother.linearize import global_columns
 
     rec = simulate([]).slice(0, 100)
     prob = Problem.build(rec, with_ft(rec, make_effect("ft-offset"), make_effect("stiffness")))
-    traj = initial_trajectory(prob)
-    cidx = np.asarray(global_columns(prob), dtype=int)
-    real = evidence._jacobians_held
-    held: list[bool] = []
-    monkeypatch.setattr(evidence, "_jacobians_held", lambda *a: held.append(real(*a)) or held[-1])
-    grad = evidence.occam_gradient(prob, traj, cidx)
+    held, grad, every = occam_gradient_skips(prob, initial_trajectory(prob), monkeypatch)
     assert held == [True] * 12 + [False] * 2
-    monkeypatch.setattr(evidence, "_jacobians_held", lambda *a: False)
-    every = evidence.occam_gradient(prob, traj, cidx)
     np.testing.assert_array_equal(grad, every)
     assert np.all(every[:12] == 0.0) and np.all(every[12:] != 0.0)
