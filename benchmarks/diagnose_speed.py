@@ -91,7 +91,7 @@ def run_case(case: str, duration: float, jobs: int = 1) -> dict:
 
 
 def machine_reference(repeats: int = 3) -> dict:
-    """What the machine is, and how fast it runs a fixed single-threaded workload (best of
+    """What the machine is, and how fast it runs a fixed workload (best of
     ``repeats``): dense Cholesky factorisations and solves (the smoother's kind of linear algebra)
     and a pure-Python loop.  Runs of this benchmark on different machines, or on one machine on
     different days, compare through it: the same code on the same recording took 79.4 s on one
