@@ -301,10 +301,7 @@ class Effect(Protocol):
             None when the effect does not touch ``family``, else ``(dr, dr_ds, dr_de)`` with
             shapes (n, 6), (n, 6, 18) and (n, 6, dim) (``contact``: (n, C, 6), (n, C, 6, 18) and
             (n, C, 6, dim)): the term and its Jacobians with respect to the core state
-            (world-frame increments) and to ``e``.  On ``newton_euler`` and ``imu``, ``dr_ds``
-            may be (n, 6, 18 + 6 C): the core state's columns, then the contact wrenches'
-            (:class:`TimeOffset`, which reads ``W``).  ``W`` is None where a backend carries no
-            wrenches (the GTSAM graph's IMU factor).
+            (world-frame increments) and to ``e``.
         """
 
     def report(self, values: np.ndarray, cov: np.ndarray | None) -> dict:
@@ -690,36 +687,28 @@ def _propagate(R, q, h):
     return Rp, np.ascontiguousarray(qp), P
 
 
-def _dynamics(problem: ProblemView, steps, R, q, Wc) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The forward dynamics (eq. 24, 25) under the total contact wrench ``Wc`` (n, 6), with the
-    recording's inputs at ``steps``: the accelerations ``(dw, a)`` (n, 6), their Jacobians on the
-    pose and velocities (n, 6, 12) and on ``Wc`` (n, 6, 6), and (n,) False where the acceleration
-    block is singular (zeros there)."""
-    from flexforce.factors import core
-
-    steps = np.asarray(steps)
-    n = len(steps)
-    cc = np.ascontiguousarray
-    acc, Jx, Jw = np.empty((n, 6)), np.empty((n, 6, 12)), np.empty((n, 6, 6))
-    ok = np.empty(n, dtype=bool)
-    core.forward_dynamics_all(cc(R, dtype=float), cc(q, dtype=float), cc(Wc, dtype=float), float(problem.rec.mass),
-                              cc(problem.com[steps], dtype=float), cc(problem.com_vel[steps], dtype=float),
-                              cc(problem.com_acc[steps], dtype=float), cc(problem.inertia[steps], dtype=float),
-                              cc(problem.inertia_dot[steps], dtype=float), cc(problem.sigma_l[steps], dtype=float),
-                              cc(problem.sigma_dot[steps], dtype=float), float(problem.g), acc, Jx, Jw, ok)
-    return acc, Jx, Jw, ok
-
-
 def _model_acceleration(problem: ProblemView, steps, R, q) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The accelerations ``(dw, a)`` (n, 6) the nominal model gives the states: the forward dynamics
     (eq. 24, 25) under the contacts' spring-damper wrench (eq. 6-12) at each state, with the
     recording's inputs at ``steps``; and their Jacobian on the state (n, 6, 18) (through the pose
     and velocities only); and (n,) False where the acceleration block is singular (zeros there)."""
-    R = np.ascontiguousarray(R, dtype=float)
-    q = np.ascontiguousarray(q, dtype=float)
+    from flexforce.factors import core
+
+    steps = np.asarray(steps)
+    n = len(steps)
+    cc = np.ascontiguousarray
+    R = cc(R, dtype=float)
+    q = cc(q, dtype=float)
     f, df = problem.contact_law_terms(steps, R, q, problem.K_fs, problem.K_fd, problem.K_ts, problem.K_td)
-    acc, Jx, Jw, ok = _dynamics(problem, steps, R, q, f.sum(axis=1))
-    J = Jw @ df.sum(axis=1)
+    Wc, dWc = cc(f.sum(axis=1)), df.sum(axis=1)
+    acc, Jx, Jw = np.empty((n, 6)), np.empty((n, 6, 12)), np.empty((n, 6, 6))
+    ok = np.empty(n, dtype=bool)
+    core.forward_dynamics_all(R, q, Wc, float(problem.rec.mass), cc(problem.com[steps], dtype=float),
+                              cc(problem.com_vel[steps], dtype=float), cc(problem.com_acc[steps], dtype=float),
+                              cc(problem.inertia[steps], dtype=float), cc(problem.inertia_dot[steps], dtype=float),
+                              cc(problem.sigma_l[steps], dtype=float), cc(problem.sigma_dot[steps], dtype=float),
+                              float(problem.g), acc, Jx, Jw, ok)
+    J = Jw @ dWc
     J[:, :, :12] += Jx
     return acc, J, ok
 
@@ -737,28 +726,19 @@ class TimeOffset(_Constant):
     ``in_k+-1`` are the recording's IMU placement and motion at the neighbouring samples (the
     robot's own motion, from the encoders) and ``s+-`` the step's pose and velocities carried
     ``+-dt`` on (:func:`_propagate`) with the accelerations the model gives them there,
-    ``A(s+-, in_k+-1)`` (:func:`_dynamics`: the forward dynamics under the contact wrench), the
-    carrying itself at the model's accelerations ``A(s, in_k)``.  The contact wrench at the step is
-    the state's own ``W`` (which the contact family ties to the law with every effect on it: the
-    footholds' corrected rest placements, a scaled stiffness); at a neighbour it is ``W`` moved by
-    the law's change from ``s`` to ``s+-`` for a contact active at both, the law's own for one that
-    touches down there, nothing for one that lifts off.  (With the law's wrench throughout, as
-    before, a walk fitted with its footholds had an accelerometer rate of 381 m/s^3 median against
-    24 in the readings: the law at the uncorrected rest placements, 18-20 mm off.)  Where the
-    wrenches are not given (``W`` None: the GTSAM graph's IMU factor carries none) the law's wrench is used at
-    the step and its neighbours (:func:`_model_acceleration`).  So the flexibility's
+    ``A(s+-, in_k+-1)`` (:func:`_model_acceleration`: the forward dynamics under the spring-damper
+    wrench), the carrying itself at the model's accelerations ``A(s, in_k)``.  So the flexibility's
     jerk is the model's (``d/dt`` of ``K x + D v`` is ``K v + D a``: the accelerometer sees it,
     one step's state does not hold it), and the state's own accelerations are not read: they also
     hold what the model does not (a world that shakes, unmodelled forces, noise), fast content
     whose reading ``tau`` earlier a first-order shift cannot follow (``omega tau`` near 1 and
     beyond): regressed on it, the delay came out biased towards zero.  Exact for the robot's own
     motion up to the difference's ``O(dt^2)``, and for the flexibility's motion up to what the
-    contact wrenches and dynamics miss of it (an external wrench is not in ``A``).  Jacobians:
-    ``dr/dtau = -dy/dt``, ``dr/ds = -tau (dy/ds(s+) D+ - dy/ds(s-) D-) / (2 dt)``, ``D+- = P'+- S
-    + L+-``: ``S`` the state with its accelerations replaced by ``A(s)`` (``dA/ds`` in their rows),
-    ``P'`` the propagation's Jacobian with ``dA(s+-)/ds+- P`` in the accelerations' rows, ``L+-``
-    the law's change's direct dependence on ``s``; on the wrenches the same through ``dA/dW``
-    (``dr_ds`` then has 18 + 6 C columns, the contact wrenches' after the core state's).
+    nominal contact law and dynamics miss of it (effects in the model, an external wrench, are not
+    in ``A``).  Jacobians: ``dr/dtau = -dy/dt``, ``dr/ds = -tau (dy/ds(s+) D+ - dy/ds(s-) D-) /
+    (2 dt)``, ``D+- = P'+- S``: ``S`` the state with its accelerations replaced by ``A(s)``
+    (``dA/ds`` in their rows), ``P'`` the propagation's Jacobian with ``dA(s+-)/ds+- P`` in the
+    accelerations' rows.
 
     The neglected second order is ``tau^2 / 2 d^2y/dt^2``: relative to the first-order term
     ``tau omega / 2`` at a frequency ``omega``, 6 % for 20 ms at 1 Hz.
@@ -791,11 +771,8 @@ class TimeOffset(_Constant):
         return (f"IMU time offset of {_fmt(float(v[0]))} s is beyond {_fmt(self.max_offset)} s: the first-order "
                 f"model does not hold so far; resynchronise the logs")
 
-    def rate(self, problem: ProblemView, steps, R, q, W=None) -> tuple[np.ndarray, np.ndarray]:
-        """``dy/dt`` (n, 6) of the IMU prediction and its Jacobian (class documentation): (n, 6, 18)
-        on the core state with ``W`` None (the contact law's wrench throughout), (n, 6, 18 + 6 C)
-        on the core state and the contact wrenches with ``W`` (n, C, 6) (the state's wrenches at
-        the step, the law giving only their change over a sample)."""
+    def rate(self, problem: ProblemView, steps, R, q) -> tuple[np.ndarray, np.ndarray]:
+        """``dy/dt`` (n, 6) of the IMU prediction and its Jacobian (n, 6, 18) (class documentation)."""
         steps = np.asarray(steps)
         n = len(steps)
         N = len(problem.imu_p)
@@ -804,55 +781,6 @@ class TimeOffset(_Constant):
         hp = (kp - steps) * float(problem.dt)
         hm = (km - steps) * float(problem.dt)
         span = np.where(hp - hm > 0, hp - hm, 1.0)
-        if W is None:
-            return self._rate_law(problem, steps, R, q, kp, km, hp, hm, span)
-        R = np.ascontiguousarray(R, dtype=float)
-        q = np.ascontiguousarray(q, dtype=float)
-        W = np.asarray(W, dtype=float)
-        nc = int(problem.nc)
-        act = np.asarray(problem.active, dtype=bool)
-        on = act[steps].astype(float)  # (n, C)
-        # the step's accelerations under its own contact wrenches (those the contact family ties to
-        # the law with every effect on it: corrected footholds, a scaled stiffness)
-        A0, Jx0, Jw0, ok0 = _dynamics(problem, steps, R, q, np.einsum("nc,nci->ni", on, W))
-        qm = np.array(q, dtype=float)
-        qm[ok0, 9:15] = A0[ok0]
-        S = np.broadcast_to(np.eye(18), (n, 18, 18)).copy()
-        S[ok0, 12:18, :12] = Jx0[ok0]
-        S[ok0, 12:18, 12:] = 0.0
-        SW4 = np.zeros((n, 18, nc, 6))
-        SW4[:, 12:18] = np.einsum("nij,nc->nicj", Jw0, on) * ok0[:, None, None, None]
-        SW = SW4.reshape(n, 18, 6 * nc)
-        side = []
-        for k1, h in ((kp, hp), (km, hm)):
-            R1, q1, P = _propagate(R, qm, h)
-            # the neighbour's wrench: the step's, for the contacts active at both, moved by the
-            # law's change from the step's state to the neighbour's; the law's own for a contact
-            # that touches down there; none for one that lifts off
-            f1, df1 = problem.contact_law_terms(k1, R1, q1, problem.K_fs, problem.K_fd, problem.K_ts, problem.K_td)
-            f0, df0 = problem.contact_law_terms(k1, R, q, problem.K_fs, problem.K_fd, problem.K_ts, problem.K_td)
-            both = on * act[k1]  # (n, C)
-            Wc1 = np.einsum("nc,nci->ni", both, W - f0) + f1.sum(axis=1)
-            A1, Jx1, Jw1, ok1 = _dynamics(problem, k1, R1, q1, Wc1)
-            use = ok0 & ok1
-            q1[use, 9:15] = A1[use]
-            JA1 = Jw1 @ df1.sum(axis=1)
-            JA1[:, :, :12] += Jx1
-            P[use, 12:18, :] = JA1[use] @ P[use]
-            D = np.zeros((n, 18, 18))
-            D[use, 12:18] = -Jw1[use] @ np.einsum("nc,ncij->nij", both, df0)[use]
-            DW = np.zeros((n, 18, nc, 6))
-            DW[use, 12:18] = np.einsum("nij,nc->nicj", Jw1, both)[use]
-            y, Jy = _imu_prediction(problem, k1, R1, q1)
-            Js = Jy @ (P @ S + D)
-            Jw = Jy @ (P @ SW + DW.reshape(n, 18, 6 * nc))
-            side.append((y, np.concatenate([Js, Jw], axis=2)))
-        (yp, Jp), (ym, Jm) = side
-        return (yp - ym) / span[:, None], (Jp - Jm) / span[:, None, None]
-
-    def _rate_law(self, problem, steps, R, q, kp, km, hp, hm, span):
-        """The rate with the contact law's wrench at the step and its neighbours (``W`` None)."""
-        n = len(steps)
         # the model's own motion through the step's pose and velocities: its accelerations in place
         # of the state's (where the model has none -- a massless model -- the state's are kept)
         A0, JA0, ok0 = _model_acceleration(problem, steps, R, q)
@@ -875,7 +803,7 @@ class TimeOffset(_Constant):
     def residual_terms(self, family, problem: ProblemView, steps, R, q, W, e):
         if family != "imu":
             return None
-        ydot, J = self.rate(problem, steps, R, q, W)
+        ydot, J = self.rate(problem, steps, R, q)
         tau = np.asarray(e, dtype=float)[:, 0]
         return -tau[:, None] * ydot, -tau[:, None, None] * J, -ydot[:, :, None]
 

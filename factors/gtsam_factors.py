@@ -76,7 +76,7 @@ class EffectTerms:
         self.k = int(k)
         self.effects = list(effects)
         self.steps = np.array([self.k])
-        self.W = np.zeros((1, int(nc), 6))  # the Newton-Euler and contact factors' wrenches, set per error
+        self.W = np.zeros((1, int(nc), 6))
 
     def keys(self) -> list[int]:
         return [E(self.k, j) for j, _ in self.effects]
@@ -86,11 +86,9 @@ class EffectTerms:
         Jacobians with respect to the effects' keys, in order."""
         out = []
         Rn, qn = R[None], q[None]
-        # the IMU factor carries no contact wrenches: an effect that reads them falls back (None)
-        W = None if family == "imu" else self.W
         for j, eff in self.effects:
             ev = np.asarray(values.atVector(E(self.k, j)), dtype=float)[None]
-            terms = eff.residual_terms(family, self.problem, self.steps, Rn, qn, W, ev)
+            terms = eff.residual_terms(family, self.problem, self.steps, Rn, qn, self.W, ev)
             if terms is None:  # not this family at this step: no term, zero Jacobian
                 out.append(np.zeros((6, ev.shape[1])))
                 continue

@@ -203,8 +203,7 @@ def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True,
                 continue
             dr, dr_ds, dr_de = terms
             r += dr
-            # on the core state, or on it and the contact wrenches, whose columns follow it
-            J[:, :, :dr_ds.shape[-1]] += dr_ds
+            J[:, :, :S] += dr_ds
             J[:, :, cols] += dr_de
 
     if want("newton_euler"):
