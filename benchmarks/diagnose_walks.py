@@ -28,7 +28,10 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-KEYS = ("force_N", "cop_m", "rotation_rad")
+sys.path.insert(0, str(HERE))
+
+from diagnose_confusion import KEYS  # type: ignore[import-not-found]  # noqa: E402
+
 CASES = {
     "none": None,
     "time-offset": {"type": "time-offset", "delay": 0.015},
@@ -112,8 +115,9 @@ def main(argv=None) -> dict:
             runs.append(r)
     result = {"benchmark": "diagnose_walks", "runs": runs, "machine": {"python": platform.python_version()}}
     Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
-    Path(args.out).with_suffix(".md").write_text(markdown(runs))
-    print(markdown(runs))
+    table = markdown(runs)
+    Path(args.out).with_suffix(".md").write_text(table)
+    print(table)
     return result
 
 
