@@ -1097,16 +1097,19 @@ def _strength(test) -> float:
     return float(stats.chi2.logsf(max(test.statistic, 0.0), max(test.dof, 1e-6)))
 
 
-def _refit_choice(remaining: list[str], tests: dict, ident, best: int | None) -> list[str]:
+def _refit_choice(remaining: list[str], tests: dict, ident, best: int | None,
+                  understated: Iterable[str] = ()) -> list[str]:
     """The candidates of ``remaining`` a round refits: the ``best`` strongest constant candidates
     by their latest score test, every per-step one (its windowed test, one window at a time at a
     Bonferroni level, is no measure of the whole effect: on the iCub sway the external wrench's
     T = 216 on 5.7 dof was the weakest, its refit the round's best, 5185), every one whose test
-    failed (the refit decides), and every one the identifiability table cannot tell apart from a
-    chosen one (the refit must choose between them, not the screening); all of them when
-    ``best`` is None."""
+    failed (the refit decides), every one of ``understated`` (effects whose ``score_understates``:
+    the slope at zero is no measure of a delay), and every one the identifiability table cannot
+    tell apart from a chosen one (the refit must choose between them, not the screening); all of
+    them when ``best`` is None."""
+    understated = set(understated)
     failed = [k for k in remaining if isinstance(tests.get(k), str) or tests.get(k) is None
-              or getattr(tests[k], "kind", "constant") == "windowed"]
+              or getattr(tests[k], "kind", "constant") == "windowed" or k in understated]
     ranked = sorted((k for k in remaining if k not in failed), key=lambda k: _strength(tests[k]))
     if best is None or len(ranked) <= best:
         return list(remaining)
@@ -1116,6 +1119,14 @@ def _refit_choice(remaining: list[str], tests: dict, ident, best: int | None) ->
             if any((p := ident.pair(k, c)) is not None and p.inseparable for c in list(chosen)):
                 chosen.append(k)
     return [k for k in remaining if k in chosen]
+
+
+def _score_understates(make: Callable[[], object]) -> bool:
+    """Whether the effect ``make`` builds says its score test understates it (``score_understates``)."""
+    try:
+        return bool(getattr(make(), "score_understates", False))
+    except Exception:  # noqa: BLE001 - a plugin that cannot be built fails where it is fitted, with its reason
+        return False
 
 
 def _takes_two(fn) -> bool:
@@ -1330,6 +1341,7 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
         prob = Problem.build(rec, nominal.model, NoiseRule())
     if rank:
         remaining = list(cands)
+        understated = [k for k in cands if _score_understates(cands[k])]
         early: tuple | None = None
         if screen_level is not None and cands:
             t0 = time.perf_counter()
@@ -1420,7 +1432,8 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
             # Holm: the round's tests at alpha / m, m every candidate not selected yet (those the
             # screening dropped were tested too)
             m = len(cands) - len(selected)
-            this_round = _refit_choice(remaining, latest, ident, refit_best if screen_level is not None else None)
+            this_round = _refit_choice(remaining, latest, ident, refit_best if screen_level is not None else None,
+                                       understated)
             round_base = tuple(selected)
             fit_all([round_base + (name,) for name in this_round])
             row = []

@@ -783,19 +783,6 @@ def newton_euler_all(Rs, Q, Wsum, m, c, dc, ddc, I, dI, sig, dsig, g, r, J):
 
 
 @njit
-def forward_dynamics_all(Rs, Q, Wc, m, c, dc, ddc, I, dI, sig, dsig, g, acc, Jx, Jw, ok):
-    """:func:`forward_dynamics` per step; ``ok[k]`` False (and ``acc[k]``, ``Jx[k]``, ``Jw[k]`` zero)
-    where its acceleration block is singular."""
-    for k in range(Rs.shape[0]):
-        ok[k] = forward_dynamics(Rs[k], Q[k], Wc[k], m, c[k], dc[k], ddc[k], I[k], dI[k], sig[k], dsig[k], g,
-                                 acc[k], Jx[k], Jw[k])
-        if not ok[k]:
-            acc[k, :] = 0.0
-            Jx[k, :, :] = 0.0
-            Jw[k, :, :] = 0.0
-
-
-@njit
 def contact_all(Rs, Q, W, active, P, PR, Pr, RR, Kfs, Kfd, Kts, Ktd, beta, iso, r, J, Jr):
     """Per step and contact (rest placements ``Pr``, ``RR`` in the world); an inactive contact gets
     ``r = -W`` (its wrench held at zero), ``J = 0``.  ``Jr`` (N, C, 6, 6), or with no rows to skip."""

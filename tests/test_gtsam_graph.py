@@ -71,9 +71,11 @@ def _perturbed_values(builder, rng, k0, k1):
 @pytest.mark.parametrize("k", [0, 7])
 def test_factor_jacobians_with_every_effect(rec, model, k):
     """Every factor of step k (families with the effects' terms, the effects' priors, walks and
-    own factors) against numerical derivatives, at a perturbed state."""
+    own factors) against numerical derivatives, at a perturbed state.  The time offset's
+    derivative is the rate of the readings' signal, not of their shifted noise: it is checked on
+    noise-free readings (below)."""
     short = rec.slice(0, 12)
-    effects = tuple(make_effect(name) for name in EFFECTS)
+    effects = tuple(make_effect(name) for name in EFFECTS if name != "time-offset")
     m, rest_p, rest_R = with_footholds(short, dataclasses.replace(model, effects=effects))
     # Gaussian Newton-Euler noise: a Huber weight depends on the state, so the derivative of the
     # reweighted residual is not the reweighted Jacobian (gtsam's robust linearisation)
@@ -85,6 +87,24 @@ def test_factor_jacobians_with_every_effect(rec, model, k):
     own = [f for f in factors if isinstance(f, gtsam.CustomFactor)
            and any(gtsam.Symbol(key).chr() == ord("e") for key in f.keys())]
     assert len(own) >= 4  # Newton-Euler, IMU, two contacts (+ footholds' own at k = 0)
+    for f in factors:
+        check_factor_jacobians(f, values)
+
+
+@pytest.mark.parametrize("k", [0, 7])
+def test_factor_jacobians_with_the_time_offset(k):
+    """The IMU factor with the time offset's term (an exact delay of the readings) against
+    numerical derivatives, on noise-free readings (where the signal is the readings)."""
+    sc = Scenario.load("push-pitch")
+    sc.duration = 0.3
+    sc.imu_noise = {"gyro_bias_rw": 0.0, "accel_bias_rw": 0.0}
+    short = Simulator(sc, noise=False).run().slice(0, 12)
+    m = dataclasses.replace(ModelConfig.from_recording(short), effects=(make_effect("time-offset"),))
+    builder = GraphBuilder(Problem.build(short, m, NoiseRule(robust_k=None)))
+    values = _perturbed_values(builder, np.random.default_rng(k), max(k - 1, 0), k + 1)
+    factors = builder.step_factors(k)
+    assert any(isinstance(f, gtsam.CustomFactor) and any(gtsam.Symbol(key).chr() == ord("e") for key in f.keys())
+               for f in factors)
     for f in factors:
         check_factor_jacobians(f, values)
 
