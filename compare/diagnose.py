@@ -1104,9 +1104,9 @@ def _refit_choice(remaining: list[str], tests: dict, ident, best: int | None,
     Bonferroni level, is no measure of the whole effect: on the iCub sway the external wrench's
     T = 216 on 5.7 dof was the weakest, its refit the round's best, 5185), every one whose test
     failed (the refit decides), every one of ``understated`` (effects whose ``score_understates``:
-    the slope at zero is no measure of a delay), and every one the identifiability table cannot
-    tell apart from a chosen one (the refit must choose between them, not the screening); all of
-    them when ``best`` is None."""
+    the slope at zero is no measure of a delay; refitted whatever their test), and every one the
+    identifiability table cannot tell apart from a chosen one (the refit must choose between them,
+    not the screening); all of them when ``best`` is None."""
     understated = set(understated)
     failed = [k for k in remaining if isinstance(tests.get(k), str) or tests.get(k) is None
               or getattr(tests[k], "kind", "constant") == "windowed" or k in understated]
@@ -1374,11 +1374,12 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                         and not ident.candidates[k].seen:
                     screened[k] = ident.candidates[k].unexcited()
             order = sorted(tests, key=lambda k: (tests[k].p_value, -tests[k].statistic))
-            # a failed test is refitted (the refit decides); passing ones first, most significant first
-            remaining = [k for k in order if tests[k].p_value < screen_level] + \
+            # a failed test is refitted (the refit decides); passing ones first, most significant
+            # first; an effect whose test understates it (a delay) is refitted whatever its test
+            remaining = [k for k in order if tests[k].p_value < screen_level or k in understated] + \
                 [k for k, v in screened.items() if isinstance(v, str)]
             for k in order:
-                if tests[k].p_value >= screen_level:
+                if tests[k].p_value >= screen_level and k not in understated:
                     dropped.append(Candidate(k, (), 1, None, None, None, None, False, screen=tests[k], refitted=False,
                                              screen_level=screen_level))
         latest: dict[str, ScoreTest | str] = dict(screened)
@@ -1415,7 +1416,7 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                                progress=cb_message("screening at + " + " + ".join(selected)),
                                problem=Problem.build(rec, base.model, NoiseRule()), jobs=jobs)
                 for k, v in again.items():
-                    if not isinstance(v, str) and v.p_value >= screen_level:
+                    if not isinstance(v, str) and v.p_value >= screen_level and k not in understated:
                         remaining.remove(k)
                         dropped.append(Candidate(k, tuple(selected), len(rounds) + 1, None, None, None, None, False,
                                                  screen=v, refitted=False, screen_level=screen_level))

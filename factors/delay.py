@@ -59,6 +59,33 @@ def noise_sigma(y: np.ndarray) -> np.ndarray:
     return 1.4826 * mad / math.sqrt(20.0)
 
 
+TRANSIENT_S = 0.02
+"""Window (s, at least 3 samples) over which the readings' part outside their bands above the
+noise is tested for a transient: its mean square against the noise's, at the level
+:data:`TRANSIENT_ALPHA` over the series' windows."""
+TRANSIENT_ALPHA = 0.01
+TRANSIENT_REACH = 0.06
+"""Seconds on each side of a transient over which that part is shifted too: beyond the largest
+plausible delay (50 ms) and the window."""
+
+
+def transients(rest: np.ndarray, sigma: np.ndarray, dt: float) -> np.ndarray:
+    """(N, m) 1.0 within :data:`TRANSIENT_REACH` of a transient of ``rest`` (the readings outside
+    their bands above the noise: white noise of ``sigma`` where nothing happens, an impact's
+    broadband content where one does), else 0.0."""
+    from scipy.ndimage import maximum_filter1d, uniform_filter1d
+    from scipy.stats import chi2
+
+    n = len(rest)
+    L = max(3, int(round(TRANSIENT_S / dt)))
+    level = TRANSIENT_ALPHA * L / max(n, L)  # Bonferroni over the series' windows
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z2 = np.where(sigma > 0, (rest / np.where(sigma > 0, sigma, 1.0)) ** 2, 0.0)
+    hit = uniform_filter1d(z2, size=L, axis=0, mode="nearest") > chi2.isf(level, L) / L
+    reach = 2 * int(np.ceil(TRANSIENT_REACH / dt)) + L
+    return maximum_filter1d(hit.astype(float), size=reach, axis=0, mode="nearest")
+
+
 def _fill(y: np.ndarray, use: np.ndarray | None) -> np.ndarray:
     """Unused entries replaced, per column, by the linear interpolation of the used ones."""
     y = np.array(y, dtype=float)
@@ -89,7 +116,7 @@ class ShiftedSignal:
             raise DataError(f"a delay needs a series of at least 2 samples (rows) per axis; got shape {y.shape}")
         if not dt > 0:
             raise DataError(f"a delay needs a positive sampling period; got {dt}")
-        from scipy.fft import next_fast_len, rfft
+        from scipy.fft import irfft, next_fast_len, rfft
         from scipy.ndimage import uniform_filter1d
         from scipy.stats import chi2
 
@@ -110,12 +137,20 @@ class ShiftedSignal:
         floor = M * self.sigma**2
         seen = power > chi2.ppf(1.0 - BAND_ALPHA, 2 * width) / (2 * width) * floor
         with np.errstate(divide="ignore", invalid="ignore"):
-            gain = np.where(seen, 1.0 - floor / np.where(seen, power, 1.0), 0.0)
-        gain[0] = 1.0
+            wiener = np.where(power > 0, np.clip(1.0 - floor / np.where(power > 0, power, 1.0), 0.0, 1.0), 0.0)
+        gain = np.where(seen, wiener, 0.0)
+        wiener[0] = gain[0] = 1.0
         self.gain = gain
-        self.coef = c
+        # the readings' bands above their noise, shifted everywhere; the rest (noise, and content
+        # below it at its frequency) shifted only near transients, elsewhere left at its sample
+        band = np.where(seen, 1.0, 0.0)
+        band[0] = 1.0
+        self.coef_seen = c * band
+        self.coef_rest = c * (1.0 - band)
         self.coef_signal = c * gain
         self.omega = 2.0 * np.pi * np.arange(M // 2 + 1) / (M * dt)
+        self.rest = irfft(self.coef_rest, M, axis=0)[: self.n]
+        self.transient = transients(self.rest, self.sigma, dt)
         self._ffts: dict[float, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
     def _series(self, tau: float):
@@ -127,9 +162,12 @@ class ShiftedSignal:
 
             iw = (1j * self.omega)[:, None]
             ph = np.exp(1j * self.omega * tau)[:, None]
-            got = tuple(irfft(c * ph * iw**p, self.M, axis=0)[: self.n]
-                        for c, p in ((self.coef, 0), (self.coef, 1), (self.coef, 2), (self.coef, 3),
-                                     (self.coef_signal, 1), (self.coef_signal, 2), (self.coef_signal, 3)))
+            m = self.transient
+            seen = [irfft(self.coef_seen * ph * iw**p, self.M, axis=0)[: self.n] for p in range(4)]
+            rest = [irfft(self.coef_rest * ph * iw**p, self.M, axis=0)[: self.n] for p in range(4)]
+            sig = [irfft(self.coef_signal * ph * iw**p, self.M, axis=0)[: self.n] for p in range(1, 4)]
+            got = (seen[0] + m * rest[0] + (1.0 - m) * self.rest, *(a + m * b for a, b in zip(seen[1:], rest[1:])),
+                   *sig)
             if len(self._ffts) >= 4:
                 self._ffts.pop(next(iter(self._ffts)))
             self._ffts[tau] = got
@@ -140,7 +178,8 @@ class ShiftedSignal:
         w = np.full(len(self.omega), 2.0 / self.M)
         w[[0, -1]] = 1.0 / self.M  # the mean and the Nyquist bin (its cosine: the FFT's reading)
         ph = np.exp(1j * np.outer(k * self.dt + tau, self.omega)) * w      # (n, J)
-        x = (ph @ self.coef).real
+        m = self.transient[k]
+        x = (ph @ self.coef_seen).real + m * (ph @ self.coef_rest).real + (1.0 - m) * self.rest[k]
         xd = (ph @ (self.coef_signal * (1j * self.omega)[:, None])).real
         return x, xd
 

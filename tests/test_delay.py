@@ -27,19 +27,21 @@ def rate(t):
 
 
 def test_a_band_limited_series_is_shifted_exactly():
+    """Its bands above the noise (here, the noise the third differences of an 11 Hz sine suggest)
+    are shifted exactly; what stands below them (the sines' leakage, not periodic over 4 s) stays
+    at its sample."""
     sig = ShiftedSignal(signal(T), DT)
     k = np.arange(len(T))
-    for tau in (0.0, 0.005, -0.0123, 0.031):
+    x, _ = sig.at(k, 0.0)
+    np.testing.assert_allclose(x, signal(T), atol=1e-12)  # no shift: the samples
+    for tau in (0.005, -0.0123, 0.031):
         x, xd = sig.at(k, tau)
-        # measured 9.8e-5 (tau -0.0123) of the unit amplitude away from the ends, 1e-14 at whole
-        # samples: the series is not periodic over its length (a sine's leakage); margin 2x
-        assert np.max(np.abs(x[INNER] - signal(T + tau)[INNER])) < 2e-4
+        # measured 8e-4 to 2.5e-3 of the unit amplitude away from the ends (the 11 Hz sine's
+        # leakage below the estimated noise, left in place); margin 2x
+        assert np.max(np.abs(x[INNER] - signal(T + tau)[INNER])) < 5e-3
         # the rate is the signal's estimate: measured 1.75 % of the largest rate (the leakage's
         # weakest frequencies are below the gain's threshold); margin 2x
         assert np.max(np.abs(xd[INNER] - rate(T + tau)[INNER])) < 0.035 * np.max(np.abs(rate(T)))
-    # a shift by whole samples reads the samples themselves
-    x, _ = sig.at(k[:-3], 3 * DT)
-    np.testing.assert_allclose(x[INNER], signal(T)[3:][INNER], atol=1e-9)
 
 
 @pytest.mark.parametrize("frac", [0.25, 0.5])
@@ -55,10 +57,11 @@ def test_white_noise_stays_white_at_a_fractional_shift(frac):
     x, _ = sig.at(np.arange(len(T)), tau)
     noise = (x - signal(T + tau))[INNER]
     var = noise.var(axis=0) / sigma**2
-    # 680 samples: the variance's sampling sigma is 5.4 %; measured 0.99-1.07; margin 3 sigma
+    # 680 samples: the variance's sampling sigma is 5.4 %; measured 1.02-1.09; margin 3 sigma
     assert np.all(np.abs(var - 1.0) < 0.16), var
     lag1 = np.array([np.corrcoef(noise[1:, j], noise[:-1, j])[0, 1] for j in range(2)])
-    assert np.all(np.abs(lag1) < 0.12), lag1  # 3 sampling sigmas of an uncorrelated series
+    # measured 0.013 and 0.053; the bound is 3 sampling sigmas of an uncorrelated series
+    assert np.all(np.abs(lag1) < 0.12), lag1
 
 
 def test_the_rate_is_the_signals_not_the_noises():

@@ -171,9 +171,9 @@ def test_time_offset_twin_is_an_exact_delay(delay):
     before, after = rms(r), rms(r + dr)
     # the delay shows on the gyro x (roll rate) and the accelerometer y (sideways sway)
     assert before[0] > 1e-3 * delay / 0.02 and before[4] > 1e-2 * delay / 0.02, before
-    # measured: at most 1.6e-6 of the residual left at 20 ms (rounding), 0.0027 at 12.3 ms (the
-    # accelerometer x; the first-order term left 0.04-0.06); margin 2x (the rounding's: 6x)
-    assert np.all(after <= (1e-5 if delay == 0.02 else 0.0054) * np.maximum(before, 1e-9)), after / before
+    # measured: at most 1.2e-11 of the residual left at 20 ms (rounding), 0.0030 at 12.3 ms (the
+    # accelerometer x; the first-order term left 0.04-0.06); margin 2x (at whole samples: 1e-9, rounding)
+    assert np.all(after <= (1e-9 if delay == 0.02 else 0.0060) * np.maximum(before, 1e-9)), after / before
 
 
 # ----------------------------------------------------------------------------------------------
