@@ -349,7 +349,10 @@ class Effect(Protocol):
         should do to tell the effect from those it resembles); ``applicable(problem) -> str |
         None``, None when the effect has something to act on in ``problem``, else the reason in
         the user's terms (an F/T offset when the F/T readings are not fused): the diagnosis then
-        skips the candidate with that one line instead of fitting an unknown nothing constrains.
+        skips the candidate with that one line instead of fitting an unknown nothing constrains;
+        ``score_understates = True`` when the score test (the slope at zero) is no measure of the
+        effect (a delay is not linear in its value): the diagnosis refits it in every round
+        whatever its test.
         """
 
 
@@ -673,19 +676,19 @@ class TimeOffset(_Constant):
     (which really delays the IMU: its readings are those of the simulated sensor ``tau`` earlier).
 
     An exact delay, on the readings' side: the prediction at ``t_k`` (from the encoders' inputs at
-    ``t_k``) is held against the readings' signal ``tau`` later,
-    ``y_k(tau) = x_hat(t_k + tau) + (y_k - x_hat(t_k))``, where ``x_hat`` is the readings' signal
-    (:class:`flexforce.factors.delay.ShiftedSignal`: band-limited, each frequency weighted by its
-    power above the noise measured on the readings) and the noise stays at its sample.  The term on
-    the ``imu`` family is ``y_k - y_k(tau) = x_hat(t_k) - x_hat(t_k + tau)``; ``dr/dtau =
-    -x_hat'(t_k + tau)``, ``dr/ds = 0``.  Exact for any ``tau`` and for any motion, a contact's
-    switch included (the IMU sees a touch-down ``tau`` late: a first-order term ``-tau dy/dt``
-    cannot, and it needed the rate of the model's prediction, which at uncorrected rest placements
-    was fifteen times the readings'), up to what the gain removes of the signal (content below the
-    noise at its frequency).  The steps' states are not involved, so the estimators' structure is
-    unchanged; the term reads the readings up to ``tau`` past each step (a fixed-lag smoother's lag
-    must cover it), and past the series' ends it reads the signal's smooth return from the last
-    sample to the first (``delay.PAD_S``).
+    ``t_k``) is held against the readings ``tau`` later, ``y_k(tau)``
+    (:class:`flexforce.factors.delay.ShiftedSignal`: band-limited; the bands above the noise
+    shifted everywhere, the rest within 60 ms of a transient or of a contact's switch, elsewhere
+    left at its sample, so that the noise keeps its variance at every ``tau``).  The term on the
+    ``imu`` family is ``y_k - y_k(tau)``; ``dr/ds = 0``; ``dr/dtau`` is minus the rate of the
+    readings' signal (each band above the noise weighted by its power above it), the expected
+    derivative rather than the noise's.  Exact for any ``tau`` and any motion, a contact's switch
+    included (the IMU sees a touch-down ``tau`` late: a first-order term ``-tau dy/dt`` cannot, and
+    it needed the rate of the model's prediction, which at uncorrected rest placements was fifteen
+    times the readings'), up to the content below the noise away from transients.  The steps'
+    states are not involved, so the estimators' structure is unchanged; the term reads the readings
+    up to ``tau`` past each step (a fixed-lag smoother's lag must cover it), and past the series'
+    ends the readings' smooth return from the last sample to the first (``delay.PAD_S``).
     """
     acts_on = ("imu",)
     """The residual families its values enter (see :meth:`Effect.report`)."""
@@ -725,7 +728,9 @@ class TimeOffset(_Constant):
 
         y = problem.y_imu
         if self._signal is None or self._signal[0] is not y:
-            self._signal = (y, ShiftedSignal(y, float(problem.dt), np.asarray(problem.imu_use) > 0))
+            act = np.asarray(problem.active, dtype=bool)
+            switches = 1 + np.nonzero(np.any(act[1:] != act[:-1], axis=1))[0]
+            self._signal = (y, ShiftedSignal(y, float(problem.dt), np.asarray(problem.imu_use) > 0, switches))
         return self._signal[1]
 
     score_understates = True

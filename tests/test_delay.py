@@ -137,3 +137,22 @@ def test_missing_readings_are_bridged():
 def test_bad_input_is_one_clear_error(y, dt, words):
     with pytest.raises(DataError, match=words):
         ShiftedSignal(y, dt)
+
+
+def test_transients_and_events_are_shifted_whole():
+    """A step in the readings (an impact's broadband content, weak in every band) is found as a
+    transient and the readings within reach of it are shifted whole; a switch given as an event
+    is marked though the readings show nothing; quiet noise is not marked."""
+    rng = np.random.default_rng(8)
+    sigma = 0.05
+    y = signal(T) + rng.normal(0.0, sigma, (len(T), 2))
+    y[400:, 1] += 1.0  # a step at 2 s on the second axis
+    sig = ShiftedSignal(y, DT, events=[200])
+    reach = int(np.ceil(0.06 / DT))
+    assert np.all(sig.transient[400 - reach:400 + reach, 1] == 1.0)
+    assert np.all(sig.transient[200 - reach:200 + reach] == 1.0)  # the event, on every axis
+    quiet = np.r_[300:340, 500:700]
+    assert not sig.transient[quiet, 0].any() and not sig.transient[quiet, 1].any()
+    # near the step the readings are shifted whole: at a shift of two samples the step has moved
+    x, _ = sig.at(np.arange(len(T)), 2 * DT)
+    assert abs(x[397, 1] - y[399, 1]) < 1e-9 and abs(x[398, 1] - y[400, 1]) < 1e-9

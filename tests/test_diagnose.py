@@ -526,6 +526,28 @@ def test_refit_choice_takes_the_strongest_and_their_inseparable_partners():
              frozenset(("a", "b")): SimpleNamespace(inseparable=False)}
     ident = SimpleNamespace(pair=lambda x, y: pairs.get(frozenset((x, y))))
     assert _refit_choice(remaining, tests, ident, 2) == ["a", "c", "d", "e", "w"]
+    # an effect whose score test understates it (a delay) is refitted whatever its rank
+    assert _refit_choice(remaining, tests, None, 2, understated=["b"]) == ["a", "b", "c", "e", "w"]
+
+
+def test_a_delay_is_refitted_whatever_its_score_test():
+    """The time offset says its score test understates it (``score_understates``): on a recording
+    where its test does not pass the screening it is refitted anyway, its evidence reported beside
+    the test, while the other candidates that do not pass are not refitted."""
+    from flexforce.compare.diagnose import _score_understates
+    from flexforce.factors.effects import make_effect
+    from flexforce.factors.model import ModelConfig
+
+    assert _score_understates(lambda: make_effect("time-offset"))
+    assert not _score_understates(lambda: make_effect("gyro-bias"))
+    assert not _score_understates(lambda: 1 / 0)  # a plugin that cannot be built: decided where it is fitted
+    rec = simulate([], duration=1.5)
+    d = diagnose(rec, ModelConfig.from_recording(rec), candidates=["time-offset", "gyro-bias"], ekf=False,
+                 identify=False)
+    rows = {c.effect: c for c in d.ranking}
+    assert rows["time-offset"].screen is not None and rows["time-offset"].screen.p_value > 0.01
+    assert rows["time-offset"].lr is not None and not rows["time-offset"].significant
+    assert rows["gyro-bias"].lr is None  # not refitted: its test did not pass
 
 
 def test_refit_best_defers_the_weaker_candidates_to_the_next_round():
