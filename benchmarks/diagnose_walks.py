@@ -113,10 +113,15 @@ def main(argv=None) -> dict:
             r = one(robot, truth, args.jobs)
             print(f"{robot} {truth}: {', '.join(r['selected']) or 'none'} [{r['seconds']:.0f} s]", flush=True)
             runs.append(r)
-    result = {"benchmark": "diagnose_walks", "runs": runs, "machine": {"python": platform.python_version()}}
-    Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
-    table = markdown(runs)
-    Path(args.out).with_suffix(".md").write_text(table)
+    return write_results("diagnose_walks", runs, args.out, markdown(runs))
+
+
+def write_results(name: str, runs: list[dict], out: str, table: str) -> dict:
+    """``out`` (the JSON: the runs and the Python version) and the ``.md`` beside it (``table``);
+    the table printed; the JSON's content returned."""
+    result = {"benchmark": name, "runs": runs, "machine": {"python": platform.python_version()}}
+    Path(out).write_text(json.dumps(result, indent=1) + "\n")
+    Path(out).with_suffix(".md").write_text(table)
     print(table)
     return result
 

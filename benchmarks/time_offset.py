@@ -19,8 +19,6 @@ screening and, where it passes, one refit.
 from __future__ import annotations
 
 import argparse
-import json
-import platform
 import sys
 import time
 from pathlib import Path
@@ -88,22 +86,17 @@ def main(argv=None) -> dict:
     sys.path.insert(0, str(HERE))
     from flexforce.compare.runner import fork_map
 
-    runs = []
+    runs: list[dict | None] = [None] * len(CASES)
     for i, ok, r, _ in fork_map(one, CASES, jobs=args.jobs):
         if not ok:
             raise RuntimeError(f"{CASES[i]}: {type(r).__name__}: {r}")
         print(f"{r['robot']} {r['motion']} {r['truth_ms']:g} ms: "
               f"{'-' if r['value_ms'] is None else format(r['value_ms'], '.2f')} ms [{r['seconds']:.0f} s]", flush=True)
-        runs.append(r)
-    order = {c: i for i, c in enumerate(CASES)}
-    runs.sort(key=lambda r: order[(r["robot"], r["motion"], r["truth_ms"] / 1e3)])
-    result = {"benchmark": "time_offset", "runs": runs, "machine": {"python": platform.python_version()}}
-    Path(args.out).write_text(json.dumps(result, indent=1) + "\n")
-    table = markdown(runs)
-    Path(args.out).with_suffix(".md").write_text(table)
-    print(table)
-    return result
+        runs[i] = r
+    done = [r for r in runs if r is not None]  # in CASES's order
+    from diagnose_walks import write_results  # type: ignore[import-not-found]
 
+    return write_results("time_offset", done, args.out, markdown(done))
 
 if __name__ == "__main__":
     main()
