@@ -165,6 +165,9 @@ def _one(job):
                          "rivals": list(c.rivals)} for c in d.rounds[0]] if d.rounds else [],
             "checks": {c.effect: c.check_text() for row in d.rounds for c in row if c.check},
             "partner_checks": d.partner_checks(),
+            # the constancy check of each constant effect a round would have taken (its halves)
+            "constancy": [{"effect": c.effect, "round": c.round, **c.constancy} for row in d.rounds for c in row
+                          if c.constancy],
             "partner_checks_ft": ft_checks,
             # every round's refits with their score tests at the round's base (what a refit policy
             # bounded by the test would have decided can be read from them)
@@ -307,6 +310,17 @@ def score(runs: list[dict]) -> dict:
         "error_ratio_after_before_median": {k: float(np.median(v)) for k, v in ratios.items()},
         "error_ratio_after_before_range": {k: [float(np.min(v)), float(np.max(v))] for k, v in ratios.items()},
         "seconds_per_recording_median": float(np.median([r["seconds"] for r in runs if "seconds" in r] or [0.0])),
+        # the constancy check (each constant effect a round would take, fitted on the two halves):
+        # how often the true effect's halves disagreed, and the largest difference of a truth's halves
+        "constancy_checks": sum(len(r.get("constancy") or []) for r in runs),
+        "constancy_truth_failed": [[r["key"], c["effect"], round(abs(c["largest"][1]), 1)] for r in runs
+                                   for c in r.get("constancy") or [] if c.get("made") and not c["constant"]
+                                   and c["effect"] in r["truth"]],
+        "constancy_other_failed": [[r["key"], c["effect"], round(abs(c["largest"][1]), 1)] for r in runs
+                                   for c in r.get("constancy") or [] if c.get("made") and not c["constant"]
+                                   and c["effect"] not in r["truth"]],
+        "constancy_truth_largest_z": max([abs(c["largest"][1]) for r in runs for c in r.get("constancy") or []
+                                          if c.get("made") and c["effect"] in r["truth"]] or [0.0]),
     }
 
 
@@ -349,7 +363,12 @@ def markdown(runs: list[dict], summary: dict) -> str:
             "inseparable partner as found)",
             f"- recordings with a wrong selection: {len(summary['recordings_with_a_wrong_selection'])}",
             "- median error ratio after/before (truth selected): "
-            + ", ".join(f"{k} {v:.2f}" for k, v in summary["error_ratio_after_before_median"].items()), ""]
+            + ", ".join(f"{k} {v:.2f}" for k, v in summary["error_ratio_after_before_median"].items()),
+            f"- constancy checks (a constant effect a round would take, fitted on each half): "
+            f"{summary.get('constancy_checks', 0)}; a truth's halves disagreeing: "
+            f"{len(summary.get('constancy_truth_failed', []))} (largest difference of a truth's halves "
+            f"{summary.get('constancy_truth_largest_z', 0.0):.1f} sigma); another effect's: "
+            f"{len(summary.get('constancy_other_failed', []))}", ""]
     return "\n".join(head + lines) + "\n"
 
 

@@ -240,6 +240,7 @@ def _write_diagnosis(diag, out: Path, title: str) -> None:
         hidden=[json.dumps(h) for h in diag.recording.get("hidden_effects") or []],
         screen_sentence=_screen_sentence(crit), selected=diag.selected, ranking=ranking,
         swaps=diag.swaps, ambiguities=diag.ambiguities(), partner_checks=diag.partner_checks(),
+        inconstant=diag.inconstant(),
         flags_before=diag.before.flags + (diag.ekf.flags if diag.ekf else []),
         nis=nis, added=diag.added, after=a, comparison=comparison, figures=written)
     (out / "index.html").write_text(page)

@@ -620,7 +620,8 @@ def _diagnose_job(args, job) -> dict:
         level = None if args.no_screen else args.screen_level
         diag = diagnose(rec, model, candidates=candidates, extra_candidates=plugins, add=args.add,
                         rank=not args.no_rank, max_effects=args.max_effects, ekf=not args.no_ekf, progress=progress,
-                        screen_level=level, refit_best=args.refit_best or None, jobs=args.jobs if label is None else 1)
+                        screen_level=level, refit_best=args.refit_best or None, jobs=args.jobs if label is None else 1,
+                        check_constancy=not args.no_constancy)
         write_diagnosis(diag, out)
     finally:
         PROGRESS_PREFIX = ""
@@ -795,6 +796,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "identifiability table cannot tell from them); the others wait for the next round "
                         "(default 3; 0: every candidate that passes)")
     p.add_argument("--no-ekf", action="store_true", help="do not run the EKF (innovations, NIS)")
+    p.add_argument("--no-constancy", action="store_true",
+                   help="take a constant effect without fitting it again on each half of the recording "
+                        "(the constancy check: halves that disagree make it implausible)")
     p.add_argument("--seed", type=int, help="noise seed when simulating a scenario")
     _add_input_options(p)
     p.add_argument("--ft", action="store_true", help="fuse the recording's F/T readings as measurements")

@@ -11,6 +11,7 @@ simulator's IMU bias random walk is off so that "no hidden effect" really means 
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import json
 from pathlib import Path
@@ -754,3 +755,75 @@ def test_screening_in_workers_gives_the_statistics_of_one_process(gyro_rec):
     for name in one:
         assert two[name].kind == one[name].kind, name
         assert two[name].statistic == one[name].statistic and two[name].dof == one[name].dof, name
+
+
+def _stepped(rec, step):
+    """``rec`` with ``step`` (rad/s, IMU frame) added to the gyro readings of its second half: a
+    bias that jumps (a temperature step), not a constant."""
+    gyro = np.array(rec.gyro, dtype=float)
+    gyro[rec.time > 0.5 * rec.time[-1]] += np.asarray(step, dtype=float)
+    return dataclasses.replace(rec, gyro=gyro)
+
+
+def test_constancy_passes_a_constant_bias_and_fails_one_that_jumps(gyro_rec):
+    """The halves of a constant gyro bias agree; a bias that jumps halfway disagrees far beyond
+    CONSTANCY_Z, each half estimating its own."""
+    from flexforce.compare.diagnose import CONSTANCY_REL, CONSTANCY_Z, constancy
+    from flexforce.factors.model import ModelConfig
+
+    model = ModelConfig.from_recording(gyro_rec)
+    makers = resolve_candidates(["gyro-bias"])
+    ok = constancy(gyro_rec, model, makers, (), "gyro-bias")
+    assert ok["made"] and ok["constant"], ok["text"]
+    assert np.max(np.abs(ok["z"])) <= CONSTANCY_Z
+    # each half finds the hidden 0.011 rad/s about y (within 5 sigma of its own fit)
+    for v, s in zip(ok["value"], ok["std"]):
+        assert abs(v[1] - GYRO["value"][1]) < 5.0 * s[1] + 1e-4, (v, s)
+    assert ok["text"].startswith("its halves agree")
+    jumped = _stepped(gyro_rec, [0.0, 0.0, 0.03])
+    bad = constancy(jumped, model, makers, (), "gyro-bias")
+    assert bad["made"] and not bad["constant"], bad["text"]
+    # measured 26.3 sigma (0.030 +- 0.0011 rad/s between the halves); asserted above 3 CONSTANCY_Z
+    assert bad["largest"][0] == "z" and abs(bad["largest"][1]) > 3 * CONSTANCY_Z, bad["largest"]
+    assert bad["value"][1][2] - bad["value"][0][2] == pytest.approx(0.03, abs=3e-3)
+    assert bad["relative"][2] > CONSTANCY_REL  # 0.03 of 0.03: all of it
+    assert "not constant over the recording" in bad["text"] and "0.0-1.2 s" in bad["text"]
+    # too short to halve: said, not made
+    short = gyro_rec.window(0.0, 1.5)
+    assert constancy(short, model, makers, (), "gyro-bias") == {
+        "made": False, "text": "not checked for constancy: the recording (1.5 s) is shorter than two halves of 1 s"}
+
+
+def test_a_bias_that_jumps_is_not_selected_as_a_constant():
+    """The round's best constant effect is fitted on each half before it is taken: a gyro bias that
+    jumps halfway is then implausible (its halves disagree), and nothing is selected in its place;
+    without the check it is selected."""
+    rec = _stepped(simulate([GYRO]), [0.0, 0.0, 0.03])
+    d = diagnose(rec, candidates=["gyro-bias"], ekf=False)
+    c = d.rounds[0][0]
+    assert c.effect == "gyro-bias" and c.implausible and not c.significant, d.ranking_table()
+    assert c.constancy is not None and not c.constancy["constant"]
+    assert d.selected == []
+    assert "not constant over the recording" in d.ranking_table()
+    assert d.to_json()["ranking"][0]["constancy"]["constant"] is False
+    (sentence,) = d.inconstant()
+    assert sentence.startswith("round 1: gyro-bias was significant but not constant") and "took none" in sentence
+    assert d.to_json()["inconstant"] == [sentence]
+    unchecked = diagnose(rec, candidates=["gyro-bias"], ekf=False, check_constancy=False)
+    assert unchecked.selected == ["gyro-bias"] and unchecked.rounds[0][0].constancy is None
+
+
+def test_constancy_tolerates_a_difference_small_beside_the_effect(gyro_rec):
+    """A 0.04 rad/s bias about x that grows by 0.008 halfway: its halves are many sigmas apart (the
+    sigmas shrink with the samples, a model error's bias in each half does not), but by a fifth of
+    the bias: that is the same constant, within CONSTANCY_REL."""
+    from flexforce.compare.diagnose import CONSTANCY_REL, CONSTANCY_Z, constancy
+    from flexforce.factors.model import ModelConfig
+
+    rec = _stepped(gyro_rec, [0.008, 0.0, 0.0])
+    rec = dataclasses.replace(rec, gyro=np.asarray(rec.gyro) + np.array([0.04, 0.0, 0.0]))
+    model = ModelConfig.from_recording(rec)
+    c = constancy(rec, model, resolve_candidates(["gyro-bias"]), (), "gyro-bias")
+    assert c["made"] and c["constant"], c["text"]
+    # measured: 7.2 sigma and 19 % apart (0.0387 and 0.0476 +- 0.0009 rad/s)
+    assert abs(c["z"][0]) > CONSTANCY_Z and c["relative"][0] < CONSTANCY_REL, (c["z"], c["relative"])
