@@ -794,7 +794,7 @@ def test_constancy_passes_a_constant_bias_and_fails_one_that_jumps(gyro_rec):
         "made": False, "text": "not checked for constancy: the recording (1.5 s) is shorter than two halves of 1 s"}
 
 
-def test_a_bias_that_jumps_is_not_selected_as_a_constant():
+def test_a_bias_that_jumps_is_not_selected_as_a_constant(tmp_path):
     """The round's best constant effect is fitted on each half before it is taken: a gyro bias that
     jumps halfway is then implausible (its halves disagree), and nothing is selected in its place;
     without the check it is selected."""
@@ -809,6 +809,8 @@ def test_a_bias_that_jumps_is_not_selected_as_a_constant():
     (sentence,) = d.inconstant()
     assert sentence.startswith("round 1: gyro-bias was significant but not constant") and "took none" in sentence
     assert d.to_json()["inconstant"] == [sentence]
+    page = (write_diagnosis(d, tmp_path / "d") / "index.html").read_text()
+    assert "<b>Not constant:</b> round 1: gyro-bias" in page and "not constant over the recording" in page
     unchecked = diagnose(rec, candidates=["gyro-bias"], ekf=False, check_constancy=False)
     assert unchecked.selected == ["gyro-bias"] and unchecked.rounds[0][0].constancy is None
 
