@@ -1590,58 +1590,69 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
             # Holm: the round's tests at alpha / m, m every candidate not selected yet (those the
             # screening dropped were tested too)
             m = len(cands) - len(selected)
-            this_round = _refit_choice(remaining, latest, ident, refit_best if screen_level is not None else None,
-                                       understated)
             round_base = tuple(selected)
-            fit_all([round_base + (name,) for name in this_round])
             row = []
-            for name in this_round:
-                t0 = time.perf_counter() - fit_seconds.pop(tuple(sorted(tuple(selected) + (name,))), 0.0)
-                label = "+ " + " + ".join(tuple(selected) + (name,))
-                try:
-                    f = fitted(tuple(selected) + (name,))
-                except Exception as err:  # a user's effect may raise anything: one line, the others go on
-                    reason, detail = _failure(name, err, ident)
-                    row.append(Candidate(name, tuple(selected), len(rounds) + 1, None, None, None, None, False,
-                                         error=reason, error_detail=detail, finding=f"cannot be fitted: {reason}"))
-                    say(label, f"{name}: cannot be fitted: {reason}", t0)
-                    continue
-                s, lr, nu, p, sig = score(base, f, name, alpha, tests=m)
-                rep = f.estimate.effects.get(name, {})
-                test = latest.get(name)  # its score test at this round's base (the nominal fit's in round 1)
-                eff = makers[name]()
-                c = Candidate(name, tuple(selected), len(rounds) + 1, s, lr, nu, p, sig, rep,
-                              summarize_effect(rep, eff), screen=None if isinstance(test, str) else test,
-                              screen_level=screen_level, level=alpha / m)
-                c.implausible = _plausibility(eff, rep, prob) if sig or f.stopped else None
-                if f.stopped:  # the refit ended with the estimate leaving the plausible range
-                    c.implausible = f"{c.implausible or 'its estimate left the plausible range'}; {f.stopped}"
-                if c.implausible:
-                    c.significant = False
-                c.finding = finding(c, rep, eff)
-                row.append(c)
-                say(label, f"{name}: score {s:.1f}, {c.status}", t0)
-            row.sort(key=lambda c: -math.inf if c.score is None else c.score, reverse=True)
-            rounds.append(row)
-            # the best plausible candidate (an implausible one is no finding, whatever its score); a
-            # constant one the selection would take must be the same on both halves of the recording
+            this_round = []
             best = None
-            for c in row:
-                if c.implausible:
-                    continue
-                if check_constancy and c.significant and len(selected) < max_effects and prob is not None \
-                        and _constant(makers[c.effect](), prob):
-                    t0 = time.perf_counter()
-                    row_fit = cache.get(tuple(sorted(tuple(selected) + (c.effect,))), base)
-                    c.constancy = constancy(rec, model, makers, tuple(selected), c.effect, jobs, start=row_fit)
-                    say(f"constancy of {c.effect}", f"{c.effect}: {c.constancy['text']}", t0)
-                    if c.constancy.get("made") and not c.constancy["constant"]:
-                        c.implausible = c.constancy["text"]
-                        c.significant = False
-                        c.finding = finding(c, c.parameters, makers[c.effect]())
+            while True:
+                # the strongest that wait (refit_best); when every one refitted is turned down
+                # (implausible, not constant), the round refits those that waited behind them
+                batch = _refit_choice([k for k in remaining if k not in this_round], latest, ident,
+                                      refit_best if screen_level is not None else None,
+                                      [k for k in understated if k not in this_round])
+                if not batch:
+                    break
+                this_round += batch
+                fit_all([round_base + (name,) for name in batch])
+                for name in batch:
+                    t0 = time.perf_counter() - fit_seconds.pop(tuple(sorted(tuple(selected) + (name,))), 0.0)
+                    label = "+ " + " + ".join(tuple(selected) + (name,))
+                    try:
+                        f = fitted(tuple(selected) + (name,))
+                    except Exception as err:  # a user's effect may raise anything: one line, the others go on
+                        reason, detail = _failure(name, err, ident)
+                        row.append(Candidate(name, tuple(selected), len(rounds) + 1, None, None, None, None, False,
+                                             error=reason, error_detail=detail, finding=f"cannot be fitted: {reason}"))
+                        say(label, f"{name}: cannot be fitted: {reason}", t0)
                         continue
-                best = c
-                break
+                    s, lr, nu, p, sig = score(base, f, name, alpha, tests=m)
+                    rep = f.estimate.effects.get(name, {})
+                    test = latest.get(name)  # its score test at this round's base (the nominal fit's in round 1)
+                    eff = makers[name]()
+                    c = Candidate(name, tuple(selected), len(rounds) + 1, s, lr, nu, p, sig, rep,
+                                  summarize_effect(rep, eff), screen=None if isinstance(test, str) else test,
+                                  screen_level=screen_level, level=alpha / m)
+                    c.implausible = _plausibility(eff, rep, prob) if sig or f.stopped else None
+                    if f.stopped:  # the refit ended with the estimate leaving the plausible range
+                        c.implausible = f"{c.implausible or 'its estimate left the plausible range'}; {f.stopped}"
+                    if c.implausible:
+                        c.significant = False
+                    c.finding = finding(c, rep, eff)
+                    row.append(c)
+                    say(label, f"{name}: score {s:.1f}, {c.status}", t0)
+                row.sort(key=lambda c: -math.inf if c.score is None else c.score, reverse=True)
+                # the best plausible candidate (an implausible one is no finding, whatever its score); a
+                # constant one the selection would take must be the same on both halves of the recording
+                best = None
+                for c in row:
+                    if c.implausible:
+                        continue
+                    if check_constancy and c.significant and len(selected) < max_effects and prob is not None \
+                            and c.constancy is None and _constant(makers[c.effect](), prob):
+                        t0 = time.perf_counter()
+                        row_fit = cache.get(tuple(sorted(tuple(selected) + (c.effect,))), base)
+                        c.constancy = constancy(rec, model, makers, tuple(selected), c.effect, jobs, start=row_fit)
+                        say(f"constancy of {c.effect}", f"{c.effect}: {c.constancy['text']}", t0)
+                        if c.constancy.get("made") and not c.constancy["constant"]:
+                            c.implausible = c.constancy["text"]
+                            c.significant = False
+                            c.finding = finding(c, c.parameters, makers[c.effect]())
+                            continue
+                    best = c
+                    break
+                if best is not None or not any(c.implausible for c in row):
+                    break
+            rounds.append(row)
             # the best's rivals among the plausible ones (those the data do not tell from it)
             mark_rivals([c for c in row if not c.implausible], ident=ident)
             stop = best is None or not best.significant or len(selected) >= max_effects

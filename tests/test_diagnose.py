@@ -829,3 +829,20 @@ def test_constancy_tolerates_a_difference_small_beside_the_effect(gyro_rec):
     assert c["made"] and c["constant"], c["text"]
     # measured: 7.2 sigma and 19 % apart (0.0387 and 0.0476 +- 0.0009 rad/s)
     assert abs(c["z"][0]) > CONSTANCY_Z and c["relative"][0] < CONSTANCY_REL, (c["z"], c["relative"])
+
+
+def test_when_the_refitted_are_turned_down_the_round_refits_those_that_waited():
+    """One refit per round (refit_best=1): the gyro bias, strongest by its score test, jumps halfway
+    and is turned down by the constancy check; the round then refits the accelerometer bias that
+    waited behind it, which is constant, and takes it."""
+    rec = _stepped(simulate([GYRO, ACCEL]), [0.0, 0.0, 0.03])
+    d = diagnose(rec, candidates=CANDIDATES, ekf=False, refit_best=1)
+    first = d.rounds[0]
+    assert [c.effect for c in first] == ["gyro-bias", "accel-bias"] or \
+        [c.effect for c in first] == ["accel-bias", "gyro-bias"], d.ranking_table()
+    gyro = next(c for c in first if c.effect == "gyro-bias")
+    accel = next(c for c in first if c.effect == "accel-bias")
+    assert gyro.implausible and not gyro.constancy["constant"], d.ranking_table()
+    assert accel.significant and accel.constancy["constant"], d.ranking_table()
+    assert d.selected == ["accel-bias"]
+    assert d.screening[0].effect == "gyro-bias"  # the strongest by its score test, refitted first
