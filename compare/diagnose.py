@@ -757,17 +757,16 @@ def constancy(rec, model, makers: dict[str, Callable[[], object]], base: tuple[s
     def half(span):
         part = rec.window(*span)
         effects = tuple(model.effects) + tuple(makers[n]() for n in base + (name,))
-        begin = None
+        begin = None  # the start cut to the half
         if start is not None and start.trajectory is not None and start.model is not None:
             steps = np.flatnonzero((rec.time >= span[0] - 1e-9) & (rec.time <= span[1] + 1e-9))
             tr = start.trajectory
             if steps.size == part.n and tr.R.shape[0] == rec.n:
                 from flexforce.smoother.linearize import Trajectory
 
-                begin = (tuple(start.model.effects),
-                         Trajectory(tr.R[steps], tr.q[steps], tr.W[steps], tr.e[steps]))
-        est, _ = _fit_half(part, dataclasses.replace(model, effects=effects), begin)
-        return est.effects.get(name, {})
+                begin = dataclasses.replace(start, trajectory=Trajectory(tr.R[steps], tr.q[steps], tr.W[steps],
+                                                                         tr.e[steps]))
+        return fit_model(part, dataclasses.replace(model, effects=effects), start=begin).estimate.effects.get(name, {})
 
     from flexforce.compare.runner import fork_map
 
@@ -796,7 +795,9 @@ def constancy(rec, model, makers: dict[str, Callable[[], object]], base: tuple[s
     comp = names[i] if i < len(names) else str(i)
     unit = units[i] if i < len(units) and units[i] not in ("", "-") else ""
     what = getattr(eff0, "what", name)
-    halves = ", ".join(f"{_fmt_num(v[h, i])} ± {_fmt_num(sd[h, i])}{(' ' + unit) if unit else ''} in "
+    from flexforce.factors.effects import _fmt
+
+    halves = ", ".join(f"{_fmt(v[h, i])} ± {_fmt(sd[h, i])}{(' ' + unit) if unit else ''} in "
                        f"{spans[h][0]:.1f}-{spans[h][1]:.1f} s" for h in (0, 1))
     constant = not bool(apart.any())
     if constant:
@@ -809,17 +810,6 @@ def constancy(rec, model, makers: dict[str, Callable[[], object]], base: tuple[s
     return {"made": True, "constant": constant, "halves": [list(sp) for sp in spans], "value": v.tolist(),
             "std": sd.tolist(), "z": z.tolist(), "relative": rel.tolist(), "largest": [comp, float(z[i])],
             "text": text}
-
-
-def _fit_half(rec, model, begin):
-    """The smoother's fit of a half (:func:`constancy`), from ``begin`` when given."""
-    from flexforce.smoother import fit
-
-    return fit(rec, model, start=begin, evidence_tol=EVIDENCE_TOL)
-
-
-def _fmt_num(x: float) -> str:
-    return f"{x:.3g}" if abs(x) >= 1e-3 or x == 0 else f"{x:.2e}"
 
 
 def _check(rec, base: Fit, fit: Fit, skip: float, known: dict) -> dict | None:
@@ -1598,8 +1588,7 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
                 # the strongest that wait (refit_best); when every one refitted is turned down
                 # (implausible, not constant), the round refits those that waited behind them
                 batch = _refit_choice([k for k in remaining if k not in this_round], latest, ident,
-                                      refit_best if screen_level is not None else None,
-                                      [k for k in understated if k not in this_round])
+                                      refit_best if screen_level is not None else None, understated)
                 if not batch:
                     break
                 this_round += batch
