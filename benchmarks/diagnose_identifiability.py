@@ -21,8 +21,8 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from diagnose_confusion import CASES  # type: ignore[import-not-found]  # noqa: E402
 
-from flexforce.datasets.scenario import Scenario  # noqa: E402
-from flexforce.datasets.simulator import Simulator  # noqa: E402
+from flexforce.datasets.sim.scenario import Scenario  # noqa: E402
+from flexforce.datasets.sim.simulator import Simulator  # noqa: E402
 from flexforce.factors.effects import EFFECTS, make_effect  # noqa: E402
 from flexforce.factors.model import ModelConfig  # noqa: E402
 from flexforce.smoother import NoiseRule, Problem, fit  # noqa: E402

@@ -6,7 +6,7 @@ Usage::
 
 Prints JSON to stdout and writes ``benchmarks/results/diagnose_speed.json``.
 
-A full diagnosis is :func:`flexforce.compare.diagnose.diagnose` with every registered candidate,
+A full diagnosis is :func:`flexforce.compare.diagnostics.diagnose.diagnose` with every registered candidate,
 the screening, the identifiability table, the refits of the candidates that pass, the greedy
 rounds and the add step (``add=["auto"]``), the EKF and the calibrated residual view of the
 nominal and final fits: what ``flexforce diagnose REC --add auto`` does.  Each case runs in a fresh
@@ -40,16 +40,16 @@ def _child(case: str, duration: float, jobs: int = 1) -> dict:
     """One diagnosis (runs in the child process)."""
     import resource
 
-    from flexforce.compare.diagnose import diagnose
+    from flexforce.compare.diagnostics.diagnose import diagnose
 
     t_load = time.perf_counter()
     if case == "icub":
-        from flexforce.datasets.rosimport import import_bag
+        from flexforce.datasets.io.rosimport import import_bag
 
         rec = import_bag(ICUB_SWAY, "icub-identified")
     else:
-        from flexforce.datasets.scenario import Scenario
-        from flexforce.datasets.simulator import Simulator
+        from flexforce.datasets.sim.scenario import Scenario
+        from flexforce.datasets.sim.simulator import Simulator
 
         sc = Scenario.load("sway")
         sc.duration = duration

@@ -44,9 +44,9 @@ EXPECTED = {"foothold"}
 
 
 def one(robot: str, truth: str, jobs: int) -> dict:
-    from flexforce.compare.diagnose import diagnose
-    from flexforce.datasets.scenario import Scenario
-    from flexforce.datasets.simulator import Simulator
+    from flexforce.compare.diagnostics.diagnose import diagnose
+    from flexforce.datasets.sim.scenario import Scenario
+    from flexforce.datasets.sim.simulator import Simulator
     from flexforce.factors.model import ModelConfig
 
     sc = Scenario.load("walk-short")

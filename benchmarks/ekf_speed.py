@@ -28,18 +28,18 @@ from pathlib import Path
 
 import numpy as np
 
-from flexforce.compare import _ekf_kernel
-from flexforce.compare.ekf import run_ekf
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import simulate
+from flexforce.compare.ekf import kernel as _ekf_kernel
+from flexforce.compare.ekf.filter import run_ekf
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import simulate
 from flexforce.factors.model import ModelConfig
 
 _COMPILE_PROBE = """
 import time
 t0 = time.perf_counter()
-from flexforce.compare.ekf import run_ekf
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import simulate
+from flexforce.compare.ekf.filter import run_ekf
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import simulate
 from flexforce.factors.model import ModelConfig
 sc = Scenario.load('stand'); sc.duration = 0.05
 rec = simulate(sc)

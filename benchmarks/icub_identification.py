@@ -49,10 +49,10 @@ import numpy as np
 from scipy.signal import savgol_filter
 from scipy.spatial.transform import Rotation
 
+from flexforce.compare.estimators import run_estimator
 from flexforce.compare.metrics import evaluate
+from flexforce.datasets.io.rosimport import import_bag
 from flexforce.datasets.robot import ROBOTS_DIR, RobotConfig
-from flexforce.datasets.rosimport import import_bag
-from flexforce.estimators import run_estimator
 from flexforce.factors.effects import make_effect
 from flexforce.factors.model import ModelConfig
 from flexforce.smoother import fit

@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from flexforce.datasets.scenario import Scenario, builtin_scenarios
-from flexforce.datasets.simulator import Simulator
+from flexforce.datasets.sim.scenario import Scenario, builtin_scenarios
+from flexforce.datasets.sim.simulator import Simulator
 from flexforce.factors import physics as ph
 
 

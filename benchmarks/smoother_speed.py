@@ -50,8 +50,8 @@ import gtsam
 import numpy as np
 
 from flexforce.compare.metrics import evaluate
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import Simulator
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import Simulator
 from flexforce.errors import EstimatorError
 from flexforce.factors import core
 from flexforce.factors.model import ModelConfig

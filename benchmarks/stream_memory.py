@@ -213,7 +213,7 @@ def stream_run(bag: Path, out: Path, no_cov: bool, block: int = 1) -> dict:
 
 BATCH_CHILD = """
 import json, resource, sys, time
-from flexforce.datasets.rosimport import import_bag
+from flexforce.datasets.io.rosimport import import_bag
 from flexforce.datasets.robot import RobotConfig
 from flexforce.factors.model import ModelConfig
 from flexforce.smoother import run_batch

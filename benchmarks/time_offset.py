@@ -34,9 +34,9 @@ CASES = [
 
 
 def one(case) -> dict:
-    from flexforce.compare.diagnose import diagnose
-    from flexforce.datasets.scenario import Scenario
-    from flexforce.datasets.simulator import Simulator
+    from flexforce.compare.diagnostics.diagnose import diagnose
+    from flexforce.datasets.sim.scenario import Scenario
+    from flexforce.datasets.sim.simulator import Simulator
     from flexforce.factors.model import ModelConfig
 
     robot, motion, delay = case

@@ -40,10 +40,10 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
+from flexforce.compare.estimators import run_estimator
 from flexforce.compare.metrics import chi2_mean_bounds, nees_series, state_error
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import Simulator
-from flexforce.estimators import run_estimator
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import Simulator
 
 RESULTS = Path(__file__).resolve().parent / "results"
 

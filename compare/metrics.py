@@ -1,7 +1,7 @@
 """Accuracy, consistency and cost of an Estimate, against ground truth or reference sensors.
 
 Computing stays apart from reporting: :func:`evaluate` returns a :class:`Metrics` object (plain
-numbers and per-step error series); :mod:`flexforce.compare.report` draws figures from it.
+numbers and per-step error series); :mod:`flexforce.compare.reports.comparison` draws figures from it.
 
 Errors are taken per step and summarised as RMSE and max:
 

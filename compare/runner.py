@@ -142,13 +142,13 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
     """Run each estimator on ``rec`` and evaluate it.
 
     Args:
-        estimators: names for :func:`flexforce.estimators.run_estimator`.
+        estimators: names for :func:`flexforce.compare.estimators.run_estimator`.
         skip: seconds at the start left out of the statistics (filter convergence).
         progress: called with (estimator name, fraction done).
         options: estimator name -> keyword options.
         baseline: add the leg-odometry row (:func:`flexforce.compare.baseline.leg_odometry`).
     """
-    from flexforce.estimators import run_estimator
+    from flexforce.compare.estimators import run_estimator
     from flexforce.factors.model import ModelConfig
 
     rec.validate()

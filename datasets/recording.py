@@ -20,8 +20,8 @@ from typing import Any
 import numpy as np
 
 from flexforce.datasets.faults import check_missing
+from flexforce.datasets.quantities import GRAVITY, ImuPlacement, Inputs
 from flexforce.errors import DataError
-from flexforce.factors.physics import GRAVITY, ImuPlacement, Inputs
 
 
 @dataclass

@@ -26,9 +26,8 @@ import numpy as np
 import pinocchio as pin
 from scipy.spatial.transform import Rotation
 
+from flexforce.datasets.quantities import GRAVITY, ContactParams, FootholdPrior, ImuPlacement, Inputs
 from flexforce.errors import ConfigError, ConfigWarning
-from flexforce.factors.footholds import FootholdPrior
-from flexforce.factors.physics import GRAVITY, ContactParams, ImuPlacement, Inputs
 
 ROBOTS_DIR = Path(__file__).resolve().parent / "robots"
 DEFAULT_ROBOT = "romeo"
@@ -174,7 +173,7 @@ class ContactConfig:
 class RosConfig:
     """How raw robot bags map onto the robot (the optional ``[ros]`` table of a robot config).
 
-    Read by :func:`flexforce.datasets.rosimport.import_bag`; docs/real-logs.md describes the method.
+    Read by :func:`flexforce.datasets.io.rosimport.import_bag`; docs/real-logs.md describes the method.
     """
 
     imu_topic: str = "/imu"
@@ -352,7 +351,7 @@ class RobotConfig:
     footholds: FootholdConfig = FootholdConfig()
     """Rest placements of the contact episodes on real logs (``[footholds]`` table)."""
     ros: RosConfig | None = None
-    """Mapping of raw ROS bags onto the robot (``[ros]`` table), for :mod:`flexforce.datasets.rosimport`."""
+    """Mapping of raw ROS bags onto the robot (``[ros]`` table), for :mod:`flexforce.datasets.io.rosimport`."""
     source: str = ""
     """Where the configuration was read from."""
 

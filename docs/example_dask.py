@@ -22,8 +22,8 @@ from flexforce.compare.runner import DEFAULT_ESTIMATORS, Comparison, aggregate, 
 
 def read_recording(path, robot: str | None = None):
     """A flexforce bag, or a raw robot bag imported with its robot configuration."""
-    from flexforce.datasets.bagio import load_recording
-    from flexforce.datasets.rosimport import import_bag, is_flexforce_bag
+    from flexforce.datasets.io.bagio import load_recording
+    from flexforce.datasets.io.rosimport import import_bag, is_flexforce_bag
 
     path = Path(path)
     if is_flexforce_bag(path) or robot is None:
@@ -34,7 +34,7 @@ def read_recording(path, robot: str | None = None):
 def compare_recording(path, report: str | Path | None = None, estimators=DEFAULT_ESTIMATORS,
                       robot: str | None = None) -> Comparison:
     """Compare the estimators on one recording (runs on a worker); its report into ``report``."""
-    from flexforce.compare.report import write_report
+    from flexforce.compare.reports.comparison import write_report
     from flexforce.datasets.robot import RobotConfig
     from flexforce.factors.model import ModelConfig
 
@@ -63,7 +63,7 @@ def compare_many(client, paths, out: str | Path | None = None, estimators=DEFAUL
     comps = client.gather(futures)
     agg = aggregate(comps)
     if out is not None:
-        from flexforce.compare.report import write_index
+        from flexforce.compare.reports.comparison import write_index
 
         (Path(out) / "summary.json").write_text(json.dumps(agg, indent=2, allow_nan=False))
         write_index(out, [(label, c.summary()) for label, c in zip(labels, comps)], agg)

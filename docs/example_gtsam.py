@@ -20,8 +20,8 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import Simulator
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import Simulator
 from flexforce.factors.model import ModelConfig
 from flexforce.smoother import from_gtsam, to_gtsam
 

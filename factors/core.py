@@ -28,19 +28,8 @@ import math
 
 import numpy as np
 
-try:  # pragma: no cover - exercised by whichever branch the machine has
-    import numba
-
-    def njit(fn):
-        return numba.njit(cache=True, nogil=True)(fn)
-
-    HAVE_NUMBA = True
-except ImportError:  # pragma: no cover
-    # Same code, interpreted: correct but ~100x slower (the speed targets need numba).
-    def njit(fn):
-        return fn
-
-    HAVE_NUMBA = False
+from flexforce.jit import HAVE_NUMBA as HAVE_NUMBA  # re-exported: the kernels decorate with core.njit
+from flexforce.jit import njit as njit
 
 STATE_DIM = 18
 """Columns of a per-step Jacobian: (theta, t, w, v, dw, a)."""

@@ -8,7 +8,7 @@ other estimator can provide.  This module imports nothing of the project above `
 
 Each class of the catalogue implements :class:`Effect` (per-step unknowns, a first-step prior, a
 random walk between steps, additive terms in family residuals, a readable report) for one of the
-simulator's hidden effects (:mod:`flexforce.datasets.effects` defines them; the parameterisation
+simulator's hidden effects (:mod:`flexforce.datasets.sim.effects` defines them; the parameterisation
 below is chosen so that the truth maps onto it exactly).
 
 =========================  ====  ==========================  ======================================

@@ -42,19 +42,18 @@ The estimate reports each episode's foothold correction (``report``).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from flexforce.errors import ConfigError
+from flexforce.datasets.quantities import FootholdPrior
+from flexforce.errors import ConfigError, DataError
 from flexforce.factors import core
-from flexforce.options import check_choice, check_finite, check_positive, invalid
 
 if TYPE_CHECKING:
     from flexforce.factors.effects import ProblemView
 
-__all__ = ["FootholdPrior", "Footholds", "episode_starts", "held_rest", "touches_down"]
+__all__ = ["FootholdPrior", "Footholds", "episode_starts", "held_rest", "rest_placements", "touches_down"]
 
 WALK_WITHIN = 1e-3
 """Random-walk sigma of a foothold within an episode, relative to its kinematic sigma."""
@@ -65,63 +64,20 @@ WALK_CUT = 1e3
 """Random-walk sigma where the contact touches down, relative to its kinematic sigma."""
 
 
-@dataclass(frozen=True)
-class FootholdPrior:
-    """Where a landing sole rests: the leg kinematics' errors and the ground plane.
-
-    Built from the robot configuration's ``[footholds]`` table
-    (:class:`flexforce.datasets.robot.FootholdConfig`: terrain, plane, the tilt and height sigmas);
-    the horizontal ones are the kinematics' alone.
-    """
-
-    terrain: str = "flat"
-    """``flat`` (default), ``plane`` (``normal``, ``height``) or ``none`` (no ground factor)."""
-    normal: tuple[float, float, float] = (0.0, 0.0, 1.0)
-    """Floor normal, world (= local frame at the first sample) axes (``terrain = "plane"``)."""
-    height: float = 0.0
-    """Floor offset along the unit normal, m (``terrain = "plane"``)."""
-    ground_sigma_tilt: float = 0.0035
-    """Floor flatness: sole tilt about the plane, rad."""
-    ground_sigma_height: float = 0.002
-    """Floor flatness: sole height about the plane, m."""
-    kinematics_sigma_tilt: float = 0.017
-    """Leg kinematics (and zero deflection) at a touch-down: sole roll and pitch, rad."""
-    kinematics_sigma_height: float = 0.005
-    """Leg kinematics at a touch-down: sole height, m."""
-    kinematics_sigma_rotation: float = 0.017
-    """Leg kinematics at a touch-down: sole yaw, rad."""
-    kinematics_sigma_position: float = 0.005
-    """Leg kinematics at a touch-down: sole horizontal position, m."""
-
-    def __post_init__(self):
-        o = "FootholdPrior"
-        check_choice(o, "terrain", self.terrain, ("flat", "plane", "none"))
-        for key in ("ground_sigma_tilt", "ground_sigma_height", "kinematics_sigma_tilt", "kinematics_sigma_height",
-                    "kinematics_sigma_rotation", "kinematics_sigma_position"):
-            unit = "m" if key.endswith(("height", "position")) else "rad"
-            check_positive(o, key, getattr(self, key), unit, "a positive standard deviation")
-        n = np.asarray(self.normal, dtype=float)
-        if n.shape != (3,) or not np.all(np.isfinite(n)) or np.linalg.norm(n) < 1e-9:
-            raise invalid(o, "normal", self.normal, "", "a non-zero 3-vector")
-        check_finite(o, "height", self.height, "m", "a finite number")
-
-    @classmethod
-    def from_config(cls, footholds) -> FootholdPrior:
-        """From a :class:`~flexforce.datasets.robot.FootholdConfig` (duck-typed: its attributes)."""
-        nx, ny, nz = (float(x) for x in footholds.normal)
-        return cls(terrain=footholds.terrain, normal=(nx, ny, nz),
-                   height=float(footholds.height), ground_sigma_tilt=float(footholds.ground_sigma_tilt),
-                   ground_sigma_height=float(footholds.ground_sigma_height),
-                   kinematics_sigma_tilt=float(footholds.kinematics_sigma_tilt),
-                   kinematics_sigma_height=float(footholds.kinematics_sigma_height))
-
-    def kinematic_sigma(self, normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(3, 3) covariances of the position and the rotation from the kinematics, world axes:
-        the horizontal and vertical (along ``normal``) sigmas."""
-        P = np.outer(normal, normal)
-        cov_p = (self.kinematics_sigma_position**2 * (np.eye(3) - P) + self.kinematics_sigma_height**2 * P)
-        cov_r = (self.kinematics_sigma_tilt**2 * (np.eye(3) - P) + self.kinematics_sigma_rotation**2 * P)
-        return cov_p, cov_r
+def rest_placements(rec, rest_p=None, rest_R=None):
+    """Validated (N, C, 3) and (N, C, 3, 3) world rest placements, default the local placements."""
+    n, nc = rec.n, len(rec.contact_names)
+    out = []
+    for name, value, default, shape in (("rest_p", rest_p, rec.contact_p, (n, nc, 3)),
+                                        ("rest_R", rest_R, rec.contact_R, (n, nc, 3, 3))):
+        a = np.ascontiguousarray(default if value is None else value, dtype=float)
+        if a.shape != shape:
+            raise ConfigError(f"{name} must have shape {shape} (steps, contacts, ...), got {a.shape}")
+        if not np.isfinite(a[rec.contact_active]).all():
+            raise DataError(f"{name} is not finite (NaN or inf) where a contact is active; rest placements "
+                            "are in m and rotation matrices")
+        out.append(a)
+    return out[0], out[1]
 
 
 def episode_starts(active: np.ndarray) -> np.ndarray:

@@ -85,7 +85,7 @@ def unmodelled_acceleration(accel_sigma: float, imu_p: np.ndarray, contact_centr
     One assumption shared by the EKF (its process noise) and the smoothers (their Newton-Euler
     noise): what the model leaves out moves the flexibility by a white acceleration, constant over
     a sample, at the level the accelerometer can resolve in one sample.  (The simulated world has
-    its own ambient disturbance, a scenario parameter: :class:`flexforce.datasets.scenario.Ambient`.)
+    its own ambient disturbance, a scenario parameter: :class:`flexforce.datasets.sim.scenario.Ambient`.)
 
     Returns:
         ``(sigma_a, sigma_dw)``: linear acceleration ``accel_sigma`` (m/s^2) and angular

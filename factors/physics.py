@@ -32,11 +32,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from flexforce.datasets.quantities import GRAVITY, ContactParams, ImuPlacement, Inputs
 from flexforce.errors import ModelError
 from flexforce.factors import core
-
-GRAVITY = 9.81
-"""Default gravity (m/s^2), along -z of the world (correction 6: a parameter)."""
 
 E_Z = np.array([0.0, 0.0, 1.0])
 _NO_REST_JAC = np.empty((0, 6))
@@ -49,112 +47,6 @@ def _f(a) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------
 # Parameters and inputs
 # ----------------------------------------------------------------------------------------------
-
-
-def _as_matrix(value, name: str) -> np.ndarray:
-    a = np.asarray(value, dtype=float)
-    if a.ndim == 0:
-        return float(a) * np.eye(3)
-    if a.shape == (3,):
-        return np.diag(a)
-    if a.shape == (3, 3):
-        return a.copy()
-    raise ModelError(f"{name} must be a scalar, a 3-vector (diagonal) or a 3x3 matrix, got shape {a.shape}")
-
-
-@dataclass(frozen=True)
-class ContactParams:
-    """Spring-damper of one contact, eq. (6) and (11), expressed in the contact frame.
-
-    The matrices are rotated into the world with the current contact orientation,
-    ``K_world = R R_c K R_c^T R^T`` (correction 5); isotropic matrices are unaffected.
-    """
-
-    K_fs: np.ndarray
-    """Translational stiffness, 3x3, N/m."""
-    K_fd: np.ndarray
-    """Translational damping, 3x3, N s/m."""
-    K_ts: np.ndarray
-    """Rotational stiffness, 3x3, N m/rad."""
-    K_td: np.ndarray
-    """Rotational damping, 3x3, N m s/rad."""
-    beta_f: float = 0.0
-    """Cubic stiffening of the translational spring, 1/m^2: ``F = -K_fs s (1 + beta_f |s|^2)``."""
-    beta_t: float = 0.0
-    """Cubic stiffening of the rotational spring, 1/rad^2: ``T = -K_ts Omega (1 + beta_t |Omega|^2)``."""
-    _isotropic: bool = field(init=False, repr=False, compare=False)
-
-    def __post_init__(self):
-        # Decided once: np.allclose costs ~0.1 ms, far more than the contact law itself.
-        object.__setattr__(self, "_isotropic", all(
-            np.allclose(K, K[0, 0] * np.eye(3), rtol=0.0, atol=1e-12 * max(1.0, abs(K[0, 0])))
-            for K in (self.K_fs, self.K_fd, self.K_ts, self.K_td)
-        ))
-
-    @classmethod
-    def make(cls, k_fs, k_fd, k_ts, k_td, beta_f: float = 0.0, beta_t: float = 0.0) -> ContactParams:
-        """Build from scalars (isotropic), 3-vectors (diagonal in the contact frame) or 3x3 matrices."""
-        return cls(
-            _as_matrix(k_fs, "k_fs"),
-            _as_matrix(k_fd, "k_fd"),
-            _as_matrix(k_ts, "k_ts"),
-            _as_matrix(k_td, "k_td"),
-            float(beta_f),
-            float(beta_t),
-        )
-
-    @property
-    def isotropic(self) -> bool:
-        """True when every matrix is a multiple of the identity (orientation does not matter)."""
-        return self._isotropic
-
-    def scaled(self, stiffness: float = 1.0, damping: float = 1.0) -> ContactParams:
-        """A copy with stiffnesses multiplied by ``stiffness`` and dampings by ``damping``."""
-        return ContactParams(
-            self.K_fs * stiffness, self.K_fd * damping, self.K_ts * stiffness, self.K_td * damping,
-            self.beta_f, self.beta_t,
-        )
-
-
-@dataclass(frozen=True)
-class Inputs:
-    """The paper's local-frame inputs at one instant (sec. II-C, III-B); correction 3 applies.
-
-    All vectors and tensors are expressed in the local frame and taken about its origin.
-    """
-
-    m: float
-    """Total mass, kg."""
-    c: np.ndarray
-    """CoM position ``c_l``, m."""
-    dc: np.ndarray
-    """CoM velocity, m/s."""
-    ddc: np.ndarray
-    """CoM acceleration, m/s^2."""
-    I: np.ndarray
-    """Rotational inertia about the local origin ``I_l = I_G - m [c_l]x^2``, kg m^2."""
-    dI: np.ndarray
-    """Its time derivative, kg m^2/s."""
-    sigma: np.ndarray
-    """Angular momentum about the local origin ``sigma_l = h_G + m c_l x dc_l``, kg m^2/s."""
-    dsigma: np.ndarray
-    """Its time derivative, N m."""
-
-
-@dataclass(frozen=True)
-class ImuPlacement:
-    """The IMU's placement and motion in the local frame (eq. 26-28)."""
-
-    R: np.ndarray
-    """Orientation ``R_a,l`` (IMU frame to local frame)."""
-    p: np.ndarray
-    """Position ``p_a,l``, m."""
-    v: np.ndarray
-    """Velocity ``dp_a,l/dt`` in the local frame, m/s."""
-    a: np.ndarray
-    """Acceleration ``d2p_a,l/dt2`` in the local frame, m/s^2."""
-    w: np.ndarray
-    """Angular velocity ``omega_g,l`` of the IMU relative to the local frame, expressed in it, rad/s."""
 
 
 @dataclass

@@ -152,9 +152,9 @@ def _cmd_simulate(args) -> int:
 
 
 def _simulate(args) -> int:
-    from flexforce.datasets.bagio import save_recording
-    from flexforce.datasets.scenario import Scenario
-    from flexforce.datasets.simulator import Simulator
+    from flexforce.datasets.io.bagio import save_recording
+    from flexforce.datasets.sim.scenario import Scenario
+    from flexforce.datasets.sim.simulator import Simulator
 
     scenario = Scenario.load(args.scenario)
     if args.robot:
@@ -173,8 +173,8 @@ def _simulate(args) -> int:
 
 def open_recording(path: Path, robot: str | None = None, contacts: str = "ft", quiet: bool = False):
     """A flexforce bag (simulated or saved), or a raw robot bag imported with a robot config."""
-    from flexforce.datasets.bagio import load_recording
-    from flexforce.datasets.rosimport import import_bag, is_flexforce_bag
+    from flexforce.datasets.io.bagio import load_recording
+    from flexforce.datasets.io.rosimport import import_bag, is_flexforce_bag
     from flexforce.errors import ConfigError
 
     path = Path(path)
@@ -210,9 +210,9 @@ def _model(rec, args):
 
 
 def _cmd_run(args) -> int:
+    from flexforce.compare.estimators import estimator_key
     from flexforce.datasets.safeio import check_output, is_bag_folder, output_lock
     from flexforce.errors import OutputError
-    from flexforce.estimators import estimator_key
 
     args.estimator = estimator_key(args.estimator)
     out = Path(args.output)
@@ -241,8 +241,8 @@ def _streams(args) -> bool:
 def _stream_parts(args):
     """``(parts, copy_from)``: the recording as consecutive parts, and the raw bag whose messages
     are copied into an .mcap output as they are read (None: a flexforce bag, written from the parts)."""
-    from flexforce.datasets.rosimport import is_flexforce_bag
-    from flexforce.datasets.stream import stream_bag
+    from flexforce.datasets.io.rosimport import is_flexforce_bag
+    from flexforce.datasets.io.stream import stream_bag
 
     path = Path(args.recording)
     if not path.exists() or is_flexforce_bag(path):
@@ -253,8 +253,8 @@ def _stream_parts(args):
         raise ConfigError(f"{path} is a raw robot bag (no /flexforce/meta): give its robot configuration with "
                           "--robot NAME|CONFIG.toml (e.g. --robot icub)")
     if args._copy is None and (os.cpu_count() or 1) > 1:  # import and smoothing on two cores
-        from flexforce.datasets.stream import pipelined
-        from flexforce.smoother.stream import warm_up
+        from flexforce.datasets.io.stream import pipelined
+        from flexforce.pipeline import warm_up
 
         return pipelined(stream_bag, path, args.robot, contacts=args.contacts, warm_up=warm_up), None
     return stream_bag(path, args.robot, contacts=args.contacts, on_message=args._copy), None
@@ -279,7 +279,7 @@ def _run_stream(args) -> int:
     """The streaming fixed-lag run (:func:`flexforce.smoother.stream.run_stream`)."""
     import itertools
 
-    from flexforce.datasets.export import EstimateWriter, _copy_bag
+    from flexforce.datasets.io.export import EstimateWriter, _copy_bag
     from flexforce.smoother import FixedLagConfig
     from flexforce.smoother.stream import run_stream
 
@@ -325,7 +325,7 @@ def _run_stream(args) -> int:
 
 
 def _run(args) -> int:
-    from flexforce.estimators import run_estimator
+    from flexforce.compare.estimators import run_estimator
 
     if _streams(args):
         return _run_stream(args)
@@ -348,11 +348,11 @@ def _run(args) -> int:
                         progress=Progress(f"{args.estimator}", enabled=not args.quiet and None), **options)
     out = Path(args.output)
     if out.suffix == ".csv":
-        from flexforce.datasets.export import export_csv
+        from flexforce.datasets.io.export import export_csv
 
         out = export_csv(est, out)
     elif out.suffix == ".mcap":
-        from flexforce.datasets.export import export_mcap
+        from flexforce.datasets.io.export import export_mcap
 
         out = export_mcap(est, args.recording, out, overwrite=args.force)
     else:
@@ -365,9 +365,9 @@ def _run(args) -> int:
 
 def _load_or_simulate(source: str, seed: int | None, quiet: bool, robot: str | None = None, contacts: str = "ft"):
     """A recording from a bag, or simulated from a built-in scenario name or scenario file."""
-    from flexforce.datasets.bagio import load_recording
-    from flexforce.datasets.scenario import Scenario, builtin_scenarios
-    from flexforce.datasets.simulator import Simulator
+    from flexforce.datasets.io.bagio import load_recording
+    from flexforce.datasets.sim.scenario import Scenario, builtin_scenarios
+    from flexforce.datasets.sim.simulator import Simulator
 
     path = Path(source)
     if path.exists() and not (path.suffix == ".toml"):
@@ -384,7 +384,7 @@ def _load_or_simulate(source: str, seed: int | None, quiet: bool, robot: str | N
 
 
 def _compare_one(rec, args, out: Path):
-    from flexforce.compare.report import write_report
+    from flexforce.compare.reports.comparison import write_report
     from flexforce.compare.runner import compare
 
     model = _model(rec, args)
@@ -435,9 +435,9 @@ def _print_table(comp) -> None:
 
 
 def _cmd_compare(args) -> int:
+    from flexforce.compare.estimators import estimator_key
     from flexforce.datasets.safeio import output_lock
     from flexforce.errors import ConfigError
-    from flexforce.estimators import estimator_key
 
     names = [e.strip() for e in args.estimators.split(",") if e.strip()]
     if not names:
@@ -470,7 +470,7 @@ def _compare(args) -> int:
     else:
         # one folder of reports, built aside and swapped in whole: an interrupted comparison leaves
         # the previous folder (or none), never new reports beside an old index
-        from flexforce.compare.report import write_index
+        from flexforce.compare.reports.comparison import write_index
         from flexforce.compare.runner import run_jobs
 
         with safe_output(out, folder=True) as staging:
@@ -534,7 +534,7 @@ def _compare_job(args, job):
 
 
 def _cmd_demo(args) -> int:
-    from flexforce.datasets.scenario import DEFAULT_SCENARIO
+    from flexforce.datasets.sim.scenario import DEFAULT_SCENARIO
 
     args.recordings = [args.scenario or DEFAULT_SCENARIO]
     args.seeds = None
@@ -572,7 +572,7 @@ def _diagnose(args) -> int:
     else:
         import json
 
-        from flexforce.compare.diagnose_report import write_diagnosis_index
+        from flexforce.compare.reports.diagnosis import write_diagnosis_index
         from flexforce.compare.runner import run_jobs
         from flexforce.datasets.safeio import safe_output
 
@@ -596,8 +596,8 @@ def _diagnose_job(args, job) -> dict:
     """Diagnose one recording (here or in a worker process of --jobs) and write its report; returns
     what the terminal shows and the index lists."""
     global PROGRESS_PREFIX
-    from flexforce.compare.diagnose import diagnose, load_plugin
-    from flexforce.compare.diagnose_report import diagnosis_summary, write_diagnosis
+    from flexforce.compare.diagnostics.diagnose import diagnose, load_plugin
+    from flexforce.compare.reports.diagnosis import diagnosis_summary, write_diagnosis
 
     label, source, out = job
     PROGRESS_PREFIX = f"{label}: " if label else ""
@@ -643,8 +643,8 @@ def _print_diagnosis(result: dict) -> None:
 
 
 def _cmd_layout(args) -> int:
+    from flexforce.datasets.io.viewers import KINDS, layout_topics, layout_topics_of_bag, render_layout
     from flexforce.datasets.safeio import check_output, output_lock, safe_output
-    from flexforce.datasets.viewers import KINDS, layout_topics, layout_topics_of_bag, render_layout
 
     out = check_output(args.output, f"{args.kind} layout", suffixes=(KINDS[args.kind],))
     with output_lock(out):
@@ -654,7 +654,7 @@ def _cmd_layout(args) -> int:
                                   "--bag alone (or --robot with --estimator/--truth, without --bag)")
             topics = layout_topics_of_bag(args.bag, args.robot)
         else:
-            from flexforce.estimators import estimator_key
+            from flexforce.compare.estimators import estimator_key
 
             topics = layout_topics(args.robot, estimator_key(args.estimator or "ekf"), ft=not args.no_ft,
                                    truth=args.truth)

@@ -1,6 +1,6 @@
 """Validation of the estimators' frozen config dataclasses and of their keyword options.
 
-Each estimator's options are one frozen dataclass beside it (:class:`flexforce.compare.ekf.EKFConfig`,
+Each estimator's options are one frozen dataclass beside it (:class:`flexforce.compare.ekf.filter.EKFConfig`,
 :class:`flexforce.smoother.batch.BatchConfig`, :class:`flexforce.smoother.fixed_lag.FixedLagConfig`,
 :class:`flexforce.smoother.problem.NoiseRule`); their ``__post_init__`` checks every field with the
 helpers below, so that a bad option is a :class:`~flexforce.errors.ConfigError` that names the

@@ -35,7 +35,7 @@ see the residuals' density (:func:`plain_model_rows`).  The losses' normalisers 
 
 :func:`flexforce.smoother.batch.optimize` estimates ``theta`` by minimising this (type-II maximum
 likelihood, with ``theta``'s own prior), the states by MAP given it; the diagnostics score an
-effect by the gain in it (:mod:`flexforce.compare.diagnose`).
+effect by the gain in it (:mod:`flexforce.compare.diagnostics.diagnose`).
 """
 
 from __future__ import annotations

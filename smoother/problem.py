@@ -47,7 +47,7 @@ from flexforce.datasets.faults import ROBUST_LOSSES, imu_validity
 from flexforce.errors import ConfigError, DataError, ModelError
 from flexforce.factors import core
 from flexforce.factors.effects import Effect, ProblemView
-from flexforce.factors.footholds import Footholds, held_rest
+from flexforce.factors.footholds import Footholds, held_rest, rest_placements
 from flexforce.factors.model import unmodelled_acceleration
 from flexforce.factors.physics import ContactParams
 from flexforce.options import check_positive, invalid
@@ -55,7 +55,7 @@ from flexforce.options import check_positive, invalid
 if TYPE_CHECKING:
     from flexforce.datasets.recording import Recording
 
-__all__ = ["FAMILIES", "Effect", "NoiseRule", "Problem", "ProblemView", "Sigmas", "derive_sigmas", "rest_placements",
+__all__ = ["FAMILIES", "Effect", "NoiseRule", "Problem", "ProblemView", "Sigmas", "derive_sigmas",
            "static_equilibrium", "whitener", "with_footholds"]
 
 FAMILIES = ("integration", "newton_euler", "contact", "imu", "ft")
@@ -71,7 +71,7 @@ FAMILIES = ("integration", "newton_euler", "contact", "imu", "ft")
 class NoiseRule:
     """The one rule that sets the sigmas of the model-error families (no per-scenario tuning).
 
-    The model error is the EKF's (``flexforce.compare.ekf.noise_model``): an unmodelled
+    The model error is the EKF's (``flexforce.compare.ekf.filter.noise_model``): an unmodelled
     acceleration, white per sample, of ``unmodelled_accel`` (linear, m/s^2) and
     ``unmodelled_ang_accel`` (angular, rad/s^2).  Defaults (``None``) are the EKF's:
     ``accel_sigma`` and ``accel_sigma / l``, ``l`` the IMU's distance to the contacts' centroid at
@@ -315,22 +315,6 @@ def _inputs(rec, k: int) -> tuple:
 # ----------------------------------------------------------------------------------------------
 # The problem
 # ----------------------------------------------------------------------------------------------
-
-
-def rest_placements(rec, rest_p=None, rest_R=None):
-    """Validated (N, C, 3) and (N, C, 3, 3) world rest placements, default the local placements."""
-    n, nc = rec.n, len(rec.contact_names)
-    out = []
-    for name, value, default, shape in (("rest_p", rest_p, rec.contact_p, (n, nc, 3)),
-                                        ("rest_R", rest_R, rec.contact_R, (n, nc, 3, 3))):
-        a = np.ascontiguousarray(default if value is None else value, dtype=float)
-        if a.shape != shape:
-            raise ConfigError(f"{name} must have shape {shape} (steps, contacts, ...), got {a.shape}")
-        if not np.isfinite(a[rec.contact_active]).all():
-            raise DataError(f"{name} is not finite (NaN or inf) where a contact is active; rest placements "
-                            "are in m and rotation matrices")
-        out.append(a)
-    return out[0], out[1]
 
 
 def with_footholds(rec, model, rest_p=None, rest_R=None):

@@ -2,7 +2,7 @@ r"""Fixed-lag smoothing of a stream: parts of a recording in, estimates out as t
 
 :class:`FixedLagStream` is the online form of :func:`flexforce.smoother.run_fixed_lag`: the
 recording arrives in consecutive parts (:class:`~flexforce.datasets.recording.Recording` objects
-on one time grid, any length, e.g. from :class:`flexforce.datasets.stream.StreamImporter` as the
+on one time grid, any length, e.g. from :class:`flexforce.datasets.io.stream.StreamImporter` as the
 messages of a robot come in), and every :meth:`FixedLagStream.push` returns the estimate of the
 steps that have left the window since the previous call, an :class:`Estimate` over those steps
 only.  Memory is bounded whatever the stream's length: the smoother keeps its window, and the
@@ -43,7 +43,7 @@ from flexforce.smoother.linearize import Trajectory
 from flexforce.smoother.problem import Problem
 from flexforce.smoother.result import make_estimate
 
-__all__ = ["FixedLagStream", "run_stream", "warm_up"]
+__all__ = ["FixedLagStream", "run_stream"]
 
 
 class UpdateTimes:
@@ -340,25 +340,3 @@ def run_stream(parts, model, config: FixedLagConfig | None = None, *, covariance
             stats.update({"missed_deadlines": missed, "max_late_s": late_max})
     if est is not None:
         yield est
-
-
-def warm_up() -> None:
-    """Load the stream's compiled code (numba's cache: ~1 s) by smoothing a short simulated
-    recording, with and without covariances, and the CSV formatting: ``flexforce run`` calls it
-    while the import's first part is awaited, so that the stream runs at speed from its first update."""
-    from flexforce.datasets.csvformat import format_rows
-    from flexforce.datasets.scenario import Scenario
-    from flexforce.datasets.simulator import Simulator
-    from flexforce.factors.model import ModelConfig
-
-    scenario = Scenario.load("stand")
-    scenario.duration = 0.25
-    rec = Simulator(scenario, noise=False).run()
-    model = ModelConfig.from_recording(rec)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        for covariance in (True, False):
-            stream = FixedLagStream(model, FixedLagConfig(lag=0.1), covariance=covariance)
-            stream.push(rec)
-            stream.finish()
-    format_rows(np.zeros((1, 2)), np.zeros(1, dtype=np.int64), int_col=1)

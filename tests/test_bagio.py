@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from flexforce.datasets.bagio import inputs_layout, load_recording, save_recording
+from flexforce.datasets.io.bagio import inputs_layout, load_recording, save_recording
 from flexforce.datasets.recording import Recording, Truth
 from flexforce.errors import BagError
 

@@ -8,8 +8,8 @@ import sys
 import pytest
 
 from flexforce.cli import main
-from flexforce.datasets.bagio import load_recording
-from flexforce.datasets.scenario import Scenario, builtin_scenarios
+from flexforce.datasets.io.bagio import load_recording
+from flexforce.datasets.sim.scenario import Scenario, builtin_scenarios
 
 
 def test_builtin_scenarios_parse():
@@ -44,7 +44,7 @@ def test_bad_scenario_file(tmp_path):
     f = tmp_path / "s.toml"
     f.write_text('name = "s"\nduration = 1.0\n[[swing]]\ncontact = "left_hand"\nlift = 0.2\nland = 0.5\n')
     with pytest.raises(Exception, match="swing names contact 'left_hand'"):
-        from flexforce.datasets.simulator import Simulator
+        from flexforce.datasets.sim.simulator import Simulator
 
         Simulator(Scenario.load(f))
     f.write_text('name = "s"\nduration = 1.0\nrate = 300.0\n')
@@ -231,7 +231,7 @@ def test_an_unexpected_error_is_one_line(tmp_path, stand_bag, capsys, monkeypatc
 
 
 def test_an_interrupted_simulate_leaves_the_previous_bag(tmp_path, capsys, monkeypatch):
-    from flexforce.datasets import bagio
+    from flexforce.datasets.io import bagio
 
     out = tmp_path / "rec"
     assert main(["simulate", "stand", "--duration", "0.1", "-o", str(out), "-q"]) == 0
@@ -250,7 +250,7 @@ def test_an_interrupted_simulate_leaves_the_previous_bag(tmp_path, capsys, monke
 
 
 def test_an_interrupted_compare_leaves_the_previous_report(tmp_path, stand_bag, capsys, monkeypatch):
-    from flexforce.compare import report
+    from flexforce.compare.reports import comparison as report
 
     out = tmp_path / "rep"
     out.mkdir()

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from flexforce.compare.metrics import chi2_mean_bounds, evaluate
-from flexforce.compare.report import write_report
+from flexforce.compare.reports.comparison import write_report
 from flexforce.compare.runner import Comparison, aggregate, describe
 from flexforce.datasets.estimate import Estimate
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import Simulator
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import Simulator
 from flexforce.factors import so3
 
 

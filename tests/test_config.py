@@ -11,10 +11,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from flexforce.compare.ekf import EKFConfig, run_ekf
-from flexforce.datasets.simulator import simulate
+from flexforce.compare.ekf.filter import EKFConfig, run_ekf
+from flexforce.compare.estimators import run_estimator
+from flexforce.datasets.sim.simulator import simulate
 from flexforce.errors import ConfigError
-from flexforce.estimators import run_estimator
 from flexforce.factors.model import ModelConfig
 from flexforce.smoother import BatchConfig, FixedLagConfig, NoiseRule, run_batch, run_fixed_lag
 

@@ -1,10 +1,10 @@
-"""The compiled CSV number formatting (:mod:`flexforce.datasets.csvformat`)."""
+"""The compiled CSV number formatting (:mod:`flexforce.datasets.io.csvformat`)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from flexforce.datasets.csvformat import DIGITS, format_rows
+from flexforce.datasets.io.csvformat import DIGITS, format_rows
 
 
 def test_values_read_back_within_the_stated_precision():

@@ -48,7 +48,7 @@ def test_demo_writes_a_report_whose_json_holds_the_table(tmp_path, scenario, cap
     assert summary["cramer_rao"]["rmse_bound"]["force_N"] > 0
     page = (out / "index.html").read_text()
     # every RMSE of the table is the summary's number, rounded as the table rounds it
-    from flexforce.compare.report import TABLE_COLUMNS
+    from flexforce.compare.reports.comparison import TABLE_COLUMNS
 
     shown = [c[0] for c in TABLE_COLUMNS if any(m["rmse"].get(c[0]) is not None
                                                 for m in summary["estimators"].values())]

@@ -7,10 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from flexforce.compare.diagnose import diagnose
-from flexforce.compare.diagnose_report import write_diagnosis
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import Simulator
+from flexforce.compare.diagnostics.diagnose import diagnose
+from flexforce.compare.reports.diagnosis import write_diagnosis
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import Simulator
 from flexforce.smoother.screening import detectable_sizes
 
 

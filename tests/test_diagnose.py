@@ -21,11 +21,11 @@ import pytest
 from baseline import lower, upper
 
 from flexforce.cli import main
-from flexforce.compare.diagnose import Fit, diagnose, load_plugin, resolve_candidates, score
-from flexforce.compare.diagnose_report import write_diagnosis
-from flexforce.datasets.bagio import save_recording
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import Simulator
+from flexforce.compare.diagnostics.diagnose import Fit, diagnose, load_plugin, resolve_candidates, score
+from flexforce.compare.reports.diagnosis import write_diagnosis
+from flexforce.datasets.io.bagio import save_recording
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import Simulator
 from flexforce.errors import ConfigError
 
 # FIT: margin on an error ratio (after / before adding the effect) of two seeded fits, each
@@ -237,7 +237,7 @@ def test_second_look_replaces_a_per_step_effect_that_loses_as_a_model():
     from types import SimpleNamespace
     from typing import Any
 
-    from flexforce.compare.diagnose import Candidate, _second_look
+    from flexforce.compare.diagnostics.diagnose import Candidate, _second_look
 
     n = 10000
     charge = 0.5 * np.log(n)
@@ -314,7 +314,7 @@ def test_candidates_carry_the_holm_level_of_their_round(gyro_diag):
 
 def test_effects_the_data_do_not_tell_apart_are_reported():
     """Scores within TIE of the best (and significant) make it ambiguous; in the table and JSON."""
-    from flexforce.compare.diagnose import TIE, Candidate, Diagnosis, mark_rivals
+    from flexforce.compare.diagnostics.diagnose import TIE, Candidate, Diagnosis, mark_rivals
 
     def cand(name, s, sig=True):
         return Candidate(name, (), 1, s, s + 10, 1.0, 1e-4 if sig else 0.5, sig, {}, "")
@@ -340,7 +340,7 @@ def test_an_inseparable_candidate_with_the_same_evidence_is_a_rival():
     is not."""
     from types import SimpleNamespace
 
-    from flexforce.compare.diagnose import TIE, Candidate, Diagnosis, mark_rivals
+    from flexforce.compare.diagnostics.diagnose import TIE, Candidate, Diagnosis, mark_rivals
 
     charge = 9.8  # ln n of a 3 s recording's residuals
 
@@ -452,7 +452,7 @@ def test_cli_diagnose_without_candidates_ranks_the_default_catalogue(tmp_path, m
     """Without --candidates the CLI ranks the default catalogue, as the library does: its costly
     members opt out on a recording they do not suit (the footholds without a touch-down), and the
     plugins' effects join it; --candidates names exactly what is ranked."""
-    import flexforce.compare.diagnose as dg
+    import flexforce.compare.diagnostics.diagnose as dg
 
     seen = []
 
@@ -511,7 +511,7 @@ def test_refit_choice_takes_the_strongest_and_their_inseparable_partners():
     decides), and whatever the identifiability table cannot tell from a chosen one."""
     from types import SimpleNamespace
 
-    from flexforce.compare.diagnose import _refit_choice
+    from flexforce.compare.diagnostics.diagnose import _refit_choice
     from flexforce.smoother.screening import ScoreTest
 
     tests = {"a": ScoreTest("a", 50.0, 1.0, 0.0, "constant", [], 0.0),
@@ -535,7 +535,7 @@ def test_a_delay_is_refitted_whatever_its_score_test():
     """The time offset says its score test understates it (``score_understates``): on a recording
     where its test does not pass the screening it is refitted anyway, its evidence reported beside
     the test, while the other candidates that do not pass are not refitted."""
-    from flexforce.compare.diagnose import _score_understates
+    from flexforce.compare.diagnostics.diagnose import _score_understates
     from flexforce.factors.effects import make_effect
     from flexforce.factors.model import ModelConfig
 
@@ -604,7 +604,7 @@ def test_identifiability_notes_say_chose_only_for_the_rounds_choice():
     implausible), the note gives the two scores as they stand, marking an implausible one."""
     from types import SimpleNamespace
 
-    from flexforce.compare.diagnose import Candidate, Diagnosis
+    from flexforce.compare.diagnostics.diagnose import Candidate, Diagnosis
 
     pair = SimpleNamespace(a="a", b="b", text=lambda: "a and b: cannot be told apart")
     ident = SimpleNamespace(inseparable=lambda: [pair])
@@ -636,7 +636,7 @@ def test_partner_checks_say_which_inseparable_candidate_the_references_favour():
     against the references: the sentence gives each one's errors and names the one the
     references favour -- the partner when its errors are lower beyond CHECK_WORSE and none higher,
     the choice the other way round, neither when each wins an error."""
-    from flexforce.compare.diagnose import Candidate, Diagnosis
+    from flexforce.compare.diagnostics.diagnose import Candidate, Diagnosis
 
     def check(tilt, force):
         return {"against": "sensors", "sensors": ["F/T", "motion capture"],
@@ -689,7 +689,7 @@ def test_the_check_of_a_selected_effect_says_when_the_references_disagree():
     """A selected effect's check names what it is measured against and says "disagrees" when an
     error rises by more than CHECK_WORSE with the effect (the iCub walk's footholds against the
     F/T), "agrees" otherwise; a row without a check prints nothing."""
-    from flexforce.compare.diagnose import CHECK_WORSE, Candidate
+    from flexforce.compare.diagnostics.diagnose import CHECK_WORSE, Candidate
 
     c = Candidate("foothold", ("time-offset",), 2, 10.0, 20.0, 2.0, 1e-5, True)
     assert c.check_text() == ""
@@ -712,7 +712,7 @@ def test_the_check_of_a_selected_effect_says_when_the_references_disagree():
 def test_the_check_names_the_force_error_once_when_the_sensors_measure_only_the_vertical_force():
     """On real logs the check lists the error against the F/T: the force's norm is left out when it
     equals the vertical force's (sensors that measure the vertical force alone), kept otherwise."""
-    from flexforce.compare.diagnose import headline_errors
+    from flexforce.compare.diagnostics.diagnose import headline_errors
     from flexforce.compare.metrics import Metrics
 
     only_z = Metrics("batch", rmse={"vertical_force_N": 31.9, "contact_force_N": 31.9}, reference="sensors")
@@ -727,7 +727,7 @@ def test_with_the_ft_fused_the_check_leaves_their_errors_out():
     (the motion capture); without fusion it keeps both."""
     from types import SimpleNamespace
 
-    from flexforce.compare.diagnose import _check
+    from flexforce.compare.diagnostics.diagnose import _check
 
     refs = {"vertical_force_N": "reference: F/T", "rotation_rad": "reference: motion capture"}
     known = {(): ("sensors", {"rotation_rad": 0.0138, "vertical_force_N": 14.6}, refs),
@@ -742,7 +742,7 @@ def test_with_the_ft_fused_the_check_leaves_their_errors_out():
 def test_screening_in_workers_gives_the_statistics_of_one_process(gyro_rec):
     """The score tests in two workers (the first constant candidate tested before they fork, so
     that they share its states' factor and inverses) equal those of one process, test by test."""
-    from flexforce.compare.diagnose import bound, fit_model, screen
+    from flexforce.compare.diagnostics.diagnose import bound, fit_model, screen
     from flexforce.factors.model import ModelConfig
 
     model = ModelConfig.from_recording(gyro_rec)
@@ -768,7 +768,7 @@ def _stepped(rec, step):
 def test_constancy_passes_a_constant_bias_and_fails_one_that_jumps(gyro_rec):
     """The halves of a constant gyro bias agree; a bias that jumps halfway disagrees far beyond
     CONSTANCY_Z, each half estimating its own."""
-    from flexforce.compare.diagnose import CONSTANCY_REL, CONSTANCY_Z, constancy
+    from flexforce.compare.diagnostics.diagnose import CONSTANCY_REL, CONSTANCY_Z, constancy
     from flexforce.factors.model import ModelConfig
 
     model = ModelConfig.from_recording(gyro_rec)
@@ -819,7 +819,7 @@ def test_constancy_tolerates_a_difference_small_beside_the_effect(gyro_rec):
     """A 0.04 rad/s bias about x that grows by 0.008 halfway: its halves are many sigmas apart (the
     sigmas shrink with the samples, a model error's bias in each half does not), but by a fifth of
     the bias: that is the same constant, within CONSTANCY_REL."""
-    from flexforce.compare.diagnose import CONSTANCY_REL, CONSTANCY_Z, constancy
+    from flexforce.compare.diagnostics.diagnose import CONSTANCY_REL, CONSTANCY_Z, constancy
     from flexforce.factors.model import ModelConfig
 
     rec = _stepped(gyro_rec, [0.008, 0.0, 0.0])

@@ -1,6 +1,6 @@
 """Tests of the effect catalogue (flexforce.factors.effects) and of the fit API (flexforce.smoother.fit).
 
-For each effect: a 3 s simulated sway whose truth holds it (datasets/effects.py parameters),
+For each effect: a 3 s simulated sway whose truth holds it (datasets/sim/effects.py parameters),
 fitted with and without the effect; and the same effect fitted on the recording without it.  Plus
 finite-difference checks of every effect's residual terms (world-frame increments, the smoothers'
 retraction) and the protocol's contact family in the fixed-lag smoother.
@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 from baseline import lower, upper
 
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import Simulator
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import Simulator
 from flexforce.factors import core, so3
 from flexforce.factors.effects import EFFECTS, make_effect
 from flexforce.factors.model import ModelConfig
@@ -97,7 +97,7 @@ def gain(a, b):
 
 
 def test_registry_covers_the_simulator_effects():
-    from flexforce.datasets.effects import EFFECT_TYPES
+    from flexforce.datasets.sim.effects import EFFECT_TYPES
 
     assert set(EFFECTS) == set(EFFECT_TYPES)
     for name in EFFECTS:

@@ -1,5 +1,5 @@
 """The effects real logs show -- ``imu-mounting``, ``time-offset``, ``mass-scale`` -- against their
-simulator twins (:mod:`flexforce.datasets.effects`) and against independent paths.
+simulator twins (:mod:`flexforce.datasets.sim.effects`) and against independent paths.
 
 - Each term against the physics computed another way: the mounting rotation is the prediction
   with the IMU frame turned (:func:`flexforce.factors.physics.imu_readings` with a rotated
@@ -20,8 +20,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import Simulator
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import Simulator
 from flexforce.factors import core, physics, so3
 from flexforce.factors.effects import EFFECTS, make_effect
 from flexforce.factors.model import ModelConfig
@@ -206,7 +206,7 @@ def test_diagnosis_finds_the_hidden_twin(name):
     """The twin hidden in a 3 s sway (the scenarios ``sway-<name>``): the effect ranked first and
     selected, its estimate at the truth within 4 of its sigmas, and the errors against the truth
     falling as measured."""
-    from flexforce.compare.diagnose import diagnose
+    from flexforce.compare.diagnostics.diagnose import diagnose
 
     candidates, ft, ratios = DIAGNOSED[name]
     sc = Scenario.load(f"sway-{name}")  # the built-in scenario of the twin: this test's recording
@@ -231,7 +231,7 @@ def test_diagnosis_finds_the_hidden_twin(name):
 @pytest.mark.parametrize("ft", [False, True])
 def test_diagnosis_of_a_clean_recording_finds_none_of_them(ft):
     """No hidden effect (3 s sway): none of the three is significant (F/T fused or not)."""
-    from flexforce.compare.diagnose import diagnose
+    from flexforce.compare.diagnostics.diagnose import diagnose
 
     rec = simulate(None, 3.0)
     d = diagnose(rec, _model(rec, ft), candidates=list(NEW), add=(), ekf=False, identify=False)

@@ -1,4 +1,4 @@
-"""Tests of the seed paper's EKF (flexforce.compare.ekf) and its compiled kernel.
+"""Tests of the seed paper's EKF (flexforce.compare.ekf.filter) and its compiled kernel.
 
 - Reduction: with linear models the EKF's predict/update are a plain Kalman filter (written here
   independently, textbook form).
@@ -24,11 +24,11 @@ import pytest
 from baseline import lower, upper
 from scipy import stats
 
-from flexforce.compare import _ekf_kernel as kern
-from flexforce.compare import ekf as E
+from flexforce.compare.ekf import filter as E
+from flexforce.compare.ekf import kernel as kern
 from flexforce.datasets.estimate import Estimate
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import simulate
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import simulate
 from flexforce.errors import ConfigError, DataError, EstimatorError
 from flexforce.factors import physics as ph
 from flexforce.factors import so3
@@ -417,7 +417,7 @@ def test_estimate_fields_and_roundtrip(recs, tmp_path):
 
 def test_cli_run(recs, tmp_path):
     from flexforce.cli import main
-    from flexforce.datasets.bagio import save_recording
+    from flexforce.datasets.io.bagio import save_recording
 
     bag = save_recording(recs["stand"].slice(0, 100), tmp_path / "rec")
     out = tmp_path / "out.npz"

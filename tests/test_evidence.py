@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from conftest import occam_gradient_skips
 
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import Simulator
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import Simulator
 from flexforce.factors.effects import make_effect
 from flexforce.factors.model import ModelConfig
 from flexforce.smoother import Problem, fit, solvers

@@ -9,9 +9,9 @@ from pathlib import Path
 import pytest
 
 from flexforce.compare.runner import compare
-from flexforce.datasets.bagio import load_recording, save_recording
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import Simulator
+from flexforce.datasets.io.bagio import load_recording, save_recording
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import Simulator
 
 distributed = pytest.importorskip("dask.distributed")
 

@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from flexforce.datasets.estimate import STATE_LABELS, Estimate
-from flexforce.datasets.export import csv_columns, export_csv, export_mcap
+from flexforce.datasets.io.export import csv_columns, export_csv, export_mcap
 from flexforce.errors import BagError
 
 T0 = 1_700_000_000_000_000_000

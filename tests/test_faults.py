@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 from baseline import upper
 
-from flexforce.compare.ekf import run_ekf
+from flexforce.compare.ekf.filter import run_ekf
 from flexforce.datasets.contacts import schmitt_trigger
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import simulate
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import simulate
 from flexforce.errors import ConfigError, DataError
 from flexforce.factors.model import ModelConfig
 from flexforce.smoother import FixedLagConfig, NoiseRule, run_batch, run_fixed_lag
@@ -147,7 +147,7 @@ def test_options_are_checked():
         NoiseRule(imu_robust="tukey")
     with pytest.raises(ConfigError, match=r"NoiseRule.imu_robust_k = -1"):
         NoiseRule(imu_robust_k=-1)
-    from flexforce.compare.ekf import EKFConfig
+    from flexforce.compare.ekf.filter import EKFConfig
     from flexforce.datasets.robot import ImuNoise
 
     with pytest.raises(ConfigError, match=r"EKFConfig.imu_gate = -2"):
@@ -171,7 +171,7 @@ def test_rejected_samples_reach_summary_json(clean, tmp_path):
     axis and a NaN gyrometer reading, each a missing entry) with the count and the one-line summary."""
     import json
 
-    from flexforce.compare.report import write_report
+    from flexforce.compare.reports.comparison import write_report
     from flexforce.compare.runner import compare
 
     rec, model = _fault(clean, "nan")

@@ -20,11 +20,11 @@ import numpy as np
 import pytest
 from baseline import upper
 
+from flexforce.compare.estimators import run_estimator
 from flexforce.compare.metrics import evaluate
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import Simulator
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import Simulator
 from flexforce.errors import ConfigError
-from flexforce.estimators import run_estimator
 from flexforce.factors import core
 from flexforce.factors.footholds import GAUGE, FootholdPrior, Footholds, episode_starts
 from flexforce.factors.model import ModelConfig

@@ -11,7 +11,7 @@ import pinocchio as pin
 import pytest
 from conftest import ICUB_DIR
 
-from flexforce.datasets.localframe import on_ground
+from flexforce.datasets.io.localframe import on_ground
 from flexforce.datasets.robot import FootholdConfig, RobotConfig
 from flexforce.errors import ConfigError
 
@@ -79,7 +79,7 @@ def test_leg_odometry_tilt_on_the_icub_walk():
     tilts out of the local frame.  Measured RMSE (after 0.5 s): 1.26 deg without the prior
     (kinematic footholds), 1.13 deg with it; bound: the measured value plus 0.05 deg."""
     from flexforce.compare.metrics import base_tilt_error
-    from flexforce.datasets.rosimport import import_bag
+    from flexforce.datasets.io.rosimport import import_bag
 
     out = {}
     for terrain in ("none", "flat"):

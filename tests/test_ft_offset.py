@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 from conftest import occam_gradient_skips
 
-from flexforce.compare.diagnose import diagnose
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import Simulator
+from flexforce.compare.diagnostics.diagnose import diagnose
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import Simulator
 from flexforce.errors import ConfigError
 from flexforce.factors.effects import FtOffset, make_effect
 from flexforce.factors.model import ModelConfig

@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from test_factors import check_factor_jacobians  # the numerical Jacobian check (factorTesting)
 
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import Simulator
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import Simulator
 from flexforce.errors import ConfigError
 from flexforce.factors import gtsam_factors as gf
 from flexforce.factors.effects import EFFECTS, make_effect

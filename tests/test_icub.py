@@ -16,7 +16,7 @@ from baseline import upper
 from conftest import ICUB_DIR
 
 from flexforce.cli import main
-from flexforce.datasets.rosimport import import_bag
+from flexforce.datasets.io.rosimport import import_bag
 
 # REAL: margin on an estimator's error against the iCub's own sensors.  The logs are fixed files,
 # so the errors are deterministic; 10 % covers where the smoothers' stopping rules land.  The

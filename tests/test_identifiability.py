@@ -13,7 +13,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from flexforce.compare.diagnose import Candidate, _failure, diagnose, finding, progress_caller
+from flexforce.compare.diagnostics.diagnose import Candidate, _failure, diagnose, finding, progress_caller
 from flexforce.errors import EstimatorError
 from flexforce.factors.effects import EFFECTS, make_effect
 from flexforce.smoother.screening import CandidateInformation, Identifiability, PairCorrelation
@@ -183,8 +183,8 @@ def test_diagnose_names_candidates_per_stage_and_survives_a_raising_plugin():
 @pytest.mark.slow
 def test_identifiability_on_the_benchmark_sway_matches_the_rankings_confusions():
     """The pairs the confusion benchmark's ranking confuses are those the table calls inseparable."""
-    from flexforce.datasets.scenario import Scenario
-    from flexforce.datasets.simulator import Simulator
+    from flexforce.datasets.sim.scenario import Scenario
+    from flexforce.datasets.sim.simulator import Simulator
     from flexforce.factors.model import ModelConfig
     from flexforce.smoother import NoiseRule, Problem, fit
     from flexforce.smoother.screening import INSEPARABLE, identifiability

@@ -10,9 +10,9 @@ import pytest
 
 from flexforce.cli import Progress, main
 from flexforce.compare.runner import run_jobs
-from flexforce.datasets.bagio import save_recording
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import Simulator
+from flexforce.datasets.io.bagio import save_recording
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import Simulator
 from flexforce.errors import ConfigError
 
 TIMING = {"time_per_step_s", "total_time_s", "peak_memory_mb", "seconds"}

@@ -1,12 +1,9 @@
-"""The layers the folders show (DESIGN.md, "Layout"): every import of the package points down.
+"""The layers the folders show (DESIGN.md, "Layout"; docs/architecture.md): every import points down.
 
-physics (``factors/``) <- estimators (``smoother/``) <- comparison and diagnostics (``compare/``),
-with the data (``datasets/``) beside the estimators and the CLI on top.  Each module of each
-folder is parsed with :mod:`ast` (nothing is imported, so a lazy import inside a function counts
-as much as one at the top, and so does an import under ``TYPE_CHECKING``: a type is a dependency
-too) and every ``flexforce.*`` module it names must belong to a layer it may depend on.  The few
-existing exceptions are listed in :data:`EXCEPTIONS` with their reason; an exception that no
-longer occurs fails the test, so the list only shrinks.
+Each module of each folder is parsed with :mod:`ast` (nothing is imported, so a lazy import inside a
+function counts as much as one at the top, and so does an import under ``TYPE_CHECKING``: a type is
+a dependency too) and every ``flexforce.*`` module it names must belong to its own layer or to one
+it may depend on (:data:`ALLOWED`).  There are no exceptions.
 """
 
 from __future__ import annotations
@@ -22,34 +19,47 @@ ROOT = Path(__file__).resolve().parents[1]
 
 FOLDERS = {"factors": "factors", "smoother": "smoother", "datasets": "datasets", "compare": "compare",
            "flexforce": "flexforce"}
-"""Layer name -> folder (pyproject's ``[tool.setuptools.package-dir]``: ``flexforce.<layer>``)."""
+"""Top-level package -> folder (pyproject's ``[tool.setuptools.package-dir]``: ``flexforce.<name>``)."""
 
-ALLOWED = {
-    "factors": {"factors", "errors", "options"},
-    "smoother": {"smoother", "factors", "datasets", "errors", "options"},
-    "datasets": {"datasets", "factors", "errors", "options"},
-    "compare": {"compare", "smoother", "factors", "datasets", "errors", "options"},
+LAYERS: dict[str, tuple[str, ...]] = {
+    "ground": ("flexforce.errors", "flexforce.options", "flexforce.jit"),
+    "data": ("flexforce.datasets",),
+    "io": ("flexforce.datasets.io",),
+    "sim": ("flexforce.datasets.sim",),
+    "physics": ("flexforce.factors",),
+    "estimators": ("flexforce.smoother", "flexforce.compare.ekf"),
+    "comparison": ("flexforce.compare",),
+    "diagnostics": ("flexforce.compare.diagnostics",),
+    "reports": ("flexforce.compare.reports",),
+    "api": ("flexforce",),
+    "cli": ("flexforce.cli",),
 }
-"""Layer -> the layers its modules may import (``errors``: :mod:`flexforce.errors`, the one base
-exception and one per layer; ``options``: :mod:`flexforce.options`, the checks of the config
-dataclasses, which imports only ``errors``: both importable from everywhere)."""
+"""Layer -> the module prefixes it holds; a module belongs to the layer of its longest prefix
+(``flexforce.datasets.io.bagio`` is I/O, ``flexforce.datasets.recording`` data)."""
 
-SIMULATOR = ("datasets/simulator.py", "datasets/effects.py", "datasets/scenario.py")
-"""The simulator, its scenarios and its hidden effects (the ground truth): independent of the
-estimators' physics, so that a shared mistake cannot cancel out (nothing of factors, smoother,
-compare)."""
-
-EXCEPTIONS = {
-    ("factors/model.py", "flexforce.datasets.robot"):
-        "ModelConfig.from_recording builds the contact parameters from the robot's config "
-        "(RobotConfig, RobotModel), lazily; it goes with the config dataclasses "
-        "which take the robot's parameters as arguments",
-    ("compare/runner.py", "flexforce.estimators"):
-        "the comparison runs every estimator through the one entry point run_estimator (name -> EKF, "
-        "batch, fixed-lag), which sits in flexforce/ above compare/ because it imports compare's EKF; "
-        "it resolves once the EKF has its own subpackage below the comparison",
+ALLOWED: dict[str, set[str]] = {
+    "ground": set(),
+    "data": {"ground"},
+    "io": {"data", "ground"},
+    "sim": {"data", "ground"},
+    "physics": {"data", "ground"},
+    "estimators": {"physics", "data", "ground"},
+    "comparison": {"estimators", "physics", "io", "data", "ground"},
+    "diagnostics": {"comparison", "estimators", "physics", "io", "data", "ground"},
+    "reports": {"diagnostics", "comparison", "estimators", "physics", "io", "data", "ground"},
+    "api": {"reports", "diagnostics", "comparison", "estimators", "physics", "io", "sim", "data", "ground"},
+    "cli": {"api", "reports", "diagnostics", "comparison", "estimators", "physics", "io", "sim", "data", "ground"},
 }
-"""``(module, imported module) -> reason``: the upward imports that exist today."""
+"""Layer -> the other layers its modules may import (docs/architecture.md draws them).  The data
+types and the robot model are at the ground; the physics above them; the estimators (smoothers
+and the EKF) above the physics; I/O and the simulator beside the estimators, importing only the
+data types and the robot model (the simulator shares no physics with the estimators, so that a
+shared mistake cannot cancel out); the comparison, the diagnostics and the reports above the
+estimators; the public API and the CLI on top.  Within the ground, :mod:`flexforce.errors` imports
+nothing of the project and :mod:`flexforce.options` only the errors."""
+
+GROUND_IMPORTS = {"flexforce.errors": set(), "flexforce.jit": set(), "flexforce.options": {"flexforce.errors"}}
+"""What each ground module may import of the project."""
 
 
 def _modules(folder: str) -> list[Path]:
@@ -80,29 +90,39 @@ def _imports(path: Path) -> set[str]:
 
 
 def _layer(module: str) -> str:
-    """``flexforce.factors.core`` -> ``factors``; ``flexforce.errors`` -> ``errors``."""
-    parts = module.split(".")
-    return parts[1] if len(parts) > 1 else "flexforce"
+    """The layer of a module: the one of its longest prefix in :data:`LAYERS`."""
+    best, layer = -1, ""
+    for name, prefixes in LAYERS.items():
+        for prefix in prefixes:
+            if (module == prefix or module.startswith(prefix + ".")) and len(prefix) > best:
+                best, layer = len(prefix), name
+    assert layer, f"{module} belongs to no layer"
+    return layer
+
+
+def _module_name(path: Path) -> str:
+    rel = path.relative_to(ROOT)
+    parts = ["flexforce"] + ([] if rel.parts[0] == "flexforce" else [rel.parts[0]]) + list(rel.parts[1:])
+    parts[-1] = parts[-1].removesuffix(".py")
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
 def _violations() -> dict[tuple[str, str], str]:
     """``(module, imported module) -> what is wrong`` over every module of the package."""
     out = {}
-    for layer, folder in FOLDERS.items():
+    for folder in FOLDERS.values():
         for path in _modules(folder):
             rel = path.relative_to(ROOT).as_posix()
+            name = _module_name(path)
+            layer = _layer(name)
             for target in sorted(_imports(path)):
                 to = _layer(target)
-                if to == "cli" and rel != "flexforce/cli.py":
-                    out[(rel, target)] = "nothing imports the CLI"
-                elif rel in SIMULATOR and to in {"factors", "smoother", "compare"}:
-                    out[(rel, target)] = "the simulator imports nothing of factors, smoother or compare"
-                elif layer in ALLOWED and to not in ALLOWED[layer]:
+                if name in GROUND_IMPORTS:
+                    if target not in GROUND_IMPORTS[name]:
+                        allowed = sorted(GROUND_IMPORTS[name]) or "nothing"
+                        out[(rel, target)] = f"{name} imports only {allowed} of the project"
+                elif to != layer and to not in ALLOWED[layer]:
                     out[(rel, target)] = f"{layer} may import {sorted(ALLOWED[layer])}, not {to}"
-                elif rel == "flexforce/errors.py":
-                    out[(rel, target)] = "the errors module imports nothing of the project"
-                elif rel == "flexforce/options.py" and to != "errors":
-                    out[(rel, target)] = "the options module imports only the errors"
     return out
 
 
@@ -112,24 +132,26 @@ def test_the_parser_sees_the_imports_it_must_check():
     assert {"flexforce.errors", "flexforce.factors", "flexforce.factors.effects",
             "flexforce.datasets.recording"} <= found, found  # the last one under TYPE_CHECKING
     assert "flexforce.datasets.robot" in _imports(ROOT / "factors" / "model.py")  # inside a method
-    assert _layer("flexforce.factors.core") == "factors" and _layer("flexforce.errors") == "errors"
+    assert _layer("flexforce.factors.core") == "physics" and _layer("flexforce.errors") == "ground"
+    assert _layer("flexforce.datasets.io.bagio") == "io" and _layer("flexforce.datasets.recording") == "data"
+    assert _layer("flexforce.compare.ekf.filter") == "estimators" and _layer("flexforce.cli") == "cli"
 
 
 def test_every_import_points_down_the_layers():
-    bad = {key: why for key, why in _violations().items() if key not in EXCEPTIONS}
+    bad = _violations()
     assert not bad, "upward imports:\n" + "\n".join(f"  {m} imports {t}: {why}" for (m, t), why in bad.items())
 
 
-def test_the_recorded_exceptions_still_exist():
-    """An exception that was resolved is taken off the list (it only shrinks)."""
-    stale = set(EXCEPTIONS) - set(_violations())
-    assert not stale, f"resolved, remove from EXCEPTIONS: {sorted(stale)}"
+def test_every_module_belongs_to_a_layer():
+    for folder in FOLDERS.values():
+        for path in _modules(folder):
+            _layer(_module_name(path))
 
 
 def test_the_effect_protocol_names_no_estimator():
     """The effects' protocol lives in factors/ and imports nothing above it."""
     effects = _imports(ROOT / "factors" / "effects.py")
-    assert {_layer(m) for m in effects} <= {"factors", "errors"}, effects
+    assert {_layer(m) for m in effects} <= {"physics", "data", "ground"}, effects
 
 
 def _problem_is_a_view(problem: Problem) -> ProblemView:

@@ -17,10 +17,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from flexforce.compare.estimators import run_estimator
 from flexforce.compare.metrics import chi2_mean_bounds, nees_series, state_error
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import Simulator
-from flexforce.estimators import run_estimator
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import Simulator
 
 SKIP = 0.5  # s, start-up excluded from the figures
 MARGIN = 1.5

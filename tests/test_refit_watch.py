@@ -1,7 +1,7 @@
 """The outer steps of the constants (smoother/batch.py: optimize): the secant estimate of the
 curvature the Gauss-Newton Schur complement misses; and the diagnosis's refits ending where nothing
 more is decided -- an added constant whose estimate keeps leaving the plausible range
-(compare/diagnose.py: LeavingPlausible), outer steps of the marginal likelihood that gain less
+(compare/diagnostics/diagnose.py: LeavingPlausible), outer steps of the marginal likelihood that gain less
 than EVIDENCE_TOL nats (optimize's ``evidence_tol``)."""
 
 from __future__ import annotations
@@ -11,10 +11,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from flexforce.compare import diagnose as diagnose_mod
-from flexforce.compare.diagnose import LeavingPlausible, diagnose, fit_model
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import Simulator
+from flexforce.compare.diagnostics import diagnose as diagnose_mod
+from flexforce.compare.diagnostics.diagnose import LeavingPlausible, diagnose, fit_model
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import Simulator
 from flexforce.factors.effects import make_effect
 from flexforce.factors.model import ModelConfig
 from flexforce.smoother import NoiseRule, Problem, batch, fit

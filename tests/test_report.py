@@ -15,10 +15,10 @@ from conftest import ICUB_DIR
 from flexforce.cli import main
 from flexforce.compare.baseline import leg_odometry, static_split
 from flexforce.compare.metrics import evaluate
-from flexforce.compare.report import figure_contacts, intervals, robust_limits, write_report
+from flexforce.compare.reports.comparison import figure_contacts, intervals, robust_limits, write_report
 from flexforce.compare.runner import compare
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import Simulator
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import Simulator
 
 WALK = ICUB_DIR / "icub-walk-12s"
 
@@ -135,7 +135,7 @@ def test_real_walk_window_references_and_leg_odometry(tmp_path, capsys):
     tilt equal to the one computed directly from the base pose and Vicon (an independent path)."""
     from scipy.spatial.transform import Rotation
 
-    from flexforce.datasets.rosimport import import_bag
+    from flexforce.datasets.io.rosimport import import_bag
 
     out = tmp_path / "walk"
     assert main(["compare", str(WALK), "--robot", "icub", "-o", str(out), "-q", "--estimators", "ekf",

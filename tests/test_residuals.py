@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from baseline import lower, upper
 
-from flexforce.compare.residuals import consistency, flag_windows, residual_rms
+from flexforce.compare.diagnostics.residuals import consistency, flag_windows, residual_rms
 from flexforce.datasets.estimate import Estimate
 
 

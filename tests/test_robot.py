@@ -231,7 +231,7 @@ def test_negative_and_zero_masses_in_the_urdf(tmp_path):
 
 
 def test_a_recording_too_short_for_the_estimators():
-    from flexforce.estimators import run_estimator
+    from flexforce.compare.estimators import run_estimator
 
     rec = _short_recording(3)
     with pytest.raises(DataError, match="recording has 3 sample\\(s\\) at 200 Hz; the estimators need at least 10 "
@@ -241,8 +241,8 @@ def test_a_recording_too_short_for_the_estimators():
 
 
 def _short_recording(n: int) -> Recording:
-    from flexforce.datasets.scenario import Scenario
-    from flexforce.datasets.simulator import Simulator
+    from flexforce.datasets.sim.scenario import Scenario
+    from flexforce.datasets.sim.simulator import Simulator
 
     rec = Simulator(Scenario.from_dict({"name": "s", "duration": 0.1}), noise=False).run()
     return rec.slice(0, n)

@@ -17,10 +17,10 @@ import rosbags.rosbag1
 import rosbags.rosbag2
 from conftest import ICUB_DIR as ICUB  # noqa: E402
 
-from flexforce.datasets.bagio import load_recording, save_recording
 from flexforce.datasets.contacts import fixed_contacts, phases, schmitt_trigger
+from flexforce.datasets.io.bagio import load_recording, save_recording
+from flexforce.datasets.io.rosimport import import_bag, is_flexforce_bag
 from flexforce.datasets.robot import RobotConfig, RobotModel, RosConfig
-from flexforce.datasets.rosimport import import_bag, is_flexforce_bag
 from flexforce.errors import BagError, ConfigError, DataError
 
 T0 = 1_700_000_000_000_000_000  # an epoch time: stamps use both sec and nanosec

@@ -13,8 +13,8 @@ import pytest
 from scipy import signal
 
 from flexforce.datasets.robot import RobotConfig
-from flexforce.datasets.scenario import Scenario, Walk
-from flexforce.datasets.simulator import Simulator
+from flexforce.datasets.sim.scenario import Scenario, Walk
+from flexforce.datasets.sim.simulator import Simulator
 from flexforce.errors import ConfigError
 from flexforce.factors.model import ModelConfig
 

@@ -20,9 +20,9 @@ import pytest
 from baseline import lower
 from scipy import stats
 
-from flexforce.compare.residuals import _satterthwaite, consistency, flag_windows
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import Simulator
+from flexforce.compare.diagnostics.residuals import _satterthwaite, consistency, flag_windows
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import Simulator
 from flexforce.factors.effects import EFFECTS, make_effect
 from flexforce.factors.model import ModelConfig
 from flexforce.smoother import NoiseRule, Problem, fit
@@ -159,7 +159,7 @@ def test_the_window_scales_at_once_are_the_windows_one_at_a_time():
     """The Satterthwaite scale of every window of an axis by running sums equals the scale of each
     window formed alone (relative 1e-12), with missing rows, NaN correlations and windows shorter
     than the lags."""
-    from flexforce.compare.residuals import _window_scales
+    from flexforce.compare.diagnostics.residuals import _window_scales
 
     rng = np.random.default_rng(4)
     n, k, L = 230, 3, 12

@@ -11,9 +11,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from flexforce.datasets.bagio import load_recording, save_recording
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import Simulator
+from flexforce.datasets.io.bagio import load_recording, save_recording
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import Simulator
 from flexforce.factors import physics as ph
 from flexforce.factors import so3
 
@@ -356,7 +356,7 @@ def test_simulator_imports_no_estimator_code():
     import ast
     from pathlib import Path
 
-    import flexforce.datasets.simulator as simulator
+    import flexforce.datasets.sim.simulator as simulator
 
     folder = Path(simulator.__file__).parent
     for name in ("simulator.py", "scenario.py", "effects.py"):

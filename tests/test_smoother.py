@@ -18,8 +18,8 @@ from baseline import lower, upper
 from scipy.stats import chi2
 
 from flexforce.datasets.estimate import Estimate
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import Simulator
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import Simulator
 from flexforce.errors import ConfigError
 from flexforce.factors import so3
 from flexforce.factors.model import ModelConfig
@@ -376,7 +376,7 @@ def test_effect_protocol_in_the_fixed_lag_smoother(rec, model):
 @pytest.mark.slow
 @pytest.mark.parametrize("scenario", ["push-pitch", "push-roll", "com-step"])
 def test_smoothers_beat_the_ekf(scenario):
-    ekf_mod = pytest.importorskip("flexforce.compare.ekf")
+    ekf_mod = pytest.importorskip("flexforce.compare.ekf.filter")
     sc = Scenario.load(scenario)
     sc.imu_noise = {"gyro_bias_rw": 0.0, "accel_bias_rw": 0.0}
     rec = Simulator(sc).run()

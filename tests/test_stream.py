@@ -18,12 +18,12 @@ import numpy as np
 import pytest
 from conftest import ICUB_DIR
 
+from flexforce.datasets.io.rosimport import import_bag
+from flexforce.datasets.io.stream import StreamImporter, stream_bag
 from flexforce.datasets.recording import Recording, concat_recordings
 from flexforce.datasets.robot import RobotConfig
-from flexforce.datasets.rosimport import import_bag
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import Simulator
-from flexforce.datasets.stream import StreamImporter, stream_bag
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import Simulator
 from flexforce.errors import ConfigError, DataError
 from flexforce.factors.effects import AccelBias
 from flexforce.factors.model import ModelConfig
@@ -232,8 +232,8 @@ def test_cdr_decoder_equals_rosbags():
     fields for every message of a raw bag; other types and big-endian data are left to rosbags."""
     from rosbags.highlevel import AnyReader
 
-    from flexforce.datasets.rosimport import T_IMU, T_JOINTS, T_WRENCH, _typestore
-    from flexforce.datasets.stream import _CdrDecoder, _fields
+    from flexforce.datasets.io.rosimport import T_IMU, T_JOINTS, T_WRENCH, _typestore
+    from flexforce.datasets.io.stream import _CdrDecoder, _fields
 
     dec = _CdrDecoder()
     seen = set()
@@ -333,7 +333,7 @@ def test_cli_streams_a_raw_bag(tmp_path: Path):
 
 
 def test_cli_streams_a_flexforce_recording(tmp_path: Path, pitch):
-    from flexforce.datasets.bagio import save_recording
+    from flexforce.datasets.io.bagio import save_recording
 
     bag = save_recording(pitch, tmp_path / "pitch")
     res = _cli("run", bag, "--estimator", "fixed-lag", "-o", tmp_path / "a.csv", "-q")

@@ -9,11 +9,10 @@ import xml.etree.ElementTree as ET
 import pytest
 
 from flexforce.cli import main
-from flexforce.datasets.bagio import save_recording
-from flexforce.datasets.export import export_mcap
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import Simulator
-from flexforce.datasets.viewers import (
+from flexforce.compare.estimators import run_estimator
+from flexforce.datasets.io.bagio import save_recording
+from flexforce.datasets.io.export import export_mcap
+from flexforce.datasets.io.viewers import (
     KINDS,
     bag_topics,
     layout_topics,
@@ -21,7 +20,8 @@ from flexforce.datasets.viewers import (
     render_layout,
     topics_of_layout,
 )
-from flexforce.estimators import run_estimator
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import Simulator
 
 
 @pytest.fixture(scope="module")

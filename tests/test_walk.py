@@ -6,9 +6,9 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import Simulator
-from flexforce.estimators import run_estimator
+from flexforce.compare.estimators import run_estimator
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import Simulator
 
 
 @pytest.fixture(scope="module")

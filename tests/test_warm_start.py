@@ -9,8 +9,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import Simulator
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import Simulator
 from flexforce.errors import ConfigError
 from flexforce.factors.effects import make_effect
 from flexforce.factors.model import ModelConfig

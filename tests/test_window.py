@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from flexforce.cli import main
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import Simulator
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import Simulator
 from flexforce.errors import DataError
 
 

@@ -15,9 +15,9 @@ import dataclasses
 import numpy as np
 import pytest
 
-from flexforce.datasets.export import _csv_lines
-from flexforce.datasets.scenario import Scenario
-from flexforce.datasets.simulator import Simulator
+from flexforce.datasets.io.export import _csv_lines
+from flexforce.datasets.sim.scenario import Scenario
+from flexforce.datasets.sim.simulator import Simulator
 from flexforce.factors.model import ModelConfig
 from flexforce.smoother import FixedLagConfig, run_fixed_lag, window_kernel
 from flexforce.smoother.fixed_lag import FixedLagSmoother

@@ -4,8 +4,8 @@ Three steps (DESIGN.md, "Diagnostics"; docs/diagnostics.md explains how to read 
 
 1. **Where it fails.**  Fit the nominal model; the whitened residual of every factor family and
    axis over time, the windows where it is inconsistent with its noise
-   (:func:`flexforce.compare.residuals.flag_windows`: chi-square per window against its
-   Bonferroni bound; :func:`~flexforce.compare.residuals.consistency`: whole-run chi-square and
+   (:func:`flexforce.compare.diagnostics.residuals.flag_windows`: chi-square per window against its
+   Bonferroni bound; :func:`~flexforce.compare.diagnostics.residuals.consistency`: whole-run chi-square and
    Ljung-Box whiteness), and the EKF's innovations (NIS, flagged windows) alongside.
 2. **Which effect is missing.**  Refit with each candidate effect and score the gain in
    likelihood against the unknowns it adds, with the Bayesian information criterion
@@ -68,8 +68,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy import stats
 
+from flexforce.compare.diagnostics.residuals import FlaggedWindow, consistency, flag_windows, residual_rms
 from flexforce.compare.metrics import RMSE_KEYS, Metrics, evaluate
-from flexforce.compare.residuals import FlaggedWindow, consistency, flag_windows, residual_rms
 from flexforce.errors import ConfigError, FlexforceError
 
 if TYPE_CHECKING:
@@ -1720,7 +1720,7 @@ def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable 
     assert before is not None
     ekf_snap = None
     if ekf:
-        from flexforce.compare.ekf import run_ekf
+        from flexforce.compare.ekf.filter import run_ekf
 
         t0 = time.perf_counter()
         try:

@@ -54,7 +54,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from flexforce.datasets.scenario import minjerk
+from flexforce.datasets.sim.scenario import minjerk
 from flexforce.errors import ConfigError
 
 EFFECT_TYPES = ("external-wrench", "gyro-bias", "accel-bias", "stiffness", "anisotropic-stiffness",

@@ -28,7 +28,7 @@ A scenario is a TOML file (the built-in ones live in ``flexforce/datasets/scenar
     contact = "right_foot"; lift = 2.0; land = 2.8; displacement = [0.1, 0.0, 0.0]; height = 0.03
     travel = [0.25, 0.75]    # fractions of the swing with horizontal motion (default [0, 1])
 
-    [[effects]]              # hidden effects, see flexforce.datasets.effects
+    [[effects]]              # hidden effects, see flexforce.datasets.sim.effects
     type = "external-wrench"; link = "@base"; force = [40.0, 0.0, 0.0]; start = 1.0; duration = 0.2
 
     [imu_noise]              # the simulated IMU (same keys as ImuNoise, default the robot's),
@@ -298,7 +298,7 @@ class Walk:
     @classmethod
     def parse(cls, raw, where: str) -> Walk:
         if not isinstance(raw, dict):
-            raise ConfigError(f"{where}: walk = {raw!r}: expected a table (see flexforce.datasets.scenario.Walk)")
+            raise ConfigError(f"{where}: walk = {raw!r}: expected a table (see flexforce.datasets.sim.scenario.Walk)")
         known = set(cls.__dataclass_fields__)
         unknown = set(raw) - known
         if unknown:
@@ -379,7 +379,7 @@ class Scenario:
     """The world's ambient disturbance: true (the default levels of :class:`Ambient`), false (none),
     or an ``[ambient]`` table of :class:`Ambient` fields."""
     touchdown: str = "floor"
-    """Rest placement (foothold) of a landing contact's spring (see :mod:`flexforce.datasets.simulator`).
+    """Rest placement (foothold) of a landing contact's spring (see :mod:`flexforce.datasets.sim.simulator`).
     ``"floor"``: where the descending foot reaches the floor, flat on it; contact from that instant,
     lift-off when the spring stops pushing (no force jump at either).  ``"relaxed"``: the foot's
     actual world placement at the scheduled landing (unloaded, but footholds inherit the body's

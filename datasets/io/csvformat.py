@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from flexforce.factors.core import njit
+from flexforce.jit import njit
 
 __all__ = ["DIGITS", "format_rows"]
 

@@ -1,7 +1,7 @@
 """Diagnosis reports: a folder with index.html, diagnosis.json and matplotlib figures.
 
-Figures are drawn from a :class:`~flexforce.compare.diagnose.Diagnosis`; plot functions draw on a
-given ``Axes`` and never show anything (like :mod:`flexforce.compare.report`).
+Figures are drawn from a :class:`~flexforce.compare.diagnostics.diagnose.Diagnosis`; plot functions draw on a
+given ``Axes`` and never show anything (like :mod:`flexforce.compare.reports.comparison`).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy import stats  # noqa: E402
 
-from flexforce.compare.report import LABELS, environment, report_folder  # noqa: E402
+from flexforce.compare.reports.comparison import LABELS, environment, report_folder  # noqa: E402
 
 BEFORE, AFTER = "tab:red", "tab:green"
 

@@ -32,7 +32,7 @@ def run_estimator(name: str, rec, model=None, config: Any = None, progress: Call
         name: ``ekf`` (the seed paper's filter), ``fixed-lag`` or ``batch`` (factor-graph smoothers).
         rec: a :class:`flexforce.datasets.recording.Recording`.
         model: a :class:`flexforce.factors.model.ModelConfig`; the recording's nominal model if None.
-        config: the estimator's options, :class:`flexforce.compare.ekf.EKFConfig`,
+        config: the estimator's options, :class:`flexforce.compare.ekf.filter.EKFConfig`,
             :class:`flexforce.smoother.FixedLagConfig` or :class:`flexforce.smoother.BatchConfig`
             (None: its defaults).
         progress: called with the fraction done.
@@ -52,7 +52,7 @@ def run_estimator(name: str, rec, model=None, config: Any = None, progress: Call
     cls: type
     run: Callable[..., Any]
     if key == "ekf":
-        from flexforce.compare.ekf import EKFConfig, run_ekf
+        from flexforce.compare.ekf.filter import EKFConfig, run_ekf
 
         cls, run = EKFConfig, run_ekf
     elif key == "batch":

@@ -1,6 +1,6 @@
 r"""Import a robot's messages as they come: parts of a :class:`Recording`, in bounded memory.
 
-:class:`StreamImporter` is the online form of :func:`flexforce.datasets.rosimport.import_bag`:
+:class:`StreamImporter` is the online form of :func:`flexforce.datasets.io.rosimport.import_bag`:
 it takes the IMU, joint-state and F/T messages in time order (per topic) and hands out
 consecutive parts of the recording, each a :class:`Recording` on one uniform grid, as soon as
 their inputs are final.  :func:`stream_bag` feeds it from a bag read message by message, so a
@@ -20,7 +20,7 @@ log of any length is imported without being loaded.  Same method as the offline 
   after its time (plus ``report_every`` samples).
 * **Contacts.** The Schmitt trigger runs step by step with its state carried; it starts at a
   contact's first finite force (offline: the same).
-* **Local frame** (:class:`flexforce.datasets.localframe.LocalFrameTracker`) and kinematics, step by
+* **Local frame** (:class:`flexforce.datasets.io.localframe.LocalFrameTracker`) and kinematics, step by
   step, as offline.
 
 With the same rate and messages, the parts joined are the offline recording to rounding, except
@@ -41,10 +41,8 @@ import numpy as np
 from scipy.ndimage import convolve1d
 from scipy.signal import savgol_coeffs, savgol_filter
 
-from flexforce.datasets.localframe import LocalFrameTracker
-from flexforce.datasets.recording import Recording
-from flexforce.datasets.robot import RobotConfig, RobotModel, RosConfig
-from flexforce.datasets.rosimport import (
+from flexforce.datasets.io.localframe import LocalFrameTracker
+from flexforce.datasets.io.rosimport import (
     T_IMU,
     T_JOINTS,
     T_WRENCH,
@@ -55,6 +53,8 @@ from flexforce.datasets.rosimport import (
     check_touch_downs,
     local_inputs,
 )
+from flexforce.datasets.recording import Recording
+from flexforce.datasets.robot import RobotConfig, RobotModel, RosConfig
 from flexforce.errors import BagError, ConfigError, DataError
 
 __all__ = ["StreamImporter", "pipelined", "stream_bag"]
@@ -675,7 +675,7 @@ def stream_bag(path, robot_config, rate: float | None = None, contacts: str = "f
     """Parts of the recording of a raw robot bag, read message by message (bounded memory).
 
     Args:
-        path, robot_config, rate, contacts: as :func:`flexforce.datasets.rosimport.import_bag`.
+        path, robot_config, rate, contacts: as :func:`flexforce.datasets.io.rosimport.import_bag`.
         part_seconds: length of each part, s.
         on_message: called as ``on_message(reader, connection, log_time_ns, raw)`` for every
             message of the bag, in the bag's order (``reader`` the rosbags AnyReader; to copy the

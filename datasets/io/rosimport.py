@@ -39,7 +39,7 @@ Method (docs/real-logs.md has the long form):
 * **Contacts.** ``contacts="ft"``: Schmitt trigger on the F/T normal force (``contact_on`` /
   ``contact_off``; :mod:`flexforce.datasets.contacts`); ``contacts="fixed"``: ``fixed_contacts``
   (all contacts by default) active throughout.
-* **Local frame.** Stance-foot leg odometry (:mod:`flexforce.datasets.localframe`), then
+* **Local frame.** Stance-foot leg odometry (:mod:`flexforce.datasets.io.localframe`), then
   :meth:`RobotModel.kinematics` gives the inputs, the IMU placement and the contacts.
 
 ``meta`` holds the source, the grid, the method, the gaps, the contact phases, the anchor
@@ -59,7 +59,7 @@ import pinocchio as pin
 from scipy.signal import savgol_filter
 
 from flexforce.datasets.contacts import fixed_contacts, phases, schmitt_trigger
-from flexforce.datasets.localframe import anchored_local_frame
+from flexforce.datasets.io.localframe import anchored_local_frame
 from flexforce.datasets.recording import Recording
 from flexforce.datasets.robot import RobotConfig, RobotModel, RosConfig
 from flexforce.errors import BagError, ConfigError, DataError

@@ -22,7 +22,7 @@ The simulator is the truth the estimators are measured against, so it shares non
 its SO(3) is pinocchio's (``exp3``, ``log3``), its contact springs (:class:`Spring`) and centre of
 pressure (:func:`center_of_pressure`) are its own, checked by the tests against pinocchio's
 statics; its ambient disturbance, its sensor noise and its touch-down rule are parameters of the
-scenario (:class:`flexforce.datasets.scenario.Ambient`, ``[imu_noise]``, ``touchdown``).
+scenario (:class:`flexforce.datasets.sim.scenario.Ambient`, ``[imu_noise]``, ``touchdown``).
 
 Touch-down.  A contact's spring acts between the contact frame's actual world placement and a
 rest placement (the foothold) fixed for the contact episode; ``meta["contact_episodes"]`` lists
@@ -79,10 +79,10 @@ import numpy as np
 import pinocchio as pin
 from scipy import signal
 
-from flexforce.datasets.effects import HiddenEffect, parse_effects
 from flexforce.datasets.recording import Recording, Truth
 from flexforce.datasets.robot import ROBOTS_DIR, FtNoise, ImuNoise, RobotConfig, RobotModel
-from flexforce.datasets.scenario import Ambient, Scenario, minjerk
+from flexforce.datasets.sim.effects import HiddenEffect, parse_effects
+from flexforce.datasets.sim.scenario import Ambient, Scenario, minjerk
 from flexforce.errors import ConfigError, ModelError
 
 E_Z = np.array([0.0, 0.0, 1.0])

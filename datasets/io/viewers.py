@@ -1,4 +1,4 @@
-"""Foxglove and PlotJuggler layouts for the bags that :func:`flexforce.datasets.export.export_mcap` writes.
+"""Foxglove and PlotJuggler layouts for the bags that :func:`flexforce.datasets.io.export.export_mcap` writes.
 
 A layout shows the estimate beside the inputs it was computed from, one tab per question:
 
@@ -15,12 +15,12 @@ imu       the gyrometer and accelerometer readings the estimators were given
 
 The curves depend on the robot (its contact names, its F/T topics) and on the estimator
 (``/estimate/<estimator>/...``), so the layouts are rendered from templates shipped with the
-package (``datasets/layouts/*.j2``) for one robot and estimator (:func:`render_layout`), or for
+package (``datasets/io/layouts/*.j2``) for one robot and estimator (:func:`render_layout`), or for
 the topics of an exported bag (:func:`layout_topics_of_bag`); ``flexforce layout`` is the command
 line face.  The F/T readings are in each sensor's frame, the estimate in the world: for a flat
 foot both F_z are the normal force.
 
-Topic names follow :mod:`flexforce.datasets.bagio` (``/imu``, ``/ft/<contact>``,
+Topic names follow :mod:`flexforce.datasets.io.bagio` (``/imu``, ``/ft/<contact>``,
 ``/truth/...``) for flexforce bags, and the robot configuration's ``[ros]`` table
 (``ft_topics``, ``imu_topic``) for raw robot bags.
 """
@@ -43,7 +43,7 @@ COLORS = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e3
 
 
 def _token(name: str) -> str:
-    """A name as a topic token (the rule of :mod:`flexforce.datasets.export`)."""
+    """A name as a topic token (the rule of :mod:`flexforce.datasets.io.export`)."""
     token = re.sub(r"[^A-Za-z0-9_]", "_", name)
     return token if re.match(r"^[A-Za-z]", token) else f"e_{token}"
 
@@ -202,7 +202,7 @@ def panels(topics: LayoutTopics) -> list[tuple[str, list[Plot]]]:
 def _environment():
     import jinja2
 
-    return jinja2.Environment(loader=jinja2.PackageLoader("flexforce.datasets", "layouts"),
+    return jinja2.Environment(loader=jinja2.PackageLoader("flexforce.datasets.io", "layouts"),
                               autoescape=jinja2.select_autoescape(enabled_extensions=("xml",),
                                                                   default_for_string=False),
                               undefined=jinja2.StrictUndefined, keep_trailing_newline=True)

@@ -30,7 +30,7 @@ with ``d_theta = J_l(Omega) d_Omega`` (:func:`flexforce.factors.so3.left_jacobia
 Jacobians in the state's own parametrisation.  The authors differentiated numerically; that path is
 kept (``EKFConfig(jacobians="numeric")`` on :meth:`EKF.transition` and :meth:`EKF.measurement`)
 as the tests' reference.  The step -- model, covariance prediction, correction, outputs -- is
-compiled once (:mod:`flexforce.compare._ekf_kernel` on the physics core
+compiled once (:mod:`flexforce.compare.ekf.kernel` on the physics core
 :mod:`flexforce.factors.core`); :meth:`EKF.predict` and :meth:`EKF.update` state it with the plain
 Kalman algebra of :func:`kf_predict` and :func:`kf_update`, and the tests hold the two together.
 
@@ -52,12 +52,13 @@ from typing import NamedTuple
 
 import numpy as np
 
-from flexforce.compare import _ekf_kernel as K
+from flexforce.compare.ekf import kernel as K
 from flexforce.datasets import faults
 from flexforce.datasets.estimate import Estimate
 from flexforce.datasets.recording import Recording
 from flexforce.errors import ConfigError, DataError, EstimatorError, ModelError
 from flexforce.factors import so3
+from flexforce.factors.footholds import rest_placements
 from flexforce.factors.model import ModelConfig, unmodelled_acceleration
 from flexforce.options import (
     check_bool,
@@ -69,7 +70,6 @@ from flexforce.options import (
     require_config,
     with_options,
 )
-from flexforce.smoother.problem import rest_placements
 
 __all__ = [
     "EKF", "EKFConfig", "Update", "kf_predict", "kf_update", "run_ekf", "noise_model",
@@ -361,7 +361,7 @@ class EKF:
     r"""The paper's EKF over a recording: its model functions and pure ``predict`` and ``update``.
 
     ``transition``, ``measurement``, ``dynamics`` and ``outputs`` are the compiled kernel's
-    (:mod:`flexforce.compare._ekf_kernel`, on the physics core); ``predict(x, P, k)`` and
+    (:mod:`flexforce.compare.ekf.kernel`, on the physics core); ``predict(x, P, k)`` and
     ``update(x, P, k)`` combine them with the plain Kalman algebra of :func:`kf_predict` and
     :func:`kf_update` and mutate nothing: they are the readable statement of the step that
     :func:`run_ekf` runs compiled (``_ekf_kernel.step``), and the tests hold the two together.

@@ -444,13 +444,13 @@ def _references(summary: dict) -> dict:
 
 @functools.cache
 def environment():
-    """The jinja2 environment of the report templates (``compare/templates``, shipped with the package).
+    """The jinja2 environment of the report templates (``compare/reports/templates``, shipped with the package).
 
     Autoescaped HTML; the filter ``fmt`` formats a number like the tables do (:func:`_fmt`).
     """
     import jinja2
 
-    env = jinja2.Environment(loader=jinja2.PackageLoader("flexforce.compare", "templates"), autoescape=True,
+    env = jinja2.Environment(loader=jinja2.PackageLoader("flexforce.compare.reports", "templates"), autoescape=True,
                              undefined=jinja2.StrictUndefined, trim_blocks=True, lstrip_blocks=True)
     env.filters["fmt"] = _fmt
     return env

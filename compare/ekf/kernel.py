@@ -1,4 +1,4 @@
-r"""The step of the EKF of :mod:`flexforce.compare.ekf`, compiled (numba): the only one there is.
+r"""The step of the EKF of :mod:`flexforce.compare.ekf.filter`, compiled (numba): the only one there is.
 
 The physics is the core's (:mod:`flexforce.factors.core`: contact law, Newton-Euler, forward
 dynamics, IMU model, SO(3)); this module adds the filter: the transition and its Jacobian in the
@@ -220,7 +220,7 @@ def touch_down(k, x, U, dt, tilt_weight, height_weight, floor_z):
 @njit
 def transition(x, u, CP, dt, m, g, x1, F):
     """``x1 = f(x)`` (the state predicted at the step of ``u``) and its Jacobian ``F`` (18x18),
-    filter order ``(t, Omega, v, w, a, dw)`` (see :mod:`flexforce.compare.ekf`).  Returns ok."""
+    filter order ``(t, Omega, v, w, a, dw)`` (see :mod:`flexforce.compare.ekf.filter`).  Returns ok."""
     Om, v, w, a, dw = ld3(x, 3), ld3(x, 6), ld3(x, 9), ld3(x, 12), ld3(x, 15)
     h = 0.5 * dt * dt
     phi, E, R1, t1 = predicted_pose(x, dt)
@@ -593,7 +593,7 @@ def outputs(x, P, u, CP, z0, min_force, WS, Pw, per, Wcov, cop, cop_cov):
 def step(k, x, P, U, CP, C, WS, OUT, do_predict, want_outputs):
     """Predict (``do_predict``, k > 0) and update at step ``k``: ``x`` and ``P`` are overwritten,
     the step's output row ``OUT[k]`` written.  ``C`` the packed constants.  Returns the status
-    (0 ok, see :mod:`flexforce.compare.ekf`)."""
+    (0 ok, see :mod:`flexforce.compare.ekf.filter`)."""
     n_c = CP.shape[0]
     Q = C[0:_NQ].reshape((18, 18))
     Rn = C[_NQ:_NQ + _NR].reshape((6, 6))

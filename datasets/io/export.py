@@ -13,7 +13,7 @@ CSV (:func:`export_csv`): one row per step, a header row of column names with un
   (:data:`flexforce.datasets.estimate.STATE_LABELS`), ``std_cop_x std_cop_y``.
 
 Numbers have 15 significant digits (within 1e-14 of the estimate, relatively: the .npz is the
-lossless output), ``t_ns`` is exact (:mod:`flexforce.datasets.csvformat`).
+lossless output), ``t_ns`` is exact (:mod:`flexforce.datasets.io.csvformat`).
 
 MCAP (:func:`export_mcap`): a ROS 2 bag directory (MCAP storage, Humble message definitions
 embedded) for PlotJuggler or Foxglove, with under ``/estimate/<estimator>/``:
@@ -37,7 +37,7 @@ topic                     message                                   frame_id
 Every topic of the input is copied unchanged beside them (ROS 1 messages converted to ROS 2
 CDR); given a :class:`Recording` instead of a bag, its ``/imu``, ``/joint_states``,
 ``/ft/<contact>`` and ``/mocap/<link>`` are written on its grid.  Stamps are the input's
-absolute times, so estimates and measurements line up.  :mod:`flexforce.datasets.viewers` writes
+absolute times, so estimates and measurements line up.  :mod:`flexforce.datasets.io.viewers` writes
 Foxglove and PlotJuggler layouts for these topics (``flexforce layout``).
 """
 
@@ -51,8 +51,8 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from flexforce.datasets.csvformat import format_rows
 from flexforce.datasets.estimate import STATE_LABELS, Estimate
+from flexforce.datasets.io.csvformat import format_rows
 from flexforce.datasets.recording import Recording
 from flexforce.datasets.safeio import is_bag_folder, safe_output
 from flexforce.errors import BagError, DataError

@@ -1,0 +1,1 @@
+../../flexforce/jit.py
