@@ -1,0 +1,446 @@
+"""The effect contract: the :class:`Effect` protocol, its optional parts with their defaults
+(:class:`EffectTraits`, read once by :func:`traits`), the :class:`ProblemView` effects are written
+against, and the shared parts of the catalogue's constant effects (:class:`_Constant`).
+
+The protocol lives with the physics, not with an estimator: an effect reads the problem through
+:class:`ProblemView`, which :class:`flexforce.smoother.Problem` satisfies and any other estimator
+can provide.  This package imports nothing of the project above ``factors/``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, fields
+from typing import Any, Protocol, TypedDict, runtime_checkable
+
+import numpy as np
+
+# ----------------------------------------------------------------------------------------------
+# The protocol
+# ----------------------------------------------------------------------------------------------
+
+
+class RecordingView(Protocol):
+    """What an effect reads of the recording itself."""
+
+    @property
+    def mass(self) -> float:
+        """Total mass of the robot's model, kg."""
+
+
+class SigmasView(Protocol):
+    """What an effect reads of the noise of the factor families (the unwhitened residuals' units)."""
+
+    @property
+    def imu(self) -> np.ndarray:
+        """(6,) per-sample sigmas of the gyro (rad/s) and accelerometer (m/s^2) residuals."""
+
+    @property
+    def ft(self) -> np.ndarray:
+        """(6,) per-sample sigmas of the F/T force (N) and torque (N m) residuals (read only by
+        effects on the ``ft`` family)."""
+
+    @property
+    def newton_euler_cov(self) -> np.ndarray | None:
+        """(6, 6) covariance of the wrench the nominal model leaves unexplained (N, N m; F and T
+        about the world origin, correlated)."""
+
+
+@runtime_checkable
+class ProblemView(Protocol):
+    """The minimal view of an estimation problem that the effects are written against.
+
+    Only what the catalogue and the documented example (docs/example_effect.py) read; read-only.
+    Per-step arrays have ``N`` rows (steps) and are indexed by the ``steps`` an effect receives;
+    ``C`` is the number of contacts; the inputs are in the local frame (seed sec. II,
+    :class:`flexforce.factors.physics.Inputs`).  :class:`flexforce.smoother.Problem` satisfies it.
+    """
+
+    @property
+    def rec(self) -> RecordingView:
+        """The recording (an effect reads its ``mass``, kg)."""
+
+    @property
+    def g(self) -> float:
+        """Gravity, m/s^2."""
+
+    @property
+    def dt(self) -> float:
+        """Sampling period, s."""
+
+    @property
+    def nc(self) -> int:
+        """Number of contacts ``C``."""
+
+    @property
+    def sigmas(self) -> SigmasView:
+        """Noise of the factor families."""
+
+    @property
+    def com(self) -> np.ndarray:
+        """(N, 3) CoM in the local frame, m."""
+
+    @property
+    def com_vel(self) -> np.ndarray:
+        """(N, 3) its velocity, m/s."""
+
+    @property
+    def com_acc(self) -> np.ndarray:
+        """(N, 3) its acceleration, m/s^2."""
+
+    @property
+    def inertia(self) -> np.ndarray:
+        """(N, 3, 3) rotational inertia about the local origin, kg m^2."""
+
+    @property
+    def inertia_dot(self) -> np.ndarray:
+        """(N, 3, 3) its time derivative, kg m^2/s."""
+
+    @property
+    def sigma_l(self) -> np.ndarray:
+        """(N, 3) angular momentum about the local origin, kg m^2/s."""
+
+    @property
+    def sigma_dot(self) -> np.ndarray:
+        """(N, 3) its time derivative, N m."""
+
+    @property
+    def contact_p(self) -> np.ndarray:
+        """(N, C, 3) contact positions in the local frame, m."""
+
+    @property
+    def contact_R(self) -> np.ndarray:
+        """(N, C, 3, 3) contact orientations in the local frame."""
+
+    @property
+    def imu_R(self) -> np.ndarray:
+        """(N, 3, 3) IMU orientation in the local frame (the robot's model of it)."""
+
+    @property
+    def imu_p(self) -> np.ndarray:
+        """(N, 3) IMU position in the local frame, m."""
+
+    @property
+    def imu_v(self) -> np.ndarray:
+        """(N, 3) its velocity in the local frame, m/s."""
+
+    @property
+    def imu_a(self) -> np.ndarray:
+        """(N, 3) its acceleration in the local frame, m/s^2."""
+
+    @property
+    def imu_w(self) -> np.ndarray:
+        """(N, 3) the IMU frame's angular velocity in the local frame, rad/s."""
+
+    @property
+    def y_imu(self) -> np.ndarray:
+        """(N, 6) the IMU readings: gyro (rad/s) and accelerometer (m/s^2), IMU frame (a placeholder
+        where ``imu_use`` is 0)."""
+
+    @property
+    def imu_use(self) -> np.ndarray:
+        """(N, 6) 1.0 where the IMU reading is used, 0.0 where it is missing or saturated."""
+
+    @property
+    def active(self) -> np.ndarray:
+        """(N, C) bool: contact in force."""
+
+    @property
+    def rest_p(self) -> np.ndarray:
+        """(N, C, 3) nominal rest positions in the world (footholds), m."""
+
+    @property
+    def rest_R(self) -> np.ndarray:
+        """(N, C, 3, 3) nominal rest orientations in the world."""
+
+    @property
+    def beta(self) -> np.ndarray:
+        """(C, 2) cubic stiffening coefficients ``(beta_f 1/m^2, beta_t 1/rad^2)``."""
+
+    @property
+    def iso(self) -> np.ndarray:
+        """(C,) bool: isotropic contact (stiffness not rotated with the contact)."""
+
+    @property
+    def K_fs(self) -> np.ndarray:
+        """(C, 3, 3) translational stiffness in the contact frame, N/m."""
+
+    @property
+    def K_fd(self) -> np.ndarray:
+        """(C, 3, 3) translational damping, N s/m."""
+
+    @property
+    def K_ts(self) -> np.ndarray:
+        """(C, 3, 3) rotational stiffness, N m/rad."""
+
+    @property
+    def K_td(self) -> np.ndarray:
+        """(C, 3, 3) rotational damping, N m s/rad."""
+
+    def contact_law_terms(self, steps: np.ndarray, R: np.ndarray, q: np.ndarray, K_fs: np.ndarray,
+                          K_fd: np.ndarray, K_ts: np.ndarray, K_td: np.ndarray,
+                          beta: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The contact law (eq. 6-12) of every contact with other parameters: ``f`` (n, C, 6) and
+        ``df/ds`` (n, C, 6, 18), zero for inactive contacts (:meth:`flexforce.smoother.Problem.contact_law_terms`)."""
+
+
+@runtime_checkable
+class Effect(Protocol):
+    """A named extension of the nominal model: per-step unknowns plus terms in family residuals.
+
+    The state of one step is ``(s, W_1..W_C, e_1..e_E)``: the core 18 components
+    ``s = (theta, t, w, v, dw, a)`` (world-frame increments), the contact wrenches, then each
+    effect's ``dim`` components in the order of ``ModelConfig.effects``.  All array arguments
+    cover ``n`` steps at once (the batch smoother passes the whole recording, the fixed-lag
+    smoother one step), so an effect written with numpy broadcasting serves both.
+    """
+
+    name: str
+    """Short identifier, e.g. ``external-wrench``."""
+    dim: int
+    """Unknowns per step."""
+    labels: tuple[str, ...]
+    """One label per unknown, with its unit, e.g. ``("F_x [N]", ...)``."""
+
+    def prior(self, problem: ProblemView) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and sigma (both ``(dim,)``) of the effect's value at the first step."""
+
+    def random_walk_sigma(self, problem: ProblemView) -> np.ndarray:
+        """Sigma of ``e_k+1 - e_k``: ``(dim,)`` for every step (tiny for a constant parameter), or
+        ``(N - 1, dim)`` per transition (row ``k`` between steps ``k`` and ``k + 1``)."""
+
+    def residual_terms(self, family: str, problem: ProblemView, steps: np.ndarray, R: np.ndarray,
+                       q: np.ndarray, W: np.ndarray, e: np.ndarray):
+        """The effect's additive term in ``family``'s (unwhitened) residual, or None.
+
+        Args:
+            family: ``newton_euler`` (6 rows), ``imu`` (6 rows), ``contact`` (6 rows per
+                contact: the contact law ``f_i(s) - W_i``; the term is added where contact ``i``
+                is active and ignored where it is not; :meth:`ProblemView.contact_law_terms`
+                evaluates the law with other stiffness/damping matrices, which is what such terms
+                need) or ``ft`` (6 rows per contact, only with ``ModelConfig.use_ft``: the
+                contact's wrench in its sensor frame minus the F/T reading; the term is added
+                where the contact is active and the reading's component finite).
+            steps: (n,) indices of the steps (to read per-step inputs from ``problem``).
+            R, q: (n, 3, 3) rotations and (n, 15) ``(t, w, v, dw, a)``.
+            W: (n, C, 6) contact wrenches.
+            e: (n, dim) the effect's values.
+
+        Returns:
+            None when the effect does not touch ``family``, else ``(dr, dr_ds, dr_de)`` with
+            shapes (n, 6), (n, 6, 18) and (n, 6, dim) (``contact``: (n, C, 6), (n, C, 6, 18) and
+            (n, C, 6, dim)): the term and its Jacobians with respect to the core state
+            (world-frame increments) and to ``e``.
+        """
+
+    def report(self, values: np.ndarray, cov: np.ndarray | None) -> EffectReport:
+        """JSON-serialisable summary of the estimated effect (values (N, dim), cov (N, dim, dim)).
+
+        Optional: when the method takes a ``t`` keyword the smoothers pass the steps' times (N,)
+        in seconds from the start (for time-varying effects: *when* the effect acts).  The other
+        optional parts of the contract (``constant``, ``feasible``, ``step_prior_sigma``, ``factors``,
+        ``acts_on``, ``additive``, and for the diagnostics ``plausible``, ``excites``, ``hint``,
+        ``applicable``, ``by_default``, ``constant_on``, ``bind``, ``score_understates``) are listed with
+        their defaults and meaning in :class:`EffectTraits`.
+        """
+
+
+class EffectReport(TypedDict, total=False):
+    """What :meth:`Effect.report` returns (JSON-serialisable): the catalogue's constant effects fill
+    the first seven keys; a time-varying effect adds its own (``external-wrench``: ``windows``, the
+    spans where the force is significant, and the force series)."""
+
+    value: list[float]
+    """The estimate (the last step's; a constant effect has one value), in ``unit``."""
+    std: list[float]
+    """Its standard deviation, same shape and unit (NaN without a covariance)."""
+    unit: str
+    labels: list[str]
+    """One label per unknown, with its unit."""
+    significant: list[str]
+    """The components beyond 3 sigma from the effect's null."""
+    z: list[float]
+    """``|value - null| / std`` per component."""
+    summary: str
+    """One readable sentence (``"gyro bias y = 0.011 ± 0.001 rad/s"``)."""
+
+
+# ----------------------------------------------------------------------------------------------
+# The optional parts of the contract
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class EffectTraits:
+    """The optional parts of the :class:`Effect` contract with their defaults.
+
+    An effect declares any of these as attributes or methods of the same name (the catalogue's do;
+    a plugin may declare none).  The estimators and the diagnosis read them through :func:`traits`
+    only, so that what an effect may declare, and what holds when it does not, is written here once.
+    """
+
+    constant: bool | None = None
+    """True: the value does not vary (the random walk only ties the steps together); the batch
+    smoother makes it one global block estimated by the marginal likelihood and the dof count takes
+    its prior alone.  None (undeclared): decided from the random walk (negligible over the
+    recording: constant)."""
+    additive: bool = False
+    """True: the terms are the values on fixed rows (``dr_ds`` zero, ``dr_de`` the same at every value)
+    and the effect has no factors of its own (the IMU biases, the F/T offsets)."""
+    acts_on: tuple[str, ...] | None = None
+    """The families whose ``residual_terms`` the effect returns (``newton_euler``, ``contact``, ``imu``,
+    ``ft``); None: any of them."""
+    score_understates: bool = False
+    """True when the score test (the slope at zero) is no measure of the effect (a delay is not
+    linear in its value): the diagnosis refits it in every round whatever its test."""
+    excites: tuple[str, ...] = ()
+    """Per unknown: the motion or load that makes the data see it."""
+    hint: str = ""
+    """What a recording should do to tell the effect from those it resembles."""
+    feasible: Callable[[np.ndarray], bool] | None = None
+    """``feasible(values (dim,)) -> bool``: False for a value out of the physical range (a negative
+    stiffness); None: every value is feasible."""
+    step_prior_sigma: Callable[[Any], np.ndarray] | None = None
+    """``step_prior_sigma(problem) -> (dim,)``: a prior at every step around the prior mean (with the
+    random walk, a mean-reverting process); None: no such prior."""
+    factors: Callable[..., dict] | None = None
+    """``factors(problem, steps, R, q, e) -> {name: (r (n, m), dr_ds (n, m, 18), dr_de (n, m, dim),
+    weight (n,))}``: whitened factors of the effect's own on single steps; None: none."""
+    constant_on: Callable[[Any], bool] | None = None
+    """``constant_on(problem) -> bool``: a per-step effect that is constant on this recording (the
+    footholds of a recording without a touch-down)."""
+    bind: Callable[[Any, Any], Any] | None = None
+    """``bind(rec, model) -> effect``: the effect made for one recording and model (the footholds
+    take their priors from the model)."""
+    by_default: Callable[[Any], str | None] | None = None
+    """``by_default(rec) -> str | None``: the reason to leave the effect out of a diagnosis's default
+    candidates on this recording, None to keep it."""
+    plausible: Callable[..., str | None] | None = None
+    """``plausible(report, problem=None) -> str | None``: why an estimate is physically implausible,
+    None when it is plausible."""
+    applicable: Callable[[Any], str | None] | None = None
+    """``applicable(problem) -> str | None``: None when the effect has something to act on, else the
+    reason in the user's terms (an F/T offset when the F/T readings are not fused)."""
+
+
+_TRAIT_NAMES = tuple(f.name for f in fields(EffectTraits))
+
+
+def traits(effect: object) -> EffectTraits:
+    """The optional parts ``effect`` declares, the defaults of :class:`EffectTraits` for the rest."""
+    found = {}
+    for name in _TRAIT_NAMES:
+        value = getattr(effect, name, None)
+        if value is not None:
+            found[name] = tuple(value) if name in ("acts_on", "excites") else value
+    return EffectTraits(**found)
+
+_AX = ("x", "y", "z")
+_CHI2_6_999 = 22.458  # chi^2_6 99.9 % quantile
+CONSTANT_RW = 1e-6
+"""Random-walk sigma of a constant parameter, relative to its prior sigma."""
+
+
+def _skew(v):
+    """(..., 3) -> (..., 3, 3) cross-product matrices."""
+    v = np.asarray(v, dtype=float)
+    S = np.zeros(v.shape + (3,))
+    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
+    return S
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.3g}" if abs(x) >= 1e-3 or x == 0 else f"{x:.2e}"
+
+
+def _pm(value: float, std: float, unit: str) -> str:
+    """``0.011 ± 0.001 rad/s`` with the value rounded to the std's first significant digit(s)."""
+    if std > 0 and np.isfinite(std):
+        digits = max(0, 1 - int(np.floor(np.log10(std))))
+        if digits <= 8:
+            return f"{value:.{digits}f} ± {std:.{digits}f} {unit if unit != '-' else ''}".rstrip()
+    return f"{_fmt(value)} ± {_fmt(std)} {unit}".rstrip()
+
+
+def _static_compression(problem: ProblemView) -> tuple[float, float]:
+    """``(s_0, l)``: static spring compression under the weight (m) and the contact lever (m)."""
+    m, g = float(problem.rec.mass), problem.g
+    k = sum(float(np.trace(K)) / 3.0 for K in problem.K_fs)
+    s0 = m * g / max(k, 1e-9)
+    p = problem.contact_p[0]
+    lever = max(0.05, float(np.max(np.linalg.norm(p[:, :2], axis=1))))
+    return s0, lever
+
+
+class _Constant:
+    """Shared parts of a constant-parameter effect: prior sigma, numerically constant walk, report."""
+
+    name = ""
+    dim = 0
+    labels: tuple[str, ...] = ()
+    constant = True
+    unit = ""
+    what = ""
+    offset = 0.0
+    """Added to the unknowns in the report (1 for scales ``1 + kappa``)."""
+    null = 0.0
+    """Report value when the effect is absent."""
+
+    def prior_sigma(self, problem: ProblemView) -> np.ndarray:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def prior(self, problem: ProblemView):
+        return np.zeros(self.dim), np.asarray(self.prior_sigma(problem), dtype=float)
+
+    def random_walk_sigma(self, problem: ProblemView):
+        return CONSTANT_RW * np.asarray(self.prior_sigma(problem), dtype=float)
+
+    def residual_terms(self, family, problem: ProblemView, steps, R, q, W, e):  # pragma: no cover - overridden
+        return None
+
+    def component_names(self) -> tuple[str, ...]:
+        return tuple(lab.split(" [")[0] for lab in self.labels)
+
+    def units(self) -> tuple[str, ...]:
+        return tuple(lab.split("[")[1].rstrip("]") if "[" in lab else "" for lab in self.labels)
+
+    plausible_range: tuple[float, float] | None = None
+    """Range of a plausible reported value (every component), None: no bound of its own."""
+    excites: tuple[str, ...] = ()
+    """Per unknown: the motion or load that makes the data see it (what a recording lacks when
+    the unknown cannot be fitted)."""
+    hint = ""
+    """What a recording should do to tell this effect from the others it resembles."""
+
+    def plausible(self, report: dict, problem: ProblemView | None = None) -> str | None:
+        """None when the estimate in ``report`` (:meth:`report`'s dict) is physically plausible, else
+        the reason in the robot's terms (the value is then no finding: the effect stands in for
+        something else)."""
+        if self.plausible_range is None:
+            return None
+        lo, hi = self.plausible_range
+        v = np.atleast_1d(np.asarray(report.get("value", ()), dtype=float))
+        names, units = self.component_names(), self.units()
+        bad = [i for i in range(min(len(v), self.dim)) if not lo <= v[i] <= hi]
+        if not bad:
+            return None
+        return "; ".join(f"{self.what} {names[i]} = {_fmt(v[i])} {units[i] if units[i] != '-' else ''}".rstrip()
+                         + f" is outside the plausible {_fmt(lo)}-{_fmt(hi)}" for i in bad)
+
+    def report(self, values, cov, t=None) -> EffectReport:
+        v = np.asarray(values, dtype=float)[-1] + self.offset
+        std = (np.sqrt(np.maximum(np.diagonal(np.asarray(cov)[-1]), 0.0)) if cov is not None
+               else np.full(self.dim, np.nan))
+        names, units = self.component_names(), self.units()
+        z = np.abs(v - self.null) / np.where(std > 0, std, np.inf)
+        sig = [i for i in range(self.dim) if z[i] > 3.0]
+        parts = [f"{self.what} {names[i]} = {_pm(v[i], std[i], units[i])}" for i in (sig or range(self.dim))]
+        summary = "; ".join(parts)
+        if not sig:
+            summary = f"{self.what}: consistent with {_fmt(self.null)} ({summary})"
+        return {"value": v.tolist(), "std": std.tolist(), "unit": self.unit, "labels": list(self.labels),
+                "significant": [names[i] for i in sig], "z": z.tolist(), "summary": summary}
+
+

@@ -1,0 +1,183 @@
+"""Contact family: scales of the nominal stiffness and damping, per-axis (anisotropic) scales, cubic stiffening.
+
+The contract and the priors' rule: :mod:`flexforce.factors.effects` and :mod:`.base`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from flexforce.factors.effects.base import (
+    _AX,
+    ProblemView,
+    _Constant,
+    _fmt,
+    _static_compression,
+)
+
+# ----------------------------------------------------------------------------------------------
+# Contact family
+# ----------------------------------------------------------------------------------------------
+
+
+class _ContactEffect(_Constant):
+    """A constant change of the contact law: ``term = sum_j e_j f_j(s)`` (linear in the unknowns)."""
+    acts_on = ("contact",)
+    """The residual families its values enter (see :meth:`Effect.report`)."""
+
+    def basis(self, problem: ProblemView, steps, R, q):
+        """List of ``(f_j (n, C, 6), df_j/ds (n, C, 6, 18))``, one per unknown."""
+        raise NotImplementedError  # pragma: no cover
+
+    def residual_terms(self, family, problem: ProblemView, steps, R, q, W, e):
+        if family != "contact":
+            return None
+        fs = self.basis(problem, steps, R, q)
+        n, nc = len(steps), problem.nc
+        dr = np.zeros((n, nc, 6))
+        dr_ds = np.zeros((n, nc, 6, 18))
+        dr_de = np.zeros((n, nc, 6, self.dim))
+        for j, (f, J) in enumerate(fs):
+            ej = e[:, j]
+            dr += ej[:, None, None] * f
+            dr_ds += ej[:, None, None, None] * J
+            dr_de[..., j] = f
+        return dr, dr_ds, dr_de
+
+
+def _zeros_like_K(problem: ProblemView):
+    return np.zeros((problem.nc, 3, 3))
+
+
+class Stiffness(_ContactEffect):
+    """Scale of the contacts' stiffness (K_fs and K_ts, by ``1 + kappa_s``) and damping (K_fd and
+    K_td, by ``1 + kappa_d``), the same for every contact: the simulator's ``stiffness`` effect
+    (``stiffness = 1 + kappa_s``, ``damping = 1 + kappa_d``).  Reported as the scales."""
+
+    name = "stiffness"
+    dim = 2
+    labels = ("stiffness scale [-]", "damping scale [-]")
+    unit = "-"
+    what = "contact"
+    offset = 1.0
+    null = 1.0
+    plausible_range = (0.2, 5.0)
+    """A stiffness or damping five times off the configured one is a wrong configuration or another
+    effect in disguise, not a worn bush."""
+    excites = ("load changes on the contacts (sway, shifting weight, pushes): the springs' deflection",
+               "fast load changes (quick sway, impacts): the springs' deflection rate")
+    hint = "vary the load on the contacts: sway, shift the weight from foot to foot, push"
+
+    def prior_sigma(self, problem: ProblemView):
+        return np.array([0.5, 0.5])
+
+    def feasible(self, values) -> bool:
+        """A positive stiffness, a damping that does not inject energy."""
+        v = np.asarray(values, dtype=float) + self.offset
+        return bool(v[0] > 0.05 and v[1] >= 0.0)
+
+    def basis(self, problem: ProblemView, steps, R, q):
+        Z = _zeros_like_K(problem)
+        spring = problem.contact_law_terms(steps, R, q, problem.K_fs, Z, problem.K_ts, Z)
+        damper = problem.contact_law_terms(steps, R, q, Z, problem.K_fd, Z, problem.K_td)
+        return [spring, damper]
+
+
+class AnisotropicStiffness(_ContactEffect):
+    """Per-axis scale factors of K_fs and K_ts in the contact frame: ``K <- diag(1 + kappa) K``
+    (the simulator's ``anisotropic-stiffness``, ``k_fs = 1 + kappa_f``, ``k_ts = 1 + kappa_t``).
+    Reported as the factors."""
+
+    name = "anisotropic-stiffness"
+    dim = 6
+    labels = tuple(f"k_fs {a} [-]" for a in _AX) + tuple(f"k_ts {a} [-]" for a in _AX)
+    unit = "-"
+    what = "stiffness factor"
+    offset = 1.0
+    null = 1.0
+    plausible_range = (0.2, 5.0)
+    """As :attr:`Stiffness.plausible_range`, per axis."""
+    excites = ("shear along the contact's x: a fore-aft force", "shear along the contact's y: a sideways force",
+               "vertical load changes: no change of the vertical force", "a torque about x (roll)",
+               "a torque about y (pitch)", "a torque about z (yaw)")
+    hint = ("load each axis on its own: sway fore-aft and sideways, shift the weight, twist about the vertical; "
+            "a stiffer pitch spring and a CoM offset tilt a robot at rest alike, a varying moment does not")
+
+    def prior_sigma(self, problem: ProblemView):
+        return np.full(6, 0.5)
+
+    def feasible(self, values) -> bool:
+        """Positive stiffness along every axis."""
+        return bool(np.all(np.asarray(values, dtype=float) + self.offset > 0.05))
+
+    def basis(self, problem: ProblemView, steps, R, q):
+        Z = _zeros_like_K(problem)
+        out = []
+        for which in ("f", "t"):
+            for j in range(3):
+                E = np.zeros((3, 3))
+                E[j, j] = 1.0
+                if which == "f":
+                    out.append(problem.contact_law_terms(steps, R, q, E @ problem.K_fs, Z, Z, Z))
+                else:
+                    out.append(problem.contact_law_terms(steps, R, q, Z, Z, E @ problem.K_ts, Z))
+        return out
+
+
+class NonlinearStiffness(_ContactEffect):
+    """Added cubic stiffening ``(d beta_f [1/m^2], d beta_t [1/rad^2])`` of every contact:
+    ``F = -K_fs s (1 + (beta_f + d beta_f) |s|^2)``, ``T_0 = -K_ts Omega (1 + (beta_t + d beta_t)
+    |Omega|^2)`` (the simulator's ``nonlinear-stiffness`` adds its ``beta_f``, ``beta_t`` so)."""
+
+    name = "nonlinear-stiffness"
+    dim = 2
+    labels = ("beta_f [1/m^2]", "beta_t [1/rad^2]")
+    unit = "1/m^2, 1/rad^2"
+    what = "cubic stiffening"
+    excites = ("large vertical deflections: large changes of the vertical load",
+               "large tilts of the contacts: large moments")
+    hint = "vary the load over a wide range (deep sways, stepping): a cubic term grows with the deflection"
+
+    def plausible(self, report: dict, problem: ProblemView | None = None) -> str | None:
+        """The tangent stiffness at the reference deflection within ``0.2``-``5`` times the linear
+        one, as the stiffness scales: ``1 + 3 (beta + d beta) s_0^2`` (the nominal ``beta`` is left
+        out: zero in the built-in robots).  The references: the weight's static compression of
+        the translational springs, and the tilt of the rotational springs under the weight's
+        largest moment, the CoM over the edge of the contacts (``m g l / K_ts``, the springs'
+        own stiffness: on Romeo 0.042 rad, TALOS 0.029; without ``K_ts``, the tilt that
+        compresses a contact as much as the weight, ``s_0 / l``)."""
+        if problem is None:
+            return None
+        v = np.atleast_1d(np.asarray(report.get("value", ()), dtype=float))
+        s0, lever = _static_compression(problem)
+        K_ts = getattr(problem, "K_ts", None)
+        k_t = sum(float(np.trace(K)) / 3.0 for K in K_ts) if K_ts is not None else 0.0
+        tilt = float(problem.rec.mass) * problem.g * lever / k_t if k_t > 0 else s0 / lever
+        ref = (s0, tilt)
+        out = []
+        for i, (what, unit) in enumerate((("translational", "m"), ("rotational", "rad"))):
+            if i >= len(v):
+                break
+            factor = 1.0 + 3.0 * v[i] * ref[i] ** 2  # tangent stiffness of k s (1 + beta s^2)
+            if not 0.2 <= factor <= 5.0:
+                out.append(f"{what} cubic stiffening {_fmt(v[i])} makes the tangent stiffness {_fmt(factor)} times "
+                           f"the linear one at {_fmt(ref[i])} {unit} (plausible 0.2-5)")
+        return "; ".join(out) or None
+
+    def prior_sigma(self, problem: ProblemView):
+        s0, lever = _static_compression(problem)
+        return np.array([1.0 / s0**2, (lever / s0) ** 2])
+
+    def basis(self, problem: ProblemView, steps, R, q):
+        Z = _zeros_like_K(problem)
+        nc = problem.nc
+        b0 = np.zeros((nc, 2))
+        bf = np.zeros((nc, 2))
+        bf[:, 0] = 1.0
+        bt = np.zeros((nc, 2))
+        bt[:, 1] = 1.0
+        f1, J1 = problem.contact_law_terms(steps, R, q, problem.K_fs, Z, Z, Z, bf)
+        f0, J0 = problem.contact_law_terms(steps, R, q, problem.K_fs, Z, Z, Z, b0)
+        t1, Jt1 = problem.contact_law_terms(steps, R, q, Z, Z, problem.K_ts, Z, bt)
+        t0, Jt0 = problem.contact_law_terms(steps, R, q, Z, Z, problem.K_ts, Z, b0)
+        return [(f1 - f0, J1 - J0), (t1 - t0, Jt1 - Jt0)]
