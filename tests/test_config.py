@@ -42,7 +42,6 @@ BAD = [
     (EKFConfig, "p0_scale", 0, r"EKFConfig.p0_scale = 0; expected a positive multiplier"),
     (EKFConfig, "z0", float("inf"), r"EKFConfig.z0 = inf m; expected a finite height"),
     (EKFConfig, "min_force", -1.0, r"EKFConfig.min_force = -1.0 N; expected a positive force"),
-    (EKFConfig, "jacobians", "magic", r"EKFConfig.jacobians = 'magic'; expected 'analytic' or 'numeric'"),
     (EKFConfig, "outputs", "no", r"EKFConfig.outputs = 'no'; expected True or False"),
     (EKFConfig, "on_covariance_failure", "ignore",
      r"EKFConfig.on_covariance_failure = 'ignore'; expected 'raise' or 'reset'"),

@@ -5,8 +5,8 @@
 - Jacobians: the analytic F and H (physics module + J_l(Omega) change of parametrisation) against
   central differences -- the authors' way -- at a perturbed state, near the identity, with one and
   two contacts and with anisotropic, stiffening contacts.
-- The compiled step against the same model with numpy's textbook Kalman algebra (EKF.predict,
-  EKF.update) to 1e-10.
+- The compiled step against the same model with numpy's textbook Kalman algebra (tests/reference/ekf.py)
+  to 1e-10.
 - Simulated stand / com-step / push-pitch (no IMU bias random walk: the nominal model has no bias,
   see docs/ekf.md): convergence from a wrong initial state, Monte Carlo NEES within its two-sided
   chi^2 band, NIS, m g.
@@ -22,6 +22,7 @@ import math
 import numpy as np
 import pytest
 from baseline import lower, upper
+from reference import ekf as ekf_ref
 from scipy import stats
 
 from flexforce.compare.ekf import filter as E
@@ -114,11 +115,8 @@ class _LinearToyEKF(E.EKF):
     def measurement(self, x, k, jacobian=False):
         return (self.C @ x, self.C) if jacobian else self.C @ x
 
-    def process_noise(self, x):
-        return self.Qm
-
     def update(self, x, P, k):
-        return E.kf_update(x, P, self.ys[k], self.C @ x, self.C, self.noise.R)
+        return ekf_ref.kf_update(x, P, self.ys[k], self.C @ x, self.C, self.noise.R)
 
 
 def test_linear_toy_equals_plain_kalman_filter():
@@ -136,7 +134,7 @@ def test_linear_toy_equals_plain_kalman_filter():
     ref = _plain_kf(x0, P0, ys, A, C, Q, R)
     for k in range(len(ys)):
         if k > 0:
-            x, P = toy.predict(x, P, k)
+            x, P = ekf_ref.predict(toy, x, P, k, Q=toy.Qm)
         up = toy.update(x, P, k)
         x, P = up.x, up.P
         np.testing.assert_allclose(x, ref[k][0], rtol=1e-9, atol=1e-10)
@@ -172,16 +170,15 @@ def test_analytic_jacobians_match_finite_differences(recs, aniso):
     rot = so3.exp(np.array([0.1, -0.2, 0.3]))
     rec2.contact_R[:, 0] = rot
     ana = E.EKF(rec2, model, E.EKFConfig())
-    num = E.EKF(rec2, model, E.EKFConfig(jacobians="numeric"))
     for x in _states(np.random.default_rng(1)):
         for k in (4, 5):
             f_a, F_a = ana.transition(x, k, jacobian=True)
-            f_n, F_n = num.transition(x, k, jacobian=True)
+            f_n, F_n = ekf_ref.transition_numeric(ana, x, k)
             np.testing.assert_allclose(f_a, f_n, rtol=0, atol=0)
             scale = np.maximum(np.abs(F_n).max(axis=1, keepdims=True), 1.0)
             np.testing.assert_allclose(F_a / scale, F_n / scale, atol=2e-6)
             h_a, H_a = ana.measurement(x, k, jacobian=True)
-            _, H_n = num.measurement(x, k, jacobian=True)
+            _, H_n = ekf_ref.measurement_numeric(ana, x, k)
             np.testing.assert_allclose(H_a, H_n, atol=2e-6)
 
 
@@ -192,7 +189,8 @@ def test_analytic_jacobians_match_finite_differences(recs, aniso):
 
 def test_compiled_step_matches_plain_kalman_algebra(recs):
     """The compiled step (block-sparse F P F^T, expanded Joseph form, permuted world covariance)
-    against EKF.predict / EKF.update: the same model with numpy's dense textbook algebra."""
+    against the reference's predict / update (tests/reference/ekf.py): the same model with numpy's
+    dense textbook algebra."""
     rec = recs["com-step"].slice(0, 30)
     rec.contact_active[10:15, 0] = False
     p = ContactParams.make([3e4, 2e4, 2.8e4], [400, 300, 420], [450, 300, 500], [8, 6, 9], beta_f=50.0, beta_t=2.0)
@@ -204,12 +202,12 @@ def test_compiled_step_matches_plain_kalman_algebra(recs):
         L = rng.normal(size=(18, 18)) * 1e-2
         P = L @ L.T + 1e-4 * np.eye(18)
         for k in (3, 12):
-            x_r, P_r = ekf.predict(x, P, k)
+            x_r, P_r = ekf_ref.predict(ekf, x, P, k)
             x_k, P_k = x.copy(), P.copy()
             assert kern.predict(x_k, P_k, ekf.U[k], ekf.CP, ekf.noise.Q, ekf.dt, rec.mass, ekf.g, ekf.WS) == 0
             np.testing.assert_allclose(x_k, x_r, rtol=1e-10, atol=1e-12)
             np.testing.assert_allclose(P_k, P_r, rtol=1e-10, atol=1e-12 * np.abs(P_r).max())
-            up = ekf.update(x_r, P_r, k)
+            up = ekf_ref.update(ekf, x_r, P_r, k)
             x_u, P_u = x_r.copy(), P_r.copy()
             innov, S, white = np.empty(6), np.empty((6, 6)), np.empty(6)
             st, nis = kern.update(x_u, P_u, ekf.U[k], ekf.noise.R, ekf.g, ekf.WS, innov, S, white, ekf.gates,
@@ -223,14 +221,14 @@ def test_compiled_step_matches_plain_kalman_algebra(recs):
 
 
 def _plain_run(rec, model, x0):
-    """run_ekf written with EKF.predict / update / outputs (numpy Kalman algebra)."""
+    """run_ekf written with the reference predict / update and EKF.outputs (numpy Kalman algebra)."""
     ekf = E.EKF(rec, model)
     x, P = ekf.initial_state(x0)
     rows = []
     for k in range(rec.n):
         if k > 0:
-            x, P = ekf.predict(x, P, k)
-        up = ekf.update(x, P, k)
+            x, P = ekf_ref.predict(ekf, x, P, k)
+        up = ekf_ref.update(ekf, x, P, k)
         x, P = up.x, up.P
         o = ekf.outputs(x, P, k)
         rows.append((x, o, up))
@@ -450,8 +448,6 @@ def test_bad_options_and_prior(recs):
         E.run_ekf(rec, model, lag=1.0)
     with pytest.raises(ConfigError, match="P0 is not positive definite"):
         E.run_ekf(rec, model, P0=-np.eye(18))
-    with pytest.raises(ConfigError, match="jacobians"):
-        E.EKFConfig(jacobians="magic")
 
 
 def test_non_positive_definite_covariance_raises_or_resets(recs, monkeypatch):

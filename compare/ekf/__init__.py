@@ -9,14 +9,11 @@ from flexforce.compare.ekf.filter import (
     IMU_LABELS,
     STATE_LABELS,
     EKFConfig,
-    Update,
-    kf_predict,
-    kf_update,
     noise_model,
     paper_to_world,
     run_ekf,
     world_to_paper_cov,
 )
 
-__all__ = ["EKF", "EKFConfig", "Update", "kf_predict", "kf_update", "run_ekf", "noise_model",
+__all__ = ["EKF", "EKFConfig", "run_ekf", "noise_model",
            "STATE_LABELS", "IMU_LABELS", "paper_to_world", "world_to_paper_cov"]

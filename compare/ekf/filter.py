@@ -27,12 +27,10 @@ Jacobians
 ---------
 The physics returns Jacobians with respect to world-frame increments ``(theta, t, w, v, dw, a)``;
 with ``d_theta = J_l(Omega) d_Omega`` (:func:`flexforce.factors.so3.left_jacobian`) they become
-Jacobians in the state's own parametrisation.  The authors differentiated numerically; that path is
-kept (``EKFConfig(jacobians="numeric")`` on :meth:`EKF.transition` and :meth:`EKF.measurement`)
-as the tests' reference.  The step -- model, covariance prediction, correction, outputs -- is
-compiled once (:mod:`flexforce.compare.ekf.kernel` on the physics core
-:mod:`flexforce.factors.core`); :meth:`EKF.predict` and :meth:`EKF.update` state it with the plain
-Kalman algebra of :func:`kf_predict` and :func:`kf_update`, and the tests hold the two together.
+Jacobians in the state's own parametrisation.  The step -- model, covariance prediction,
+correction, outputs -- is compiled once (:mod:`flexforce.compare.ekf.kernel` on the physics core
+:mod:`flexforce.factors.core`).  The tests hold it against a reference written with plain Kalman
+algebra and numerical Jacobians (the authors' way), kept under ``tests/reference/ekf.py``.
 
 Output
 ------
@@ -72,7 +70,7 @@ from flexforce.options import (
 )
 
 __all__ = [
-    "EKF", "EKFConfig", "Update", "kf_predict", "kf_update", "run_ekf", "noise_model",
+    "EKF", "EKFConfig", "run_ekf", "noise_model",
     "STATE_LABELS", "IMU_LABELS", "paper_to_world", "world_to_paper_cov",
 ]
 
@@ -117,10 +115,6 @@ class EKFConfig:
     """Height of the ground plane on which the CoP is computed, m (0 for simulated data)."""
     min_force: float = 1e-6
     """Vertical force below which the CoP is undefined (NaN), N."""
-    jacobians: str = "analytic"
-    """``analytic`` (the physics core's) or ``numeric`` (central differences, the authors' way):
-    how :meth:`EKF.transition` and :meth:`EKF.measurement` differentiate.  :func:`run_ekf` needs
-    ``analytic``."""
     outputs: bool = True
     """Compute every step's world covariance, contact wrenches, their covariance and the CoP.
     ``False``: the state and the innovation only (the other fields of the Estimate are NaN)."""
@@ -170,7 +164,6 @@ class EKFConfig:
         check_positive(o, "p0_scale", self.p0_scale, "", "a positive multiplier of the prior standard deviations")
         check_finite(o, "z0", self.z0, "m", "a finite height")
         check_positive(o, "min_force", self.min_force, "N", "a positive force")
-        check_choice(o, "jacobians", self.jacobians, ("analytic", "numeric"))
         check_bool(o, "outputs", self.outputs)
         check_choice(o, "on_covariance_failure", self.on_covariance_failure, ("raise", "reset"))
         check_positive(o, "gate_max_time", self.gate_max_time, "s", "a positive duration")
@@ -183,57 +176,6 @@ class EKFConfig:
                        "a number in [0, 1] (the fraction of the sole's height above the floor removed at a touch-down)")
         check_positive(o, "imu_gate", self.imu_gate, "",
                        "a positive NIS threshold (1e6: 1000 sigma) or None (no gate)", optional=True)
-
-
-# ----------------------------------------------------------------------------------------------
-# Generic Kalman kernels (pure functions, dynamax-style)
-# ----------------------------------------------------------------------------------------------
-
-
-def kf_predict(fx: np.ndarray, F: np.ndarray, P: np.ndarray, Q: np.ndarray):
-    r"""Covariance prediction ``P' = F P F^T + Q`` around the predicted mean ``fx``.
-
-    Returns ``(fx, P')`` with ``P'`` symmetrised.
-    """
-    Pp = F @ P @ F.T + Q
-    return fx, 0.5 * (Pp + Pp.T)
-
-
-class Update(NamedTuple):
-    """Result of :func:`kf_update`."""
-
-    x: np.ndarray
-    P: np.ndarray
-    innovation: np.ndarray
-    """``y - h(x)``."""
-    S: np.ndarray
-    """Innovation covariance ``H P H^T + R``."""
-    whitened: np.ndarray
-    """``L^-1 innovation`` with ``S = L L^T``: N(0, I) when the filter is consistent."""
-    nis: float
-    """Normalised innovation squared, ``innovation^T S^-1 innovation``."""
-
-
-def kf_update(x: np.ndarray, P: np.ndarray, y: np.ndarray, hx: np.ndarray, H: np.ndarray,
-              Rn: np.ndarray) -> Update:
-    r"""Kalman correction with the Joseph form (stays symmetric positive definite)::
-
-        S = H P H^T + R,  K = P H^T S^-1,  x' = x + K (y - h(x)),
-        P' = (I - K H) P (I - K H)^T + K R K^T
-
-    Raises:
-        np.linalg.LinAlgError: when ``S`` is not positive definite.
-    """
-    innov = y - hx
-    PHt = P @ H.T
-    S = H @ PHt + Rn
-    S = 0.5 * (S + S.T)
-    L = np.linalg.cholesky(S)
-    K = np.linalg.solve(S, PHt.T).T
-    IKH = np.eye(len(x)) - K @ H
-    Pn = IKH @ P @ IKH.T + K @ Rn @ K.T
-    white = np.linalg.solve(L, innov)
-    return Update(x + K @ innov, 0.5 * (Pn + Pn.T), innov, S, white, float(white @ white))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -340,16 +282,6 @@ def noise_model(rec: Recording, model: ModelConfig, config: EKFConfig = EKFConfi
 # ----------------------------------------------------------------------------------------------
 
 
-def _numeric_jacobian(f, x: np.ndarray, h: float = 1e-6) -> np.ndarray:
-    """Central differences of ``f`` in the state's own (additive) parametrisation."""
-    cols = []
-    for i in range(len(x)):
-        e = np.zeros(len(x))
-        e[i] = h
-        cols.append((f(x + e) - f(x - e)) / (2 * h))
-    return np.array(cols).T
-
-
 def _floor_height(rec, rest_p) -> float:
     """Height (m) of the floor in the world: the mean rest height of the contacts in force at the
     first step (0 when none is)."""
@@ -358,13 +290,12 @@ def _floor_height(rec, rest_p) -> float:
 
 
 class EKF:
-    r"""The paper's EKF over a recording: its model functions and pure ``predict`` and ``update``.
+    r"""The paper's EKF over a recording: its model functions and the compiled step.
 
     ``transition``, ``measurement``, ``dynamics`` and ``outputs`` are the compiled kernel's
-    (:mod:`flexforce.compare.ekf.kernel`, on the physics core); ``predict(x, P, k)`` and
-    ``update(x, P, k)`` combine them with the plain Kalman algebra of :func:`kf_predict` and
-    :func:`kf_update` and mutate nothing: they are the readable statement of the step that
-    :func:`run_ekf` runs compiled (``_ekf_kernel.step``), and the tests hold the two together.
+    (:mod:`flexforce.compare.ekf.kernel`, on the physics core) and mutate nothing; :meth:`step` is
+    the step :func:`run_ekf` runs.  The tests hold it against a reference written with the plain
+    Kalman algebra (``tests/reference/ekf.py``).
 
     ``rest_p``, ``rest_R``: (N, C, 3), (N, C, 3, 3) the contacts' rest placements in the world
     per step; default the recording's local placements.
@@ -416,11 +347,7 @@ class EKF:
         if not K.transition(x, self.U[k], self.CP, self.dt, self.rec.mass, self.g, x1, F):
             raise ModelError(f"the Newton-Euler system is singular at sample {k}: check the mass "
                              f"({self.rec.mass} kg, expected > 0) and the inertia inputs")
-        if not jacobian:
-            return x1
-        if self.config.jacobians == "numeric":
-            return x1, _numeric_jacobian(lambda z: self.transition(z, k), x)
-        return x1, F
+        return (x1, F) if jacobian else x1
 
     def measurement(self, x: np.ndarray, k: int, jacobian: bool = False):
         """``h(x_k)``: gyro and accelerometer readings (IMU frame), eq. (26)-(28), and ``H`` (6x18)."""
@@ -428,17 +355,7 @@ class EKF:
         hx = np.empty(6)
         H = np.empty((6, 18))
         K.measurement(x, self.U[k], self.g, hx, H)
-        if not jacobian:
-            return hx
-        if self.config.jacobians == "numeric":
-            return hx, _numeric_jacobian(lambda z: self.measurement(z, k), x)
-        return hx, H
-
-    def process_noise(self, x: np.ndarray) -> np.ndarray:
-        """Q at the predicted state: the rotation block mapped from world increments to Omega."""
-        B = np.eye(18)
-        B[OM, OM] = so3.left_jacobian_inverse(x[OM])
-        return B @ self.noise.Q @ B.T
+        return (hx, H) if jacobian else hx
 
     # --- filter steps --------------------------------------------------------------------------
     def initial_state(self, x0: np.ndarray | None = None, P0: np.ndarray | None = None):
@@ -478,36 +395,6 @@ class EKF:
         P[:12, 12:] = P[12:, :12].T
         P[12:, 12:] = GD @ P[:12, :12] @ GD.T + self.noise.Q[12:, 12:]
         return x, 0.5 * (P + P.T)
-
-    def predict(self, x: np.ndarray, P: np.ndarray, k: int):
-        """Propagate ``(x, P)`` of step ``k - 1`` to step ``k``."""
-        x1, F = self.transition(x, k, jacobian=True)
-        return kf_predict(x1, F, P, self.process_noise(x1))
-
-    def update(self, x: np.ndarray, P: np.ndarray, k: int) -> Update:
-        """Correct ``(x, P)`` at step ``k`` with its gyrometer and accelerometer readings."""
-        hx, H = self.measurement(x, k, jacobian=True)
-        y = self.rec.imu_measurement(k)
-        use = self.imu_use[k]
-        # Missing or saturated axes are left out: zero innovation and H row, unit variance alone.
-        innov = np.where(use, y - hx, 0.0)
-        H = H * use[:, None]
-        HPH = H @ P @ H.T
-        S = np.where(np.outer(use, use), HPH + self.noise.R, np.diag((~use).astype(float)))
-        S = 0.5 * (S + S.T)
-        white = np.linalg.solve(np.linalg.cholesky(S), innov)
-        # The gate: a sensor whose NIS exceeds it has its block of S inflated to sit on the gate
-        # (as if its noise were R + (NIS / gate - 1) S_ss).
-        S_eff = S.copy()
-        for _, sl in faults.IMU_SENSORS:
-            idx = np.arange(sl.start, sl.stop)[use[sl]]
-            if idx.size and self.gates[idx.size - 1] > 0:
-                blk = np.ix_(idx, idx)
-                v = float(innov[idx] @ np.linalg.solve(S[blk], innov[idx]))
-                if v > self.gates[idx.size - 1]:
-                    S_eff[blk] *= v / self.gates[idx.size - 1]
-        up = kf_update(x, P, hx + innov, hx, H, S_eff - HPH)
-        return up._replace(x=_wrap(up.x), S=S, whitened=white, nis=float(white @ white))
 
     # --- outputs ---------------------------------------------------------------------------
     def outputs(self, x: np.ndarray, P: np.ndarray, k: int) -> dict:
@@ -597,7 +484,7 @@ def run_ekf(rec: Recording, model: ModelConfig, config: EKFConfig | None = EKFCo
 
     Raises:
         ConfigError: ``config`` is not an EKFConfig, an unknown option (the known ones listed), a
-            bad value, or ``jacobians='numeric'``.
+            or a bad value.
         DataError: NaN or inf in an input or a reading (naming the field, the sample, the time).
         EstimatorError: covariance no longer positive definite (unless ``on_covariance_failure =
             "reset"``), or divergence (NIS above ``nis_limit`` for ``nis_steps`` steps).
@@ -606,10 +493,6 @@ def run_ekf(rec: Recording, model: ModelConfig, config: EKFConfig | None = EKFCo
         config = EKFConfig()
     require_config(config, EKFConfig, "EKF")
     config = with_options(config, options, "EKF")
-    if config.jacobians == "numeric":
-        raise ConfigError("EKFConfig(jacobians='numeric') differentiates EKF.transition and EKF.measurement "
-                          "numerically (to check the analytic Jacobians); run_ekf runs the compiled step, whose "
-                          "Jacobians are analytic: expected jacobians='analytic'")
     check_recording(rec, model)
     if model.use_ft:
         warnings.warn("the seed paper's EKF does not fuse F/T readings; use_ft is ignored", RuntimeWarning,
@@ -755,7 +638,7 @@ class _Outputs:
             cop_cov=c(self.cop_cov), residuals={"imu": c(self.white)}, residual_labels={"imu": IMU_LABELS},
             innovation=c(self.innovation), innovation_cov=c(self.S), time_per_step=self.time_per_step,
             total_time=total,
-            meta={"kernel": "numba", "outputs": self.want, "jacobians": ekf.config.jacobians,
+            meta={"kernel": "numba", "outputs": self.want,
                   "touchdown": ekf.config.touchdown, "ground_tilt_weight": ekf.config.ground_tilt_weight,
                   "sigma_unmodelled_accel": nm.sigma_a, "sigma_unmodelled_ang_accel": nm.sigma_dw,
                   "p0_sigma": nm.p0_sigma.tolist(), "gyro_sigma": ekf.model.gyro_sigma,
