@@ -11,7 +11,7 @@ table, ``diagnose_confusion.md``).
 Each recording is the ``sway`` scenario (standing on both feet, the CoM swaying: enough motion
 for the contact parameters to show) with one hidden effect of the catalogue at a large and a
 small magnitude (``CASES``), or none, the IMU bias random walk off (so that "none" means none).
-:func:`flexforce.compare.diagnostics.diagnose.diagnose` ranks every registered effect by greedy forward
+:func:`flexforce.compare.diagnostics.run.diagnose` ranks every registered effect by greedy forward
 selection and adds the significant ones (``add=["auto"]``).  Per recording: the first effect
 selected (the row of the confusion matrix is the truth, the column the first selected effect,
 ``none`` when nothing is significant), all the effects selected, and the force, CoP and tilt
@@ -30,7 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from flexforce.compare.diagnostics.diagnose import TIE, Candidate, mark_rivals
+from flexforce.compare.diagnostics.config import DEFAULT
+from flexforce.compare.diagnostics.run import Candidate, mark_rivals
 
 PUSH = {"type": "external-wrench", "link": "@base", "start": 1.5, "duration": 0.4}
 CASES = {
@@ -61,7 +62,7 @@ def one(job):
 
 
 def _one(truth, level, effect, seed, duration):
-    from flexforce.compare.diagnostics.diagnose import diagnose
+    from flexforce.compare.diagnostics import diagnose
     from flexforce.datasets.sim.scenario import Scenario
     from flexforce.datasets.sim.simulator import Simulator
 
@@ -143,7 +144,7 @@ def main():
         "benchmark": "diagnose_confusion", "scenario": "sway", "duration_s": args.duration, "seeds": seeds,
         "cases": CASES, "matrix": matrix,
         "correct_first": sum(r["first"] == r["truth"] for r in runs), "runs": len(runs),
-        "tie": TIE, "ambiguous_first": [[r["truth"], r["level"], r["seed"], r["first"], r["rivals"]]
+        "tie": DEFAULT.tie, "ambiguous_first": [[r["truth"], r["level"], r["seed"], r["first"], r["rivals"]]
                                           for r in runs if r["rivals"]],
         "selected": {f'{r["truth"]}/{r["level"]}/{r["seed"]}': r["selected"] for r in runs},
         "error_ratio_after_before": {t: {k: [float(np.min(v)), float(np.max(v))] for k, v in d.items()}

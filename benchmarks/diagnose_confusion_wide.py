@@ -22,7 +22,7 @@ Recordings (simulated, 3 s, the IMU bias random walk off so that "clean" means c
 
 The F/T sensors are fused (``use_ft``) for the mass-scale and F/T-offset recordings (without
 them a mass scale is a stiffness scale, and an F/T offset acts on nothing); the others use the
-IMU and the encoders only, as the paper.  :func:`flexforce.compare.diagnostics.diagnose.diagnose` ranks every
+IMU and the encoders only, as the paper.  :func:`flexforce.compare.diagnostics.run.diagnose` ranks every
 candidate of its default catalogue (``--catalogue all``: every registered one, the footholds
 named; by default they are left out, none of these recordings having a touch-down): screening,
 refits, greedy forward selection, ``add=["auto"]``, at most two.
@@ -40,7 +40,7 @@ Scored as the targets read:
   called inseparable from one by the table;
 * where round 1 took an inseparable partner of the truth: whether the partners' check (each
   candidate the data do not tell from the choice, held against the truth:
-  :meth:`~flexforce.compare.diagnostics.diagnose.Diagnosis.partner_checks`) names the hidden effect as the
+  :meth:`~flexforce.compare.diagnostics.run.Diagnosis.partner_checks`) names the hidden effect as the
   one the truth favours;
 * the errors (force, CoP, tilt against the simulated truth) after adding the selected effects,
   as a ratio to before, when a truth was selected.
@@ -123,7 +123,7 @@ def one(job):
 
 
 def _one(job):
-    from flexforce.compare.diagnostics.diagnose import diagnose, registered_effects
+    from flexforce.compare.diagnostics.run import diagnose, registered_effects
     from flexforce.datasets.sim.scenario import Scenario
     from flexforce.datasets.sim.simulator import Simulator
     from flexforce.factors.model import ModelConfig

@@ -6,7 +6,7 @@ Usage::
 
 Prints JSON to stdout and writes ``benchmarks/results/diagnose_speed.json``.
 
-A full diagnosis is :func:`flexforce.compare.diagnostics.diagnose.diagnose` with every registered candidate,
+A full diagnosis is :func:`flexforce.compare.diagnostics.run.diagnose` with every registered candidate,
 the screening, the identifiability table, the refits of the candidates that pass, the greedy
 rounds and the add step (``add=["auto"]``), the EKF and the calibrated residual view of the
 nominal and final fits: what ``flexforce diagnose REC --add auto`` does.  Each case runs in a fresh
@@ -40,7 +40,7 @@ def _child(case: str, duration: float, jobs: int = 1) -> dict:
     """One diagnosis (runs in the child process)."""
     import resource
 
-    from flexforce.compare.diagnostics.diagnose import diagnose
+    from flexforce.compare.diagnostics import diagnose
 
     t_load = time.perf_counter()
     if case == "icub":

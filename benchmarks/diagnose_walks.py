@@ -44,7 +44,7 @@ EXPECTED = {"foothold"}
 
 
 def one(robot: str, truth: str, jobs: int) -> dict:
-    from flexforce.compare.diagnostics.diagnose import diagnose
+    from flexforce.compare.diagnostics import diagnose
     from flexforce.datasets.sim.scenario import Scenario
     from flexforce.datasets.sim.simulator import Simulator
     from flexforce.factors.model import ModelConfig

@@ -34,7 +34,7 @@ CASES = [
 
 
 def one(case) -> dict:
-    from flexforce.compare.diagnostics.diagnose import diagnose
+    from flexforce.compare.diagnostics import diagnose
     from flexforce.datasets.sim.scenario import Scenario
     from flexforce.datasets.sim.simulator import Simulator
     from flexforce.factors.model import ModelConfig

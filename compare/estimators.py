@@ -24,6 +24,46 @@ def estimator_key(name: str) -> str:
     return key
 
 
+def nominal_model(rec, robot: Any = None, **overrides):
+    """The nominal model of ``rec`` with the robot configuration ``robot``, its springs checked
+    against gravity toppling on the recording's first sample.
+
+    An estimator run on springs that cannot hold the robot upright fails slowly and obscurely (its
+    covariances blow up), so the check comes first (:func:`flexforce.datasets.robot.check_toppling`,
+    DESIGN.md "Stability").
+
+    Args:
+        rec: a :class:`flexforce.datasets.recording.Recording`.
+        robot: a :class:`flexforce.datasets.robot.RobotConfig` or
+            :class:`~flexforce.datasets.robot.RobotModel`, a built-in robot name or a ``.toml`` path
+            (None: the recording's robot).
+        overrides: fields of the :class:`flexforce.factors.model.ModelConfig` replacing the nominal
+            ones (e.g. ``use_ft=True``).
+
+    Returns:
+        The :class:`flexforce.factors.model.ModelConfig` of
+        :meth:`~flexforce.factors.model.ModelConfig.from_recording`.
+
+    Raises:
+        ConfigError: an unknown robot, or springs whose tilt stiffness with the contacts in force at
+            the first sample does not exceed the gravity toppling stiffness ``m g h`` (N m/rad).
+
+    Warns:
+        ConfigWarning: one contact alone cannot hold the robot upright (``k_ts <= m g h``), so single
+            support will not be explained.
+    """
+    from flexforce.datasets.robot import RobotConfig, RobotModel, check_toppling
+    from flexforce.factors.model import ModelConfig
+
+    if isinstance(robot, RobotModel):
+        robot = robot.config
+    config = RobotConfig.load(robot or rec.robot)
+    active = rec.contact_active[0]
+    check_toppling(config.stiffness, rec.mass, rec.com[0], rec.contact_p[0][active], rec.contact_R[0][active],
+                   rec.gravity, config.name)
+    return ModelConfig.from_recording(rec, robot=config, **overrides)
+
+
 def run_estimator(name: str, rec, model=None, config: Any = None, progress: Callable[[float], None] | None = None,
                   **options):
     """Run estimator ``name`` on a Recording and return its Estimate.
@@ -31,7 +71,9 @@ def run_estimator(name: str, rec, model=None, config: Any = None, progress: Call
     Args:
         name: ``ekf`` (the seed paper's filter), ``fixed-lag`` or ``batch`` (factor-graph smoothers).
         rec: a :class:`flexforce.datasets.recording.Recording`.
-        model: a :class:`flexforce.factors.model.ModelConfig`; the recording's nominal model if None.
+        model: a :class:`flexforce.factors.model.ModelConfig`, taken as it is; None: the nominal
+            model of the recording's robot, its springs checked against toppling
+            (:func:`nominal_model`).
         config: the estimator's options, :class:`flexforce.compare.ekf.filter.EKFConfig`,
             :class:`flexforce.smoother.FixedLagConfig` or :class:`flexforce.smoother.BatchConfig`
             (None: its defaults).
@@ -42,12 +84,15 @@ def run_estimator(name: str, rec, model=None, config: Any = None, progress: Call
 
     Raises:
         ConfigError: an unknown estimator, a config of another estimator's type (naming the expected
-            one), an unknown option or a bad value.
+            one), an unknown option or a bad value; without ``model``, springs that cannot hold the
+            robot upright (:func:`nominal_model`).
         DataError: an invalid recording, or one shorter than
             :attr:`~flexforce.datasets.recording.Recording.MIN_SAMPLES` samples.
-    """
-    from flexforce.factors.model import ModelConfig
 
+    Warns:
+        ConfigWarning: without ``model``, springs with which one contact alone cannot hold the robot
+            upright (:func:`nominal_model`).
+    """
     key = estimator_key(name)
     cls: type
     run: Callable[..., Any]
@@ -72,5 +117,5 @@ def run_estimator(name: str, rec, model=None, config: Any = None, progress: Call
     rec.validate()
     rec.require_samples()
     if model is None:
-        model = ModelConfig.from_recording(rec)
+        model = nominal_model(rec)
     return run(rec, model, config=config, progress=progress, **options)

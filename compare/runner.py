@@ -143,17 +143,19 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
 
     Args:
         estimators: names for :func:`flexforce.compare.estimators.run_estimator`.
+        model: the model every estimator assumes; None: the recording's nominal model, its springs
+            checked against toppling (:func:`flexforce.compare.estimators.nominal_model`, which
+            raises ConfigError or warns).
         skip: seconds at the start left out of the statistics (filter convergence).
         progress: called with (estimator name, fraction done).
         options: estimator name -> keyword options.
         baseline: add the leg-odometry row (:func:`flexforce.compare.baseline.leg_odometry`).
     """
-    from flexforce.compare.estimators import run_estimator
-    from flexforce.factors.model import ModelConfig
+    from flexforce.compare.estimators import nominal_model, run_estimator
 
     rec.validate()
     if model is None:
-        model = ModelConfig.from_recording(rec)
+        model = nominal_model(rec)
     result = Comparison(recording=describe(rec))
     for name in estimators:
         key = summary_key(name)

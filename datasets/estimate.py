@@ -30,6 +30,7 @@ class Estimate:
     t_ns: np.ndarray
     """(N,) int64 time stamps, ns (those of the Recording)."""
     contact_names: tuple[str, ...]
+    """Names of the C contacts (those of the Recording)."""
     R: np.ndarray
     """(N, 3, 3) flexibility rotation, local to world."""
     t: np.ndarray
@@ -70,9 +71,12 @@ class Estimate:
     effects: dict = field(default_factory=dict)
     """Estimated effect parameters (name -> JSON-serialisable values)."""
     meta: dict = field(default_factory=dict)
+    """Free-form description of the run: the samples a sensor gate rejected, the noise sigmas, solver
+    details (JSON-serialisable)."""
 
     @property
     def n(self) -> int:
+        """Number of steps."""
         return int(self.t_ns.shape[0])
 
     @property

@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from flexforce.errors import ModelError
 from flexforce.options import check_choice, check_finite, check_positive, invalid
@@ -21,7 +22,7 @@ __all__ = ["GRAVITY", "ContactParams", "FootholdPrior", "ImuPlacement", "Inputs"
 GRAVITY = 9.81
 """Default gravity (m/s^2), along -z of the world (correction 6: a parameter)."""
 
-def _as_matrix(value, name: str) -> np.ndarray:
+def _as_matrix(value: ArrayLike, name: str) -> np.ndarray:
     a = np.asarray(value, dtype=float)
     if a.ndim == 0:
         return float(a) * np.eye(3)
@@ -54,7 +55,7 @@ class ContactParams:
     """Cubic stiffening of the rotational spring, 1/rad^2: ``T = -K_ts Omega (1 + beta_t |Omega|^2)``."""
     _isotropic: bool = field(init=False, repr=False, compare=False)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         # Decided once: np.allclose costs ~0.1 ms, far more than the contact law itself.
         object.__setattr__(self, "_isotropic", all(
             np.allclose(K, K[0, 0] * np.eye(3), rtol=0.0, atol=1e-12 * max(1.0, abs(K[0, 0])))
@@ -62,7 +63,8 @@ class ContactParams:
         ))
 
     @classmethod
-    def make(cls, k_fs, k_fd, k_ts, k_td, beta_f: float = 0.0, beta_t: float = 0.0) -> ContactParams:
+    def make(cls, k_fs: ArrayLike, k_fd: ArrayLike, k_ts: ArrayLike, k_td: ArrayLike, beta_f: float = 0.0,
+             beta_t: float = 0.0) -> ContactParams:
         """Build from scalars (isotropic), 3-vectors (diagonal in the contact frame) or 3x3 matrices."""
         return cls(
             _as_matrix(k_fs, "k_fs"),

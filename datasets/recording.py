@@ -14,10 +14,12 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from flexforce.datasets.faults import check_missing
 from flexforce.datasets.quantities import GRAVITY, ImuPlacement, Inputs
@@ -137,6 +139,104 @@ class Recording:
     """Free-form description: scenario, noise model, hidden effects (JSON-serialisable)."""
 
     # ------------------------------------------------------------------------------------------
+    @classmethod
+    def from_arrays(
+        cls, t_ns: ArrayLike, *, robot: str, contact_names: Sequence[str], mass: float,
+        com: ArrayLike, com_vel: ArrayLike, com_acc: ArrayLike, inertia: ArrayLike, inertia_dot: ArrayLike,
+        sigma: ArrayLike, sigma_dot: ArrayLike,
+        imu_R: ArrayLike, imu_p: ArrayLike, imu_v: ArrayLike, imu_a: ArrayLike, imu_w: ArrayLike,
+        contact_active: ArrayLike, contact_p: ArrayLike, contact_R: ArrayLike,
+        gyro: ArrayLike, accel: ArrayLike,
+        joint_names: Sequence[str] = (), joint_q: ArrayLike | None = None, joint_v: ArrayLike | None = None,
+        ft: ArrayLike | None = None, mocap: Mapping[str, ArrayLike] | None = None,
+        base_pose: ArrayLike | None = None, truth: Truth | None = None, gravity: float = GRAVITY,
+        meta: dict | None = None,
+    ) -> Recording:
+        """A validated Recording from plain arrays (your own robot's logs, another simulator...).
+
+        The arrays hold one row per step of a uniform time grid; ``N`` steps, ``C`` contacts (every
+        contact of the robot, active or not), ``J`` joints.  "Local frame" is the paper's frame
+        attached to the contacts' rest placements (the world when the robot does not flex).
+
+        Args:
+            t_ns: (N,) time stamps, integer nanoseconds (any epoch), strictly increasing, uniform.
+                Float seconds are refused: convert with ``np.round(t_s * 1e9).astype(np.int64)``.
+            robot: the robot configuration's built-in name or TOML path (the nominal model's source).
+            contact_names: the C contact names, in the order of the contact axes below.
+            mass: total mass, kg.
+            com, com_vel, com_acc: (N, 3) CoM ``c_l`` in the local frame, m, and its first and second
+                time derivatives, m/s and m/s^2.
+            inertia, inertia_dot: (N, 3, 3) inertia ``I_l`` about the local origin, kg m^2, and its
+                time derivative, kg m^2/s.
+            sigma, sigma_dot: (N, 3) angular momentum ``sigma_l`` about the local origin, kg m^2/s,
+                and its time derivative, N m.
+            imu_R, imu_p: (N, 3, 3) orientation and (N, 3) position of the IMU in the local frame, m.
+            imu_v, imu_a: (N, 3) IMU velocity, m/s, and acceleration, m/s^2, in the local frame.
+            imu_w: (N, 3) IMU angular velocity relative to the local frame, expressed in it, rad/s.
+            contact_active: (N, C) bool, the contact is in force.
+            contact_p, contact_R: (N, C, 3) rest position, m, and (N, C, 3, 3) rest orientation of each
+                contact in the local frame (read while it is active).
+            gyro, accel: (N, 3) gyrometer, rad/s, and accelerometer, m/s^2, readings in the IMU frame;
+                NaN marks a missing reading.
+            joint_names, joint_q, joint_v: the J joint names and (N, J) positions (rad or m) and
+                velocities (optional; the viewers and exports use them).
+            ft: (N, C, 6) F/T readings, the wrench of the environment on the robot in the contact
+                frame about its origin (F [N], T [N m]); NaN where not measured (optional).
+            mocap: link name -> (N, 7) world pose ``(x, y, z, qx, qy, qz, qw)``, NaN when lost.
+            base_pose: (N, 7) the base link's pose in the local frame, as ``mocap``.
+            truth: ground truth, for simulated data.
+            gravity: m/s^2, along -z of the world.
+            meta: free-form JSON-serialisable description.
+
+        Floating-point arrays are taken as float64 and ``contact_active`` as bool (no copy when
+        they already are).
+
+        Raises:
+            DataError: time stamps that are not integers (floats: seconds?), that look like seconds,
+                milliseconds or microseconds (a median step under :attr:`MIN_STEP_NS`), that do not
+                increase or are not uniform; an array of the wrong shape, a non-finite input, a
+                non-positive mass (:meth:`validate`).
+        """
+        t = np.asarray(t_ns)
+        if t.ndim != 1:
+            raise DataError(f"t_ns has shape {t.shape}; expected (N,) integer nanoseconds")
+        if not np.issubdtype(t.dtype, np.integer):
+            span = f", values {t.min():g} to {t.max():g}" if t.size and np.issubdtype(t.dtype, np.number) else ""
+            raise DataError(f"t_ns has dtype {t.dtype}{span}; expected integer nanoseconds (int64), e.g. "
+                            "np.round(t_seconds * 1e9).astype(np.int64)")
+        if t.size >= 2:
+            steps = np.diff(t.astype(np.int64))
+            median = float(np.median(steps))
+            if np.all(steps > 0) and median < cls.MIN_STEP_NS:
+                raise DataError(f"t_ns steps by {median:g} ns (median), a rate of "
+                                f"{1e9 / median:.3g} Hz: these look like seconds, milliseconds or "
+                                "microseconds; expected integer nanoseconds, e.g. "
+                                "np.round(t_seconds * 1e9).astype(np.int64)")
+
+        def floats(value: ArrayLike) -> np.ndarray:
+            return np.asarray(value, dtype=np.float64)
+
+        def maybe(value: ArrayLike | None) -> np.ndarray | None:
+            return None if value is None else floats(value)
+
+        rec = cls(
+            t_ns=t.astype(np.int64, copy=False), robot=str(robot), contact_names=tuple(contact_names),
+            mass=float(mass), com=floats(com), com_vel=floats(com_vel), com_acc=floats(com_acc),
+            inertia=floats(inertia), inertia_dot=floats(inertia_dot), sigma=floats(sigma),
+            sigma_dot=floats(sigma_dot), imu_R=floats(imu_R), imu_p=floats(imu_p), imu_v=floats(imu_v),
+            imu_a=floats(imu_a), imu_w=floats(imu_w), contact_active=np.asarray(contact_active, dtype=bool),
+            contact_p=floats(contact_p), contact_R=floats(contact_R), gyro=floats(gyro), accel=floats(accel),
+            joint_names=tuple(joint_names), joint_q=maybe(joint_q), joint_v=maybe(joint_v), ft=maybe(ft),
+            mocap={str(k): floats(v) for k, v in (mocap or {}).items()}, base_pose=maybe(base_pose),
+            truth=truth, gravity=float(gravity), meta={} if meta is None else meta,
+        )
+        return rec.validate()
+
+    MIN_STEP_NS = 10_000
+    """Shortest median time step :meth:`from_arrays` takes, ns (10 us: 100 kHz): a shorter one is
+    time counted in seconds, milliseconds or microseconds (steps of 1 to a few thousand), not in
+    nanoseconds."""
+
     @property
     def n(self) -> int:
         """Number of steps."""

@@ -24,8 +24,6 @@ import time
 import warnings
 from pathlib import Path
 
-import numpy as np
-
 from flexforce.errors import ConfigError, FlexforceError
 
 EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
@@ -171,42 +169,27 @@ def _simulate(args) -> int:
     return 0
 
 
-def open_recording(path: Path, robot: str | None = None, contacts: str = "ft", quiet: bool = False):
-    """A flexforce bag (simulated or saved), or a raw robot bag imported with a robot config."""
-    from flexforce.datasets.io.bagio import load_recording
-    from flexforce.datasets.io.rosimport import import_bag, is_flexforce_bag
-    from flexforce.errors import ConfigError
-
-    path = Path(path)
-    if not path.exists() or is_flexforce_bag(path):
-        return load_recording(path)
-    if not robot:
-        raise ConfigError(f"{path} is a raw robot bag (no /flexforce/meta): give its robot configuration with "
-                          "--robot NAME|CONFIG.toml (e.g. --robot icub)")
-    return import_bag(path, robot, contacts=contacts,
-                      progress=Progress(f"import {path.name}", enabled=not quiet and None))
+def _progress(quiet: bool):
+    """The library's progress factory (:mod:`flexforce.pipeline`): a :class:`Progress` per stage,
+    silent with --quiet."""
+    return lambda label: Progress(label, enabled=not quiet and None)
 
 
 def _window(rec, args):
     """The part of ``rec`` chosen with --start/--end (the whole recording without them), long
-    enough for the estimators."""
-    start, end = getattr(args, "start", None), getattr(args, "end", None)
-    if start is not None or end is not None:
-        rec = rec.window(start, end)
-    return rec.require_samples()
+    enough for the estimators (:func:`flexforce.pipeline.window`)."""
+    from flexforce.pipeline import window
+
+    return window(rec, getattr(args, "start", None), getattr(args, "end", None))
 
 
 def _model(rec, args):
     """The nominal model of ``rec`` with the robot configuration of --robot (or the recording's),
-    its springs checked against gravity toppling on the recording's first sample."""
-    from flexforce.datasets.robot import RobotConfig, check_toppling
-    from flexforce.factors.model import ModelConfig
+    its springs checked against gravity toppling on the recording's first sample
+    (:func:`flexforce.compare.estimators.nominal_model`: an error, or a warning printed as one line)."""
+    from flexforce.compare.estimators import nominal_model
 
-    config = RobotConfig.load(args.robot or rec.robot)
-    active = rec.contact_active[0]
-    check_toppling(config.stiffness, rec.mass, rec.com[0], rec.contact_p[0][active], rec.contact_R[0][active],
-                   rec.gravity, config.name)
-    return ModelConfig.from_recording(rec, robot=config, use_ft=args.ft)
+    return nominal_model(rec, args.robot, use_ft=args.ft)
 
 
 def _cmd_run(args) -> int:
@@ -227,160 +210,46 @@ def _cmd_run(args) -> int:
         return _run(args)
 
 
-def _streams(args) -> bool:
-    """``run`` streams (reads the input and writes the estimate part by part, in bounded memory):
-    the fixed-lag smoother into a .csv or .mcap, unless --offline or --footholds."""
-    out = Path(args.output)
-    streamable = args.estimator == "fixed-lag" and out.suffix in (".csv", ".mcap") and not args.footholds
-    if args.realtime and not (streamable and not args.offline):
-        raise ConfigError("--realtime replays a recording through the streaming fixed-lag smoother: it needs "
-                          "--estimator fixed-lag, a .csv or .mcap output, and neither --offline nor --footholds")
-    return streamable and not args.offline
+def _run(args) -> int:
+    from flexforce.pipeline import RunConfig, run_recording
+
+    config = RunConfig(estimator=args.estimator, robot=args.robot, contacts=args.contacts, start=args.start,
+                       end=args.end, use_ft=args.ft, lag=args.lag, block=args.block, footholds=args.footholds,
+                       offline=args.offline, covariance=not args.no_cov, realtime=args.realtime,
+                       overwrite=args.force)
+    print(_run_line(run_recording(args.recording, args.output, config, progress=_progress(args.quiet)),
+                    args.realtime))
+    return 0
 
 
-def _stream_parts(args):
-    """``(parts, copy_from)``: the recording as consecutive parts, and the raw bag whose messages
-    are copied into an .mcap output as they are read (None: a flexforce bag, written from the parts)."""
-    from flexforce.datasets.io.rosimport import is_flexforce_bag
-    from flexforce.datasets.io.stream import stream_bag
-
-    path = Path(args.recording)
-    if not path.exists() or is_flexforce_bag(path):
-        rec = _window(open_recording(path, args.robot, args.contacts, args.quiet), args)
-        size = max(1, int(round(0.5 / rec.dt)))
-        return (rec.slice(a, min(a + size, rec.n)) for a in range(0, rec.n, size)), rec
-    if not args.robot:
-        raise ConfigError(f"{path} is a raw robot bag (no /flexforce/meta): give its robot configuration with "
-                          "--robot NAME|CONFIG.toml (e.g. --robot icub)")
-    if args._copy is None and (os.cpu_count() or 1) > 1:  # import and smoothing on two cores
-        from flexforce.datasets.io.stream import pipelined
-        from flexforce.pipeline import warm_up
-
-        return pipelined(stream_bag, path, args.robot, contacts=args.contacts, warm_up=warm_up), None
-    return stream_bag(path, args.robot, contacts=args.contacts, on_message=args._copy), None
-
-
-def _window_parts(parts, start, end):
-    """The steps of ``parts`` from ``start`` to ``end`` s after the first step (None: no bound)."""
-    t0 = None
-    for part in parts:
-        if t0 is None:
-            t0 = int(part.t_ns[0])
-        t = (part.t_ns - t0) * 1e-9
-        keep = np.flatnonzero((t >= (start if start is not None else -np.inf) - 1e-9)
-                              & (t <= (end if end is not None else np.inf) + 1e-9))
-        if keep.size:
-            yield part.slice(int(keep[0]), int(keep[-1]) + 1)
-        if end is not None and t[-1] > end:
-            return
-
-
-def _run_stream(args) -> int:
-    """The streaming fixed-lag run (:func:`flexforce.smoother.stream.run_stream`)."""
-    import itertools
-
-    from flexforce.datasets.io.export import EstimateWriter, _copy_bag
-    from flexforce.smoother import FixedLagConfig
-    from flexforce.smoother.stream import run_stream
-
-    out = Path(args.output)
-    options = {"lag": args.lag} if args.lag is not None else {}
-    if args.block is not None:
-        options["block"] = args.block
-    config = FixedLagConfig(**options)
-    with EstimateWriter(out, overwrite=args.force) as writer:
-        args._copy = (lambda reader, conn, t, raw: writer.copy(reader, conn, t, raw)) if out.suffix == ".mcap" \
-            else None
-        parts, rec = _stream_parts(args)
-        if rec is not None:  # a flexforce bag: every topic of it (inputs, truth) into the .mcap
-            if out.suffix == ".mcap":
-                _copy_bag(writer._writer, writer._ts, Path(args.recording))
-        elif args.start is not None or args.end is not None:
-            parts = _window_parts(parts, args.start, args.end)
-        parts = iter(parts)
-        first = next(parts, None)
-        if first is None:
-            raise ConfigError("no step of the recording lies within --start/--end")
-        model = _model(first, args)
-        stats: dict = {}
-        progress = Progress("fixed-lag (stream)", enabled=not args.quiet and None)
-        span = (rec.n - 1) * rec.dt if rec is not None else None
-        for est in run_stream(itertools.chain([first], parts), model, config, covariance=not args.no_cov,
-                              realtime=args.realtime, stats=stats):
-            writer.write(est)
-            if span:
-                progress((int(est.t_ns[-1]) - int(first.t_ns[0])) * 1e-9 / span)
+def _run_line(result, realtime: bool) -> str:
+    """The line ``run`` prints: what it wrote, and its timing (a stream's update times, and in real
+    time its missed deadlines)."""
+    if not result.streamed:
+        est = result.estimate
+        tps = est.time_per_step
+        timing = f", {1e6 * float(sorted(tps)[len(tps) // 2]):.0f} us per step (median)" if tps is not None else ""
+        return f"wrote {result.output}: {est.n} steps in {est.total_time:.2f} s{timing}"
+    stats = result.stats
     up = stats.get("update", {})
-    line = (f"wrote {out}: {stats.get('steps', writer.steps)} steps streamed in {stats.get('wall_s', 0.0):.2f} s "
+    line = (f"wrote {result.output}: {result.steps} steps streamed in {stats.get('wall_s', 0.0):.2f} s "
             f"({stats.get('realtime_factor') or 0.0:.1f}x real time), update {up.get('median_ms', 0.0):.2f} ms "
             f"median, {up.get('p99_ms', 0.0):.2f} ms p99")
     if up.get("samples_per_update", 1) > 1:
         line += (f" ({up['samples_per_update']} samples per update: {up.get('per_sample_ms', 0.0):.3f} ms per "
                  "sample)")
-    if args.realtime:
+    if realtime:
         line += (f"; real time: {stats['missed_deadlines']} missed deadline(s) of {stats['parts']} parts, "
                  f"at most {1e3 * max(stats['max_late_s'], 0.0):.1f} ms behind the recording's clock")
-    print(line)
-    return 0
-
-
-def _run(args) -> int:
-    from flexforce.compare.estimators import run_estimator
-
-    if _streams(args):
-        return _run_stream(args)
-    rec = _window(open_recording(args.recording, args.robot, args.contacts, args.quiet), args)
-    model = _model(rec, args)
-    options = {}
-    if args.lag is not None:
-        options["lag"] = args.lag
-    if args.block is not None:
-        if args.estimator != "fixed-lag":
-            raise ConfigError(f"--block sets the fixed-lag smoother's samples per update; got --estimator "
-                              f"{args.estimator}")
-        options["block"] = args.block
-    if args.footholds:
-        if args.estimator == "ekf":
-            raise ConfigError("--footholds estimates the footholds in the smoothers (fixed-lag, batch); the EKF "
-                              "resets them at each touch-down instead: EKFConfig(touchdown='zero-deflection')")
-        options["footholds"] = True
-    est = run_estimator(args.estimator, rec, model,
-                        progress=Progress(f"{args.estimator}", enabled=not args.quiet and None), **options)
-    out = Path(args.output)
-    if out.suffix == ".csv":
-        from flexforce.datasets.io.export import export_csv
-
-        out = export_csv(est, out)
-    elif out.suffix == ".mcap":
-        from flexforce.datasets.io.export import export_mcap
-
-        out = export_mcap(est, args.recording, out, overwrite=args.force)
-    else:
-        out = est.save(out)
-    tps = est.time_per_step
-    timing = f", {1e6 * float(sorted(tps)[len(tps) // 2]):.0f} us per step (median)" if tps is not None else ""
-    print(f"wrote {out}: {est.n} steps in {est.total_time:.2f} s{timing}")
-    return 0
+    return line
 
 
 def _load_or_simulate(source: str, seed: int | None, quiet: bool, robot: str | None = None, contacts: str = "ft"):
-    """A recording from a bag, or simulated from a built-in scenario name or scenario file."""
-    from flexforce.datasets.io.bagio import load_recording
-    from flexforce.datasets.sim.scenario import Scenario, builtin_scenarios
-    from flexforce.datasets.sim.simulator import Simulator
+    """A recording from a bag, or simulated from a built-in scenario name or scenario file
+    (:func:`flexforce.pipeline.load_or_simulate` with the command's progress bars)."""
+    from flexforce.pipeline import load_or_simulate
 
-    path = Path(source)
-    if path.exists() and not (path.suffix == ".toml"):
-        return open_recording(path, robot, contacts, quiet)
-    if path.suffix == ".toml" or source in builtin_scenarios():
-        scenario = Scenario.load(source)
-        if robot:
-            scenario.robot = robot
-        if seed is not None:
-            scenario.seed = seed
-        label = f"simulate {scenario.name}" + (f" #{seed}" if seed is not None else "")
-        return Simulator(scenario).run(progress=Progress(label, enabled=not quiet and None))
-    return load_recording(path)  # raises the clear "does not exist" error
+    return load_or_simulate(source, seed, robot, contacts, progress=_progress(quiet))
 
 
 def _compare_one(rec, args, out: Path):
@@ -596,7 +465,8 @@ def _diagnose_job(args, job) -> dict:
     """Diagnose one recording (here or in a worker process of --jobs) and write its report; returns
     what the terminal shows and the index lists."""
     global PROGRESS_PREFIX
-    from flexforce.compare.diagnostics.diagnose import diagnose, load_plugin
+    from flexforce.compare.diagnostics.config import DiagnoseConfig
+    from flexforce.compare.diagnostics.run import diagnose, load_plugin
     from flexforce.compare.reports.diagnosis import diagnosis_summary, write_diagnosis
 
     label, source, out = job
@@ -618,10 +488,11 @@ def _diagnose_job(args, job) -> dict:
             bars[label](fraction)
 
         level = None if args.no_screen else args.screen_level
-        diag = diagnose(rec, model, candidates=candidates, extra_candidates=plugins, add=args.add,
-                        rank=not args.no_rank, max_effects=args.max_effects, ekf=not args.no_ekf, progress=progress,
-                        screen_level=level, refit_best=args.refit_best or None, jobs=args.jobs if label is None else 1,
-                        check_constancy=not args.no_constancy)
+        config = DiagnoseConfig(rank=not args.no_rank, max_effects=args.max_effects, ekf=not args.no_ekf,
+                                screen_level=level, refit_best=args.refit_best or None,
+                                jobs=args.jobs if label is None else 1, check_constancy=not args.no_constancy)
+        diag = diagnose(rec, model, candidates=candidates, extra_candidates=plugins, add=args.add, config=config,
+                        progress=progress)
         write_diagnosis(diag, out)
     finally:
         PROGRESS_PREFIX = ""
@@ -706,14 +577,7 @@ def _epilog() -> str:
             "writer's PID).")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="flexforce",
-        description="Contact forces and floating-base kinematics of flexible legged robots from an IMU "
-                    "and joint encoders.",
-        epilog=_epilog(), formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = parser.add_subparsers(dest="command", required=True)
-
+def _add_simulate_parser(sub) -> None:
     p = sub.add_parser("simulate", help="simulate a scenario into a ROS 2 bag (MCAP) with ground truth")
     p.add_argument("scenario", help="built-in scenario name (stand, com-step, push-pitch, push-roll, push-com, "
                                     "sway, weight-shift, step, walk, walk-short) or a scenario .toml file")
@@ -726,6 +590,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_simulate)
 
+
+def _add_run_parser(sub) -> None:
     p = sub.add_parser("run", help="run one estimator on a recording and save its estimate (.npz)")
     p.add_argument("recording", type=Path, help="bag written by 'flexforce simulate' (or a flexforce recording)")
     p.add_argument("--estimator", default="ekf", help="ekf (the seed paper's filter), fixed-lag or batch")
@@ -750,6 +616,18 @@ def build_parser() -> argparse.ArgumentParser:
                    help="streaming fixed-lag: pace the input at the recording's clock and report missed deadlines")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_run)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="flexforce",
+        description="Contact forces and floating-base kinematics of flexible legged robots from an IMU "
+                    "and joint encoders.",
+        epilog=_epilog(), formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    _add_simulate_parser(sub)
+    _add_run_parser(sub)
 
     p = sub.add_parser("compare", help="EKF vs fixed-lag vs batch on recordings: report folder with summary.json")
     p.add_argument("recordings", nargs="+", help="bags, or built-in scenario names / scenario files to simulate")

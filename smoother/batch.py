@@ -22,7 +22,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from flexforce.errors import ConfigError, EstimatorError
-from flexforce.options import check_bool, check_int, check_positive, check_type, require_config, with_options
+from flexforce.factors.effects.base import traits
+from flexforce.options import check_bool, check_int, check_positive, check_type
 from flexforce.smoother import evidence
 from flexforce.smoother.linearize import (
     Trajectory,
@@ -36,7 +37,7 @@ from flexforce.smoother.linearize import (
     solve_arrow_pair,
     walk_sigma,
 )
-from flexforce.smoother.problem import NoiseRule, Problem, with_footholds
+from flexforce.smoother.problem import NoiseRule, Problem, build_problem, configured
 from flexforce.smoother.result import make_estimate
 
 if TYPE_CHECKING:
@@ -74,9 +75,8 @@ def carried_over(prob: Problem, effects, traj: Trajectory) -> Trajectory:
     ``prob`` shares with it, matched by name), every other effect at its prior mean.
 
     A model with an effect added contains the one without it (the effect at zero), so its fit
-    starts where the smaller one ended, and ends no higher: on the 20 s iCub sway, the model with
-    an accelerometer bias and an external wrench took 35 Levenberg-Marquardt iterations (21 s)
-    from the first step's equilibrium, 16 (8.5 s) from the fit with the bias alone."""
+    starts where the smaller one ended, and ends no higher (and in fewer iterations:
+    docs/smoother.md, "Solvers")."""
     out = initial_trajectory(prob)
     if traj.R.shape != out.R.shape or traj.W.shape != out.W.shape:
         raise ConfigError(f"a start of {traj.R.shape[0]} steps and {traj.W.shape[1]} contacts for a problem of "
@@ -106,8 +106,8 @@ def carried_over(prob: Problem, effects, traj: Trajectory) -> Trajectory:
 TRIAL_PATIENCE = 10
 """LM iterations after which a trial of the global block (:func:`optimize`) whose states' cost
 still exceeds the current cost by over twice the decrease the step promised is given up (the
-step is shortened): on the 20 s iCub sway with cubic stiffening, such trials took 93-98
-iterations (38-49 s each) to end above the current cost, rejected anyway."""
+step is shortened): such trials end above the current cost, rejected anyway, after many
+iterations (docs/smoother.md, "Solvers")."""
 
 
 def _quadratic_decrease(Hd, B, g, dx) -> float:
@@ -125,9 +125,8 @@ def _levenberg_marquardt(prob, traj, lin, cidx, freeze, max_iterations, rel_tol,
     The damping follows the gain ratio ``rho`` (actual over promised decrease) of each accepted
     step, ``lam *= max(1/10, 1 - (2 rho - 1)^3)`` (a step the model predicts well divides it by
     10, one it predicts half right keeps it), and grows by 2, 4, 8, ... on consecutive rejections
-    (Nielsen's rule).  Dividing by 10 on every success and multiplying by 10 on every failure made
-    the footholds of the iCub walk alternate between an accepted step at 1e-7 and a rejected one
-    at 1e-8 for hundreds of iterations (a curved valley: the soles' tilt and the flexibility's).
+    (Nielsen's rule), which follows a curved valley where a fixed factor of 10 each way
+    alternates between accepted and rejected steps (docs/smoother.md, "Solvers").
     Converged when an accepted step gains less than ``rel_tol`` of the cost and either the damping
     is negligible or the undamped Gauss-Newton step promises no more."""
     cost = lin.cost
@@ -177,25 +176,20 @@ def _feasible(prob, traj) -> bool:
     """Every global effect's optional ``feasible(values)`` (e.g. a positive stiffness) holds."""
     off = 0
     for eff in prob.effects:
-        check = getattr(eff, "feasible", None)
+        check = traits(eff).feasible
         if check is not None and is_global(eff, prob) and not check(traj.e[0, off:off + eff.dim]):
             return False
         off += int(eff.dim)
     return True
 
 
-SECANT = True
-"""The outer steps of the constants (:func:`optimize`) add to the Gauss-Newton Schur complement a
-symmetric rank-one secant estimate of the curvature it misses (:func:`_secant_update`); False:
-the Gauss-Newton step alone."""
-
 OVERSTATED = (1.5, 2)
 """A full secant step that gains more than ``OVERSTATED[0]`` times what it promised was taken with
 a curvature over twice the true one along it (for a quadratic the ratio is ``2 - s'Hs / s'(S +
 M)s``); after ``OVERSTATED[1]`` such steps in a row the secant is not used again in that fit (the
 symmetric rank-one update should have corrected it from the first): an over-stated curvature
-otherwise crawls with short steps that each gain more than the tolerance (measured with the
-curvature over-stated by 1e6 at every update: 17 outer steps against 4 without the secant)."""
+otherwise crawls with short steps that each gain more than the tolerance (docs/smoother.md,
+"Solvers")."""
 
 
 def _secant_update(M, s, Ss, g_old, g_new):
@@ -222,7 +216,7 @@ def _global_columns(prob, global_constants):
 def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int = 200, rel_tol: float = 1e-7,
              progress: Callable[[float], None] | None = None, want_cov: bool = True,
              global_constants: bool | None = None, evidence_tol: float = 0.0,
-             watch: Callable[[Trajectory], str | None] | None = None):
+             watch: Callable[[Trajectory], str | None] | None = None, secant: bool = True):
     """Levenberg-Marquardt on the whole trajectory.
 
     With ``global_constants`` (default :data:`GLOBAL_CONSTANTS`; otherwise constant effects are
@@ -230,23 +224,23 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
     (``constant = True``) are one global block (:func:`~flexforce.smoother.linearize.solve_arrow`).
     The joint Gauss-Newton step is then a poor guide for the per-step states (the contact effects
     are bilinear in state and parameter: the linearised response of the trajectory to a change of
-    stiffness overshoots by orders of magnitude, measured), so the global block is optimised by
-    variable projection: the per-step states are optimised with the global block held (LM), then,
-    per outer iteration, the global block moves by its Schur-complement Gauss-Newton step (which
+    stiffness overshoots by orders of magnitude), so the global block is optimised by variable
+    projection: the per-step states are optimised with the global block held (LM), then, per
+    outer iteration, the global block moves by its Schur-complement Gauss-Newton step (which
     accounts for the states' linear response) and the states are re-optimised with it held; a
     step that does not lower the cost is shortened (x 1/4).  ``max_iterations`` bounds each LM
     run and the outer iterations.  The Schur complement is the data's curvature, not the Occam
-    term's: with :data:`SECANT`, a symmetric rank-one estimate of what it misses, learnt from the
-    gradients of the accepted full steps, is added to it (on the 20 s iCub sway, a CoM offset
-    beside the accelerometer bias and the wrench: 7 outer steps and 48 s -> 3 and 19 s; an IMU
-    rotation 5 -> 4; a stiffness 6 -> 6, 7 nats lower); a shortened step resets it, and a step
-    it makes that does not descend, or that promises less than the tolerance where the
-    Gauss-Newton one promises more, gives way to the Gauss-Newton one; a secant whose full steps
-    gain well over their promise, step after step, is dropped (:data:`OVERSTATED`).  The outer iterations end
-    once a full step gains less than ``rel_tol`` of the cost or ``evidence_tol`` (nats of the
-    marginal likelihood), whichever is larger, or when the step promises less (both the secant's
-    and the Gauss-Newton model); ``watch(trajectory)``, called after each accepted outer step,
-    ends them too when it returns a reason (kept in ``info["stopped"]``).
+    term's: with ``secant`` (:attr:`BatchConfig.secant`), a symmetric
+    rank-one estimate of what it misses, learnt from the gradients of the accepted full steps,
+    is added to it (fewer outer steps: docs/smoother.md, "The outer steps"); a shortened step
+    resets it, and a step it makes that does not descend, or that promises less than the
+    tolerance where the Gauss-Newton one promises more, gives way to the Gauss-Newton one; a
+    secant whose full steps gain well over their promise, step after step, is dropped
+    (:data:`OVERSTATED`).  The outer iterations end once a full step gains less than ``rel_tol``
+    of the cost or ``evidence_tol`` (nats of the marginal likelihood), whichever is larger, or
+    when the step promises less (both the secant's and the Gauss-Newton model);
+    ``watch(trajectory)``, called after each accepted outer step, ends them too when it returns
+    a reason (kept in ``info["stopped"]``).
 
     Returns ``(trajectory, P, info)`` with ``P`` the (N, D, D) marginal covariances at the optimum
     (None without ``want_cov``) and ``info`` the iteration log (``iterations``: LM steps accepted,
@@ -257,7 +251,6 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
     start = traj
     if traj is None:
         traj = initial_trajectory(prob)
-    n, D = prob.n, prob.state_dim
     cidx = _global_columns(prob, global_constants)
     lin = linearize(prob, traj)
     log = [lin.cost]
@@ -277,10 +270,7 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
         gpen = evidence.occam_gradient(prob, traj, cidx, lin=lin, keep=keep)
         held = (lin, keep.get("system"))  # the system log_dets assembled at lin, for the step below
         keep.clear()
-        M = np.zeros((cidx.size, cidx.size))  # the secant's estimate of what the Schur complement misses
-        overstated = 0  # full secant steps in a row that gained well over their promise (OVERSTATED)
-        secant_on = SECANT  # off for the rest of the fit once they are too many
-        last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        curvature = _Secant(np.zeros((cidx.size, cidx.size)), bool(secant))
         for it in range(max_iterations):
             phi = lin.cost + pen
             tol = max(rel_tol * max(lin.cost, 1.0), evidence_tol)
@@ -288,33 +278,9 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
             g = g.copy()
             g[0, cidx] -= gpen  # g is minus the gradient; the global block sums its steps
             gsum = g[:, cidx].sum(axis=0)
-            if secant_on and last is not None:
-                M = _secant_update(M, *last, gsum)
-            dx = None
-            dgn = None
-            if np.any(M):
-                # the secant's step (M added to the global block) and the Gauss-Newton one, from one
-                # elimination of the per-step part
-                dx, dgn = solve_arrow_pair(Hd, B, g, cidx, M)
-                if dx is None or not np.all(np.isfinite(dx)) or float(dx[0, cidx] @ gsum) <= 0.0:
-                    M[:] = 0.0  # not a descent model: the Gauss-Newton one alone, and start learning again
-                    dx = None
-            promised_gn = None
-            if dx is None:
-                dx = dgn if dgn is not None else solve_arrow(Hd, B, g, cidx, damping=0.0)[0]
-            else:
-                # the Gauss-Newton model's promise too: the secant's estimate alone can call a
-                # slope converged that it has learnt wrongly (measured: 0.15 nats short on a
-                # 2.5 s stand's stiffness)
-                assert dgn is not None
-                promised_gn = 0.5 * float(dgn[0, cidx] @ gsum) if np.all(np.isfinite(dgn)) else None
-                if (promised_gn is not None and promised_gn > tol
-                        and 0.5 * float(dx[0, cidx] @ gsum) <= tol):
-                    # the secant's step promises nothing the Gauss-Newton one still does: take
-                    # that one (the secant's tiny step would end the loop by its gain), and
-                    # learn the curvature again from it
-                    dx, M[:], promised_gn = dgn, 0.0, None
-            used = M.copy()
+            curvature.learn(gsum)
+            dx, promised_gn = _outer_direction(Hd, B, g, cidx, curvature.M, gsum, tol)
+            used = curvature.M.copy()
             if not np.all(np.isfinite(dx)):
                 raise EstimatorError("batch smoother: the Gauss-Newton step is not finite (singular system)")
             step = dx[0, cidx]
@@ -332,60 +298,11 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
                 fallbacks += 1
             if predicted <= tol and (promised_gn is None or promised_gn <= tol):
                 break  # the Schur step promises nothing more
-            frac = 1.0
-            accepted = False
-            for _ in range(8):
-                d = np.zeros((n, D))
-                d[:, cidx] = step
-                cand = traj.retract(d)
-                if not _feasible(prob, cand):
-                    step, frac = 0.25 * step, 0.25 * frac
-                    continue
-                lin_0 = linearize(prob, cand)
-                if response is not None:
-                    # the states moved with the step by their linear response, when that starts lower
-                    # than the states held (a CoM offset, an IMU rotation: the states follow it
-                    # nearly linearly, the LM below then takes 1-3 steps instead of 6-9; a
-                    # stiffness: the response overshoots, the held states are kept)
-                    d = frac * response
-                    d[:, cidx] = step
-                    moved = traj.retract(d)
-                    lin_m = linearize(prob, moved)
-                    if lin_m.cost < lin_0.cost:
-                        cand, lin_0 = moved, lin_m
-                cand, lin_c, costs = _levenberg_marquardt(prob, cand, lin_0, cidx, True,
-                                                          max_iterations, rel_tol, lam=1e-12,
-                                                          give_up_above=lin.cost + 2.0 * predicted)
-                try:
-                    dets_c = evidence.log_dets(prob, lin_c, cidx, keep)
-                    pen_c = 0.5 * (dets_c[0] - dets_c[1])
-                except EstimatorError:  # e.g. a stiffness scale driven negative: unstable dynamics
-                    pen_c = np.inf
-                    keep.clear()
-                if lin_c.cost + pen_c <= phi:
-                    accepted = True
-                    break
-                step, frac = 0.25 * step, 0.25 * frac
-                if frac * predicted <= tol:
-                    break  # shortened below what the convergence test resolves: converged
+            accepted, cand, lin_c, costs, pen_c, dets_c, frac = _outer_line_search(
+                prob, traj, lin, cidx, step, response, predicted, phi, tol, keep, max_iterations, rel_tol)
             if not accepted:
                 break
-            # the secant pair of this step: the step taken and the change of the gradient the
-            # Gauss-Newton Schur complement S predicts, S step = frac (gsum - M full)
-            last = (frac * full, frac * (gsum - used @ full), gsum) if response is not None else None
-            if frac < 1.0:
-                # the model was poor this far from the optimum: learn nothing from it, and forget
-                # what was learnt (measured on the 2.5 s stand's stiffness: a secant learnt from a
-                # shortened first step cost two more steps)
-                last = None
-                M = np.zeros_like(M)
-            if frac == 1.0 and response is not None and np.any(used) and predicted > 0.0:
-                # a full secant step: its gain against its promise says whether the curvature it
-                # used along the step was over-stated (OVERSTATED)
-                gain = phi - (lin_c.cost + pen_c)
-                overstated = overstated + 1 if gain > OVERSTATED[0] * predicted else 0
-                if overstated >= OVERSTATED[1]:
-                    secant_on, M, last = False, np.zeros_like(M), None
+            curvature.after_step(frac, full, gsum, used, response, predicted, phi - (lin_c.cost + pen_c))
             traj, lin, pen, dets = cand, lin_c, pen_c, dets_c
             log += costs
             outer += 1
@@ -411,6 +328,119 @@ def optimize(prob: Problem, traj: Trajectory | None = None, max_iterations: int 
                      "stopped": stopped, "final": (lin, dets) if cidx.size else None, "final_system": final_system}
 
 
+class _Secant:
+    """The secant estimate ``M`` of the curvature the Schur complement misses, over the outer
+    steps of one :func:`optimize` call (:func:`_secant_update`, :data:`OVERSTATED`)."""
+
+    def __init__(self, M: np.ndarray, on: bool):
+        self.M = M
+        """(G, G) the estimate; zeroed in place where a step gives way to the Gauss-Newton one."""
+        self.on = on
+        """Learning from the accepted steps: off for the rest of the fit once over-stated."""
+        self.last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        """The pair of the last accepted full step (step, S step, gsum), to learn from."""
+        self.overstated = 0
+        """Full secant steps in a row that gained well over their promise."""
+
+    def learn(self, gsum: np.ndarray) -> None:
+        """The update from the last accepted step, with the gradient sum ``gsum`` at its end."""
+        if self.on and self.last is not None:
+            self.M = _secant_update(self.M, *self.last, gsum)
+
+    def after_step(self, frac, full, gsum, used, response, predicted, gain) -> None:
+        """Bookkeeping of an accepted step ``frac * full`` taken with the estimate ``used``."""
+        M = self.M
+        # the secant pair of this step: the step taken and the change of the gradient the
+        # Gauss-Newton Schur complement S predicts, S step = frac (gsum - M full)
+        last = (frac * full, frac * (gsum - used @ full), gsum) if response is not None else None
+        if frac < 1.0:
+            # the model was poor this far from the optimum: learn nothing from it, and forget
+            # what was learnt (a secant learnt from a shortened step costs more steps)
+            last = None
+            M = np.zeros_like(M)
+        if frac == 1.0 and response is not None and np.any(used) and predicted > 0.0:
+            # a full secant step: its gain against its promise says whether the curvature it
+            # used along the step was over-stated (OVERSTATED)
+            self.overstated = self.overstated + 1 if gain > OVERSTATED[0] * predicted else 0
+            if self.overstated >= OVERSTATED[1]:
+                self.on, M, last = False, np.zeros_like(M), None
+        self.M, self.last = M, last
+
+
+def _outer_direction(Hd, B, g, cidx, M, gsum, tol):
+    """The outer step of the global block: ``(dx, promised_gn)``, the secant's step (``M`` added
+    to the global block) when it is a descent and promises what the Gauss-Newton one does, else
+    the Gauss-Newton step (``M`` zeroed in place: learn the curvature again); ``promised_gn`` the
+    Gauss-Newton model's promise where the secant's step is taken, else None."""
+    dx = None
+    dgn = None
+    if np.any(M):
+        # the secant's step and the Gauss-Newton one, from one elimination of the per-step part
+        dx, dgn = solve_arrow_pair(Hd, B, g, cidx, M)
+        if dx is None or not np.all(np.isfinite(dx)) or float(dx[0, cidx] @ gsum) <= 0.0:
+            M[:] = 0.0  # not a descent model: the Gauss-Newton one alone, and start learning again
+            dx = None
+    promised_gn = None
+    if dx is None:
+        dx = dgn if dgn is not None else solve_arrow(Hd, B, g, cidx, damping=0.0)[0]
+    else:
+        # the Gauss-Newton model's promise too: the secant's estimate alone can call a slope
+        # converged that it has learnt wrongly
+        assert dgn is not None
+        promised_gn = 0.5 * float(dgn[0, cidx] @ gsum) if np.all(np.isfinite(dgn)) else None
+        if (promised_gn is not None and promised_gn > tol
+                and 0.5 * float(dx[0, cidx] @ gsum) <= tol):
+            # the secant's step promises nothing the Gauss-Newton one still does: take that one
+            # (the secant's tiny step would end the loop by its gain), and learn the curvature
+            # again from it
+            dx, M[:], promised_gn = dgn, 0.0, None
+    return dx, promised_gn
+
+
+def _outer_line_search(prob, traj, lin, cidx, step, response, predicted, phi, tol, keep, max_iterations, rel_tol):
+    """Try the global block's ``step`` (the states re-optimised with it held, from their linear
+    ``response`` when that starts lower), shortened (x 1/4) until the objective with its Occam
+    term is at most ``phi``.  Returns ``(accepted, trajectory, linearisation, LM costs, Occam
+    term, log_dets, fraction of the step taken)``."""
+    n, D = prob.n, prob.state_dim
+    frac = 1.0
+    cand = lin_c = costs = dets_c = None
+    pen_c = np.inf
+    for _ in range(8):
+        d = np.zeros((n, D))
+        d[:, cidx] = step
+        cand = traj.retract(d)
+        if not _feasible(prob, cand):
+            step, frac = 0.25 * step, 0.25 * frac
+            continue
+        lin_0 = linearize(prob, cand)
+        if response is not None:
+            # the states moved with the step by their linear response, when that starts lower
+            # than the states held (a CoM offset, an IMU rotation: the states follow it nearly
+            # linearly; a stiffness: the response overshoots, the held states are kept)
+            d = frac * response
+            d[:, cidx] = step
+            moved = traj.retract(d)
+            lin_m = linearize(prob, moved)
+            if lin_m.cost < lin_0.cost:
+                cand, lin_0 = moved, lin_m
+        cand, lin_c, costs = _levenberg_marquardt(prob, cand, lin_0, cidx, True,
+                                                  max_iterations, rel_tol, lam=1e-12,
+                                                  give_up_above=lin.cost + 2.0 * predicted)
+        try:
+            dets_c = evidence.log_dets(prob, lin_c, cidx, keep)
+            pen_c = 0.5 * (dets_c[0] - dets_c[1])
+        except EstimatorError:  # e.g. a stiffness scale driven negative: unstable dynamics
+            pen_c = np.inf
+            keep.clear()
+        if lin_c.cost + pen_c <= phi:
+            return True, cand, lin_c, costs, pen_c, dets_c, frac
+        step, frac = 0.25 * step, 0.25 * frac
+        if frac * predicted <= tol:
+            break  # shortened below what the convergence test resolves: converged
+    return False, cand, lin_c, costs, pen_c, dets_c, frac
+
+
 @dataclass(frozen=True)
 class BatchConfig:
     """Options of the batch smoother (:func:`run_batch`); every field is checked on construction
@@ -418,10 +448,9 @@ class BatchConfig:
 
     max_iterations: int = 200
     """Levenberg-Marquardt iterations at most (count, >= 1; accepted and rejected steps; it stops
-    earlier once converged), per LM run and for the outer (global-constant) iterations.  200: on a
-    simulated 9.5 s walk (Romeo, four steps) from the first step's equilibrium it takes 80
-    accepted steps; the former cap of 30 stopped it at 300 times the optimal cost, with an 8 deg
-    tilt error."""
+    earlier once converged), per LM run and for the outer (global-constant) iterations.  The
+    default leaves room for a walk from the first step's equilibrium (docs/smoother.md,
+    "Solvers")."""
     rel_tol: float = 1e-7
     """Convergence: a step lowering the cost by less than ``rel_tol * max(cost, 1)`` ends the run
     (dimensionless, relative to the cost, > 0)."""
@@ -436,6 +465,10 @@ class BatchConfig:
     from the model's ``foothold_prior``); False: the rest placements are the given ones."""
     rule: NoiseRule = field(default_factory=NoiseRule)
     """The noise rule of the model-error families (:class:`~flexforce.smoother.problem.NoiseRule`)."""
+    secant: bool = True
+    """The outer steps of the constants (:func:`optimize`) add to the Gauss-Newton Schur complement
+    a symmetric rank-one secant estimate of the curvature it misses (:func:`_secant_update`);
+    False: the Gauss-Newton step alone.  Both end at the same optimum (within ``rel_tol``)."""
 
     def __post_init__(self):
         o = "BatchConfig"
@@ -445,6 +478,7 @@ class BatchConfig:
         check_bool(o, "global_constants", self.global_constants)
         check_bool(o, "footholds", self.footholds)
         check_type(o, "rule", self.rule, NoiseRule)
+        check_bool(o, "secant", self.secant)
 
 
 def run_batch(rec, model, config: BatchConfig = BatchConfig(), rest_p=None, rest_R=None,
@@ -465,18 +499,14 @@ def run_batch(rec, model, config: BatchConfig = BatchConfig(), rest_p=None, rest
         ConfigError: ``config`` is not a BatchConfig, an unknown option (the known ones listed), or
             a bad value.
     """
-    require_config(config, BatchConfig, "batch smoother")
-    if "rule" in options and options["rule"] is None:  # the older convention: None for the default
-        options = {**options, "rule": NoiseRule()}
-    config = with_options(config, options, "batch smoother")
+    config = configured(config, BatchConfig, options, "batch smoother")
     t0 = time.perf_counter()
-    if config.footholds:
-        model, rest_p, rest_R = with_footholds(rec, model, rest_p, rest_R)
-    prob = Problem.build(rec, model, config.rule, rest_p, rest_R)
+    prob = build_problem(rec, model, config, rest_p, rest_R)
     if progress is not None:
         progress(0.05)
     traj, P, info = optimize(prob, max_iterations=config.max_iterations, rel_tol=config.rel_tol, progress=progress,
-                             want_cov=config.covariance, global_constants=config.global_constants)
+                             want_cov=config.covariance, global_constants=config.global_constants,
+                             secant=config.secant)
     elapsed = time.perf_counter() - t0
     est = make_estimate(prob, "batch", traj, P, total_time=elapsed,
                         meta={"iterations": info["iterations"], "outer": info["outer"], "final_cost": info["cost"][-1],
@@ -515,7 +545,7 @@ def effective_dof(prob: Problem, P: np.ndarray, Pc: np.ndarray) -> dict[str, flo
         rw = walk_sigma(eff, prob)
         p00 = np.diagonal(P[0, sl, sl])
         prior_term = float(np.sum(p00 / s0**2))
-        constant = getattr(eff, "constant", None)
+        constant = traits(eff).constant
         if constant is None:
             constant = bool(np.all(rw * np.sqrt(max(n - 1, 1)) < 1e-3 * s0))
         if constant or n < 2:
@@ -523,7 +553,7 @@ def effective_dof(prob: Problem, P: np.ndarray, Pc: np.ndarray) -> dict[str, flo
         else:
             var_d = (np.diagonal(P[:-1, sl, sl], axis1=1, axis2=2) + np.diagonal(P[1:, sl, sl], axis1=1, axis2=2)
                      - 2.0 * np.diagonal(Pc[:, sl, sl], axis1=1, axis2=2))
-            level = getattr(eff, "step_prior_sigma", None)
+            level = traits(eff).step_prior_sigma
             level_term = 0.0
             if level is not None:
                 sl_ = np.broadcast_to(np.asarray(level(prob), dtype=float), (d,))
@@ -584,15 +614,16 @@ class FitStatistics:
 def fit(rec, model, progress: Callable[[float], None] | None = None, rule: NoiseRule | None = None,
         max_iterations: int = 200, global_constants: bool | None = None,
         start: tuple | None = None, evidence_tol: float = 0.0,
-        watch: Callable[[Problem, Trajectory], str | None] | None = None) -> tuple[Estimate, FitStatistics]:
+        watch: Callable[[Problem, Trajectory], str | None] | None = None,
+        secant: bool = True) -> tuple[Estimate, FitStatistics]:
     """Batch smoothing with ``model.effects`` for the diagnostics: ``(estimate, statistics)``.
 
     The estimate is :func:`run_batch`'s (``Estimate.effects[name]`` is each effect's report: value,
     std, unit, summary, ...); the :class:`FitStatistics` hold the data cost, the evidence, the
     number of residuals and each effect's effective dof.  ``start``: ``(effects, trajectory)`` of a
     fit of the same recording with fewer effects, to start from (:func:`carried_over`); None: the
-    first step's equilibrium.  ``evidence_tol`` and ``watch(problem, trajectory)``: :func:`optimize`'s
-    (a watch's reason is :attr:`FitStatistics.stopped`).
+    first step's equilibrium.  ``evidence_tol``, ``watch(problem, trajectory)`` and ``secant``:
+    :func:`optimize`'s (a watch's reason is :attr:`FitStatistics.stopped`).
     """
     t0 = time.perf_counter()
     prob = Problem.build(rec, model, rule or NoiseRule())
@@ -601,7 +632,7 @@ def fit(rec, model, progress: Callable[[float], None] | None = None, rule: Noise
     traj0 = carried_over(prob, start[0], start[1]) if start is not None else None
     traj, _, info = optimize(prob, traj0, max_iterations=max_iterations, progress=progress, want_cov=False,
                              global_constants=global_constants, evidence_tol=evidence_tol,
-                             watch=None if watch is None else (lambda tr: watch(prob, tr)))
+                             watch=None if watch is None else (lambda tr: watch(prob, tr)), secant=secant)
     cidx = _global_columns(prob, global_constants)
     final = info.get("final")
     lin = final[0] if final is not None else linearize(prob, traj)

@@ -35,17 +35,21 @@ see the residuals' density (:func:`plain_model_rows`).  The losses' normalisers 
 
 :func:`flexforce.smoother.batch.optimize` estimates ``theta`` by minimising this (type-II maximum
 likelihood, with ``theta``'s own prior), the states by MAP given it; the diagnostics score an
-effect by the gain in it (:mod:`flexforce.compare.diagnostics.diagnose`).
+effect by the gain in it (:mod:`flexforce.compare.diagnostics.run`).
 """
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
 
 from flexforce.errors import EstimatorError
 from flexforce.factors.core import njit
+from flexforce.factors.effects.base import traits
 from flexforce.smoother import solvers
 from flexforce.smoother.linearize import (
     Linearization,
@@ -335,10 +339,10 @@ def _varied_groups(prob) -> list[frozenset[str] | None]:
     effect that does not name them)."""
     out: list[frozenset[str] | None] = []
     for eff, d in zip(prob.effects, prob.effect_dims):
-        acts = getattr(eff, "acts_on", None)
+        acts = traits(eff).acts_on
         groups = None
         if acts is not None and set(acts) <= {"newton_euler", "contact", "imu", "ft"}:
-            groups = frozenset(acts) | ({"effects"} if getattr(eff, "factors", None) is not None else frozenset())
+            groups = frozenset(acts) | ({"effects"} if traits(eff).factors is not None else frozenset())
         out += [groups] * int(d)
     return out
 
@@ -353,8 +357,8 @@ def _jacobians_held(prob, base: Linearization, traj, eff, col: int, h: float) ->
     (log-tail, Huber) and every sample of those families keeps weight 1 with a whitened norm
     short of the threshold by more than the step moves it.  An accelerometer or gyro bias on the
     20 s iCub sway: 222 of the diagnosis's 370 columns, 444 linearisations of 740."""
-    acts = getattr(eff, "acts_on", None)
-    if not getattr(eff, "additive", False) or acts is None or not set(acts) <= {"imu", "ft"}:
+    acts = traits(eff).acts_on
+    if not traits(eff).additive or acts is None or not set(acts) <= {"imu", "ft"}:
         return False
     sig = prob.sigmas
     kind = sig.imu_robust
@@ -497,32 +501,70 @@ class SharedStates:
         return self.factor
 
 
-def shared_states(prob, base: Linearization, cidx: np.ndarray) -> SharedStates:
+class StatesCache:
+    """The latest :class:`SharedStates` formed by :func:`shared_states`, by the fingerprint of the
+    rows they come from (:func:`_states_fingerprint`): a screening tests every candidate at one base
+    fit, and a constant candidate at its null value adds no rows on the states (its prior is on
+    ``theta``), so the candidates of one base share them (the rows differ only by the candidates'
+    zero rows there).  One entry, the latest; its arrays are the size of a fit's covariances, so a
+    cache lives for one screening (:func:`states_cache`) and is cleared at its end."""
+
+    def __init__(self) -> None:
+        self._key: bytes | None = None
+        self._entry: SharedStates | None = None
+
+    def __len__(self) -> int:
+        return 0 if self._entry is None else 1
+
+    @property
+    def key(self) -> bytes | None:
+        """The fingerprint of the entry held, None when empty."""
+        return self._key
+
+    def get(self, prob, base: Linearization, cidx: np.ndarray) -> SharedStates:
+        """The states' part of ``base`` (a linearisation without the global walks, ``cidx`` its
+        global columns): the entry held when its fingerprint is the same, else formed and held."""
+        aidx = np.setdiff1d(np.arange(prob.state_dim), cidx)
+        key = _states_fingerprint(prob, base, aidx)
+        if self._entry is None or self._key != key:
+            aidx, s, Hs, Bs = _scaled_states(prob, base, cidx)
+            self._key, self._entry = key, SharedStates(aidx, s, Hs, Bs)
+        return self._entry
+
+    def clear(self) -> None:
+        """Free the entry."""
+        self._key = self._entry = None
+
+
+_ACTIVE_STATES: contextvars.ContextVar[StatesCache | None] = contextvars.ContextVar("flexforce_states_cache",
+                                                                                   default=None)
+"""The cache of the innermost :func:`states_cache` scope of this context (inherited by the processes
+forked inside it), None outside any."""
+
+
+@contextlib.contextmanager
+def states_cache() -> Iterator[StatesCache]:
+    """A scope whose :func:`shared_states` calls share one :class:`StatesCache` (the score tests of
+    one screening); the cache is cleared when the scope ends.  Outside any scope every call forms
+    the states' part anew."""
+    cache = StatesCache()
+    token = _ACTIVE_STATES.set(cache)
+    try:
+        yield cache
+    finally:
+        _ACTIVE_STATES.reset(token)
+        cache.clear()
+
+
+def shared_states(prob, base: Linearization, cidx: np.ndarray, cache: StatesCache | None = None) -> SharedStates:
     """The states' part of ``base`` (a linearisation without the global walks, ``cidx`` its
-    global columns), from :data:`_STATES_MEMO` when the latest one formed has the same fingerprint
-    (:func:`_states_fingerprint`); formed and kept there otherwise."""
-    aidx = np.setdiff1d(np.arange(prob.state_dim), cidx)
-    key = _states_fingerprint(prob, base, aidx)
-    entry = _STATES_MEMO.get(key)
-    if entry is None:
+    global columns), from ``cache`` or else the active :func:`states_cache` scope's
+    (:meth:`StatesCache.get`); formed anew outside any scope."""
+    cache = cache if cache is not None else _ACTIVE_STATES.get()
+    if cache is None:
         aidx, s, Hs, Bs = _scaled_states(prob, base, cidx)
-        entry = SharedStates(aidx, s, Hs, Bs)
-        _STATES_MEMO.clear()  # one entry: the latest states' (a screening's base)
-        _STATES_MEMO[key] = entry
-    return entry
-
-
-_STATES_MEMO: dict = {}
-"""The latest :class:`SharedStates` formed by :func:`shared_states`, by the fingerprint of the rows
-they come from: a screening tests every candidate at one base fit, and a constant candidate at its
-null value adds no rows on the states (its prior is on ``theta``), so the candidates of one base
-share them (formed once per process; the rows differ only by the candidates' zero rows there).
-Freed by :func:`forget_states`."""
-
-
-def forget_states() -> None:
-    """Free :data:`_STATES_MEMO` (after a screening: its arrays are the size of a fit's covariances)."""
-    _STATES_MEMO.clear()
+        return SharedStates(aidx, s, Hs, Bs)
+    return cache.get(prob, base, cidx)
 
 
 def _states_fingerprint(prob, lin: Linearization, aidx: np.ndarray) -> bytes:

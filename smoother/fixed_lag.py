@@ -56,12 +56,10 @@ from flexforce.options import (
     check_int,
     check_positive,
     check_type,
-    require_config,
-    with_options,
 )
 from flexforce.smoother import solvers, window_kernel
 from flexforce.smoother.linearize import Trajectory, assemble_split, linearize
-from flexforce.smoother.problem import NoiseRule, Problem, with_footholds
+from flexforce.smoother.problem import NoiseRule, Problem, build_problem, configured
 from flexforce.smoother.result import make_estimate
 
 if TYPE_CHECKING:
@@ -256,14 +254,9 @@ class FixedLagSmoother:
     """Own fixed-lag smoother over a window (module docstring): :meth:`step` once per sample, then
     :meth:`finish`.  Memory: ring buffers of ``lag + relinearize + report_every + block + 2`` steps."""
 
-    compiled = True
-    """Use the compiled update (:func:`flexforce.smoother.window_kernel.window_update`) where it
-    applies (no effects, past the stream's first ``relinearize`` steps) and the compiled read-out
-    marginals (:func:`~flexforce.smoother.window_kernel.window_covariances`); False: the general
-    linearisation and the marginals step by step (the reference they are tested against, equal)."""
-
     def __init__(self, prob: Problem, lag: float = 1.0, relinearize: int = 6, covariance: bool = True,
-                 report_every: int = 10, sink: Callable[..., None] | None = None, block: int = 1):
+                 report_every: int = 10, sink: Callable[..., None] | None = None, block: int = 1,
+                 compiled: bool = True):
         """``sink``: called as ``sink(j, R, q, W, e, P)`` for each step ``j`` as it leaves the
         window (``P`` None without covariances) instead of filling :attr:`traj` and :attr:`P`:
         a stream of unknown length (:mod:`flexforce.smoother.stream`), whose problem is replaced
@@ -272,11 +265,17 @@ class FixedLagSmoother:
         ``block``: samples per update (:attr:`FixedLagConfig.block`): :meth:`step` queues a sample
         and every ``block``-th runs one update that adds the queued samples together (each
         predicted from the one before), relinearising them with the ``relinearize`` steps
-        before them."""
+        before them.
+
+        ``compiled``: :attr:`FixedLagConfig.compiled` (the compiled update and read-out where they
+        apply; False: the general path they are tested against)."""
         check_positive("FixedLagSmoother", "lag", lag, "s", "a positive duration")
         check_int("FixedLagSmoother", "relinearize", relinearize, 1, "steps", "an integer >= 1")
         check_int("FixedLagSmoother", "report_every", report_every, 1, "updates", "an integer >= 1")
         check_int("FixedLagSmoother", "block", block, 1, "samples", "an integer >= 1")
+        check_bool("FixedLagSmoother", "compiled", compiled)
+        self.compiled = compiled
+        """:attr:`FixedLagConfig.compiled`."""
         self.prob = prob
         self.lag_steps = max(1, int(round(lag / prob.dt)))
         self.M = int(relinearize)
@@ -626,9 +625,10 @@ class FixedLagConfig:
     """``window`` (own incremental square-root smoother, effects supported) or ``gtsam`` (iSAM2's
     IncrementalFixedLagSmoother, the reference; no effects)."""
     relinearize: int = 6
-    """Window backend: steps relinearised per update, the newest included (count, >= 1).  6: a
-    touch-down is far from the linearisation point and needs several Gauss-Newton passes
-    (docs/smoother.md: three left the iCub walk's per-foot F_z error 50.1 N, six 37.0 N)."""
+    """Window backend: steps relinearised per update, the newest included (count, >= 1): each step
+    takes part in ``relinearize`` Gauss-Newton passes as it ages, then its linearisation point is
+    frozen.  Cost per update O(relinearize D^3), independent of the lag.  Why 6: a touch-down is
+    far from its linearisation point (docs/smoother.md, "Fixed-lag")."""
     report_every: int = 10
     """Window backend: updates between read-outs of the window (count, >= 1; capped at the lag in
     samples).  Output latency: ``lag`` plus up to ``report_every - 1`` samples."""
@@ -636,12 +636,11 @@ class FixedLagConfig:
     """Window backend: samples added per update (count, >= 1).  1: one update per sample.  B > 1:
     the samples wait until B have come, then one update adds them together (the first predicted
     from the previous estimate, the others starting at that prediction), relinearising them with
-    the ``relinearize`` steps before them (the per-update cost -- the linearisation's fixed
-    overhead above all -- is paid once per B samples).  The estimate changes: each step takes
-    part in about ``relinearize / B + 1`` Gauss-Newton passes instead of ``relinearize`` (the
-    iCub walk's per-foot F_z error against the F/T: 34.2 / 34.7 N with B = 1, 42.8 / 40.8 N with
-    B = 10); latency grows by up to ``B - 1`` samples.  ``Estimate.time_per_step``: each
-    update's time shared among its samples."""
+    the ``relinearize`` steps before them: the per-update cost is paid once per B samples.  The
+    estimate changes: each step takes part in about ``relinearize / B + 1`` Gauss-Newton passes
+    instead of ``relinearize`` (less accurate at touch-downs: docs/smoother.md, "Fixed-lag");
+    latency grows by up to ``B - 1`` samples.  ``Estimate.time_per_step``: each update's time
+    shared among its samples."""
     relinearize_threshold: float | None = None
     """Gtsam backend: iSAM2's relinearisation threshold on every variable's tangent delta (rad, m,
     m/s, N mixed; > 0).  None: the per-type thresholds of :data:`RELINEARIZE_THRESHOLD`."""
@@ -655,6 +654,12 @@ class FixedLagConfig:
     from the model's ``foothold_prior``); False: the rest placements are the given ones."""
     rule: NoiseRule = field(default_factory=NoiseRule)
     """The noise rule of the model-error families (:class:`~flexforce.smoother.problem.NoiseRule`)."""
+    compiled: bool = True
+    """Window backend: use the compiled update (:func:`flexforce.smoother.window_kernel.window_update`)
+    where it applies (no effects, past the stream's first ``relinearize`` steps) and the compiled
+    read-out marginals (:func:`~flexforce.smoother.window_kernel.window_covariances`); False: the
+    general linearisation and the marginals step by step.  Both give the same estimates and
+    covariances (``tests/test_window_update.py``); False is the reference path for tests."""
 
     def __post_init__(self):
         o = "FixedLagConfig"
@@ -669,6 +674,7 @@ class FixedLagConfig:
         check_bool(o, "covariance", self.covariance)
         check_bool(o, "footholds", self.footholds)
         check_type(o, "rule", self.rule, NoiseRule)
+        check_bool(o, "compiled", self.compiled)
 
 
 def run_fixed_lag(rec, model, config: FixedLagConfig = FixedLagConfig(), rest_p=None, rest_R=None,
@@ -693,20 +699,15 @@ def run_fixed_lag(rec, model, config: FixedLagConfig = FixedLagConfig(), rest_p=
         ConfigError: ``config`` is not a FixedLagConfig, an unknown option (the known ones listed),
             or a bad value.
     """
-    require_config(config, FixedLagConfig, "fixed-lag smoother")
-    if "rule" in options and options["rule"] is None:  # the older convention: None for the default
-        options = {**options, "rule": NoiseRule()}
-    config = with_options(config, options, "fixed-lag smoother")
+    config = configured(config, FixedLagConfig, options, "fixed-lag smoother")
     lag, backend, covariance = config.lag, config.backend, config.covariance
     t0 = time.perf_counter()
-    if config.footholds:
-        model, rest_p, rest_R = with_footholds(rec, model, rest_p, rest_R)
-    prob = Problem.build(rec, model, config.rule, rest_p, rest_R)
+    prob = build_problem(rec, model, config, rest_p, rest_R)
     prob.weight_cap = {}  # the sensors' robust weights only fall (FixedLagSmoother._lower_weight_caps)
     fls: FixedLagSmoother | GtsamFixedLagSmoother
     if backend == "window":
         fls = FixedLagSmoother(prob, lag, relinearize=config.relinearize, covariance=covariance,
-                               report_every=config.report_every, block=config.block)
+                               report_every=config.report_every, block=config.block, compiled=config.compiled)
     else:
         fls = GtsamFixedLagSmoother(prob, lag, config.relinearize_threshold, config.relinearize_skip, covariance)
     for k in range(prob.n):

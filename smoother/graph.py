@@ -34,6 +34,7 @@ import numpy as np
 
 from flexforce.errors import ConfigError
 from flexforce.factors import gtsam_factors as gf
+from flexforce.factors.effects.base import traits
 from flexforce.smoother.linearize import Trajectory, walk_sigma
 from flexforce.smoother.problem import NoiseRule, Problem, with_footholds
 
@@ -84,10 +85,10 @@ class GraphBuilder:
                 raise ConfigError(f"effect {eff.name!r} acts on the F/T readings, which the gtsam graph's F/T factors "
                                   "do not carry; expected the numpy backends (the default batch smoother, "
                                   "diagnose) for it")
-            level = getattr(eff, "step_prior_sigma", None)
+            level = traits(eff).step_prior_sigma
             self.effect_level.append(None if level is None else np.asarray(level(p), dtype=float))
             self.effect_walk.append(walk_sigma(eff, p))
-            own = getattr(eff, "factors", None)
+            own = traits(eff).factors
             found: dict[str, tuple[int, np.ndarray]] = {}
             if own is not None:
                 # Where the own factors exist (weight 1) depends on the step, not on the state:
@@ -307,9 +308,16 @@ def to_gtsam(rec, model, rule: NoiseRule | None = None, rest_p=None, rest_R=None
         the effects at their prior means) and ``keys`` (:class:`GtsamKeys`).  The graph's optimum is
         :func:`flexforce.smoother.run_batch`'s (with ``global_constants=False`` when a constant
         effect is enabled: the batch default estimates those by the marginal likelihood).
+
+    Raises:
+        ConfigError: ``model`` is not a ModelConfig (None included: the graph has no default model).
     """
+    from flexforce.factors.model import ModelConfig
     from flexforce.smoother.batch import initial_trajectory
 
+    if not isinstance(model, ModelConfig):
+        raise ConfigError(f"to_gtsam needs the recording's model, a ModelConfig (e.g. "
+                          f"ModelConfig.from_recording(rec)), got {'None' if model is None else type(model).__name__}")
     if footholds:
         model, rest_p, rest_R = with_footholds(rec, model, rest_p, rest_R)
     prob = Problem.build(rec, model, NoiseRule() if rule is None else rule, rest_p, rest_R)

@@ -14,12 +14,14 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from flexforce.datasets.faults import robust_weights
 from flexforce.errors import EstimatorError
 from flexforce.factors import core
+from flexforce.factors.effects.base import traits
 from flexforce.smoother import solvers
 
 S = core.STATE_DIM
@@ -132,20 +134,260 @@ effects' own factors (prior, level, random walk, ``factors``) and the integratio
 
 def _constant_rows(prob, key: tuple, where: tuple, make: Callable[[], tuple]) -> tuple:
     """What ``make()`` forms for the rows ``where`` (first step, steps, columns) of an effect's
-    prior level or random walk, whose Jacobians are the same at every linearisation: formed once
-    per problem and kept on it (the latest ``where`` per ``key``: a fixed-lag window moves on).
-    On the 20 s iCub sway these rows were a fifth of a linearisation (dense (N, dim, D) arrays
-    filled again each time); the arrays are shared between linearisations and never written."""
-    memo = getattr(prob, "_constant_rows", None)
-    if memo is None:
-        try:
-            memo = prob._constant_rows = {}
-        except AttributeError:  # a problem that cannot hold it: formed each time
-            return make()
-    hit = memo.get(key)
-    if hit is None or hit[0] != where:
-        hit = memo[key] = (where, make())
-    return hit[1]
+    prior level or random walk, whose Jacobians are the same at every linearisation: from the
+    problem's cache (:class:`~flexforce.smoother.problem.ConstantRows`, ``key`` = (effect index,
+    kind)); a problem without one (another :class:`ProblemView`) forms them each time.  Why: these
+    dense (N, dim, D) rows are a large part of a linearisation (docs/smoother.md, "Caches")."""
+    cache = getattr(prob, "constant_rows", None)
+    if cache is None:
+        return make()
+    return cache.get(key, where, make)
+
+
+@dataclass
+class _Point:
+    """What every family's rows of one :func:`linearize` call read: the steps ``k0 .. k0 + n - 1``
+    of ``prob`` (its rows ``sl``), the trajectory's arrays, the column layout, and the
+    accumulated robust-loss cost correction (``extra_cost``, added to in the families' order)."""
+
+    prob: Any
+    n: int
+    D: int
+    k0: int
+    base: int
+    sl: slice
+    R: np.ndarray
+    q: np.ndarray
+    W: np.ndarray
+    act: np.ndarray
+    steps: np.ndarray
+    w_cols: list
+    e_cols: list
+    e_parts: list
+    lin: Linearization
+    extra_cost: float = 0.0
+
+    def add_effects(self, family, r, J):
+        """Every effect's term of ``family`` added to ``r`` and ``J`` in place."""
+        for eff, cols, ev in zip(self.prob.effects, self.e_cols, self.e_parts):
+            terms = eff.residual_terms(family, self.prob, self.steps, self.R, self.q, self.W, ev)
+            if terms is None:
+                continue
+            dr, dr_ds, dr_de = terms
+            r += dr
+            J[:, :, :S] += dr_ds
+            J[:, :, cols] += dr_de
+
+    def effect_terms(self, family) -> list:
+        """``(columns, (dr, dr_ds, dr_de))`` of every effect with a term in ``family`` (per contact)."""
+        out = []
+        for eff, cols, ev in zip(self.prob.effects, self.e_cols, self.e_parts):
+            terms = eff.residual_terms(family, self.prob, self.steps, self.R, self.q, self.W, ev)
+            if terms is not None:
+                out.append((cols, terms))
+        return out
+
+
+def _point(prob, traj: Trajectory, k0: int) -> _Point:
+    n = traj.R.shape[0]
+    # A problem over a part of a stream holds the steps from ``prob.offset`` on (its row 0); the
+    # priors of the first step belong to step 0 of the stream only.
+    base = int(getattr(prob, "offset", 0))
+    sl = slice(k0 - base, k0 - base + n)
+    D = prob.state_dim
+    R = np.ascontiguousarray(traj.R)
+    q = np.ascontiguousarray(traj.q)
+    W = np.ascontiguousarray(traj.W)
+    act = prob.active[sl]
+    lin = Linearization()
+    steps = np.arange(k0 - base, k0 - base + n)
+    w_cols = [slice(S + 6 * i, S + 6 * i + 6) for i in range(prob.nc)]
+    e_cols, off = [], S + 6 * prob.nc
+    for d in prob.effect_dims:
+        e_cols.append(slice(off, off + d))
+        off += d
+    e_parts = []
+    off = 0
+    for d in prob.effect_dims:
+        e_parts.append(traj.e[:, off:off + d])
+        off += d
+    return _Point(prob, n, D, k0, base, sl, R, q, W, act, steps, w_cols, e_cols, e_parts, lin)
+
+
+def _newton_euler_rows(at: _Point, robust: bool) -> None:
+    """Newton-Euler (eq. 16, 23): required wrench minus the active contacts' wrenches."""
+    prob, n, sl, act, sig = at.prob, at.n, at.sl, at.act, at.prob.sigmas
+    Wsum = np.ascontiguousarray((at.W * act[:, :, None]).sum(axis=1))
+    r = np.empty((n, 6))
+    Js = np.empty((n, 6, S))
+    core.newton_euler_all(at.R, at.q, Wsum, float(prob.rec.mass), prob.com[sl], prob.com_vel[sl], prob.com_acc[sl],
+                          prob.inertia[sl], prob.inertia_dot[sl], prob.sigma_l[sl], prob.sigma_dot[sl], prob.g,
+                          r, Js)
+    J = np.zeros((n, 6, at.D))
+    J[:, :, :S] = Js
+    eye6 = np.eye(6)
+    for i in range(prob.nc):
+        J[:, :, at.w_cols[i]] = -eye6 * act[:, i, None, None]
+    at.add_effects("newton_euler", r, J)
+    r, J = _whiten_matrix(r, J, prob.ne_whitener)
+    if robust and sig.robust_k is not None:
+        w, rho = huber_weights(r, sig.robust_k)
+        sw = np.sqrt(w)
+        at.extra_cost += float(np.sum(rho)) - 0.5 * float(np.sum(w * np.sum(r * r, axis=1)))
+        r, J = r * sw[:, None], J * sw[:, None, None]
+        at.lin.ne_weights = w
+    at.lin.unary["newton_euler"] = (r, J)
+
+
+def _contact_rows(at: _Point) -> None:
+    """Contact law (eq. 6-12), one factor per contact; an inactive contact's wrench is held at zero."""
+    prob, n, sl, act, sig, D = at.prob, at.n, at.sl, at.act, at.prob.sigmas, at.D
+    nc = prob.nc
+    rc = np.empty((n, nc, 6))
+    Jc = np.empty((n, nc, 6, S))
+    core.contact_all(at.R, at.q, at.W, act, prob.contact_p[sl], prob.contact_R[sl], prob.rest_p[sl], prob.rest_R[sl],
+                     prob.K_fs, prob.K_fd, prob.K_ts, prob.K_td, prob.beta, prob.iso, rc, Jc, _NO_REST_JAC)
+    # Effects acting on the contact law (stiffness scales, anisotropy, cubic terms): their term,
+    # per contact, is added where the contact is active (an inactive one's wrench stays at zero).
+    c_terms = at.effect_terms("contact")
+    Lc = prob.contact_whitener
+    Li = np.diag(1.0 / (np.sqrt(np.diag(sig.contact_cov)) * sig.inactive_factor))
+    eye6 = np.eye(6)
+    for i in range(nc):
+        J = np.zeros((n, 6, D))
+        J[:, :, :S] = Jc[:, i]
+        J[:, :, at.w_cols[i]] = -eye6
+        if c_terms:
+            on = act[:, i, None]
+            for cols, (dr, dr_ds, dr_de) in c_terms:
+                rc[:, i] += np.where(on, dr[:, i], 0.0)
+                J[:, :, :S] += np.where(on[:, :, None], dr_ds[:, i], 0.0)
+                J[:, :, cols] += np.where(on[:, :, None], dr_de[:, i], 0.0)
+        Lk = np.where(act[:, i, None, None], Lc, Li)
+        at.lin.unary[f"contact/{i}"] = ((Lk @ rc[:, i, :, None])[:, :, 0], Lk @ J)
+
+
+def _imu_rows(at: _Point, robust: bool) -> None:
+    """IMU (eq. 26-28); missing or saturated axes have zero rows."""
+    prob, n, sl, sig = at.prob, at.n, at.sl, at.prob.sigmas
+    r = np.empty((n, 6))
+    Js = np.empty((n, 6, S))
+    core.imu_all(at.R, at.q, prob.y_imu[sl], prob.imu_R[sl], prob.imu_p[sl], prob.imu_v[sl], prob.imu_a[sl],
+                 prob.imu_w[sl], prob.g, r, Js)
+    J = np.zeros((n, 6, at.D))
+    J[:, :, :S] = Js
+    at.add_effects("imu", r, J)
+    r, J = _whiten_rows(r, J, sig.imu)
+    use = prob.imu_use[sl]  # missing or saturated axes: zero weight
+    r, J = r * use, J * use[:, :, None]
+    if robust and sig.imu_robust is not None:
+        cap = prob.weight_cap.get("imu") if prob.weight_cap is not None else None
+        r, J, c, w = sensor_reweight(r, J, ((0, 3), (3, 6)), sig.imu_robust, sig.imu_robust_k,
+                                     None if cap is None else cap[sl])
+        at.extra_cost += c
+        at.lin.weights["imu"] = w
+    at.lin.unary["imu"] = (r, J)
+
+
+def _ft_rows(at: _Point, robust: bool) -> None:
+    """F/T readings, one factor per contact; NaN readings give zero rows (core.ft)."""
+    prob, n, sl, act, sig, D = at.prob, at.n, at.sl, at.act, at.prob.sigmas, at.D
+    nc = prob.nc
+    rf = np.empty((n, nc, 6))
+    Jf = np.empty((n, nc, 6, S))
+    JW = np.empty((n, nc, 6, 6))
+    core.ft_all(at.R, at.q, at.W, act, prob.contact_p[sl], prob.contact_R[sl], prob.y_ft[sl], rf, Jf, JW)
+    # Effects on the readings (sensor offsets): their term, per contact, where the reading is
+    # fused (contact active, component finite); elsewhere the rows stay zero like the reading's.
+    f_terms = at.effect_terms("ft")
+    for i in range(nc):
+        J = np.zeros((n, 6, D))
+        J[:, :, :S] = Jf[:, i]
+        J[:, :, at.w_cols[i]] = JW[:, i]
+        r = rf[:, i].copy()
+        if f_terms:
+            on = act[:, i, None] & np.isfinite(prob.y_ft[sl][:, i])
+            for cols, (dr, dr_ds, dr_de) in f_terms:
+                r += np.where(on, dr[:, i], 0.0)
+                J[:, :, :S] += np.where(on[:, :, None], dr_ds[:, i], 0.0)
+                J[:, :, cols] += np.where(on[:, :, None], dr_de[:, i], 0.0)
+        r, J = _whiten_rows(r, J, sig.ft)  # NaN readings: zero rows (core.ft)
+        if robust and sig.imu_robust is not None:
+            cap = prob.weight_cap.get(f"ft/{i}") if prob.weight_cap is not None else None
+            r, J, c, w = sensor_reweight(r, J, ((0, 3), (3, 6)), sig.imu_robust, sig.imu_robust_k,
+                                         None if cap is None else cap[sl])
+            at.extra_cost += c
+            at.lin.weights[f"ft/{i}"] = w
+        at.lin.unary[f"ft/{i}"] = (r, J)
+
+
+def _prior_rows(at: _Point) -> None:
+    """Prior on the first step (core state), around the static equilibrium."""
+    R, q = at.R, at.q
+    R0, q0 = at.prob.prior_mean
+    phi = core.so3_log(R[0] @ R0.T)
+    r = np.concatenate([phi, q[0] - q0])[None, :]
+    J = np.zeros((1, S, at.D))
+    J[0, :3, :3] = core.so3_jl_inv(phi)
+    J[0, 3:S, 3:S] = np.eye(S - 3)
+    at.lin.unary["prior"] = _whiten_rows(r, J, at.prob.sigmas.prior)
+
+
+def _effect_rows(at: _Point) -> None:
+    """Effects' own factors: prior on the first step, per-step level, their own factors, random
+    walk between steps."""
+    prob, n, D, k0, base, lin = at.prob, at.n, at.D, at.k0, at.base, at.lin
+    for ie, (eff, cols, ev) in enumerate(zip(prob.effects, at.e_cols, at.e_parts)):
+        if k0 == 0:
+            mean, sigma = eff.prior(prob)
+            J = np.zeros((1, eff.dim, D))
+            J[0, :, cols] = np.eye(eff.dim)
+            lin.unary[f"effect_prior/{eff.name}"] = _whiten_rows((ev[0] - mean)[None, :], J, np.asarray(sigma))
+        level = traits(eff).step_prior_sigma
+        if level is not None:
+            def level_rows(eff=eff, cols=cols, level=level):
+                mean, _ = eff.prior(prob)
+                sl_ = np.asarray(level(prob), dtype=float)
+                J = np.zeros((n, eff.dim, D))
+                J[:, :, cols] = np.eye(eff.dim)
+                return mean, sl_, _whiten_rows(np.zeros((n, eff.dim)), J, sl_)[1]
+
+            mean, sl_, Jl = _constant_rows(prob, (ie, "level"), (k0 - base, n, D), level_rows)
+            lin.unary[f"effect_level/{eff.name}"] = ((ev - mean) * (1.0 / sl_), Jl)
+        own = traits(eff).factors
+        if own is not None:
+            for key, (r, dr_ds, dr_de, weight) in own(prob, at.steps, at.R, at.q, ev).items():
+                w = np.asarray(weight, dtype=float)[:, None]
+                J = np.zeros((n, r.shape[1], D))
+                J[:, :, :S] = dr_ds
+                J[:, :, cols] = dr_de
+                lin.unary[f"effect_factor/{eff.name}/{key}"] = (r * w, J * w[:, :, None])
+        if n > 1:
+            def walk_rows(eff=eff, cols=cols):
+                rw = walk_sigma(eff, prob)[k0 - base:k0 - base + n - 1]
+                J0 = np.zeros((n - 1, eff.dim, D))
+                J1 = np.zeros((n - 1, eff.dim, D))
+                J0[:, :, cols] = -np.eye(eff.dim)
+                J1[:, :, cols] = np.eye(eff.dim)
+                return rw, J0 / rw[:, :, None], J1 / rw[:, :, None]
+
+            rw, J0, J1 = _constant_rows(prob, (ie, "walk"), (k0 - base, n, D), walk_rows)
+            lin.binary[f"effect_walk/{eff.name}"] = ((ev[1:] - ev[:-1]) / rw, J0, J1)
+
+
+def _integration_rows(at: _Point) -> None:
+    """Integration between successive steps, whitened by the Brownian-bridge covariance."""
+    n, D = at.n, at.D
+    r = np.empty((n - 1, 12))
+    J0s = np.empty((n - 1, 12, S))
+    J1s = np.empty((n - 1, 12, S))
+    core.integration_all(at.R, at.q, at.prob.dt, r, J0s, J1s)
+    Linv = at.prob.integration_whitener
+    J0 = np.zeros((n - 1, 12, D))
+    J1 = np.zeros((n - 1, 12, D))
+    np.matmul(Linv, J0s, out=J0[:, :, :S])  # into the columns, without a temporary
+    np.matmul(Linv, J1s, out=J1[:, :, :S])
+    at.lin.binary["integration"] = (r @ Linv.T, J0, J1)
 
 
 def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True,
@@ -169,214 +411,28 @@ def linearize(prob, traj: Trajectory, k0: int = 0, robust: bool = True,
     def want(group: str) -> bool:
         return families is None or group in families
 
-    nc = prob.nc
-    n = traj.R.shape[0]
-    # A problem over a part of a stream holds the steps from ``prob.offset`` on (its row 0); the
-    # priors of the first step belong to step 0 of the stream only.
-    base = int(getattr(prob, "offset", 0))
-    sl = slice(k0 - base, k0 - base + n)
-    D = prob.state_dim
-    sig = prob.sigmas
-    R = np.ascontiguousarray(traj.R)
-    q = np.ascontiguousarray(traj.q)
-    W = np.ascontiguousarray(traj.W)
-    act = prob.active[sl]
-    lin = Linearization()
-    steps = np.arange(k0 - base, k0 - base + n)
-    extra_cost = 0.0
-    eye6 = np.eye(6)
-    w_cols = [slice(S + 6 * i, S + 6 * i + 6) for i in range(nc)]
-    e_cols, off = [], S + 6 * nc
-    for d in prob.effect_dims:
-        e_cols.append(slice(off, off + d))
-        off += d
-    e_parts = []
-    off = 0
-    for d in prob.effect_dims:
-        e_parts.append(traj.e[:, off:off + d])
-        off += d
-
-    def add_effects(family, r, J):
-        for eff, cols, ev in zip(prob.effects, e_cols, e_parts):
-            terms = eff.residual_terms(family, prob, steps, R, q, W, ev)
-            if terms is None:
-                continue
-            dr, dr_ds, dr_de = terms
-            r += dr
-            J[:, :, :S] += dr_ds
-            J[:, :, cols] += dr_de
-
+    at = _point(prob, traj, k0)
     if want("newton_euler"):
-        # Newton-Euler (eq. 16, 23): required wrench minus the active contacts' wrenches.
-        Wsum = np.ascontiguousarray((W * act[:, :, None]).sum(axis=1))
-        r = np.empty((n, 6))
-        Js = np.empty((n, 6, S))
-        core.newton_euler_all(R, q, Wsum, float(prob.rec.mass), prob.com[sl], prob.com_vel[sl], prob.com_acc[sl],
-                                 prob.inertia[sl], prob.inertia_dot[sl], prob.sigma_l[sl], prob.sigma_dot[sl], prob.g,
-                                 r, Js)
-        J = np.zeros((n, 6, D))
-        J[:, :, :S] = Js
-        for i in range(nc):
-            J[:, :, w_cols[i]] = -eye6 * act[:, i, None, None]
-        add_effects("newton_euler", r, J)
-        r, J = _whiten_matrix(r, J, prob.ne_whitener)
-        if robust and sig.robust_k is not None:
-            w, rho = huber_weights(r, sig.robust_k)
-            sw = np.sqrt(w)
-            extra_cost += float(np.sum(rho)) - 0.5 * float(np.sum(w * np.sum(r * r, axis=1)))
-            r, J = r * sw[:, None], J * sw[:, None, None]
-            lin.ne_weights = w
-        lin.unary["newton_euler"] = (r, J)
-
+        _newton_euler_rows(at, robust)
     if want("contact"):
-        # Contact law (eq. 6-12), one factor per contact; an inactive contact's wrench is held at zero.
-        rc = np.empty((n, nc, 6))
-        Jc = np.empty((n, nc, 6, S))
-        core.contact_all(R, q, W, act, prob.contact_p[sl], prob.contact_R[sl], prob.rest_p[sl], prob.rest_R[sl],
-                         prob.K_fs, prob.K_fd, prob.K_ts, prob.K_td, prob.beta, prob.iso, rc, Jc, _NO_REST_JAC)
-        # Effects acting on the contact law (stiffness scales, anisotropy, cubic terms): their term,
-        # per contact, is added where the contact is active (an inactive one's wrench stays at zero).
-        c_terms = []
-        for eff, cols, ev in zip(prob.effects, e_cols, e_parts):
-            terms = eff.residual_terms("contact", prob, steps, R, q, W, ev)
-            if terms is not None:
-                c_terms.append((cols, terms))
-        Lc = prob.contact_whitener
-        Li = np.diag(1.0 / (np.sqrt(np.diag(sig.contact_cov)) * sig.inactive_factor))
-        for i in range(nc):
-            J = np.zeros((n, 6, D))
-            J[:, :, :S] = Jc[:, i]
-            J[:, :, w_cols[i]] = -eye6
-            if c_terms:
-                on = act[:, i, None]
-                for cols, (dr, dr_ds, dr_de) in c_terms:
-                    rc[:, i] += np.where(on, dr[:, i], 0.0)
-                    J[:, :, :S] += np.where(on[:, :, None], dr_ds[:, i], 0.0)
-                    J[:, :, cols] += np.where(on[:, :, None], dr_de[:, i], 0.0)
-            Lk = np.where(act[:, i, None, None], Lc, Li)
-            lin.unary[f"contact/{i}"] = ((Lk @ rc[:, i, :, None])[:, :, 0], Lk @ J)
-
+        _contact_rows(at)
     if want("imu"):
-        # IMU (eq. 26-28).
-        r = np.empty((n, 6))
-        Js = np.empty((n, 6, S))
-        core.imu_all(R, q, prob.y_imu[sl], prob.imu_R[sl], prob.imu_p[sl], prob.imu_v[sl], prob.imu_a[sl],
-                        prob.imu_w[sl], prob.g, r, Js)
-        J = np.zeros((n, 6, D))
-        J[:, :, :S] = Js
-        add_effects("imu", r, J)
-        r, J = _whiten_rows(r, J, sig.imu)
-        use = prob.imu_use[sl]  # missing or saturated axes: zero weight
-        r, J = r * use, J * use[:, :, None]
-        if robust and sig.imu_robust is not None:
-            cap = prob.weight_cap.get("imu") if prob.weight_cap is not None else None
-            r, J, c, w = sensor_reweight(r, J, ((0, 3), (3, 6)), sig.imu_robust, sig.imu_robust_k,
-                                         None if cap is None else cap[sl])
-            extra_cost += c
-            lin.weights["imu"] = w
-        lin.unary["imu"] = (r, J)
-
-    # F/T readings (optional).
+        _imu_rows(at, robust)
     if prob.use_ft and want("ft"):
-        rf = np.empty((n, nc, 6))
-        Jf = np.empty((n, nc, 6, S))
-        JW = np.empty((n, nc, 6, 6))
-        core.ft_all(R, q, W, act, prob.contact_p[sl], prob.contact_R[sl], prob.y_ft[sl], rf, Jf, JW)
-        # Effects on the readings (sensor offsets): their term, per contact, where the reading is
-        # fused (contact active, component finite); elsewhere the rows stay zero like the reading's.
-        f_terms = []
-        for eff, cols, ev in zip(prob.effects, e_cols, e_parts):
-            terms = eff.residual_terms("ft", prob, steps, R, q, W, ev)
-            if terms is not None:
-                f_terms.append((cols, terms))
-        for i in range(nc):
-            J = np.zeros((n, 6, D))
-            J[:, :, :S] = Jf[:, i]
-            J[:, :, w_cols[i]] = JW[:, i]
-            r = rf[:, i].copy()
-            if f_terms:
-                on = act[:, i, None] & np.isfinite(prob.y_ft[sl][:, i])
-                for cols, (dr, dr_ds, dr_de) in f_terms:
-                    r += np.where(on, dr[:, i], 0.0)
-                    J[:, :, :S] += np.where(on[:, :, None], dr_ds[:, i], 0.0)
-                    J[:, :, cols] += np.where(on[:, :, None], dr_de[:, i], 0.0)
-            r, J = _whiten_rows(r, J, sig.ft)  # NaN readings: zero rows (core.ft)
-            if robust and sig.imu_robust is not None:
-                cap = prob.weight_cap.get(f"ft/{i}") if prob.weight_cap is not None else None
-                r, J, c, w = sensor_reweight(r, J, ((0, 3), (3, 6)), sig.imu_robust, sig.imu_robust_k,
-                                             None if cap is None else cap[sl])
-                extra_cost += c
-                lin.weights[f"ft/{i}"] = w
-            lin.unary[f"ft/{i}"] = (r, J)
-
-    # Prior on the first step (core state), around the static equilibrium.
+        _ft_rows(at, robust)
     if k0 == 0 and want("prior"):
-        R0, q0 = prob.prior_mean
-        phi = core.so3_log(R[0] @ R0.T)
-        r = np.concatenate([phi, q[0] - q0])[None, :]
-        J = np.zeros((1, S, D))
-        J[0, :3, :3] = core.so3_jl_inv(phi)
-        J[0, 3:S, 3:S] = np.eye(S - 3)
-        lin.unary["prior"] = _whiten_rows(r, J, sig.prior)
-
+        _prior_rows(at)
     if want("effects"):
-        # Effects' own factors: prior on the first step, random walk between steps.
-        for eff, cols, ev in zip(prob.effects, e_cols, e_parts):
-            if k0 == 0:
-                mean, sigma = eff.prior(prob)
-                J = np.zeros((1, eff.dim, D))
-                J[0, :, cols] = np.eye(eff.dim)
-                lin.unary[f"effect_prior/{eff.name}"] = _whiten_rows((ev[0] - mean)[None, :], J, np.asarray(sigma))
-            level = getattr(eff, "step_prior_sigma", None)
-            if level is not None:
-                def level_rows(eff=eff, cols=cols, level=level):
-                    mean, _ = eff.prior(prob)
-                    sl_ = np.asarray(level(prob), dtype=float)
-                    J = np.zeros((n, eff.dim, D))
-                    J[:, :, cols] = np.eye(eff.dim)
-                    return mean, sl_, _whiten_rows(np.zeros((n, eff.dim)), J, sl_)[1]
-
-                mean, sl_, Jl = _constant_rows(prob, (id(eff), "level"), (k0 - base, n, D), level_rows)
-                lin.unary[f"effect_level/{eff.name}"] = ((ev - mean) * (1.0 / sl_), Jl)
-            own = getattr(eff, "factors", None)
-            if own is not None:
-                for key, (r, dr_ds, dr_de, weight) in own(prob, steps, R, q, ev).items():
-                    w = np.asarray(weight, dtype=float)[:, None]
-                    J = np.zeros((n, r.shape[1], D))
-                    J[:, :, :S] = dr_ds
-                    J[:, :, cols] = dr_de
-                    lin.unary[f"effect_factor/{eff.name}/{key}"] = (r * w, J * w[:, :, None])
-            if n > 1:
-                def walk_rows(eff=eff, cols=cols):
-                    rw = walk_sigma(eff, prob)[k0 - base:k0 - base + n - 1]
-                    J0 = np.zeros((n - 1, eff.dim, D))
-                    J1 = np.zeros((n - 1, eff.dim, D))
-                    J0[:, :, cols] = -np.eye(eff.dim)
-                    J1[:, :, cols] = np.eye(eff.dim)
-                    return rw, J0 / rw[:, :, None], J1 / rw[:, :, None]
-
-                rw, J0, J1 = _constant_rows(prob, (id(eff), "walk"), (k0 - base, n, D), walk_rows)
-                lin.binary[f"effect_walk/{eff.name}"] = ((ev[1:] - ev[:-1]) / rw, J0, J1)
-
-    # Integration between successive steps, whitened by the Brownian-bridge covariance.
-    if n > 1 and want("integration"):
-        r = np.empty((n - 1, 12))
-        J0s = np.empty((n - 1, 12, S))
-        J1s = np.empty((n - 1, 12, S))
-        core.integration_all(R, q, prob.dt, r, J0s, J1s)
-        Linv = prob.integration_whitener
-        J0 = np.zeros((n - 1, 12, D))
-        J1 = np.zeros((n - 1, 12, D))
-        np.matmul(Linv, J0s, out=J0[:, :, :S])  # into the columns (no temporary: 4 ms against 5.5)
-        np.matmul(Linv, J1s, out=J1[:, :, :S])
-        lin.binary["integration"] = (r @ Linv.T, J0, J1)
-
+        _effect_rows(at)
+    if at.n > 1 and want("integration"):
+        _integration_rows(at)
+    lin = at.lin
     total = 0.0
     for r, _ in lin.unary.values():
         total += float(np.sum(r * r))
     for r, _, _ in lin.binary.values():
         total += float(np.sum(r * r))
-    lin.cost = 0.5 * total + extra_cost if families is None else math.nan
+    lin.cost = 0.5 * total + at.extra_cost if families is None else math.nan
     return lin
 
 
@@ -674,9 +730,9 @@ def is_global(eff, prob=None) -> bool:
     matter over the recording (``rw sqrt(N - 1) < 1e-3`` of the prior sigma, as
     :func:`flexforce.smoother.batch.effective_dof` decides), so that a user's effect written
     without the attribute is treated like the built-in constants."""
-    if getattr(eff, "step_prior_sigma", None) is not None:
+    if traits(eff).step_prior_sigma is not None:
         return False
-    constant = getattr(eff, "constant", None)
+    constant = traits(eff).constant
     if constant is not None:
         return constant is True
     if prob is None:

@@ -50,12 +50,12 @@ from flexforce.factors.effects import Effect, ProblemView
 from flexforce.factors.footholds import Footholds, held_rest, rest_placements
 from flexforce.factors.model import unmodelled_acceleration
 from flexforce.factors.physics import ContactParams
-from flexforce.options import check_positive, invalid
+from flexforce.options import check_positive, invalid, require_config, with_options
 
 if TYPE_CHECKING:
     from flexforce.datasets.recording import Recording
 
-__all__ = ["FAMILIES", "Effect", "NoiseRule", "Problem", "ProblemView", "Sigmas", "derive_sigmas",
+__all__ = ["FAMILIES", "ConstantRows", "Effect", "NoiseRule", "Problem", "ProblemView", "Sigmas", "derive_sigmas",
            "static_equilibrium", "whitener", "with_footholds"]
 
 FAMILIES = ("integration", "newton_euler", "contact", "imu", "ft")
@@ -328,6 +328,51 @@ def with_footholds(rec, model, rest_p=None, rest_R=None):
     return model, rest_p, rest_R
 
 
+def configured(config, config_type: type, options: dict, what: str):
+    """``config`` (a ``config_type``) with ``options`` (some of its fields, the older keyword
+    calling convention; ``rule=None`` is the default rule) replacing its fields.
+
+    Raises:
+        ConfigError: ``config`` is not a ``config_type``, an unknown option (the known ones
+            listed), or a bad value; ``what`` names the estimator in the message.
+    """
+    require_config(config, config_type, what)
+    if "rule" in options and options["rule"] is None:  # the older convention: None for the default
+        options = {**options, "rule": NoiseRule()}
+    return with_options(config, options, what)
+
+
+def build_problem(rec, model, config, rest_p=None, rest_R=None) -> Problem:
+    """:meth:`Problem.build` with a smoother config's ``rule``, and the footholds as unknowns when
+    its ``footholds`` is set (:func:`with_footholds`)."""
+    if config.footholds:
+        model, rest_p, rest_R = with_footholds(rec, model, rest_p, rest_R)
+    return Problem.build(rec, model, config.rule, rest_p, rest_R)
+
+
+class ConstantRows:
+    """Cache of the rows of the effects' prior levels and random walks whose Jacobians do not
+    depend on the linearisation point (:func:`flexforce.smoother.linearize.linearize`).
+
+    Scope: one :class:`Problem` (its :attr:`Problem.constant_rows`, created with it), so one set
+    of effects, noise and column layout.  Key: ``(index of the effect in Problem.effects, kind)``;
+    each key holds the rows of the latest ``where`` (first step, steps, columns) only: a
+    fixed-lag window moves on.  The cached arrays are shared between linearisations and never
+    written.
+    """
+
+    def __init__(self) -> None:
+        self._rows: dict[tuple, tuple[tuple, tuple]] = {}
+
+    def get(self, key: tuple, where: tuple, make) -> tuple:
+        """``make()``'s rows for ``key`` at ``where``: formed on the first call or when ``where``
+        changed, else the kept ones."""
+        hit = self._rows.get(key)
+        if hit is None or hit[0] != where:
+            hit = self._rows[key] = (where, make())
+        return hit[1]
+
+
 def _contact_arrays(params: tuple[ContactParams, ...]):
     K = [np.ascontiguousarray(np.array([getattr(p, name) for p in params], dtype=float))
          for name in ("K_fs", "K_fd", "K_ts", "K_td")]
@@ -395,6 +440,8 @@ class Problem:
     integration_whitener: np.ndarray = field(init=False, repr=False, compare=False)
     ne_whitener: np.ndarray = field(init=False, repr=False, compare=False)
     contact_whitener: np.ndarray = field(init=False, repr=False, compare=False)
+    constant_rows: ConstantRows = field(default_factory=ConstantRows, init=False, repr=False, compare=False)
+    """The cache of the effects' constant rows (:class:`ConstantRows`), this problem's own."""
 
     @classmethod
     def build(cls, rec, model, rule: NoiseRule = NoiseRule(), rest_p=None, rest_R=None, *,

@@ -42,6 +42,7 @@ import numpy as np
 from scipy import stats
 
 from flexforce.errors import EstimatorError
+from flexforce.factors.effects.base import traits
 from flexforce.smoother import evidence, solvers
 from flexforce.smoother.linearize import (
     Linearization,
@@ -543,12 +544,12 @@ def _constant_here(eff, prob) -> bool:
     """A per-step effect constant on this recording (its ``constant_on(prob)``: the footholds of a
     recording without a touch-down, one episode per contact), compared as a constant: window by
     window it would be a window's worth of itself."""
-    check = getattr(eff, "constant_on", None)
+    check = traits(eff).constant_on
     return bool(check(prob)) if callable(check) else False
 
 
 def _pair_hint(ea, eb) -> str:
-    parts = [f"{e.name}: {h}" for e in (ea, eb) if (h := str(getattr(e, "hint", "") or ""))]
+    parts = [f"{e.name}: {h}" for e in (ea, eb) if (h := str(traits(e).hint or ""))]
     return "; ".join(parts)
 
 
@@ -558,7 +559,7 @@ def _label(eff, i: int) -> str:
 
 
 def _excites(eff, i: int) -> str:
-    ex = tuple(getattr(eff, "excites", ()) or ())
+    ex = tuple(traits(eff).excites or ())
     return str(ex[i]) if i < len(ex) else ""
 
 
@@ -579,6 +580,44 @@ def _inv_sqrt(A):
     w, V = np.linalg.eigh(0.5 * (A + A.T))
     w = np.maximum(w, 1e-12 * max(float(w.max()), 1e-300))
     return (V / np.sqrt(w)) @ V.T
+
+
+def _candidate_columns(prob: Problem, effects, first: int, gcols: list[int]):
+    """The candidates' columns after the base model's (from ``first`` on): ``(const, windowed,
+    ccols, wcols)``.  ``ccols``: the base constants ``gcols``, then the constant candidates';
+    ``wcols``: the per-step candidates' (each taken constant on a window, every window on its
+    own).  ``const``: per constant candidate ``(effect, its index range in the constant border
+    after the base constants, prior sigma)``; ``windowed``: per per-step candidate ``(effect, its
+    index range in a window's columns, prior sigma, step sigma or None)``."""
+    m0 = len(gcols)
+    const: list = []
+    windowed: list = []
+    ccols: list[int] = list(gcols)
+    wcols: list[int] = []
+    col = first
+    for eff in effects:
+        dim = int(eff.dim)
+        _, s0 = eff.prior(prob)
+        s0 = np.broadcast_to(np.asarray(s0, dtype=float), (dim,))
+        if is_global(eff, prob) or _constant_here(eff, prob):
+            const.append((eff, np.arange(len(ccols) - m0, len(ccols) - m0 + dim), s0))
+            ccols.extend(range(col, col + dim))
+        else:
+            step = traits(eff).step_prior_sigma
+            ss = np.broadcast_to(np.asarray(step(prob), dtype=float), (dim,)) if step is not None else None
+            windowed.append((eff, np.arange(len(wcols), len(wcols) + dim), s0, ss))
+            wcols.extend(range(col, col + dim))
+        col += dim
+    return const, windowed, ccols, wcols
+
+
+def _without_base(S, m0: int):
+    """The information on the candidates, the first ``m0`` (the base model's constants) eliminated."""
+    if not m0:
+        return 0.5 * (S + S.T)
+    X = np.linalg.pinv(S[:m0, :m0], rcond=1e-12, hermitian=True) @ S[:m0, m0:]
+    J = S[m0:, m0:] - S[m0:, :m0] @ X
+    return 0.5 * (J + J.T)
 
 
 def identifiability(prob_base: Problem, traj: Trajectory, effects, rule: NoiseRule | None = None,
@@ -629,42 +668,15 @@ def identifiability(prob_base: Problem, traj: Trajectory, effects, rule: NoiseRu
     if len(starts) > 1 and n - starts[-1] < w // 2:
         starts.pop()
     bounds = [(s, starts[i + 1] if i + 1 < len(starts) else n) for i, s in enumerate(starts)]
-    # columns: base constants, the constant candidates, then the per-step candidates (each taken
-    # constant on a window, every window on its own)
-    const: list = []  # (effect, index range in the constant border, prior sigma)
-    windowed: list = []  # (effect, index range in a window's columns, prior sigma, step sigma or None)
-    ccols: list[int] = list(gcols)
-    wcols: list[int] = []
-    col = first
-    for eff in effects:
-        dim = int(eff.dim)
-        _, s0 = eff.prior(prob)
-        s0 = np.broadcast_to(np.asarray(s0, dtype=float), (dim,))
-        if is_global(eff, prob) or _constant_here(eff, prob):
-            const.append((eff, np.arange(len(ccols) - m0, len(ccols) - m0 + dim), s0))
-            ccols.extend(range(col, col + dim))
-        else:
-            step = getattr(eff, "step_prior_sigma", None)
-            ss = np.broadcast_to(np.asarray(step(prob), dtype=float), (dim,)) if step is not None else None
-            windowed.append((eff, np.arange(len(wcols), len(wcols) + dim), s0, ss))
-            wcols.extend(range(col, col + dim))
-        col += dim
+    const, windowed, ccols, wcols = _candidate_columns(prob, effects, first, gcols)
     cidx = np.asarray(ccols + wcols, dtype=int)
     aidx = np.setdiff1d(np.arange(D), cidx)
     ws = _windowed_schur(Hd, B, g, aidx, ccols, wcols, bounds if wcols else [])
 
-    def without_base(S):
-        """The information on the candidates, the base model's constants eliminated."""
-        if not m0:
-            return 0.5 * (S + S.T)
-        X = np.linalg.pinv(S[:m0, :m0], rcond=1e-12, hermitian=True) @ S[:m0, m0:]
-        J = S[m0:, m0:] - S[m0:, :m0] @ X
-        return 0.5 * (J + J.T)
-
-    Jc = without_base(ws.Scc)
+    Jc = _without_base(ws.Scc, m0)
     nc_ = Jc.shape[0]
     lam_c = np.concatenate([1.0 / s0**2 for _, _, s0 in const]) if const else np.zeros(0)
-    Jw = [without_base(ws.joint(j)[1]) for j in range(len(ws.gw))]
+    Jw = [_without_base(ws.joint(j)[1], m0) for j in range(len(ws.gw))]
     lam_w = []
     for k0, k1 in (bounds if wcols else []):
         lam_w.append(np.concatenate([(k1 - k0) / ss**2 if ss is not None else 1.0 / s0**2

@@ -248,18 +248,27 @@ def block_tridiag_logdet(D, B):
 
 
 @njit
+def retract_core(Rb, qb, Wb, dx, p, S):
+    """Move the core state and the wrenches of the linearisation point at ring position ``p`` by
+    its correction ``dx[p]`` (``R <- exp(dx_rot) R``, the rest ``+ dx``; ``S`` the state
+    dimension); ``dx`` is left as it is."""
+    nc = Wb.shape[1]
+    Rb[p] = so3_exp(dx[p, :3]) @ Rb[p]
+    for i in range(S - 3):
+        qb[p, i] += dx[p, 3 + i]
+    for c in range(nc):
+        for j in range(6):
+            Wb[p, c, j] += dx[p, S + 6 * c + j]
+
+
+@njit
 def window_retract(Rb, qb, Wb, eb, dx, positions, S):
     """Move the linearisation points at ring positions ``positions`` to the current estimate
-    (``R <- exp(dx_rot) R``, the rest ``+ dx``; ``S`` the state dimension) and zero ``dx``."""
+    (:func:`retract_core`, the effects' unknowns ``+ dx``) and zero ``dx``."""
     nc = Wb.shape[1]
     for kk in range(positions.shape[0]):
         p = positions[kk]
-        Rb[p] = so3_exp(dx[p, :3]) @ Rb[p]
-        for i in range(S - 3):
-            qb[p, i] += dx[p, 3 + i]
-        for c in range(nc):
-            for j in range(6):
-                Wb[p, c, j] += dx[p, S + 6 * c + j]
+        retract_core(Rb, qb, Wb, dx, p, S)
         for i in range(eb.shape[1]):
             eb[p, i] += dx[p, S + 6 * nc + i]
         dx[p, :] = 0.0

@@ -167,7 +167,8 @@ class FixedLagStream:
             self.first = prob
             self.fls = FixedLagSmoother(prob, self.config.lag, relinearize=self.config.relinearize,
                                         covariance=self.covariance, report_every=self.config.report_every,
-                                        sink=self._sink, block=self.config.block)
+                                        sink=self._sink, block=self.config.block,
+                                        compiled=self.config.compiled)
             start = 0
         else:
             prob = Problem.build(segment, self.model, self.config.rule, part_of=self.first,

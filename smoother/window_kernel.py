@@ -23,7 +23,7 @@ import numpy as np
 from flexforce.factors import core
 from flexforce.factors.core import njit, so3_exp
 from flexforce.smoother.linearize import _add_binary, _add_unary
-from flexforce.smoother.solvers import _trsm_lower_rows_t, _trsv_lower, window_back_substitute
+from flexforce.smoother.solvers import _trsm_lower_rows_t, _trsv_lower, retract_core, window_back_substitute
 
 S = core.STATE_DIM
 
@@ -392,14 +392,9 @@ def window_update(Rb, qb, Wb, dx, Ld, C, y, Sp, rp, f, k0, k1, oldest, s_base,
     ``C`` past it are zero, and the products with them are left out (the same results)."""
     cap = Rb.shape[0]
     nc = Wb.shape[1]
-    for k in range(f + 1, k0):  # window_retract
+    for k in range(f + 1, k0):  # window_retract, without effects
         p = k % cap
-        Rb[p] = so3_exp(dx[p, :3]) @ Rb[p]
-        for i in range(S - 3):
-            qb[p, i] += dx[p, 3 + i]
-        for c in range(nc):
-            for j in range(6):
-                Wb[p, c, j] += dx[p, S + 6 * c + j]
+        retract_core(Rb, qb, Wb, dx, p, S)
         dx[p, :] = 0.0
     pk0 = k0 % cap
     _predict_into(Rb, qb, Wb, dx, (k0 - 1) % cap, pk0, k0 - s_base, dt, active, contact_p, contact_R, rest_p,

@@ -80,6 +80,7 @@ def test_raw_robot_bag_needs_a_robot_config(tmp_path, capsys):
 
 # ---- exit statuses, one-line errors, outputs checked before the work --------------------------------
 import flexforce.cli as cli  # noqa: E402
+import flexforce.pipeline as pipeline  # noqa: E402
 from flexforce.datasets.safeio import lock_path  # noqa: E402
 
 
@@ -120,7 +121,8 @@ def test_output_paths_are_checked_before_any_work(tmp_path, stand_bag, capsys, m
     def no_work(*args, **kwargs):
         raise AssertionError("the work started before the output was checked")
 
-    monkeypatch.setattr(cli, "open_recording", no_work)
+    monkeypatch.setattr(pipeline, "open_recording", no_work)
+    monkeypatch.setattr(pipeline, "load_or_simulate", no_work)
     monkeypatch.setattr(cli, "_load_or_simulate", no_work)
     monkeypatch.setattr(cli, "_simulate", no_work)
     source = "stand" if command == "simulate" else str(stand_bag)
@@ -184,6 +186,34 @@ def test_run_with_an_unstable_robot_config(tmp_path, stand_bag, capsys):
     assert main(["run", str(stand_bag), "--robot", str(robot), "-o", str(tmp_path / "e.npz"), "-q"]) == 0
     captured = capsys.readouterr()
     assert captured.err.count("\n") == 1 and "flexforce run: warning: stiffness.k_ts = 200" in captured.err
+
+
+def test_run_estimator_checks_toppling_as_the_cli_does(tmp_path, stand_bag):
+    """The library raises and warns as ``flexforce run`` reports: run_estimator without a model
+    (its nominal model), and the comparison."""
+    import warnings
+
+    from flexforce.compare.estimators import nominal_model, run_estimator
+    from flexforce.compare.runner import compare
+    from flexforce.datasets.robot import RobotConfig
+    from flexforce.errors import ConfigError, ConfigWarning
+
+    text = open(RobotConfig.load("romeo").source).read()
+    robot = tmp_path / "soft.toml"
+    rec = load_recording(stand_bag)
+    rec.robot = str(robot)
+    robot.write_text(text.replace("k_ts = 450.0", "k_ts = 100.0"))
+    for call in (lambda: run_estimator("ekf", rec), lambda: compare(rec, estimators=["ekf"])):
+        with pytest.raises(ConfigError, match=r"stiffness.k_ts = 100.0 N m/rad of robot 'romeo'"):
+            call()
+    robot.write_text(text.replace("k_ts = 450.0", "k_ts = 200.0"))  # below m g h for one foot: a warning
+    with pytest.warns(ConfigWarning, match="stiffness.k_ts = 200"):
+        est = run_estimator("ekf", rec)
+    assert est.n == rec.n
+    model = nominal_model(load_recording(stand_bag))  # romeo's own springs: no warning
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ConfigWarning)
+        run_estimator("ekf", rec, model)  # a given model is taken as it is
 
 
 def _numba_interrupt():

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from flexforce.compare.diagnostics.diagnose import diagnose
+from flexforce.compare.diagnostics.run import diagnose
 from flexforce.compare.reports.diagnosis import write_diagnosis
 from flexforce.datasets.sim.scenario import Scenario
 from flexforce.datasets.sim.simulator import Simulator

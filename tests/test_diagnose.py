@@ -21,7 +21,7 @@ import pytest
 from baseline import lower, upper
 
 from flexforce.cli import main
-from flexforce.compare.diagnostics.diagnose import Fit, diagnose, load_plugin, resolve_candidates, score
+from flexforce.compare.diagnostics.run import Fit, diagnose, load_plugin, resolve_candidates, score
 from flexforce.compare.reports.diagnosis import write_diagnosis
 from flexforce.datasets.io.bagio import save_recording
 from flexforce.datasets.sim.scenario import Scenario
@@ -237,7 +237,7 @@ def test_second_look_replaces_a_per_step_effect_that_loses_as_a_model():
     from types import SimpleNamespace
     from typing import Any
 
-    from flexforce.compare.diagnostics.diagnose import Candidate, _second_look
+    from flexforce.compare.diagnostics.run import Candidate, _second_look
 
     n = 10000
     charge = 0.5 * np.log(n)
@@ -313,13 +313,14 @@ def test_candidates_carry_the_holm_level_of_their_round(gyro_diag):
 
 
 def test_effects_the_data_do_not_tell_apart_are_reported():
-    """Scores within TIE of the best (and significant) make it ambiguous; in the table and JSON."""
-    from flexforce.compare.diagnostics.diagnose import TIE, Candidate, Diagnosis, mark_rivals
+    """Scores within DEFAULT.tie of the best (and significant) make it ambiguous; in the table and JSON."""
+    from flexforce.compare.diagnostics.config import DEFAULT
+    from flexforce.compare.diagnostics.run import Candidate, Diagnosis, mark_rivals
 
     def cand(name, s, sig=True):
         return Candidate(name, (), 1, s, s + 10, 1.0, 1e-4 if sig else 0.5, sig, {}, "")
 
-    row = [cand("com-offset", 1115.7), cand("accel-bias", 1115.7 - TIE / 2), cand("external-wrench", 1026.2),
+    row = [cand("com-offset", 1115.7), cand("accel-bias", 1115.7 - DEFAULT.tie / 2), cand("external-wrench", 1026.2),
            cand("gyro-bias", 1113.0, sig=False)]
     mark_rivals(row)
     assert row[0].rivals == ("accel-bias",) and row[1].rivals == ()
@@ -334,13 +335,14 @@ def test_effects_the_data_do_not_tell_apart_are_reported():
 
 def test_an_inseparable_candidate_with_the_same_evidence_is_a_rival():
     """Two candidates the identifiability table calls inseparable whose evidence (2ΔE, before the
-    unknowns' charge) differs by less than TIE are rivals even when their scores differ by more
+    unknowns' charge) differs by less than DEFAULT.tie are rivals even when their scores differ by more
     (the count of unknowns decided: a CoM offset, 2 unknowns, over an accelerometer bias, 3, on
     a sway), and the report says so; the same pair with a clear evidence gap, or not inseparable,
     is not."""
     from types import SimpleNamespace
 
-    from flexforce.compare.diagnostics.diagnose import TIE, Candidate, Diagnosis, mark_rivals
+    from flexforce.compare.diagnostics.config import DEFAULT
+    from flexforce.compare.diagnostics.run import Candidate, Diagnosis, mark_rivals
 
     charge = 9.8  # ln n of a 3 s recording's residuals
 
@@ -358,12 +360,12 @@ def test_an_inseparable_candidate_with_the_same_evidence_is_a_rival():
         return [cand("com-offset", 1140.3, 2.0), cand("accel-bias", lr_accel, 3.0), cand("imu-mounting", 1134.0, 3.0)]
 
     r = row(1140.4)
-    assert r[0].score - r[1].score > TIE
+    assert r[0].score - r[1].score > DEFAULT.tie
     mark_rivals(r, ident=Table(True))
     assert r[0].rivals == ("accel-bias",)
     (sentence,) = Diagnosis({}, r, [r], ["com-offset"], [], None, None).ambiguities()
     assert "fits the data as well as accel-bias (2ΔE 1140.4" in sentence and "count of unknowns" in sentence
-    for lr, table in ((1140.4, Table(False)), (1140.4, None), (1140.3 - 2 * TIE, Table(True))):
+    for lr, table in ((1140.4, Table(False)), (1140.4, None), (1140.3 - 2 * DEFAULT.tie, Table(True))):
         r = row(lr)
         mark_rivals(r, ident=table)
         assert r[0].rivals == (), (lr, table)
@@ -452,7 +454,10 @@ def test_cli_diagnose_without_candidates_ranks_the_default_catalogue(tmp_path, m
     """Without --candidates the CLI ranks the default catalogue, as the library does: its costly
     members opt out on a recording they do not suit (the footholds without a touch-down), and the
     plugins' effects join it; --candidates names exactly what is ranked."""
-    import flexforce.compare.diagnostics.diagnose as dg
+    import importlib
+
+    # the module itself (the package's attribute of that name is the function)
+    dg = importlib.import_module("flexforce.compare.diagnostics.run")
 
     seen = []
 
@@ -511,7 +516,7 @@ def test_refit_choice_takes_the_strongest_and_their_inseparable_partners():
     decides), and whatever the identifiability table cannot tell from a chosen one."""
     from types import SimpleNamespace
 
-    from flexforce.compare.diagnostics.diagnose import _refit_choice
+    from flexforce.compare.diagnostics.run import _refit_choice
     from flexforce.smoother.screening import ScoreTest
 
     tests = {"a": ScoreTest("a", 50.0, 1.0, 0.0, "constant", [], 0.0),
@@ -535,7 +540,7 @@ def test_a_delay_is_refitted_whatever_its_score_test():
     """The time offset says its score test understates it (``score_understates``): on a recording
     where its test does not pass the screening it is refitted anyway, its evidence reported beside
     the test, while the other candidates that do not pass are not refitted."""
-    from flexforce.compare.diagnostics.diagnose import _score_understates
+    from flexforce.compare.diagnostics.run import _score_understates
     from flexforce.factors.effects import make_effect
     from flexforce.factors.model import ModelConfig
 
@@ -604,7 +609,7 @@ def test_identifiability_notes_say_chose_only_for_the_rounds_choice():
     implausible), the note gives the two scores as they stand, marking an implausible one."""
     from types import SimpleNamespace
 
-    from flexforce.compare.diagnostics.diagnose import Candidate, Diagnosis
+    from flexforce.compare.diagnostics.run import Candidate, Diagnosis
 
     pair = SimpleNamespace(a="a", b="b", text=lambda: "a and b: cannot be told apart")
     ident = SimpleNamespace(inseparable=lambda: [pair])
@@ -634,9 +639,9 @@ def test_identifiability_notes_say_chose_only_for_the_rounds_choice():
 def test_partner_checks_say_which_inseparable_candidate_the_references_favour():
     """A selected effect and a candidate of its round the data do not tell from it, both checked
     against the references: the sentence gives each one's errors and names the one the
-    references favour -- the partner when its errors are lower beyond CHECK_WORSE and none higher,
+    references favour -- the partner when its errors are lower beyond DEFAULT.check_worse and none higher,
     the choice the other way round, neither when each wins an error."""
-    from flexforce.compare.diagnostics.diagnose import Candidate, Diagnosis
+    from flexforce.compare.diagnostics.run import Candidate, Diagnosis
 
     def check(tilt, force):
         return {"against": "sensors", "sensors": ["F/T", "motion capture"],
@@ -669,7 +674,7 @@ def test_partner_checks_say_which_inseparable_candidate_the_references_favour():
     partner = Candidate("accel-bias", (), 1, 305.0, 314.0, 3.0, 0.0, True)
     partner.check, partner.partner_of = check(0.006, 30.0), "com-offset"
     assert Diagnosis({}, [], [[bare, partner]], ["com-offset"], [], None, None).partner_checks() == []
-    # a rival by the score (within TIE) is named as such
+    # a rival by the score (within DEFAULT.tie) is named as such
     chosen = Candidate("com-offset", (), 1, 310.0, 312.0, 2.0, 0.0, True, rivals=("accel-bias",))
     chosen.check = check(0.012, 30.0)
     partner = Candidate("accel-bias", (), 1, 305.0, 314.0, 3.0, 0.0, True)
@@ -687,15 +692,16 @@ def test_partner_checks_say_which_inseparable_candidate_the_references_favour():
 
 def test_the_check_of_a_selected_effect_says_when_the_references_disagree():
     """A selected effect's check names what it is measured against and says "disagrees" when an
-    error rises by more than CHECK_WORSE with the effect (the iCub walk's footholds against the
+    error rises by more than DEFAULT.check_worse with the effect (the iCub walk's footholds against the
     F/T), "agrees" otherwise; a row without a check prints nothing."""
-    from flexforce.compare.diagnostics.diagnose import CHECK_WORSE, Candidate
+    from flexforce.compare.diagnostics.config import DEFAULT
+    from flexforce.compare.diagnostics.run import Candidate
 
     c = Candidate("foothold", ("time-offset",), 2, 10.0, 20.0, 2.0, 1e-5, True)
     assert c.check_text() == ""
     c.check = {"against": "sensors", "sensors": ["F/T", "Vicon"],
                "before": {"vertical_force_N": 31.9, "rotation_rad": 0.0141},
-               "after": {"vertical_force_N": 39.8, "rotation_rad": 0.0141 * (1.0 + 0.5 * CHECK_WORSE)}}
+               "after": {"vertical_force_N": 39.8, "rotation_rad": 0.0141 * (1.0 + 0.5 * DEFAULT.check_worse)}}
     text = c.check_text()
     assert text.startswith("against the F/T and Vicon (not fitted): vertical force 31.9 -> 39.8 N, tilt 0.808 -> ")
     assert text.endswith("the check disagrees: the vertical force error rose by more than 5%")
@@ -712,7 +718,7 @@ def test_the_check_of_a_selected_effect_says_when_the_references_disagree():
 def test_the_check_names_the_force_error_once_when_the_sensors_measure_only_the_vertical_force():
     """On real logs the check lists the error against the F/T: the force's norm is left out when it
     equals the vertical force's (sensors that measure the vertical force alone), kept otherwise."""
-    from flexforce.compare.diagnostics.diagnose import headline_errors
+    from flexforce.compare.diagnostics.run import headline_errors
     from flexforce.compare.metrics import Metrics
 
     only_z = Metrics("batch", rmse={"vertical_force_N": 31.9, "contact_force_N": 31.9}, reference="sensors")
@@ -727,7 +733,7 @@ def test_with_the_ft_fused_the_check_leaves_their_errors_out():
     (the motion capture); without fusion it keeps both."""
     from types import SimpleNamespace
 
-    from flexforce.compare.diagnostics.diagnose import _check
+    from flexforce.compare.diagnostics.run import _check
 
     refs = {"vertical_force_N": "reference: F/T", "rotation_rad": "reference: motion capture"}
     known = {(): ("sensors", {"rotation_rad": 0.0138, "vertical_force_N": 14.6}, refs),
@@ -742,7 +748,7 @@ def test_with_the_ft_fused_the_check_leaves_their_errors_out():
 def test_screening_in_workers_gives_the_statistics_of_one_process(gyro_rec):
     """The score tests in two workers (the first constant candidate tested before they fork, so
     that they share its states' factor and inverses) equal those of one process, test by test."""
-    from flexforce.compare.diagnostics.diagnose import bound, fit_model, screen
+    from flexforce.compare.diagnostics.run import bound, fit_model, screen
     from flexforce.factors.model import ModelConfig
 
     model = ModelConfig.from_recording(gyro_rec)
@@ -767,15 +773,16 @@ def _stepped(rec, step):
 
 def test_constancy_passes_a_constant_bias_and_fails_one_that_jumps(gyro_rec):
     """The halves of a constant gyro bias agree; a bias that jumps halfway disagrees far beyond
-    CONSTANCY_Z, each half estimating its own."""
-    from flexforce.compare.diagnostics.diagnose import CONSTANCY_REL, CONSTANCY_Z, constancy
+    DEFAULT.constancy_z, each half estimating its own."""
+    from flexforce.compare.diagnostics.config import DEFAULT
+    from flexforce.compare.diagnostics.run import constancy
     from flexforce.factors.model import ModelConfig
 
     model = ModelConfig.from_recording(gyro_rec)
     makers = resolve_candidates(["gyro-bias"])
     ok = constancy(gyro_rec, model, makers, (), "gyro-bias")
     assert ok["made"] and ok["constant"], ok["text"]
-    assert np.max(np.abs(ok["z"])) <= CONSTANCY_Z
+    assert np.max(np.abs(ok["z"])) <= DEFAULT.constancy_z
     # each half finds the hidden 0.011 rad/s about y (within 5 sigma of its own fit)
     for v, s in zip(ok["value"], ok["std"]):
         assert abs(v[1] - GYRO["value"][1]) < 5.0 * s[1] + 1e-4, (v, s)
@@ -783,10 +790,10 @@ def test_constancy_passes_a_constant_bias_and_fails_one_that_jumps(gyro_rec):
     jumped = _stepped(gyro_rec, [0.0, 0.0, 0.03])
     bad = constancy(jumped, model, makers, (), "gyro-bias")
     assert bad["made"] and not bad["constant"], bad["text"]
-    # measured 26.3 sigma (0.030 +- 0.0011 rad/s between the halves); asserted above 3 CONSTANCY_Z
-    assert bad["largest"][0] == "z" and abs(bad["largest"][1]) > 3 * CONSTANCY_Z, bad["largest"]
+    # measured 26.3 sigma (0.030 +- 0.0011 rad/s between the halves); asserted above 3 DEFAULT.constancy_z
+    assert bad["largest"][0] == "z" and abs(bad["largest"][1]) > 3 * DEFAULT.constancy_z, bad["largest"]
     assert bad["value"][1][2] - bad["value"][0][2] == pytest.approx(0.03, abs=3e-3)
-    assert bad["relative"][2] > CONSTANCY_REL  # 0.03 of 0.03: all of it
+    assert bad["relative"][2] > DEFAULT.constancy_rel  # 0.03 of 0.03: all of it
     assert "not constant over the recording" in bad["text"] and "0.0-1.2 s" in bad["text"]
     # too short to halve: said, not made
     short = gyro_rec.window(0.0, 1.5)
@@ -818,8 +825,9 @@ def test_a_bias_that_jumps_is_not_selected_as_a_constant(tmp_path):
 def test_constancy_tolerates_a_difference_small_beside_the_effect(gyro_rec):
     """A 0.04 rad/s bias about x that grows by 0.008 halfway: its halves are many sigmas apart (the
     sigmas shrink with the samples, a model error's bias in each half does not), but by a fifth of
-    the bias: that is the same constant, within CONSTANCY_REL."""
-    from flexforce.compare.diagnostics.diagnose import CONSTANCY_REL, CONSTANCY_Z, constancy
+    the bias: that is the same constant, within DEFAULT.constancy_rel."""
+    from flexforce.compare.diagnostics.config import DEFAULT
+    from flexforce.compare.diagnostics.run import constancy
     from flexforce.factors.model import ModelConfig
 
     rec = _stepped(gyro_rec, [0.008, 0.0, 0.0])
@@ -828,7 +836,7 @@ def test_constancy_tolerates_a_difference_small_beside_the_effect(gyro_rec):
     c = constancy(rec, model, resolve_candidates(["gyro-bias"]), (), "gyro-bias")
     assert c["made"] and c["constant"], c["text"]
     # measured: 7.2 sigma and 19 % apart (0.0387 and 0.0476 +- 0.0009 rad/s)
-    assert abs(c["z"][0]) > CONSTANCY_Z and c["relative"][0] < CONSTANCY_REL, (c["z"], c["relative"])
+    assert abs(c["z"][0]) > DEFAULT.constancy_z and c["relative"][0] < DEFAULT.constancy_rel, (c["z"], c["relative"])
 
 
 def test_when_the_refitted_are_turned_down_the_round_refits_those_that_waited():

@@ -206,7 +206,7 @@ def test_diagnosis_finds_the_hidden_twin(name):
     """The twin hidden in a 3 s sway (the scenarios ``sway-<name>``): the effect ranked first and
     selected, its estimate at the truth within 4 of its sigmas, and the errors against the truth
     falling as measured."""
-    from flexforce.compare.diagnostics.diagnose import diagnose
+    from flexforce.compare.diagnostics.run import diagnose
 
     candidates, ft, ratios = DIAGNOSED[name]
     sc = Scenario.load(f"sway-{name}")  # the built-in scenario of the twin: this test's recording
@@ -231,7 +231,7 @@ def test_diagnosis_finds_the_hidden_twin(name):
 @pytest.mark.parametrize("ft", [False, True])
 def test_diagnosis_of_a_clean_recording_finds_none_of_them(ft):
     """No hidden effect (3 s sway): none of the three is significant (F/T fused or not)."""
-    from flexforce.compare.diagnostics.diagnose import diagnose
+    from flexforce.compare.diagnostics.run import diagnose
 
     rec = simulate(None, 3.0)
     d = diagnose(rec, _model(rec, ft), candidates=list(NEW), add=(), ekf=False, identify=False)

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from baseline import lower, upper
 
-from flexforce.compare.diagnostics.diagnose import diagnose
+from flexforce.compare.diagnostics.run import diagnose
 from flexforce.datasets.sim.scenario import Scenario
 from flexforce.datasets.sim.simulator import Simulator
 from flexforce.errors import ConfigError
@@ -125,7 +125,7 @@ def test_the_effect_is_made_for_the_recording():
 def test_left_out_of_the_default_catalogue_without_a_touch_down():
     from types import SimpleNamespace
 
-    from flexforce.compare.diagnostics.diagnose import left_out_by_default
+    from flexforce.compare.diagnostics.run import left_out_by_default
 
     rec = simulate([])
     out = left_out_by_default(rec, {"foothold": lambda: make_effect("foothold"),

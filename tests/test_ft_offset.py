@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from conftest import occam_gradient_skips
 
-from flexforce.compare.diagnostics.diagnose import diagnose
+from flexforce.compare.diagnostics.run import diagnose
 from flexforce.datasets.sim.scenario import Scenario
 from flexforce.datasets.sim.simulator import Simulator
 from flexforce.errors import ConfigError

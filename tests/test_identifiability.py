@@ -13,7 +13,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from flexforce.compare.diagnostics.diagnose import Candidate, _failure, diagnose, finding, progress_caller
+from flexforce.compare.diagnostics.run import Candidate, _failure, diagnose, finding, progress_caller
 from flexforce.errors import EstimatorError
 from flexforce.factors.effects import EFFECTS, make_effect
 from flexforce.smoother.screening import CandidateInformation, Identifiability, PairCorrelation

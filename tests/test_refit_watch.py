@@ -1,7 +1,7 @@
 """The outer steps of the constants (smoother/batch.py: optimize): the secant estimate of the
 curvature the Gauss-Newton Schur complement misses; and the diagnosis's refits ending where nothing
 more is decided -- an added constant whose estimate keeps leaving the plausible range
-(compare/diagnostics/diagnose.py: LeavingPlausible), outer steps of the marginal likelihood that gain less
+(compare/diagnostics/run.py: LeavingPlausible), outer steps of the marginal likelihood that gain less
 than EVIDENCE_TOL nats (optimize's ``evidence_tol``)."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from flexforce.compare.diagnostics import diagnose as diagnose_mod
-from flexforce.compare.diagnostics.diagnose import LeavingPlausible, diagnose, fit_model
+from flexforce.compare.diagnostics import DiagnoseConfig
+from flexforce.compare.diagnostics.run import LeavingPlausible, diagnose, fit_model
 from flexforce.datasets.sim.scenario import Scenario
 from flexforce.datasets.sim.simulator import Simulator
 from flexforce.factors.effects import make_effect
@@ -57,7 +57,7 @@ def test_the_evidence_tolerance_moves_the_evidence_by_a_fraction_of_a_nat(soft):
     rec, model, nominal = soft
     m = dataclasses.replace(model, effects=(make_effect("stiffness"),))
     exact = fit_model(rec, m, start=nominal, evidence_tol=0.0)
-    loose = fit_model(rec, m, start=nominal, evidence_tol=diagnose_mod.EVIDENCE_TOL)
+    loose = fit_model(rec, m, start=nominal, evidence_tol=DiagnoseConfig().evidence_tol)
     assert exact.estimate.meta["outer"] >= loose.estimate.meta["outer"]  # measured 6 and 4
     # the objective stops within the tolerance of its optimum, the evidence reported (plain, not
     # robust, Newton-Euler residuals; no prior on the constants) within 0.12 nats measured along
@@ -94,8 +94,8 @@ def test_leaving_plausible_needs_consecutive_steps_moving_away(soft):
 
 def test_a_stopped_refit_is_reported_implausible_never_selected(soft, monkeypatch):
     rec, _, _ = soft
-    monkeypatch.setattr(diagnose_mod, "WATCH_PATIENCE", 1)  # the recording's stiffness converges in 3 steps
-    d = diagnose(rec, candidates=[narrow_stiffness()], ekf=False)
+    # the recording's stiffness converges in 3 steps
+    d = diagnose(rec, candidates=[narrow_stiffness()], config=DiagnoseConfig(watch_patience=1, ekf=False))
     row = next(c for c in d.ranking if c.effect == "stiffness")
     assert row.refitted and row.status == "implausible", d.ranking_table()
     assert "the refit stopped" in row.implausible and "outside the plausible" in row.implausible
@@ -127,10 +127,8 @@ def test_the_secant_update_matches_the_curvature_the_schur_complement_misses():
 def test_the_outer_steps_reach_the_same_evidence_with_or_without_the_secant(soft, monkeypatch, secant):
     rec, model, nominal = soft
     m = dataclasses.replace(model, effects=(make_effect("stiffness"),))
-    monkeypatch.setattr(batch, "SECANT", secant)
-    est, stats = fit(rec, m, start=((), nominal.trajectory))
-    monkeypatch.setattr(batch, "SECANT", True)
-    ref_est, ref = fit(rec, m, start=((), nominal.trajectory))
+    est, stats = fit(rec, m, start=((), nominal.trajectory), secant=secant)
+    ref_est, ref = fit(rec, m, start=((), nominal.trajectory), secant=True)
     # both converge (the smoother's rel_tol: 1e-7 of the cost) to the same optimum
     assert stats.cost_evidence == pytest.approx(ref.cost_evidence, rel=1e-6)
     v, v_ref = np.asarray(est.effects["stiffness"]["value"]), np.asarray(ref_est.effects["stiffness"]["value"])
@@ -142,11 +140,9 @@ def _with_an_overstated_secant(soft, monkeypatch, excess: float):
     with a secant that adds ``excess`` times the identity at every update: both ``fit`` results."""
     rec, model, nominal = soft
     m = dataclasses.replace(model, effects=(make_effect("stiffness"),))
-    monkeypatch.setattr(batch, "SECANT", False)
-    ref = fit(rec, m, start=((), nominal.trajectory), evidence_tol=0.05)
-    monkeypatch.setattr(batch, "SECANT", True)
+    ref = fit(rec, m, start=((), nominal.trajectory), evidence_tol=0.05, secant=False)
     monkeypatch.setattr(batch, "_secant_update", lambda M, s, Ss, g_old, g_new: M + excess * np.eye(M.shape[0]))
-    return ref, fit(rec, m, start=((), nominal.trajectory), evidence_tol=0.05)
+    return ref, fit(rec, m, start=((), nominal.trajectory), evidence_tol=0.05, secant=True)
 
 
 def test_a_secant_that_promises_nothing_gives_way_to_the_gauss_newton_step(soft, monkeypatch):
@@ -178,8 +174,8 @@ def test_a_candidate_implausible_in_one_round_is_not_refitted_in_the_next(monkey
     sc.effects = [{"type": "stiffness", "stiffness": 0.5, "damping": 1.0},
                   {"type": "gyro-bias", "value": [0.0, 0.01, 0.0]}]
     rec = Simulator(sc).run()
-    monkeypatch.setattr(diagnose_mod, "WATCH_PATIENCE", 1)
-    d = diagnose(rec, candidates=[make_effect("gyro-bias"), narrow_stiffness()], ekf=False, calibrated=False)
+    d = diagnose(rec, candidates=[make_effect("gyro-bias"), narrow_stiffness()],
+                 config=DiagnoseConfig(watch_patience=1, ekf=False, calibrated=False))
     assert d.selected == ["gyro-bias"], d.ranking_table()
     first = {c.effect: c for c in d.rounds[0]}
     assert first["stiffness"].implausible, d.ranking_table()

@@ -126,7 +126,7 @@ def test_the_candidates_of_one_base_share_the_states_inverses(monkeypatch):
     """The score tests of one base fit share the per-step states' selected inverses (a constant
     candidate at its null adds no rows on the states): formed once, by a fingerprint of the rows,
     the statistics equal those formed for each candidate anew (relative 1e-9); another base (a
-    different trajectory) does not reuse them, and ``forget_states`` frees them."""
+    different trajectory) does not reuse them, and the end of the ``states_cache`` scope frees them."""
     from flexforce.smoother import evidence
 
     rec = simulate([GYRO], duration=1.5)
@@ -134,25 +134,26 @@ def test_the_candidates_of_one_base_share_the_states_inverses(monkeypatch):
     _, st = fit(rec, model)
     prob = Problem.build(rec, model, NoiseRule())
     names = ("com-offset", "stiffness", "imu-mounting", "time-offset")
-    evidence.forget_states()
     calls = []
     orig = evidence._scaled_states
     monkeypatch.setattr(evidence, "_scaled_states", lambda *a: calls.append(1) or orig(*a))
-    shared = {k: score_test(prob, st.trajectory, make_effect(k)) for k in names}
-    assert len(calls) == 1 and len(evidence._STATES_MEMO) == 1
-    monkeypatch.setattr(evidence, "_states_fingerprint", lambda *a: object())  # never the same
-    anew = {k: score_test(prob, st.trajectory, make_effect(k)) for k in names}
-    assert len(calls) == 1 + len(names)
+    with evidence.states_cache() as cache:
+        shared = {k: score_test(prob, st.trajectory, make_effect(k)) for k in names}
+        assert len(calls) == 1 and len(cache) == 1
+        monkeypatch.setattr(evidence, "_states_fingerprint", lambda *a: object())  # never the same
+        anew = {k: score_test(prob, st.trajectory, make_effect(k)) for k in names}
+        assert len(calls) == 1 + len(names)
     for k in names:
         assert shared[k].statistic == pytest.approx(anew[k].statistic, rel=1e-9), k
         assert shared[k].dof == pytest.approx(anew[k].dof, rel=1e-9), k
     monkeypatch.undo()
     other = type(st.trajectory)(st.trajectory.R, st.trajectory.q * 1.001, st.trajectory.W, st.trajectory.e)
-    key = next(iter(evidence._STATES_MEMO))
-    score_test(prob, other, make_effect("com-offset"))
-    assert next(iter(evidence._STATES_MEMO)) != key
-    evidence.forget_states()
-    assert not evidence._STATES_MEMO
+    with evidence.states_cache() as cache:
+        score_test(prob, st.trajectory, make_effect("com-offset"))
+        key = cache.key
+        score_test(prob, other, make_effect("com-offset"))
+        assert cache.key != key
+    assert not cache
 
 
 def test_the_window_scales_at_once_are_the_windows_one_at_a_time():

@@ -3,7 +3,7 @@
 :func:`flexforce.smoother.window_kernel.window_system` must give the blocks of
 ``assemble_split(linearize(...))`` (the same operations in the same order: measured equal to the
 bit), and a whole fixed-lag run with the compiled update and read-out marginals must give the
-general path's estimates and covariances (``FixedLagSmoother.compiled = False``).  Checked with and
+general path's estimates and covariances (``FixedLagConfig(compiled=False)``).  Checked with and
 without F/T fusion, robust sensor loss on and off, a missing and a saturated IMU axis, an
 inactive contact in the window, the stream's first compiled window and a part of a stream.
 """
@@ -83,8 +83,7 @@ def test_window_system_equals_linearize_and_assemble(pitch, use_ft, robust):
     prob = Problem.build(pitch, _model(pitch, use_ft), NoiseRule(imu_robust=robust, imu_robust_k=2.0))
     prob.weight_cap = {}
     assert prob.imu_use[100, 1] == 0.0 and prob.imu_use[120, 5] == 0.0
-    fls = FixedLagSmoother(prob, 0.1, relinearize=6)
-    fls.compiled = False
+    fls = FixedLagSmoother(prob, 0.1, relinearize=6, compiled=False)
     # windows: the first compiled one (f = 1), a missing and a saturated IMU axis, a lifted contact
     checks = {7: 1, 104: 98, 124: 118, 150: 144}
     for k in range(max(checks) + 1):
@@ -118,12 +117,9 @@ def test_window_system_on_a_part_of_a_stream(pitch):
     _compare_window(part, fls, 63, 70)
 
 
-def _run_both(monkeypatch, run):
-    fast = run()
-    monkeypatch.setattr(FixedLagSmoother, "compiled", False)
-    ref = run()
-    monkeypatch.undo()
-    return fast, ref
+def _run_both(run):
+    """``run(compiled)`` with the compiled path, then with the general one."""
+    return run(True), run(False)
 
 
 def _assert_same(fast, ref):
@@ -136,24 +132,24 @@ def _assert_same(fast, ref):
 
 @pytest.mark.parametrize("use_ft, robust, block", [(False, "log-tail", 1), (True, "log-tail", 1), (True, None, 1),
                                                    (False, "log-tail", 4)])
-def test_fixed_lag_compiled_equals_general(pitch, monkeypatch, use_ft, robust, block):
+def test_fixed_lag_compiled_equals_general(pitch, use_ft, robust, block):
     model = _model(pitch, use_ft)
     config = FixedLagConfig(lag=0.2, block=block, rule=NoiseRule(imu_robust=robust, imu_robust_k=2.0))
-    fast, ref = _run_both(monkeypatch, lambda: run_fixed_lag(pitch, model, config))
+    fast, ref = _run_both(lambda compiled: run_fixed_lag(pitch, model, config, compiled=compiled))
     _assert_same(fast, ref)
 
 
-def test_stream_compiled_equals_general(pitch, monkeypatch):
+def test_stream_compiled_equals_general(pitch):
     model = _model(pitch, True)
 
-    def stream():
-        s = FixedLagStream(model, FixedLagConfig(lag=0.2))
+    def stream(compiled):
+        s = FixedLagStream(model, FixedLagConfig(lag=0.2, compiled=compiled))
         ests = [e for e in (s.push(pitch.slice(a, min(a + 37, pitch.n))) for a in range(0, pitch.n, 37))
                 if e is not None]
         ests.append(s.finish())
         return ests
 
-    fast, ref = _run_both(monkeypatch, stream)
+    fast, ref = _run_both(stream)
     assert len(fast) == len(ref)
     for a, b in zip(fast, ref):
         _assert_same(a, b)

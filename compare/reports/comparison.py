@@ -157,42 +157,41 @@ def _rotvec(R):
     return np.array([so3.log(r) for r in R])
 
 
+def _series_figure(time, estimates: dict, panels: list[tuple], title: str):
+    """A figure of one :func:`plot_series` panel per row of ``panels``, ``(value, std, truth, label,
+    keyword arguments)``, on a shared time axis (s), the legend on the first panel."""
+    fig, axes = plt.subplots(len(panels), 1, figsize=(10, 8), sharex=True)
+    for ax, (value, std, truth, label, options) in zip(axes, panels):
+        plot_series(ax, time, estimates, value, std, truth, label, **options)
+    axes[0].legend(loc="upper right", fontsize=8, ncol=4)
+    axes[-1].set_xlabel("time [s]")
+    fig.suptitle(title)
+    return fig
+
+
 def figure_forces(comp, rec):
-    est = _rows(comp)
-    t = rec.time
     tr = rec.truth
-    fig, axes = plt.subplots(3, 1, figsize=(10, 8), sharex=True)
     ft_sum = None
     if tr is None and rec.ft is not None and np.isfinite(rec.ft[:, :, 2]).any():
         ft_sum = np.nansum(rec.ft[:, :, 2], axis=1)
-    plot_series(axes[0], t, est, lambda e: e.total_wrench[:, 2], lambda e: _wrench_std(e, 2),
-                tr.total_wrench[:, 2] if tr is not None else ft_sum, "total F_z [N]",
-                truth_label="truth" if tr is not None else "reference: F/T (sum)")
-    plot_series(axes[1], t, est, lambda e: e.cop[:, 0], lambda e: _cop_std(e, 0),
-                None if tr is None else tr.cop[:, 0], "CoP x [cm]", scale=100)
-    plot_series(axes[2], t, est, lambda e: e.cop[:, 1], lambda e: _cop_std(e, 1),
-                None if tr is None else tr.cop[:, 1], "CoP y [cm]", scale=100)
-    axes[0].legend(loc="upper right", fontsize=8, ncol=4)
-    axes[-1].set_xlabel("time [s]")
-    fig.suptitle("Contact force and centre of pressure (bands: ±2σ)")
-    return fig
+    panels = [(lambda e: e.total_wrench[:, 2], lambda e: _wrench_std(e, 2),
+               tr.total_wrench[:, 2] if tr is not None else ft_sum, "total F_z [N]",
+               {"truth_label": "truth" if tr is not None else "reference: F/T (sum)"})]
+    panels += [(lambda e, i=i: e.cop[:, i], lambda e, i=i: _cop_std(e, i), None if tr is None else tr.cop[:, i],
+                f"CoP {axis} [cm]", {"scale": 100}) for i, axis in enumerate("xy")]
+    return _series_figure(rec.time, _rows(comp), panels, "Contact force and centre of pressure (bands: ±2σ)")
 
 
 def figure_flexibility(comp, rec):
-    est = comp.estimates
-    t = rec.time
     tr = rec.truth
     true_rv = None if tr is None else _rotvec(tr.R)
-    fig, axes = plt.subplots(3, 1, figsize=(10, 8), sharex=True)
-    for i, name in enumerate(("roll", "pitch")):
-        plot_series(axes[i], t, est, lambda e, i=i: _rotvec(e.R)[:, i], lambda e, i=i: _state_std(e, i),
-                    None if true_rv is None else true_rv[:, i], f"{name} [mrad]", scale=1000)
-    plot_series(axes[2], t, est, lambda e: e.t[:, 2], lambda e: _state_std(e, 5),
-                None if tr is None else tr.t[:, 2], "sinking t_z [mm]", scale=1000)
-    axes[0].legend(loc="upper right", fontsize=8, ncol=4)
-    axes[-1].set_xlabel("time [s]")
-    fig.suptitle("Flexibility: rotation vector and vertical translation (bands: ±2σ)")
-    return fig
+    panels = [(lambda e, i=i: _rotvec(e.R)[:, i], lambda e, i=i: _state_std(e, i),
+               None if true_rv is None else true_rv[:, i], f"{name} [mrad]", {"scale": 1000})
+              for i, name in enumerate(("roll", "pitch"))]
+    panels.append((lambda e: e.t[:, 2], lambda e: _state_std(e, 5), None if tr is None else tr.t[:, 2],
+                   "sinking t_z [mm]", {"scale": 1000}))
+    return _series_figure(rec.time, comp.estimates, panels,
+                          "Flexibility: rotation vector and vertical translation (bands: ±2σ)")
 
 
 def figure_errors(comp, rec):
@@ -343,6 +342,24 @@ def figure_contacts(comp, rec):
     return fig
 
 
+def plot_family(ax, est, family: str, flags=(), title: str = ""):
+    """Whitened residual (σ) of every axis of ``family`` of ``est`` over time (s), the ±3σ lines
+    dashed; the spans of ``flags`` (diagnostics' flagged windows) of that family shaded."""
+    r = est.residuals[family]
+    labels = est.residual_labels.get(family, ())
+    for j in range(r.shape[1]):
+        ax.plot(est.time, r[:, j], lw=0.6, label=labels[j] if j < len(labels) else str(j))
+    for f in flags:
+        if f.family == family:
+            ax.axvspan(f.start_s, f.end_s, color="tab:orange", alpha=0.25, lw=0)
+    ax.axhline(3, color="k", lw=0.5, ls="--")
+    ax.axhline(-3, color="k", lw=0.5, ls="--")
+    ax.set_ylabel(f"{title}{family} [σ]", fontsize=8)
+    ax.grid(alpha=0.3)
+    if r.shape[1] <= 12:
+        ax.legend(loc="upper right", fontsize=6, ncol=6)
+
+
 def figure_residuals(comp, rec):
     fams = []
     for key, est in comp.estimates.items():
@@ -353,17 +370,7 @@ def figure_residuals(comp, rec):
         return None
     fig, axes = plt.subplots(len(fams), 1, figsize=(10, 1.8 * len(fams) + 1), sharex=True, squeeze=False)
     for ax, (key, fam) in zip(axes[:, 0], fams):
-        est = comp.estimates[key]
-        r = est.residuals[fam]
-        labels = est.residual_labels.get(fam, ())
-        for j in range(r.shape[1]):
-            ax.plot(est.time, r[:, j], lw=0.6, label=labels[j] if j < len(labels) else str(j))
-        ax.axhline(3, color="k", lw=0.5, ls="--")
-        ax.axhline(-3, color="k", lw=0.5, ls="--")
-        ax.set_ylabel(f"{key}\n{fam} [σ]", fontsize=8)
-        ax.grid(alpha=0.3)
-        if r.shape[1] <= 12:
-            ax.legend(loc="upper right", fontsize=6, ncol=6)
+        plot_family(ax, comp.estimates[key], fam, title=f"{key}\n")
     axes[-1, 0].set_xlabel("time [s]")
     fig.suptitle("Whitened residuals per factor family (dashed: ±3σ)")
     return fig

@@ -1,6 +1,6 @@
 """Diagnosis reports: a folder with index.html, diagnosis.json and matplotlib figures.
 
-Figures are drawn from a :class:`~flexforce.compare.diagnostics.diagnose.Diagnosis`; plot functions draw on a
+Figures are drawn from a :class:`~flexforce.compare.diagnostics.results.Diagnosis`; plot functions draw on a
 given ``Axes`` and never show anything (like :mod:`flexforce.compare.reports.comparison`).
 """
 
@@ -16,7 +16,12 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy import stats  # noqa: E402
 
-from flexforce.compare.reports.comparison import LABELS, environment, report_folder  # noqa: E402
+from flexforce.compare.reports.comparison import (  # noqa: E402
+    LABELS,
+    environment,
+    plot_family,
+    report_folder,
+)
 
 BEFORE, AFTER = "tab:red", "tab:green"
 
@@ -24,23 +29,6 @@ BEFORE, AFTER = "tab:red", "tab:green"
 # ----------------------------------------------------------------------------------------------
 # Plot functions: each draws on the Axes it is given
 # ----------------------------------------------------------------------------------------------
-
-
-def plot_family(ax, est, family: str, flags=(), title: str = ""):
-    """Whitened residual of every axis of ``family`` over time; flagged spans shaded."""
-    r = est.residuals[family]
-    labels = est.residual_labels.get(family, ())
-    for j in range(r.shape[1]):
-        ax.plot(est.time, r[:, j], lw=0.6, label=labels[j] if j < len(labels) else str(j))
-    for f in flags:
-        if f.family == family:
-            ax.axvspan(f.start_s, f.end_s, color="tab:orange", alpha=0.25, lw=0)
-    ax.axhline(3, color="k", lw=0.5, ls="--")
-    ax.axhline(-3, color="k", lw=0.5, ls="--")
-    ax.set_ylabel(f"{title}{family} [σ]", fontsize=8)
-    ax.grid(alpha=0.3)
-    if r.shape[1] <= 12:
-        ax.legend(loc="upper right", fontsize=6, ncol=6)
 
 
 def plot_nis(ax, ekf, level: float = 0.99):

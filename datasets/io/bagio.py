@@ -501,6 +501,44 @@ def load_recording(path) -> Recording:
         raise BagError(f"bag {path} does not exist; expected a ROS 2 bag directory, "
                        ".mcap/.db3 file or ROS 1 .bag file")
     types, msgs = _read_bag(path)
+    _check_recording_topics(path, types, msgs)
+    doc = _parse_meta(path, msgs[META_TOPIC])
+    contact_names = tuple(doc["contact_names"])
+    joint_names = tuple(doc["joint_names"])
+    present = doc["present"]
+    inputs = _read_inputs(msgs[INPUTS_TOPIC], contact_names)
+    t_ns = inputs["t_ns"]
+    n = len(t_ns)
+    topics = _Topics(path, types, msgs, t_ns)
+
+    imu = topics.get(IMU_TOPIC, T_IMU)
+    gyro = _xyz([m.angular_velocity for m in imu])
+    accel = _xyz([m.linear_acceleration for m in imu])
+    joint_q, joint_v = _read_joints(topics, present, joint_names, n)
+    ft = None
+    if present["ft"]:
+        ft = np.zeros((n, len(contact_names), 6))
+        for i, name in enumerate(contact_names):
+            ft[:, i] = _wrenches(topics.get(f"/ft/{name}", T_WRENCH, " (the meta says F/T is present)"))
+    mocap = {name: _poses(topics.get(f"/mocap/{name}", T_POSE, " (listed in the meta's mocap_links)"))
+             for name in doc["mocap_links"]}
+    base_pose = (_poses(topics.get(BASE_TOPIC, T_POSE, " (the meta says the base pose is present)"))
+                 if present.get("base_pose") else None)
+    truth = _read_truth(topics, doc, contact_names, n) if present["truth"] else None
+    rec = Recording(
+        robot=doc["robot"], contact_names=contact_names, mass=float(doc["mass"]), **inputs,
+        gyro=gyro, accel=accel, joint_names=joint_names, joint_q=joint_q, joint_v=joint_v,
+        ft=ft, mocap=mocap, base_pose=base_pose, truth=truth, gravity=float(doc["gravity"]), meta=doc["meta"],
+    )
+    return rec.validate()
+
+
+def _check_recording_topics(path: Path, types: dict[str, str], msgs: dict[str, list]) -> None:
+    """The meta and inputs topics of a flexforce recording are there, with messages, of their types.
+
+    Raises:
+        BagError: one is empty or missing (not a flexforce recording), or of another type.
+    """
     if empty := [t for t in (META_TOPIC, INPUTS_TOPIC) if t in types and t not in msgs]:
         raise BagError(f"topic {' and '.join(empty)} of bag {path} has no messages; expected a flexforce "
                        "recording written completely")
@@ -509,16 +547,19 @@ def load_recording(path) -> Recording:
     for topic, msgtype in ((META_TOPIC, T_STRING), (INPUTS_TOPIC, T_ARRAY)):
         if types[topic] != msgtype:
             raise BagError(f"topic {topic} has type {types[topic]}; expected {msgtype}")
-    doc = _parse_meta(path, msgs[META_TOPIC])
-    contact_names = tuple(doc["contact_names"])
-    joint_names = tuple(doc["joint_names"])
-    present = doc["present"]
-    c = len(contact_names)
 
-    # ---- inputs: the time grid and the local-frame quantities ----
-    items = msgs[INPUTS_TOPIC]
+
+def _read_inputs(items: list, contact_names: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """The time grid and the local-frame quantities of the inputs topic's ``(t_ns, message)``
+    items, as Recording fields (``t_ns``, ``com`` ... ``imu_w``, ``contact_active``, ``contact_p``,
+    ``contact_R``).
+
+    Raises:
+        BagError: a message whose layout is not :func:`inputs_layout` of ``contact_names``.
+    """
     t_ns = np.array([t for t, _ in items], dtype=np.int64)
     n = len(t_ns)
+    c = len(contact_names)
     blocks = inputs_layout(contact_names)
     expected = [(label, size, size) for label, size in blocks]
     width = sum(size for _, size in blocks)
@@ -535,8 +576,9 @@ def load_recording(path) -> Recording:
     for label, size in blocks:
         fields[label] = data[:, col:col + size]
         col += size
-    vec3 = {name: fields[name].copy() for name, size in _INPUT_BLOCKS if size == 3}
-    mat3 = {name: fields[name].reshape(n, 3, 3).copy() for name, size in _INPUT_BLOCKS if size == 9}
+    out: dict[str, np.ndarray] = {"t_ns": t_ns}
+    out.update({name: fields[name].copy() for name, size in _INPUT_BLOCKS if size == 3})
+    out.update({name: fields[name].reshape(n, 3, 3).copy() for name, size in _INPUT_BLOCKS if size == 9})
     contact_active = np.zeros((n, c), dtype=bool)
     contact_p = np.zeros((n, c, 3))
     contact_R = np.zeros((n, c, 3, 3))
@@ -544,83 +586,72 @@ def load_recording(path) -> Recording:
         contact_active[:, i] = fields[f"contact/{name}/active"][:, 0] != 0.0
         contact_p[:, i] = fields[f"contact/{name}/p"]
         contact_R[:, i] = fields[f"contact/{name}/R"].reshape(n, 3, 3)
+    out.update(contact_active=contact_active, contact_p=contact_p, contact_R=contact_R)
+    return out
 
-    topics = _Topics(path, types, msgs, t_ns)
 
-    imu = topics.get(IMU_TOPIC, T_IMU)
-    gyro = _xyz([m.angular_velocity for m in imu])
-    accel = _xyz([m.linear_acceleration for m in imu])
+def _read_joints(topics: _Topics, present: dict, joint_names: tuple[str, ...],
+                 n: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """``(joint_q, joint_v)``: the (N, J) joint positions and velocities the meta says are present
+    (None: absent).
 
+    Raises:
+        BagError: the joint topic missing, naming other joints, or with arrays of the wrong length.
+    """
     joint_q = joint_v = None
-    if present["joint_q"] or present["joint_v"]:
-        js = topics.get(JOINTS_TOPIC, T_JOINTS, " (the meta says joint data are present)")
-        for k, m in enumerate(js):
-            if tuple(m.name) != joint_names:
-                raise BagError(f"topic {JOINTS_TOPIC} sample {k} names joints {list(m.name)}; "
-                               f"expected {list(joint_names)} as in {META_TOPIC}")
-        j = len(joint_names)
-        try:
-            if present["joint_q"]:
-                joint_q = np.array([m.position for m in js], dtype=np.float64).reshape(n, j)
-            if present["joint_v"]:
-                joint_v = np.array([m.velocity for m in js], dtype=np.float64).reshape(n, j)
-        except ValueError as err:
-            raise BagError(f"topic {JOINTS_TOPIC} has position/velocity arrays of the wrong length; "
-                           f"expected {j} values per sample ({err})") from err
+    if not (present["joint_q"] or present["joint_v"]):
+        return joint_q, joint_v
+    js = topics.get(JOINTS_TOPIC, T_JOINTS, " (the meta says joint data are present)")
+    for k, m in enumerate(js):
+        if tuple(m.name) != joint_names:
+            raise BagError(f"topic {JOINTS_TOPIC} sample {k} names joints {list(m.name)}; "
+                           f"expected {list(joint_names)} as in {META_TOPIC}")
+    j = len(joint_names)
+    try:
+        if present["joint_q"]:
+            joint_q = np.array([m.position for m in js], dtype=np.float64).reshape(n, j)
+        if present["joint_v"]:
+            joint_v = np.array([m.velocity for m in js], dtype=np.float64).reshape(n, j)
+    except ValueError as err:
+        raise BagError(f"topic {JOINTS_TOPIC} has position/velocity arrays of the wrong length; "
+                       f"expected {j} values per sample ({err})") from err
+    return joint_q, joint_v
 
-    ft = None
-    if present["ft"]:
-        ft = np.zeros((n, c, 6))
-        for i, name in enumerate(contact_names):
-            ft[:, i] = _wrenches(topics.get(f"/ft/{name}", T_WRENCH, " (the meta says F/T is present)"))
 
-    mocap = {name: _poses(topics.get(f"/mocap/{name}", T_POSE, " (listed in the meta's mocap_links)"))
-             for name in doc["mocap_links"]}
-    base_pose = (_poses(topics.get(BASE_TOPIC, T_POSE, " (the meta says the base pose is present)"))
-                 if present.get("base_pose") else None)
+def _read_truth(topics: _Topics, doc: dict, contact_names: tuple[str, ...], n: int) -> Truth:
+    """The ground truth of a simulated recording (its ``/truth/...`` topics).
 
-    truth = None
-    if present["truth"]:
-        why = " (the meta says ground truth is present)"
-        flex = _poses(topics.get("/truth/flexibility", T_POSE, why))
-        vel = topics.get("/truth/velocity", T_TWIST, why)
-        acc = topics.get("/truth/acceleration", T_ACCEL, why)
-        wrench = np.zeros((n, c, 6))
-        for i, name in enumerate(contact_names):
-            wrench[:, i] = _wrenches(topics.get(f"/truth/wrench/{name}", T_WRENCH, why))
-        quat = flex[:, 3:7]
-        norms = np.linalg.norm(quat, axis=1)
-        if not np.all(np.abs(norms - 1.0) < 1e-6):
-            k = int(np.flatnonzero(~(np.abs(norms - 1.0) < 1e-6))[0])
-            raise BagError(f"topic /truth/flexibility sample {k} has a quaternion of norm {norms[k]:.6g}; "
-                           "expected a unit quaternion")
-        truth = Truth(
-            R=Rotation.from_quat(quat).as_matrix(),
-            t=flex[:, 0:3].copy(),
-            w=_xyz([m.twist.angular for m in vel]), v=_xyz([m.twist.linear for m in vel]),
-            dw=_xyz([m.accel.angular for m in acc]), a=_xyz([m.accel.linear for m in acc]),
-            wrench=wrench,
-            external_wrench=_wrenches(topics.get("/truth/external_wrench", T_WRENCH, why)),
-            cop=_xyz([m.point for m in topics.get("/truth/cop", T_POINT, why)]),
-            links={name: _xyz([m.point for m in topics.get(f"/truth/link/{name}", T_POINT, why)])
-                   for name in doc["truth_links"]},
-            gyro_bias=(_xyz([m.vector for m in topics.get("/truth/gyro_bias", T_VECTOR, why)])
-                       if present["gyro_bias"] else None),
-            accel_bias=(_xyz([m.vector for m in topics.get("/truth/accel_bias", T_VECTOR, why)])
-                        if present["accel_bias"] else None),
-            ambient_wrench=(_wrenches(topics.get("/truth/ambient_wrench", T_WRENCH, why))
-                            if present.get("ambient_wrench") else None),
-        )
-
-    rec = Recording(
-        t_ns=t_ns, robot=doc["robot"], contact_names=contact_names, mass=float(doc["mass"]),
-        com=vec3["com"], com_vel=vec3["com_vel"], com_acc=vec3["com_acc"],
-        inertia=mat3["inertia"], inertia_dot=mat3["inertia_dot"],
-        sigma=vec3["sigma"], sigma_dot=vec3["sigma_dot"],
-        imu_R=mat3["imu_R"], imu_p=vec3["imu_p"], imu_v=vec3["imu_v"], imu_a=vec3["imu_a"],
-        imu_w=vec3["imu_w"],
-        contact_active=contact_active, contact_p=contact_p, contact_R=contact_R,
-        gyro=gyro, accel=accel, joint_names=joint_names, joint_q=joint_q, joint_v=joint_v,
-        ft=ft, mocap=mocap, base_pose=base_pose, truth=truth, gravity=float(doc["gravity"]), meta=doc["meta"],
+    Raises:
+        BagError: a truth topic missing or malformed, a flexibility quaternion not of unit norm.
+    """
+    present = doc["present"]
+    why = " (the meta says ground truth is present)"
+    flex = _poses(topics.get("/truth/flexibility", T_POSE, why))
+    vel = topics.get("/truth/velocity", T_TWIST, why)
+    acc = topics.get("/truth/acceleration", T_ACCEL, why)
+    wrench = np.zeros((n, len(contact_names), 6))
+    for i, name in enumerate(contact_names):
+        wrench[:, i] = _wrenches(topics.get(f"/truth/wrench/{name}", T_WRENCH, why))
+    quat = flex[:, 3:7]
+    norms = np.linalg.norm(quat, axis=1)
+    if not np.all(np.abs(norms - 1.0) < 1e-6):
+        k = int(np.flatnonzero(~(np.abs(norms - 1.0) < 1e-6))[0])
+        raise BagError(f"topic /truth/flexibility sample {k} has a quaternion of norm {norms[k]:.6g}; "
+                       "expected a unit quaternion")
+    return Truth(
+        R=Rotation.from_quat(quat).as_matrix(),
+        t=flex[:, 0:3].copy(),
+        w=_xyz([m.twist.angular for m in vel]), v=_xyz([m.twist.linear for m in vel]),
+        dw=_xyz([m.accel.angular for m in acc]), a=_xyz([m.accel.linear for m in acc]),
+        wrench=wrench,
+        external_wrench=_wrenches(topics.get("/truth/external_wrench", T_WRENCH, why)),
+        cop=_xyz([m.point for m in topics.get("/truth/cop", T_POINT, why)]),
+        links={name: _xyz([m.point for m in topics.get(f"/truth/link/{name}", T_POINT, why)])
+               for name in doc["truth_links"]},
+        gyro_bias=(_xyz([m.vector for m in topics.get("/truth/gyro_bias", T_VECTOR, why)])
+                   if present["gyro_bias"] else None),
+        accel_bias=(_xyz([m.vector for m in topics.get("/truth/accel_bias", T_VECTOR, why)])
+                    if present["accel_bias"] else None),
+        ambient_wrench=(_wrenches(topics.get("/truth/ambient_wrench", T_WRENCH, why))
+                        if present.get("ambient_wrench") else None),
     )
-    return rec.validate()

@@ -224,6 +224,17 @@ class EstimateWriter:
             return
         self._writer.write(out, int(t_ns), raw if reader.is2 else ts.ros1_to_cdr(raw, conn.msgtype))
 
+    def copy_bag(self, path) -> None:
+        """Copy every message of the bag at ``path`` into the MCAP (but a previous export's
+        ``/estimate/`` topics, and ROS 1 types without a ROS 2 counterpart), as :func:`export_mcap`
+        does; nothing into a ``.csv``.
+
+        Raises:
+            BagError: a missing or unreadable input bag.
+        """
+        if self._writer is not None:
+            _copy_bag(self._writer, self._ts, Path(path))
+
 
 # ------------------------------------------------------------------------------------------------
 def _typestore():

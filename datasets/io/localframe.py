@@ -161,8 +161,12 @@ class LocalFrameTracker:
     def run(self, q_joints: np.ndarray, v_joints: np.ndarray, a_joints: np.ndarray, active: np.ndarray,
             load: np.ndarray | None = None, progress=None) -> LocalFrame:
         """The local frame of the next part (arrays as in :func:`anchored_local_frame`); ``switches``
-        and ``footholds`` of the result are this part's, ``drift`` the largest so far."""
-        pmodel, data, fids = self.pmodel, self.data, self.fids
+        and ``footholds`` of the result are this part's, ``drift`` the largest so far.
+
+        Raises:
+            DataError: arrays of inconsistent shapes, or of another robot.
+        """
+        pmodel = self.pmodel
         n, c = active.shape
         if (c != self.c or q_joints.shape != (n, pmodel.nq - 7) or v_joints.shape != (n, pmodel.nv - 6)
                 or a_joints.shape != v_joints.shape):
@@ -170,6 +174,28 @@ class LocalFrameTracker:
                             f"contacts {active.shape}; expected {(n, pmodel.nq - 7)}, {(n, pmodel.nv - 6)} and "
                             f"{(n, self.c)}")
         load = np.zeros((n, c)) if load is None else np.where(np.isfinite(load), load, -np.inf)
+        q_out = np.zeros((n, pmodel.nq))
+        v_out = np.zeros((n, pmodel.nv))
+        a_out = np.zeros((n, pmodel.nv))
+        q_out[:, 7:] = q_joints
+        v_out[:, 6:] = v_joints
+        a_out[:, 6:] = a_joints
+        steps = self._place(q_joints, active, load, q_out, progress)
+        b_T_a = steps.b_T_c_H[np.arange(n), steps.anchors]  # base_T_anchor of each step
+        self._base_motion(b_T_a, steps, q_out, v_out, a_out, v_joints, progress)
+        cp, cR = self._contact_placements(b_T_a, steps, active)
+        if n:
+            self.was = active[n - 1].copy()
+        self.k += n
+        return LocalFrame(q_out, v_out, a_out, steps.anchors, cp, cR, steps.switches, self.drift, steps.landed)
+
+    def _place(self, q_joints: np.ndarray, active: np.ndarray, load: np.ndarray, q_out: np.ndarray,
+               progress) -> _Steps:
+        """The step loop of a part (module docstring, 1-4): the anchor, the held rest placements and
+        the base placement of each step (into the free-flyer columns of ``q_out``); the anchor, the
+        held placements and the base carry over to the next part."""
+        pmodel, data, fids = self.pmodel, self.data, self.fids
+        n, c = active.shape
         footholds, switch_ratio, rest = self.footholds, self.switch_ratio, self.rest
         k0 = self.k
         on_rows: list[list[bool]] = active.tolist()  # Python rows: the step loop reads them element by element
@@ -179,24 +205,14 @@ class LocalFrameTracker:
             candidates = list(candidates)
             return max(candidates, key=lambda i: (load_rows[k][i], -i))
 
-        q_out = np.zeros((n, pmodel.nq))
-        v_out = np.zeros((n, pmodel.nv))
-        a_out = np.zeros((n, pmodel.nv))
-        q_out[:, 7:] = q_joints
-        v_out[:, 6:] = v_joints
-        a_out[:, 6:] = a_joints
-        anchors = np.zeros(n, dtype=int)
-        b_T_c_H = np.zeros((n, c, 4, 4))  # base_T_contact of each step, homogeneous
-        J_j = np.zeros((n, 6, pmodel.nv - 6))  # the joint columns of the anchor's Jacobian
-        rest_H: list[np.ndarray] = []  # the rest placements held in this part (homogeneous) ...
-        held: list[int] = [-1] * c  # ... the one each contact holds (index in rest_H, -1: none) ...
+        steps = _Steps(anchors=np.zeros(n, dtype=int), b_T_c_H=np.zeros((n, c, 4, 4)),
+                       J_j=np.zeros((n, 6, pmodel.nv - 6)))
+        anchors, b_T_c_H, J_j, rest_H = steps.anchors, steps.b_T_c_H, steps.J_j, steps.rest_H
+        held: list[int] = [-1] * c  # the rest placement each contact holds (index in rest_H, -1: none)
         for i in range(c):
             if rest[i] is not None:
                 held[i] = len(rest_H)
                 rest_H.append(rest[i].homogeneous)
-        held_rows: list[tuple[int, ...]] = []  # ... and that at each step
-        switches = []
-        landed: list[tuple[int, int, float, float]] = []
 
         def hold(i: int, placement) -> None:
             rest[i] = placement
@@ -213,7 +229,7 @@ class LocalFrameTracker:
 
         def touch_down(k: int, i: int, base) -> pin.SE3:
             foothold, tilt, height = on_ground(base * b_T_c[i], footholds)
-            landed.append((k0 + k, i, tilt, height))
+            steps.landed.append((k0 + k, i, tilt, height))
             return foothold
 
         q = self.q
@@ -244,7 +260,7 @@ class LocalFrameTracker:
                 if rest[new] is None:  # touched down at this very step
                     hold(new, touch_down(k, new, base))
                 jump = float(np.linalg.norm((base * b_T_c[new]).translation - rest[new].translation))
-                switches.append((k0 + k, int(self.current), int(new), jump))
+                steps.switches.append((k0 + k, int(self.current), int(new), jump))
                 self.current = new
             current = self.current
             if rest[current] is None:  # virtual anchor (no contact in force): hold its last placement
@@ -253,7 +269,7 @@ class LocalFrameTracker:
             for i in range(c):
                 if on_k[i] and (rest[i] is None or not was[i]) and i != current:
                     hold(i, touch_down(k, i, base))
-            held_rows.append(tuple(held))
+            steps.held_rows.append(tuple(held))
             anchors[k] = current
             q_out[k, :7] = pin.SE3ToXYZQUAT(base)
             # the anchor's Jacobian in its own frame does not depend on the base placement
@@ -262,29 +278,41 @@ class LocalFrameTracker:
             if progress is not None and (k % 50 == 0 or k == n - 1):
                 progress(0.5 * (k + 1) / n)
         self.base = base
-        rows = np.arange(n)
-        # free-flyer velocity and acceleration from the anchor constraint (module docstring, 5):
-        # -J_b^-1 x, J_b^-1 the adjoint of base_T_anchor
-        b_T_a = b_T_c_H[rows, anchors]
+        return steps
+
+    def _base_motion(self, b_T_a: np.ndarray, steps: _Steps, q_out: np.ndarray, v_out: np.ndarray,
+                     a_out: np.ndarray, v_joints: np.ndarray, progress) -> None:
+        """The free-flyer velocity and acceleration from the anchor constraint (module docstring, 5),
+        into the free-flyer columns of ``v_out`` and ``a_out``: ``-J_b^-1 x``, ``J_b^-1`` the
+        adjoint of ``b_T_a`` (base_T_anchor, (N, 4, 4))."""
+        pmodel, data, fids = self.pmodel, self.data, self.fids
+        n = len(steps.anchors)
         R_a, p_a = b_T_a[:, :3, :3], b_T_a[:, :3, 3]
 
         def minus_adjoint(x: np.ndarray) -> np.ndarray:
             ang = np.einsum("nij,nj->ni", R_a, x[:, 3:])
             return -np.concatenate([np.einsum("nij,nj->ni", R_a, x[:, :3]) + np.cross(p_a, ang), ang], axis=1)
 
-        v_out[:, :6] = minus_adjoint(np.einsum("nij,nj->ni", J_j, v_joints))
+        v_out[:, :6] = minus_adjoint(np.einsum("nij,nj->ni", steps.J_j, v_joints))
         gamma = np.zeros((n, 6))  # the anchor's spatial acceleration with a_b = 0
         for k in range(n):
             pin.forwardKinematics(pmodel, data, q_out[k], v_out[k], a_out[k])
-            gamma[k] = pin.getFrameAcceleration(pmodel, data, fids[anchors[k]], pin.LOCAL).vector
+            gamma[k] = pin.getFrameAcceleration(pmodel, data, fids[steps.anchors[k]], pin.LOCAL).vector
             if progress is not None and (k % 50 == 0 or k == n - 1):
                 progress(0.5 + 0.5 * (k + 1) / n)
         a_out[:, :6] = minus_adjoint(gamma)
-        # the contacts: the held rest placement when in force, the kinematic one otherwise
-        # (every contact in force holds one; so does the anchor)
-        ids = np.array(held_rows, dtype=int).reshape(n, c)
-        rests = np.array(rest_H).reshape(-1, 4, 4)
-        anchor_rest = rests[ids[rows, anchors]] if n else np.zeros((0, 4, 4))
+
+    def _contact_placements(self, b_T_a: np.ndarray, steps: _Steps,
+                            active: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(contact_p, contact_R)`` of a part: the held rest placement of each contact in force,
+        the kinematic one otherwise (every contact in force holds one; so does the anchor); the
+        drift updated with the part's largest distance between the two."""
+        n, c = active.shape
+        R_a, p_a = b_T_a[:, :3, :3], b_T_a[:, :3, 3]
+        b_T_c_H = steps.b_T_c_H
+        ids = np.array(steps.held_rows, dtype=int).reshape(n, c)
+        rests = np.array(steps.rest_H).reshape(-1, 4, 4)
+        anchor_rest = rests[ids[np.arange(n), steps.anchors]] if n else np.zeros((0, 4, 4))
         # base = anchor_rest * base_T_anchor^-1 (the placement the step loop formed as an SE3)
         R_base = anchor_rest[:, :3, :3] @ R_a.transpose(0, 2, 1)
         p_base = anchor_rest[:, :3, 3] - np.einsum("nij,nj->ni", R_base, p_a)
@@ -297,7 +325,24 @@ class LocalFrameTracker:
         if active.any():
             gap = np.linalg.norm(cp - kin_p, axis=2)
             self.drift = max(self.drift, float(gap[active].max()))
-        if n:
-            self.was = active[n - 1].copy()
-        self.k += n
-        return LocalFrame(q_out, v_out, a_out, anchors, cp, cR, switches, self.drift, landed)
+        return cp, cR
+
+
+@dataclass
+class _Steps:
+    """What the step loop of :meth:`LocalFrameTracker.run` forms for a part of N steps."""
+
+    anchors: np.ndarray
+    """(N,) index of the anchor contact."""
+    b_T_c_H: np.ndarray
+    """(N, C, 4, 4) base_T_contact, homogeneous."""
+    J_j: np.ndarray
+    """(N, 6, nv - 6) the joint columns of the anchor's Jacobian (its own frame)."""
+    held_rows: list = field(default_factory=list)
+    """(N,) tuples: per step, the index in ``rest_H`` of the rest placement each contact holds (-1: none)."""
+    rest_H: list = field(default_factory=list)
+    """The rest placements held in the part (homogeneous 4x4), those carried over first."""
+    switches: list = field(default_factory=list)
+    """Anchor changes, as :attr:`LocalFrame.switches`."""
+    landed: list = field(default_factory=list)
+    """Touch-downs, as :attr:`LocalFrame.footholds`."""

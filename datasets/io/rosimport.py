@@ -252,6 +252,54 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
     model = robot_config if isinstance(robot_config, RobotModel) else RobotModel(robot_config)
     config: RobotConfig = model.config
     ros = config.ros or RosConfig()
+    _check_ros_config(model, ros, contacts)
+    report = progress or (lambda f: None)
+
+    topics, all_types, storage, wanted = _read_robot_topics(path, config, ros, contacts, report)
+    imu, joints = topics[ros.imu_topic], topics[ros.joint_states_topic]
+    t_first = int(min(t.t_ns[0] for t in topics.values()))
+    grid, period = _grid(imu, joints, rate or ros.rate or 1e9 / float(np.median(np.diff(imu.t_ns))))
+    dt = period * 1e-9
+    gaps = _GapCheck(grid, ros.gap_factor * dt, ros.max_gap)
+    gyro, accel, imu_missing = _imu_on_grid(imu, model, grid, gaps)
+    joint = _joints_on_grid(joints, model, ros, grid, dt, t_first, gaps)
+    report(0.3)
+    ft = _ft_on_grid(topics, model, ros, grid, joint.q, gaps)
+    active, method = _contact_states(model, ros, contacts, ft, len(grid))
+    load = ft[:, :, 2] if ft is not None else None
+    anchor = _anchor(ros, config)
+    _check_in_force(path, ros, contacts, config.contact_names, active, method, ft)
+    footholds = config.footholds  # terrain "none": zero weights, the touch-downs still measured
+    lf = anchored_local_frame(model, joint.q, joint.v, joint.a, active, load, anchor,
+                              progress=lambda f: report(0.3 + 0.3 * f), footholds=footholds)
+    check_touch_downs(lf.footholds, footholds, config.contact_names, lambda k: (grid[k] - grid[0]) * 1e-9)
+    arrays = local_inputs(model, lf, progress=lambda f: report(0.6 + 0.35 * f))
+    mocap = _mocap_on_grid(topics, ros, grid, gaps)
+    source = {"path": str(path), "format": storage, "robot_config": config.source or config.name,
+              "topics": {t: tp.msgtype for t, tp in topics.items()},
+              "missing_topics": sorted(set(wanted) - set(topics)),
+              "t0_ns": int(grid[0]),
+              "messages": {t: len(tp.t_ns) for t, tp in topics.items()},
+              "duplicate_stamps": {t: tp.duplicates for t, tp in topics.items() if tp.duplicates}}
+    meta = _import_meta(source, model, ros, grid, period, imu_missing, joint, gaps.found, active, method, lf, mocap)
+    rec = Recording(
+        t_ns=grid, robot=config.source or config.name, contact_names=config.contact_names, mass=model.mass,
+        contact_active=active, contact_p=lf.contact_p, contact_R=lf.contact_R, gyro=gyro, accel=accel,
+        joint_names=tuple(model.joint_names), joint_q=joint.q, joint_v=joint.v, ft=ft, mocap=mocap,
+        base_pose=lf.base_pose,
+        gravity=config.gravity, meta=meta, **arrays)
+    report(1.0)
+    return rec.validate()
+
+
+def _check_ros_config(model: RobotModel, ros: RosConfig, contacts: str) -> None:
+    """The ``[ros]`` table against the robot and the contact detection ``contacts``.
+
+    Raises:
+        ConfigError: an unknown ``contacts``, an F/T topic of an unknown contact, a contact without
+            F/T topic under ``contacts="ft"``, a motion-capture frame not in the URDF.
+    """
+    config = model.config
     if contacts not in ("ft", "fixed"):
         raise ConfigError(f"contacts = {contacts!r}; expected 'ft' (from F/T normal forces) or 'fixed'")
     for name in ros.ft_topics:
@@ -267,8 +315,18 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
         if not model.model.existFrame(frame):
             raise ConfigError(f"ros.mocap_topics names frame '{frame}', which is not in the URDF of robot "
                               f"'{config.name}'")
-    report = progress or (lambda f: None)
 
+
+def _read_robot_topics(path: Path, config: RobotConfig, ros: RosConfig, contacts: str,
+                       report) -> tuple[dict[str, _Topic], dict[str, str], str, dict[str, str]]:
+    """``(topics, all types, storage, wanted)`` of :func:`read_topics` for the topics the ``[ros]``
+    table names (``wanted``: topic -> msgtype), the required ones (IMU, joints, and the F/T under
+    ``contacts="ft"``) checked present, the IMU and joints with two messages at least; ``report``
+    is given 0.15 once they are read.
+
+    Raises:
+        BagError: a required topic absent or empty, an IMU or joint topic of one message.
+    """
     wanted = {ros.imu_topic: T_IMU, ros.joint_states_topic: T_JOINTS}
     wanted.update({topic: T_WRENCH for topic in ros.ft_topics.values()})
     wanted.update({topic: T_POSE for topic in ros.mocap_topics.values()})
@@ -285,38 +343,66 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
             have = ", ".join(f"{t} ({m})" for t, m in sorted(all_types.items())) or "none"
             raise BagError(f"bag {path} lacks topic {required_topic} ({wanted[required_topic]}) named by robot config "
                            f"'{config.name}'; the bag has: {have}")
-    imu, joints = topics[ros.imu_topic], topics[ros.joint_states_topic]
-    for tp in (imu, joints):
+    for tp in (topics[ros.imu_topic], topics[ros.joint_states_topic]):
         if len(tp.t_ns) < 2:
             raise BagError(f"topic {tp.name} has {len(tp.t_ns)} message(s); expected at least 2")
-    t_first = int(min(t.t_ns[0] for t in topics.values()))
+    return topics, all_types, storage, wanted
 
-    # ---- grid ----
-    rate = rate or ros.rate or 1e9 / float(np.median(np.diff(imu.t_ns)))
+
+def _grid(imu: _Topic, joints: _Topic, rate: float) -> tuple[np.ndarray, int]:
+    """``(grid, period)``: the uniform grid (ns) at ``rate`` Hz over the span of both the IMU and
+    the joint topics, and its period rounded to whole ns.
+
+    Raises:
+        DataError: the two topics do not overlap in time.
+    """
     period = int(round(1e9 / rate))
     start = max(imu.t_ns[0], joints.t_ns[0])
     stop = min(imu.t_ns[-1], joints.t_ns[-1])
     if stop <= start:
         raise DataError(f"topics {imu.name} and {joints.name} do not overlap in time; expected simultaneous logs")
     n = int((stop - start) // period) + 1
-    grid = start + period * np.arange(n, dtype=np.int64)
-    dt = period * 1e-9
-    report_gap = ros.gap_factor * dt
-    gaps = []
+    return start + period * np.arange(n, dtype=np.int64), period
 
-    def check_gaps(topic: _Topic, fatal: bool) -> np.ndarray:
-        gaps.extend(_gaps(topic.name, topic.t_ns, int(grid[0]), report_gap, grid))
-        long = _in_long_gap(topic.t_ns, grid, ros.max_gap)
+
+class _GapCheck:
+    """The source intervals of each topic against the grid: those longer than ``report`` s are
+    collected in :attr:`found` (``meta['gaps']``), those longer than ``max_gap`` s mark the grid
+    points inside them."""
+
+    def __init__(self, grid: np.ndarray, report: float, max_gap: float):
+        self.grid, self.report, self.max_gap = grid, report, max_gap
+        self.found: list[dict] = []
+
+    def __call__(self, topic: _Topic, fatal: bool) -> np.ndarray:
+        """(N,) bool: the grid points inside a gap longer than ``max_gap`` s of ``topic``.
+
+        Raises:
+            DataError: such a gap when ``fatal`` (inputs cannot be made up there).
+        """
+        grid = self.grid
+        self.found.extend(_gaps(topic.name, topic.t_ns, int(grid[0]), self.report, grid))
+        long = _in_long_gap(topic.t_ns, grid, self.max_gap)
         if fatal and long.any():
             k = int(np.flatnonzero(long)[0])
             j = int(np.searchsorted(topic.t_ns, grid[k]) - 1)
             raise DataError(
                 f"topic {topic.name} has a gap of {(topic.t_ns[j + 1] - topic.t_ns[j]) * 1e-9:.3f} s from "
                 f"t = {(topic.t_ns[j] - grid[0]) * 1e-9:.3f} s to {(topic.t_ns[j + 1] - grid[0]) * 1e-9:.3f} s; "
-                f"expected gaps shorter than ros.max_gap = {ros.max_gap} s")
+                f"expected gaps shorter than ros.max_gap = {self.max_gap} s")
         return long
 
-    # ---- IMU ----
+
+def _imu_on_grid(imu: _Topic, model: RobotModel, grid: np.ndarray,
+                 gaps: _GapCheck) -> tuple[np.ndarray, np.ndarray, int]:
+    """``(gyro, accel, missing)``: the (N, 3) IMU readings on the grid and the count of messages
+    with a NaN or inf component (a missing reading: NaN on that axis at the grid points it brackets).
+
+    Raises:
+        BagError: a message in another frame than the robot's IMU frame.
+        DataError: a gap longer than ``ros.max_gap``.
+    """
+    config = model.config
     frames = {m.header.frame_id for m in imu.msgs} - {""}
     for frame in frames:
         if frame != config.imu_frame:
@@ -331,12 +417,37 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
     imu_missing = int(np.sum((~np.isfinite(np.concatenate([gyro_src, acc_src], axis=1))).any(axis=1)))
     gyro_src = np.where(np.isfinite(gyro_src), gyro_src, np.nan)
     acc_src = np.where(np.isfinite(acc_src), acc_src, np.nan)
-    check_gaps(imu, fatal=True)
-    gyro = _interp(imu.t_ns, gyro_src, grid)
-    accel = _interp(imu.t_ns, acc_src, grid)
+    gaps(imu, fatal=True)
+    return _interp(imu.t_ns, gyro_src, grid), _interp(imu.t_ns, acc_src, grid), imu_missing
 
-    # ---- joints ----
-    pmodel = model.model
+
+@dataclass
+class _Joints:
+    """The joints on the grid (the URDF's joint order)."""
+
+    q: np.ndarray
+    """(N, J) positions, rad (the reference configuration's for a joint never measured)."""
+    v: np.ndarray
+    """(N, J) velocities, rad/s (zero for a joint never measured)."""
+    a: np.ndarray
+    """(N, J) accelerations, rad/s^2 (zero for a joint never measured)."""
+    measured: np.ndarray
+    """(J,) bool: named by the joint messages."""
+    velocity_source: str
+    """``"message"`` (the messages' velocities) or ``"savgol"`` (differentiated positions)."""
+
+
+def _joint_sources(joints: _Topic, model: RobotModel, ros: RosConfig) -> tuple[np.ndarray, np.ndarray, bool]:
+    """``(q_src, v_src, has_vel)``: the (M, J) positions and velocities of the M joint messages in
+    the URDF's joint order (NaN for a joint a message does not name), and whether every message
+    has velocities.
+
+    Raises:
+        ConfigError: a joint of the URDF with more than one position coordinate.
+        BagError: a joint the robot does not have (unless ``ros.ignore_joints``), as many
+            positions as names.
+    """
+    config, pmodel = model.config, model.model
     ignore = re.compile(ros.ignore_joints) if ros.ignore_joints else None
     model_names = model.joint_names
     index = {name: i for i, name in enumerate(model_names)}
@@ -375,6 +486,20 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
             v_src[k, dst] = vel[src]
         else:
             has_vel = False
+    return q_src, v_src, has_vel
+
+
+def _joints_on_grid(joints: _Topic, model: RobotModel, ros: RosConfig, grid: np.ndarray, dt: float, t_first: int,
+                    gaps: _GapCheck) -> _Joints:
+    """The joint messages resampled on the grid and differentiated (module docstring, "Derivatives").
+
+    Raises:
+        BagError: as :func:`_joint_sources`; no joint of the robot named.
+        DataError: a NaN or inf position (or message velocity), a gap longer than ``ros.max_gap``, a
+            joint not measured over the whole grid, a log shorter than the Savitzky-Golay window.
+    """
+    model_names = model.joint_names
+    q_src, v_src, has_vel = _joint_sources(joints, model, ros)
     measured = ~np.all(np.isnan(q_src), axis=0)
     for k, m in enumerate(joints.msgs):
         pos = np.asarray(m.position, dtype=float)
@@ -382,84 +507,118 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
             s = int(np.flatnonzero(~np.isfinite(pos))[0])
             raise DataError(f"topic {joints.name} message {k} (t = {(joints.t_ns[k] - t_first) * 1e-9:.3f} s) has "
                             f"NaN or inf position for joint '{m.name[s]}'; expected finite values")
-    if has_vel and ros.joint_velocity == "message":
+    from_messages = has_vel and ros.joint_velocity == "message"
+    if from_messages:
         _require_finite(joints, v_src[:, measured], "velocity", t_first,
                         [n for n, ok in zip(model_names, measured) if ok])
     if not measured.any():
-        raise BagError(f"topic {joints.name} names none of the joints of robot '{config.name}'")
-    check_gaps(joints, fatal=True)
-    q_ref = model.q_reference[7:]
-    q_grid = np.tile(q_ref, (n, 1))
-    v_grid = np.zeros((n, nj))
+        raise BagError(f"topic {joints.name} names none of the joints of robot '{model.config.name}'")
+    gaps(joints, fatal=True)
+    n = len(grid)
+    q_grid = np.tile(model.q_reference[7:], (n, 1))
+    v_grid = np.zeros((n, len(model_names)))
     for j in np.flatnonzero(measured):  # per joint: messages may name different subsets
         ok = np.isfinite(q_src[:, j])
         q_grid[:, j] = _interp(joints.t_ns[ok], q_src[ok, j], grid)
-        if has_vel and ros.joint_velocity == "message":
+        if from_messages:
             v_grid[:, j] = _interp(joints.t_ns[ok], v_src[ok, j], grid)
     if np.isnan(q_grid).any():
         bad = int(np.flatnonzero(np.isnan(q_grid).any(axis=0))[0])
         raise DataError(f"joint '{model_names[bad]}' is not measured over the whole grid on topic {joints.name}; "
                         "expected every joint in every message span")
-    velocity_source = "message" if has_vel and ros.joint_velocity == "message" else "savgol"
-    if velocity_source == "message":
+    if from_messages:
         a_grid = _savgol(v_grid, dt, 1, ros)
     else:
         v_grid = _savgol(q_grid, dt, 1, ros)
         a_grid = _savgol(q_grid, dt, 2, ros)
     v_grid[:, ~measured] = 0.0
     a_grid[:, ~measured] = 0.0
-    report(0.3)
+    return _Joints(q_grid, v_grid, a_grid, measured, "message" if from_messages else "savgol")
 
-    # ---- F/T ----
+
+def _ft_on_grid(topics: dict[str, _Topic], model: RobotModel, ros: RosConfig, grid: np.ndarray,
+                q_grid: np.ndarray, gaps: _GapCheck) -> np.ndarray | None:
+    """(N, C, 6) F/T wrenches on the grid in each contact's frame (NaN without a topic and inside
+    long gaps); None when the bag has no F/T topic of the ``[ros]`` table.
+
+    Raises:
+        BagError: a wrench in a frame not in the URDF, or changing frame.
+    """
+    config, pmodel = model.config, model.model
     names_c = config.contact_names
-    c = len(names_c)
-    ft = None
-    if ros.ft_topics and any(t in topics for t in ros.ft_topics.values()):
-        ft = np.full((n, c, 6), np.nan)
-        for i, cname in enumerate(names_c):
-            topic = topics.get(ros.ft_topics.get(cname, ""))
-            if topic is None:
-                continue
-            w = np.array([(m.wrench.force.x, m.wrench.force.y, m.wrench.force.z,
-                           m.wrench.torque.x, m.wrench.torque.y, m.wrench.torque.z) for m in topic.msgs])
-            long = check_gaps(topic, fatal=False)
-            ft[:, i] = _interp(topic.t_ns, w, grid)
-            ft[long, i] = np.nan
-            frames = {m.header.frame_id for m in topic.msgs} - {""}
-            contact_frame = config.contacts[i].frame
-            for frame in frames - {contact_frame}:
-                if not pmodel.existFrame(frame):
-                    raise BagError(f"topic {topic.name} is in frame '{frame}', which is not in the URDF of robot "
-                                   f"'{config.name}'; expected the contact frame '{contact_frame}'")
-            if frames - {contact_frame}:
-                if len(frames) > 1:
-                    raise BagError(f"topic {topic.name} changes frame ({sorted(frames)}); expected one frame")
-                ft[:, i] = _wrench_to_contact_frame(model, q_grid, frames.pop(), contact_frame, ft[:, i])
+    if not (ros.ft_topics and any(t in topics for t in ros.ft_topics.values())):
+        return None
+    ft = np.full((len(grid), len(names_c), 6), np.nan)
+    for i, cname in enumerate(names_c):
+        topic = topics.get(ros.ft_topics.get(cname, ""))
+        if topic is None:
+            continue
+        w = np.array([(m.wrench.force.x, m.wrench.force.y, m.wrench.force.z,
+                       m.wrench.torque.x, m.wrench.torque.y, m.wrench.torque.z) for m in topic.msgs])
+        long = gaps(topic, fatal=False)
+        ft[:, i] = _interp(topic.t_ns, w, grid)
+        ft[long, i] = np.nan
+        frames = {m.header.frame_id for m in topic.msgs} - {""}
+        contact_frame = config.contacts[i].frame
+        for frame in frames - {contact_frame}:
+            if not pmodel.existFrame(frame):
+                raise BagError(f"topic {topic.name} is in frame '{frame}', which is not in the URDF of robot "
+                               f"'{config.name}'; expected the contact frame '{contact_frame}'")
+        if frames - {contact_frame}:
+            if len(frames) > 1:
+                raise BagError(f"topic {topic.name} changes frame ({sorted(frames)}); expected one frame")
+            ft[:, i] = _wrench_to_contact_frame(model, q_grid, frames.pop(), contact_frame, ft[:, i])
+    return ft
 
-    # ---- contacts ----
-    if contacts == "ft":
-        mg = model.mass * config.gravity
-        on = ros.contact_on if ros.contact_on is not None else ros.contact_on_weight * mg
-        off = ros.contact_off if ros.contact_off is not None else ros.contact_off_weight * mg
-        assert ft is not None  # the F/T topics are required with contacts='ft'
-        if not off < on:
-            raise ConfigError(f"contact thresholds: off = {off:.1f} N is not below on = {on:.1f} N "
-                              f"(m g = {mg:.1f} N); set ros.contact_on / ros.contact_off (N) or the "
-                              "fractions ros.contact_on_weight / ros.contact_off_weight consistently")
-        active = np.stack([schmitt_trigger(ft[:, i, 2], on, off) for i in range(c)], axis=1)
-        method = {"method": "schmitt", "on_N": on, "off_N": off}
-    else:
+
+def _contact_states(model: RobotModel, ros: RosConfig, contacts: str, ft: np.ndarray | None,
+                    n: int) -> tuple[np.ndarray, dict]:
+    """``(active, method)``: the (N, C) contacts in force (a Schmitt trigger on the F/T normal
+    force, or the fixed set) and the method's meta entry.
+
+    Raises:
+        ConfigError: an off threshold not below the on threshold.
+    """
+    config = model.config
+    names_c = config.contact_names
+    if contacts != "ft":
         active = fixed_contacts(n, names_c, ros.fixed_contacts)
-        method = {"method": "fixed", "contacts": [nm for i, nm in enumerate(names_c) if active[0, i]]}
-    load = ft[:, :, 2] if ft is not None else None
-    anchor = None
-    if ros.anchor is not None:
-        if ros.anchor not in names_c:
-            raise ConfigError(f"ros.anchor = '{ros.anchor}' is not a contact of robot '{config.name}' "
-                              f"({list(names_c)})")
-        anchor = names_c.index(ros.anchor)
+        return active, {"method": "fixed", "contacts": [nm for i, nm in enumerate(names_c) if active[0, i]]}
+    mg = model.mass * config.gravity
+    on = ros.contact_on if ros.contact_on is not None else ros.contact_on_weight * mg
+    off = ros.contact_off if ros.contact_off is not None else ros.contact_off_weight * mg
+    assert ft is not None  # the F/T topics are required with contacts='ft'
+    if not off < on:
+        raise ConfigError(f"contact thresholds: off = {off:.1f} N is not below on = {on:.1f} N "
+                          f"(m g = {mg:.1f} N); set ros.contact_on / ros.contact_off (N) or the "
+                          "fractions ros.contact_on_weight / ros.contact_off_weight consistently")
+    active = np.stack([schmitt_trigger(ft[:, i, 2], on, off) for i in range(len(names_c))], axis=1)
+    return active, {"method": "schmitt", "on_N": on, "off_N": off}
 
-    # ---- local frame and kinematics ----
+
+def _anchor(ros: RosConfig, config: RobotConfig) -> int | None:
+    """The index of the contact ``ros.anchor`` names (None: not named).
+
+    Raises:
+        ConfigError: not a contact of the robot.
+    """
+    if ros.anchor is None:
+        return None
+    if ros.anchor not in config.contact_names:
+        raise ConfigError(f"ros.anchor = '{ros.anchor}' is not a contact of robot '{config.name}' "
+                          f"({list(config.contact_names)})")
+    return config.contact_names.index(ros.anchor)
+
+
+def _check_in_force(path: Path, ros: RosConfig, contacts: str, names_c: tuple[str, ...], active: np.ndarray,
+                    method: dict, ft: np.ndarray | None) -> None:
+    """Some contact is in force somewhere, and under ``contacts="ft"`` every one.
+
+    Raises:
+        DataError: no contact ever in force; under ``contacts="ft"`` a contact never in force
+            (naming the largest normal force of its F/T topic).
+    """
+    c = len(names_c)
     never = [names_c[i] for i in range(c) if not active[:, i].any()]
     if len(never) == c:
         raise DataError(f"no contact is ever in force in {path} ({method}); a foot must carry the robot "
@@ -470,38 +629,39 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
                 for i in range(c) if names_c[i] in never}
         raise DataError(f"contact(s) {never} never come into force (largest F/T normal force "
                         + ", ".join(f"{k}: {v:.1f} N" for k, v in peak.items())
-                        + f", on threshold {on:.1f} N): check their F/T topics "
+                        + f", on threshold {method['on_N']:.1f} N): check their F/T topics "
                         f"{[ros.ft_topics[k] for k in never]} and ros.contact_on, or use contacts='fixed' with "
                         "ros.fixed_contacts naming the feet that are down")
-    footholds = config.footholds  # terrain "none": zero weights, the touch-downs still measured
-    lf = anchored_local_frame(model, q_grid, v_grid, a_grid, active, load, anchor,
-                              progress=lambda f: report(0.3 + 0.3 * f), footholds=footholds)
-    check_touch_downs(lf.footholds, footholds, names_c, lambda k: (grid[k] - grid[0]) * 1e-9)
-    arrays = local_inputs(model, lf, progress=lambda f: report(0.6 + 0.35 * f))
 
-    # ---- motion capture ----
+
+def _mocap_on_grid(topics: dict[str, _Topic], ros: RosConfig, grid: np.ndarray, gaps: _GapCheck) -> dict:
+    """Frame -> (N, 7) motion-capture poses on the grid (:func:`_resample_poses`), for the topics
+    with two messages at least."""
     mocap = {}
     for frame, topic_name in ros.mocap_topics.items():
         topic = topics.get(topic_name)
         if topic is None or len(topic.t_ns) < 2:
             continue
-        check_gaps(topic, fatal=False)
+        gaps(topic, fatal=False)
         mocap[frame] = _resample_poses(topic, grid, ros.max_gap)
+    return mocap
 
+
+def _import_meta(source: dict, model: RobotModel, ros: RosConfig, grid: np.ndarray, period: int, imu_missing: int,
+                 joint: _Joints, gaps: list[dict], active: np.ndarray, method: dict, lf, mocap: dict) -> dict:
+    """``Recording.meta`` of an imported bag (module docstring)."""
+    config = model.config
+    names_c = config.contact_names
+    dt = period * 1e-9
     time = (grid - grid[0]) * 1e-9
-    meta = {
-        "source": {"path": str(path), "format": storage, "robot_config": config.source or config.name,
-                   "topics": {t: tp.msgtype for t, tp in topics.items()},
-                   "missing_topics": sorted(set(wanted) - set(topics)),
-                   "t0_ns": int(grid[0]),
-                   "messages": {t: len(tp.t_ns) for t, tp in topics.items()},
-                   "duplicate_stamps": {t: tp.duplicates for t, tp in topics.items() if tp.duplicates}},
-        "grid": {"rate_hz": 1.0 / dt, "period_ns": period, "n": n,
+    return {
+        "source": source,
+        "grid": {"rate_hz": 1.0 / dt, "period_ns": period, "n": len(grid),
                  "method": "linear interpolation (IMU, joints, F/T); nlerp (mocap orientation)"},
         "imu_missing_messages": imu_missing,
-        "joint_velocity": velocity_source,
+        "joint_velocity": joint.velocity_source,
         "derivative_filter": {"method": "savgol", "window_s": ros.savgol_window, "order": ros.savgol_order},
-        "joints_not_measured": [nm for nm, ok in zip(model_names, measured) if not ok],
+        "joints_not_measured": [nm for nm, ok in zip(model.joint_names, joint.measured) if not ok],
         "gaps": _merge_gaps(gaps),
         "contacts": {**method, "phases": {p.name: [list(iv) for iv in p.intervals]
                                           for p in phases(time, active, names_c)}},
@@ -513,16 +673,8 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
                       "tilt_weight": config.footholds.tilt_weight, "height_weight": config.footholds.height_weight,
                       "touch_downs": [{"t": round(float(time[k]), 6), "contact": names_c[i], "tilt_rad": tilt,
                                        "height_m": height} for k, i, tilt, height in lf.footholds]},
-        "base_frame": _root_link(pmodel, mocap),
+        "base_frame": _root_link(model.model, mocap),
     }
-    rec = Recording(
-        t_ns=grid, robot=config.source or config.name, contact_names=names_c, mass=model.mass,
-        contact_active=active, contact_p=lf.contact_p, contact_R=lf.contact_R, gyro=gyro, accel=accel,
-        joint_names=tuple(model_names), joint_q=q_grid, joint_v=v_grid, ft=ft, mocap=mocap,
-        base_pose=lf.base_pose,
-        gravity=config.gravity, meta=meta, **arrays)
-    report(1.0)
-    return rec.validate()
 
 
 def check_touch_downs(landed, footholds, contact_names, time_of) -> None:

@@ -79,9 +79,10 @@ import numpy as np
 import pinocchio as pin
 from scipy import signal
 
+from flexforce.datasets.quantities import ContactParams
 from flexforce.datasets.recording import Recording, Truth
 from flexforce.datasets.robot import ROBOTS_DIR, FtNoise, ImuNoise, RobotConfig, RobotModel
-from flexforce.datasets.sim.effects import HiddenEffect, parse_effects
+from flexforce.datasets.sim.effects import HiddenEffect, SpringTerms, grouped, parse_effects
 from flexforce.datasets.sim.scenario import Ambient, Scenario, minjerk
 from flexforce.errors import ConfigError, ModelError
 
@@ -89,8 +90,10 @@ E_Z = np.array([0.0, 0.0, 1.0])
 
 
 @dataclass(frozen=True)
-class Spring:
-    """The simulated 6-D spring-damper of one contact, its matrices in the contact frame.
+class Spring(ContactParams):
+    """The simulated 6-D spring-damper of one contact: the parameters of a
+    :class:`~flexforce.datasets.quantities.ContactParams` (matrices in the contact frame, cubic
+    coefficients) with the simulator's own law (:meth:`wrench`).
 
     Force on the robot ``F = -K_fs s (1 + beta_f |s|^2) - K_fd v``, torque about the contact point
     ``T = -K_ts Omega (1 + beta_t |Omega|^2) - K_td w``, with ``s`` (m) and ``Omega = log3(R_c
@@ -98,19 +101,6 @@ class Spring:
     placement, ``v`` and ``w`` the contact frame's world-aligned linear and angular velocity, and
     every matrix rotated into the world with the contact frame's actual orientation.
     """
-
-    K_fs: np.ndarray
-    """3x3, N/m."""
-    K_fd: np.ndarray
-    """3x3, N s/m."""
-    K_ts: np.ndarray
-    """3x3, N m/rad."""
-    K_td: np.ndarray
-    """3x3, N m s/rad."""
-    beta_f: float = 0.0
-    """1/m^2."""
-    beta_t: float = 0.0
-    """1/rad^2."""
 
     @classmethod
     def from_stiffness(cls, stiffness) -> Spring:
@@ -575,6 +565,7 @@ class Simulator:
             self.robot = RobotModel(cfg)
         self.noise = scenario.noise if noise is None else noise
         self.effects: list[HiddenEffect] = parse_effects(scenario.effects)
+        self._groups = grouped(self.effects)  # (effect class, its effects): the group hooks' calls
         cfg = self.robot.config
         # The simulated sensors: the robot configuration's noise unless the scenario says otherwise;
         # ``scale`` multiplies the white-noise levels (a sensor noisier than its data sheet).
@@ -596,9 +587,8 @@ class Simulator:
         # The simulated robot: the nominal model, with the hidden mass-model error if any.
         self.sim_model = pin.Model(self.robot.model)
         self.sim_model.gravity = pin.Motion(np.array([0.0, 0.0, -self.g]), np.zeros(3))
-        self._apply_com_offset()
-        self._apply_mass_scale()
-        self._apply_imu_mounting()
+        for cls, group in self._groups:
+            cls.apply_to_model(self, group)
         self.sim_data = self.sim_model.createData()
         self.springs = self._true_springs()
         self.touchdown = scenario.touchdown
@@ -607,12 +597,10 @@ class Simulator:
         self.ambient = None
         if self.noise and self.ambient_spec.enabled:
             self.ambient = self._ambient_levels(self.ambient_spec)
-        self.ext_effects = []
-        for eff in self.effects:
-            if eff.type == "external-wrench":
-                self.ext_effects.append((eff, self._frame_of(eff.params.get("link", "@base")),
-                                         eff.vector("force"), eff.vector("torque")))
+        self.ext_effects = [w for cls, group in self._groups for w in cls.external_wrenches(self, group)]
         self.ft_offset = self._ft_offsets()  # checked here, before a long run
+        self.episodes: list[dict] = []
+        """The contact episodes of the last :meth:`run` (``meta["contact_episodes"]``)."""
 
     # ------------------------------------------------------------------------------------------
     def _frame_of(self, link: str) -> int:
@@ -626,48 +614,6 @@ class Simulator:
             raise ConfigError(f"external wrench on unknown link '{link}' of robot '{self.robot.name}'")
         return model.getFrameId(link)
 
-    def _apply_com_offset(self):
-        offsets = [e.vector("offset") for e in self.effects if e.type == "com-offset"]
-        if not offsets:
-            return
-        offset = np.sum(offsets, axis=0)
-        model = self.sim_model
-        masses = [model.inertias[i].mass for i in range(model.njoints)]
-        j = int(np.argmax(masses))
-        data = model.createData()
-        pin.forwardKinematics(model, data, self.robot.q_reference)
-        R = data.oMi[j].rotation
-        Y = model.inertias[j]
-        shift = R.T @ offset * (self.robot.mass / Y.mass)
-        # Keep the rotational inertia about the body's own CoM: rebuild with the moved lever.
-        model.inertias[j] = pin.Inertia(Y.mass, Y.lever + shift, Y.inertia)
-
-    def _apply_mass_scale(self):
-        """Hidden ``mass-scale``: every body's mass and rotational inertia times the factor, its CoM
-        where it was (the recording's inputs keep the nominal model)."""
-        scales = [float(e.params.get("scale", 1.0)) for e in self.effects if e.type == "mass-scale"]
-        if not scales:
-            return
-        s = float(np.prod(scales))
-        if not s > 0:
-            raise ConfigError(f"mass-scale: scale must be positive, got {s}")
-        model = self.sim_model
-        for i in range(model.njoints):
-            Y = model.inertias[i]
-            model.inertias[i] = pin.Inertia(Y.mass * s, Y.lever.copy(), Y.inertia * s)
-
-    def _apply_imu_mounting(self):
-        """Hidden ``imu-mounting``: the simulated IMU frame turned by ``exp(rotation)`` in its own axes
-        (the recording's IMU placement is the URDF's)."""
-        rots = [e.vector("rotation") for e in self.effects if e.type == "imu-mounting"]
-        if not rots:
-            return
-        fid = self.robot.imu_frame_id
-        frame = self.sim_model.frames[fid]
-        turned = pin.SE3(pin.exp3(np.sum(rots, axis=0)), np.zeros(3))
-        frame.placement = frame.placement * turned
-        self.sim_model.frames[fid] = frame
-
     def _delay_imu(self, times: np.ndarray, gyro: np.ndarray, accel: np.ndarray):
         """Hidden ``time-offset``: the readings stamped ``t`` are the simulated sensor's at ``t - delay``.
 
@@ -675,7 +621,9 @@ class Simulator:
         those of a smooth simulated motion; the spline's error is ``(omega dt)^4 / 384`` of the
         signal, below 1e-5 at 5 Hz and 200 Hz); before the start the robot is at rest (the first
         reading), after the end the last one is held."""
-        delay = sum(float(e.params.get("delay", 0.0)) for e in self.effects if e.type == "time-offset")
+        delay = 0.0
+        for cls, group in self._groups:
+            delay += cls.imu_delay(group)
         if delay == 0.0:
             return gyro, accel
         from scipy.interpolate import CubicSpline
@@ -686,39 +634,16 @@ class Simulator:
     def _foothold_offsets(self, active) -> dict[int, tuple[np.ndarray, np.ndarray]]:
         """Contact index -> (position m, rotation vector rad, world axes) by which the true rest
         placement of a contact standing at the start is off its nominal one (``foothold``)."""
-        names = list(self.robot.contact_names)
         out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        for e in self.effects:
-            if e.type != "foothold":
-                continue
-            contact = e.params.get("contact")
-            if contact not in names:
-                raise ConfigError(f"foothold on unknown contact {contact!r} of robot '{self.robot.name}'; "
-                                  f"known: {', '.join(names)}")
-            ci = names.index(contact)
-            if not active[ci]:
-                raise ConfigError(f"foothold on '{contact}', which is not in contact at the start; the effect "
-                                  "moves the rest placement of a contact standing at the first sample")
-            dp, dr = out.get(ci, (np.zeros(3), np.zeros(3)))
-            out[ci] = (dp + e.vector("position"), dr + e.vector("rotation"))
+        for cls, group in self._groups:
+            cls.add_foothold_offsets(self, group, active, out)
         return out
 
     def _ft_offsets(self) -> np.ndarray:
         """(C, 6) the hidden constant offsets of the F/T readings (sensor frame), per contact."""
-        names = list(self.robot.contact_names)
-        out = np.zeros((len(names), 6))
-        for e in self.effects:
-            if e.type != "ft-offset":
-                continue
-            contact = e.params.get("contact")
-            if contact is None:
-                rows = list(range(len(names)))
-            elif contact in names:
-                rows = [names.index(contact)]
-            else:
-                raise ConfigError(f"ft-offset on unknown contact '{contact}' of robot '{self.robot.name}'; "
-                                  f"known: {', '.join(names)}")
-            out[rows] += np.concatenate([e.vector("force"), e.vector("torque")])
+        out = np.zeros((len(self.robot.contact_names), 6))
+        for cls, group in self._groups:
+            cls.add_ft_offsets(self, group, out)
         return out
 
     def _ambient_levels(self, spec: Ambient) -> tuple[float, float]:
@@ -771,20 +696,10 @@ class Simulator:
         nominal = Spring.from_stiffness(self.robot.config.stiffness)
         out = []
         for p in [nominal] * len(self.robot.contact_names):
-            Kfs, Kfd, Kts, Ktd = p.K_fs.copy(), p.K_fd.copy(), p.K_ts.copy(), p.K_td.copy()
-            bf, bt = p.beta_f, p.beta_t
+            k = SpringTerms(p.K_fs.copy(), p.K_fd.copy(), p.K_ts.copy(), p.K_td.copy(), p.beta_f, p.beta_t)
             for e in self.effects:
-                if e.type == "stiffness":
-                    s = float(e.params.get("stiffness", 1.0))
-                    d = float(e.params.get("damping", 1.0))
-                    Kfs, Kts, Kfd, Ktd = Kfs * s, Kts * s, Kfd * d, Ktd * d
-                elif e.type == "anisotropic-stiffness":
-                    Kfs = np.diag(e.vector("k_fs", (1.0, 1.0, 1.0))) @ Kfs
-                    Kts = np.diag(e.vector("k_ts", (1.0, 1.0, 1.0))) @ Kts
-                elif e.type == "nonlinear-stiffness":
-                    bf += float(e.params.get("beta_f", 0.0))
-                    bt += float(e.params.get("beta_t", 0.0))
-            out.append(Spring(Kfs, Kfd, Kts, Ktd, bf, bt))
+                e.adjust_spring(k)
+            out.append(Spring(k.K_fs, k.K_fd, k.K_ts, k.K_td, k.beta_f, k.beta_t))
         return out
 
     # ------------------------------------------------------------------------------------------
@@ -920,264 +835,7 @@ class Simulator:
     # ------------------------------------------------------------------------------------------
     def run(self, progress: Callable[[float], None] | None = None) -> Recording:
         """Simulate the scenario; ``progress`` is called with the fraction done."""
-        sc = self.scenario
-        robot = self.robot
-        n = int(round(sc.duration * sc.rate)) + 1
-        dt = 1.0 / sc.rate
-        sub = int(round(sc.sim_rate / sc.rate))
-        h = dt / sub
-        nc = len(robot.contact_names)
-        times = np.arange(n) * dt
-        # Local motion at the samples (exact), then quintic Hermite in between; each sample is
-        # computed when its interval starts (an early touch-down changes the motion from then on).
-        samples = [self.motion.sample(0.0)]
-        rest: list[Any] = [pin.SE3(M) if act else None for M, act in zip(self.motion.placements0, samples[0].active)]
-        nominal_rest = [pin.SE3(M) if M is not None else None for M in rest]
-        for ci, (dp, dr) in self._foothold_offsets(samples[0].active).items():
-            # the ground under a standing contact is not where the robot believes (a shim, a tilted tile)
-            rest[ci] = pin.SE3(pin.exp3(dr) @ rest[ci].rotation, rest[ci].translation + dp)
-        R, tr = self._equilibrium(samples[0], rest)
-        quat = pin.Quaternion(R)
-        y = np.concatenate([[quat.w, quat.x, quat.y, quat.z], tr, np.zeros(6)])
-
-        truth = {k: np.zeros((n, 3)) for k in ("t", "w", "v", "dw", "a", "cop")}
-        truth_R = np.zeros((n, 3, 3))
-        truth_wrench = np.zeros((n, nc, 6))
-        truth_ext = np.zeros((n, 6))
-        truth_amb = np.zeros((n, 6))
-        links = np.zeros((n, len(robot.link_frame_ids), 3))
-        ft_true = np.zeros((n, nc, 6))
-        gyro_true = np.zeros((n, 3))
-        accel_true = np.zeros((n, 3))
-        rec_rest_p = np.zeros((n, nc, 3))
-        rec_rest_R = np.tile(np.eye(3), (n, nc, 1, 1))
-        active = np.zeros((n, nc), dtype=bool)
-
-        amb = self._ambient_table(n, sub)
-        disturbance = None
-        # The world's rest placement of each contact in force (the spring's anchor), and the local
-        # placement the robot believes in (the recording's contact placement).
-        local_rest: list[Any] = [pin.SE3(M) if M is not None else None for M in nominal_rest]  # pin.SE3 or None
-        episodes = [{"contact": robot.contact_names[ci], "start": 0.0, "end": None,
-                     "world_p": rest[ci].translation.tolist(), "world_R": rest[ci].rotation.tolist(),
-                     "local_p": local_rest[ci].translation.tolist()} if rest[ci] is not None else None
-                    for ci in range(nc)]
-        closed = []
-        scheduled = [bool(a) for a in samples[0].active]
-        swinging = [None] * nc
-        releasing = [False] * nc
-        floor_mode = self.touchdown == "floor"
-        # The floor: the plane of the contacts in force at the start (z = 0 for the built-in robots).
-        floor_z = float(np.mean([M.translation[2] for M in nominal_rest if M is not None]))
-        # Each sole's normal to the floor, in its own frame (from the standing posture).
-        floor_normal = [M.rotation.T @ E_Z for M in self.motion.placements0]
-        replanned = [False]  # an early touch-down changed the local motion in the current interval
-
-        def land(ci, t, y, q_local):
-            """Start a contact episode at ``t``: the spring's rest placement and the recorded one."""
-            model, data = self.motion.model, self.motion.data
-            fid = robot.contact_frame_ids[ci]
-            sw = swinging[ci]
-            planned = self.motion.contact_targets(sw.land)[0][ci] if sw is not None else None
-            stop = None
-            if floor_mode and sw is not None and t < sw.land:
-                # touched before its scheduled landing: the foot stops there (Stop), the plan's
-                # remaining descent is dropped
-                stop = self.motion.stop(ci, t)
-                replanned[0] = True
-            # What the robot believes: where its foot rests, in the local frame (the placement its
-            # kinematics holds from the end of the landing on).
-            local_rest[ci] = (self.motion.contact_targets(stop.end)[0][ci] if stop is not None else planned
-                              if planned is not None else
-                              (pin.framesForwardKinematics(model, data, q_local), data.oMf[fid].copy())[1])
-            if self.touchdown == "deflected":  # where the robot believes it is: preloaded by the deflection
-                rest[ci] = pin.SE3(local_rest[ci])
-            else:  # where the foot is in the world: the spring starts unloaded
-                pin.framesForwardKinematics(model, data, q_local)
-                world_T_local = pin.SE3(_quat_to_R(y[:4] / np.linalg.norm(y[:4])), y[4:7].copy())
-                rest[ci] = world_T_local * data.oMf[fid]
-                if floor_mode:  # the sole lies flat on the floor, at its height, with the foot's heading
-                    n_w = rest[ci].rotation @ floor_normal[ci]
-                    axis = np.cross(n_w, E_Z)
-                    angle = math.atan2(np.linalg.norm(axis), float(n_w @ E_Z))
-                    if angle > 0.0:
-                        rest[ci].rotation = pin.exp3(axis / np.linalg.norm(axis) * angle) @ rest[ci].rotation
-                    if rest[ci].translation[2] < floor_z:
-                        rest[ci].translation = np.array([*rest[ci].translation[:2], floor_z])
-            swinging[ci] = None
-            episodes[ci] = {"contact": robot.contact_names[ci], "start": float(t), "end": None,
-                            "world_p": rest[ci].translation.tolist(), "world_R": rest[ci].rotation.tolist(),
-                            "local_p": local_rest[ci].translation.tolist(),
-                            "above_floor": float(rest[ci].translation[2] - floor_z)}
-            if stop is not None:  # how far the foot stopped from its planned landing, in the local frame:
-                # at rest, then once the leg has levelled
-                episodes[ci]["local_off_plan"] = (local_rest[ci].translation - planned.translation).tolist()
-                episodes[ci]["levelled_off_plan"] = (self.motion.contact_targets(stop.levelled)[0][ci].translation
-                                                     - planned.translation).tolist()
-
-        def release(ci, t):
-            """End contact ``ci``'s episode at ``t``."""
-            if episodes[ci] is not None:
-                episodes[ci]["end"] = float(t)
-                closed.append(episodes[ci])
-                episodes[ci] = None
-            rest[ci] = None
-            local_rest[ci] = None
-            releasing[ci] = False
-
-        def deriv(t, y, local, rest):
-            qw = y[:4] / np.linalg.norm(y[:4])
-            Rm = _quat_to_R(qw)
-            ev = self.world_dynamics(t, Rm, y[4:7], y[7:10], y[10:13], local, rest, disturbance)
-            return np.concatenate([_quat_rate(qw, y[7:10]), y[10:13], ev.dw, ev.a]), ev
-
-        def deriv_with_events(t, y, local):
-            """``deriv`` at the start of an integration step, after the floor's contact events: a
-            descending foot that reached the floor touches it; a lifting foot whose spring no
-            longer pushes (normal force <= 0) leaves it."""
-            if floor_mode:
-                R_f = None
-                for ci in range(nc):
-                    sw = swinging[ci]
-                    if rest[ci] is not None or sw is None or t < 0.5 * (sw.lift + sw.land):
-                        continue
-                    if R_f is None:
-                        R_f = _quat_to_R(y[:4] / np.linalg.norm(y[:4]))
-                        pin.framesForwardKinematics(self.motion.model, self.motion.data, local.q)
-                    M = self.motion.data.oMf[robot.contact_frame_ids[ci]]
-                    if (R_f @ M.translation + y[4:7])[2] <= floor_z:
-                        land(ci, t, y, local.q)
-            out = deriv(t, y, local, rest)
-            if floor_mode:
-                # A foot still pushing a quarter into its swing is torn off the floor (a force step,
-                # kept in the episode): the floor cannot hold it, nor the robot drag it further.
-                gone = [ci for ci in range(nc) if releasing[ci] and (
-                    out[1].wrenches[ci, 2] <= 0.0
-                    or t >= swinging[ci].lift + 0.25 * (swinging[ci].land - swinging[ci].lift))]
-                for ci in gone:
-                    episodes[ci]["release_force"] = [float(x) for x in out[1].wrenches[ci, :3]]
-                    release(ci, t)
-                if gone:
-                    out = deriv(t, y, local, rest)
-            return out
-
-        def local_at(k, s):
-            if s == 0.0:
-                return samples[k]
-            s0, s1 = samples[k], samples[k + 1]
-            H, dH, ddH = _hermite5(s, dt)
-            ql = s0.q.copy()
-            vl = s0.v.copy()
-            al = s0.a.copy()
-            J0 = slice(7, None)
-            V0 = slice(6, None)
-            basis = np.array([s0.q[J0], s0.v[V0], s0.a[V0], s1.q[J0], s1.v[V0], s1.a[V0]])
-            ql[J0] = H @ basis
-            vl[V0] = dH @ basis
-            al[V0] = ddH @ basis
-            # pelvis: analytic
-            base = self.motion
-            p, dp, ddp = base.q_ref[:3].copy(), np.zeros(3), np.zeros(3)
-            for seg in base.base_segments:
-                x, dx, ddx = seg(k * dt + s * dt)
-                p += x
-                dp += dx
-                ddp += ddx
-            R_l = _quat_to_R(np.array([ql[6], ql[3], ql[4], ql[5]]))
-            ql[:3] = p
-            vl[:3] = R_l.T @ dp
-            al[:3] = R_l.T @ ddp
-            return LocalSample(ql, vl, al, s0.active)
-
-        for k in range(n):
-            tk = float(times[k])
-            local = samples[k]
-            if amb is not None:
-                disturbance = amb[k * sub]
-            # contact set for the interval starting at t_k (see the module documentation, Touch-down)
-            for ci in range(nc):
-                if local.active[ci] and rest[ci] is None:  # scheduled landing, not touched yet
-                    land(ci, tk, y, local.q)
-                elif not local.active[ci] and scheduled[ci]:  # the foot starts to lift
-                    swinging[ci] = self.motion.swing_at(ci, tk)
-                    if floor_mode:  # it leaves the floor when its spring is unloaded
-                        releasing[ci] = True
-                    else:
-                        release(ci, tk)
-                scheduled[ci] = bool(local.active[ci])
-            k1_sample, ev = deriv_with_events(tk, y, local)
-            qw = y[:4] / np.linalg.norm(y[:4])
-            truth_R[k] = _quat_to_R(qw)
-            truth["t"][k] = y[4:7]
-            truth["w"][k] = y[7:10]
-            truth["v"][k] = y[10:13]
-            truth["dw"][k] = ev.dw
-            truth["a"][k] = ev.a
-            truth_wrench[k] = ev.wrenches
-            truth_ext[k] = ev.external
-            truth_amb[k] = ev.ambient
-            ft_true[k] = ev.local_wrenches
-            active[k] = [M is not None for M in rest]
-            commanded = self.motion.contact_targets(tk)[0]
-            for ci in range(nc):
-                if rest[ci] is not None:
-                    # the placement the robot's kinematics holds the contact at: its landing, or
-                    # while it brakes, levels or lifts, where the leg puts it
-                    rec_rest_p[k, ci] = commanded[ci].translation
-                    rec_rest_R[k, ci] = commanded[ci].rotation
-                else:
-                    # placement in the air: where the contact frame is in the local frame
-                    pin.framesForwardKinematics(self.motion.model, self.motion.data, local.q)
-                    M = self.motion.data.oMf[robot.contact_frame_ids[ci]]
-                    rec_rest_p[k, ci] = M.translation
-                    rec_rest_R[k, ci] = M.rotation
-            # sensors from pinocchio's kinematics of the simulated robot in the world
-            model, data = self.sim_model, self.sim_data
-            pin.forwardKinematics(model, data, ev.q_w, ev.v_w, ev.a_w)
-            fid = robot.imu_frame_id
-            M = pin.updateFramePlacement(model, data, fid)
-            gyro_true[k] = pin.getFrameVelocity(model, data, fid, pin.LOCAL).angular
-            accel_true[k] = (pin.getFrameClassicalAcceleration(model, data, fid, pin.LOCAL).linear
-                             + M.rotation.T @ (self.g * E_Z))
-            for li, lf in enumerate(robot.link_frame_ids):
-                links[k, li] = pin.updateFramePlacement(model, data, lf).translation
-            truth["cop"][k] = center_of_pressure(ev.wrenches.sum(axis=0), z0=0.0)
-            if k == n - 1:
-                break
-            samples.append(self.motion.sample(float(times[k + 1])))
-            replanned[0] = False
-            for j in range(sub):
-                s0 = j / sub
-                t0 = tk + j * h
-                if amb is not None:
-                    disturbance = amb[k * sub + j]
-                k1 = k1_sample if j == 0 else deriv_with_events(t0, y, local_at(k, s0))[0]
-                if replanned[0]:  # an early touch-down at t0 changed the motion: re-solve the next sample
-                    samples[k + 1] = self.motion.sample(float(times[k + 1]))
-                    replanned[0] = False
-                lm = local_at(k, s0 + 0.5 / sub)
-                l1 = local_at(k, s0 + 1.0 / sub) if j < sub - 1 else LocalSample(
-                    samples[k + 1].q, samples[k + 1].v, samples[k + 1].a, local.active)
-                if amb is not None:
-                    disturbance = 0.5 * (amb[k * sub + j] + amb[k * sub + j + 1])
-                k2, _ = deriv(t0 + 0.5 * h, y + 0.5 * h * k1, lm, rest)
-                k3, _ = deriv(t0 + 0.5 * h, y + 0.5 * h * k2, lm, rest)
-                if amb is not None:
-                    disturbance = amb[k * sub + j + 1]
-                k4, _ = deriv(t0 + h, y + h * k3, l1, rest)
-                y = y + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
-                y[:4] /= np.linalg.norm(y[:4])
-            if not np.all(np.isfinite(y)) or np.max(np.abs(y[4:7])) > 1.0:
-                raise ModelError(f"simulation diverged at t = {tk:.3f} s (flexibility translation "
-                                 f"{np.abs(y[4:7]).max():.3g} m): the stiffness cannot hold the robot")
-            if progress is not None and k % 20 == 0:
-                progress(k / (n - 1))
-        if progress is not None:
-            progress(1.0)
-        self.episodes = closed + [e for e in episodes if e is not None]
-        self.episodes.sort(key=lambda e: (e["start"], e["contact"]))
-        return self._recording(times, samples, truth_R, truth, truth_wrench, truth_ext, truth_amb, links, ft_true,
-                               gyro_true, accel_true, rec_rest_p, rec_rest_R, active)
+        return _Run(self).run(progress)
 
     # ------------------------------------------------------------------------------------------
     def _recording(self, times, samples, truth_R, truth, truth_wrench, truth_ext, truth_amb, links, ft_true,
@@ -1193,10 +851,7 @@ class Simulator:
         gyro_bias = np.zeros((n, 3))
         accel_bias = np.zeros((n, 3))
         for e in self.effects:
-            if e.type == "gyro-bias":
-                gyro_bias += e.vector("value")
-            elif e.type == "accel-bias":
-                accel_bias += e.vector("value")
+            e.add_imu_bias(gyro_bias, accel_bias)
         gyro_true, accel_true = self._delay_imu(np.asarray(times, dtype=float), gyro_true, accel_true)
         gyro = gyro_true + gyro_bias
         accel = accel_true + accel_bias
@@ -1260,6 +915,302 @@ class Simulator:
             joint_q=np.array([s.q[7:] for s in samples]), joint_v=np.array([s.v[6:] for s in samples]),
             ft=ft, base_pose=np.array([s.q[:7] for s in samples]), truth=truth_obj, gravity=self.g, meta=meta,
         ).validate()
+
+
+class _Run:
+    """One simulation of a :class:`Simulator`: the state integrated, the contact episodes and the
+    truth recorded at the samples (see the module documentation, Touch-down)."""
+
+    def __init__(self, sim: Simulator):
+        self.sim = sim
+        sc = sim.scenario
+        robot = self.robot = sim.robot
+        self.motion = sim.motion
+        self.n = n = int(round(sc.duration * sc.rate)) + 1
+        self.dt = dt = 1.0 / sc.rate
+        self.sub = sub = int(round(sc.sim_rate / sc.rate))
+        self.h = dt / sub
+        self.nc = nc = len(robot.contact_names)
+        self.times = np.arange(n) * dt
+        # Local motion at the samples (exact), then quintic Hermite in between; each sample is
+        # computed when its interval starts (an early touch-down changes the motion from then on).
+        self.samples = samples = [self.motion.sample(0.0)]
+        rest: list[Any] = [pin.SE3(M) if act else None for M, act in zip(self.motion.placements0, samples[0].active)]
+        nominal_rest = [pin.SE3(M) if M is not None else None for M in rest]
+        for ci, (dp, dr) in sim._foothold_offsets(samples[0].active).items():
+            # the ground under a standing contact is not where the robot believes (a shim, a tilted tile)
+            rest[ci] = pin.SE3(pin.exp3(dr) @ rest[ci].rotation, rest[ci].translation + dp)
+        self.rest = rest
+        R, tr = sim._equilibrium(samples[0], rest)
+        quat = pin.Quaternion(R)
+        self.y = np.concatenate([[quat.w, quat.x, quat.y, quat.z], tr, np.zeros(6)])
+
+        self.truth = {k: np.zeros((n, 3)) for k in ("t", "w", "v", "dw", "a", "cop")}
+        self.truth_R = np.zeros((n, 3, 3))
+        self.truth_wrench = np.zeros((n, nc, 6))
+        self.truth_ext = np.zeros((n, 6))
+        self.truth_amb = np.zeros((n, 6))
+        self.links = np.zeros((n, len(robot.link_frame_ids), 3))
+        self.ft_true = np.zeros((n, nc, 6))
+        self.gyro_true = np.zeros((n, 3))
+        self.accel_true = np.zeros((n, 3))
+        self.rec_rest_p = np.zeros((n, nc, 3))
+        self.rec_rest_R = np.tile(np.eye(3), (n, nc, 1, 1))
+        self.active = np.zeros((n, nc), dtype=bool)
+
+        self.amb = sim._ambient_table(n, sub)
+        self.disturbance = None
+        # The world's rest placement of each contact in force (the spring's anchor), and the local
+        # placement the robot believes in (the recording's contact placement).
+        self.local_rest: list[Any] = [pin.SE3(M) if M is not None else None for M in nominal_rest]  # pin.SE3 or None
+        local_rest = self.local_rest
+        self.episodes = [{"contact": robot.contact_names[ci], "start": 0.0, "end": None,
+                          "world_p": rest[ci].translation.tolist(), "world_R": rest[ci].rotation.tolist(),
+                          "local_p": local_rest[ci].translation.tolist()} if rest[ci] is not None else None
+                         for ci in range(nc)]
+        self.closed: list = []
+        self.scheduled = [bool(a) for a in samples[0].active]
+        self.swinging: list = [None] * nc
+        self.releasing = [False] * nc
+        self.floor_mode = sim.touchdown == "floor"
+        # The floor: the plane of the contacts in force at the start (z = 0 for the built-in robots).
+        self.floor_z = float(np.mean([M.translation[2] for M in nominal_rest if M is not None]))
+        # Each sole's normal to the floor, in its own frame (from the standing posture).
+        self.floor_normal = [M.rotation.T @ E_Z for M in self.motion.placements0]
+        self.replanned = False  # an early touch-down changed the local motion in the current interval
+
+    def land(self, ci, t, y, q_local):
+        """Start a contact episode at ``t``: the spring's rest placement and the recorded one."""
+        rest, local_rest, floor_mode, floor_z = self.rest, self.local_rest, self.floor_mode, self.floor_z
+        model, data = self.motion.model, self.motion.data
+        fid = self.robot.contact_frame_ids[ci]
+        sw = self.swinging[ci]
+        planned = self.motion.contact_targets(sw.land)[0][ci] if sw is not None else None
+        stop = None
+        if floor_mode and sw is not None and t < sw.land:
+            # touched before its scheduled landing: the foot stops there (Stop), the plan's
+            # remaining descent is dropped
+            stop = self.motion.stop(ci, t)
+            self.replanned = True
+        # What the robot believes: where its foot rests, in the local frame (the placement its
+        # kinematics holds from the end of the landing on).
+        local_rest[ci] = (self.motion.contact_targets(stop.end)[0][ci] if stop is not None else planned
+                          if planned is not None else
+                          (pin.framesForwardKinematics(model, data, q_local), data.oMf[fid].copy())[1])
+        if self.sim.touchdown == "deflected":  # where the robot believes it is: preloaded by the deflection
+            rest[ci] = pin.SE3(local_rest[ci])
+        else:  # where the foot is in the world: the spring starts unloaded
+            pin.framesForwardKinematics(model, data, q_local)
+            world_T_local = pin.SE3(_quat_to_R(y[:4] / np.linalg.norm(y[:4])), y[4:7].copy())
+            rest[ci] = world_T_local * data.oMf[fid]
+            if floor_mode:  # the sole lies flat on the floor, at its height, with the foot's heading
+                n_w = rest[ci].rotation @ self.floor_normal[ci]
+                axis = np.cross(n_w, E_Z)
+                angle = math.atan2(np.linalg.norm(axis), float(n_w @ E_Z))
+                if angle > 0.0:
+                    rest[ci].rotation = pin.exp3(axis / np.linalg.norm(axis) * angle) @ rest[ci].rotation
+                if rest[ci].translation[2] < floor_z:
+                    rest[ci].translation = np.array([*rest[ci].translation[:2], floor_z])
+        self.swinging[ci] = None
+        episodes = self.episodes
+        episodes[ci] = {"contact": self.robot.contact_names[ci], "start": float(t), "end": None,
+                        "world_p": rest[ci].translation.tolist(), "world_R": rest[ci].rotation.tolist(),
+                        "local_p": local_rest[ci].translation.tolist(),
+                        "above_floor": float(rest[ci].translation[2] - floor_z)}
+        if stop is not None:  # how far the foot stopped from its planned landing, in the local frame:
+            # at rest, then once the leg has levelled
+            episodes[ci]["local_off_plan"] = (local_rest[ci].translation - planned.translation).tolist()
+            episodes[ci]["levelled_off_plan"] = (self.motion.contact_targets(stop.levelled)[0][ci].translation
+                                                 - planned.translation).tolist()
+
+    def release(self, ci, t):
+        """End contact ``ci``'s episode at ``t``."""
+        if self.episodes[ci] is not None:
+            self.episodes[ci]["end"] = float(t)
+            self.closed.append(self.episodes[ci])
+            self.episodes[ci] = None
+        self.rest[ci] = None
+        self.local_rest[ci] = None
+        self.releasing[ci] = False
+
+    def deriv(self, t, y, local, rest):
+        qw = y[:4] / np.linalg.norm(y[:4])
+        Rm = _quat_to_R(qw)
+        ev = self.sim.world_dynamics(t, Rm, y[4:7], y[7:10], y[10:13], local, rest, self.disturbance)
+        return np.concatenate([_quat_rate(qw, y[7:10]), y[10:13], ev.dw, ev.a]), ev
+
+    def deriv_with_events(self, t, y, local):
+        """``deriv`` at the start of an integration step, after the floor's contact events: a
+        descending foot that reached the floor touches it; a lifting foot whose spring no
+        longer pushes (normal force <= 0) leaves it."""
+        rest, swinging, releasing = self.rest, self.swinging, self.releasing
+        if self.floor_mode:
+            R_f = None
+            for ci in range(self.nc):
+                sw = swinging[ci]
+                if rest[ci] is not None or sw is None or t < 0.5 * (sw.lift + sw.land):
+                    continue
+                if R_f is None:
+                    R_f = _quat_to_R(y[:4] / np.linalg.norm(y[:4]))
+                    pin.framesForwardKinematics(self.motion.model, self.motion.data, local.q)
+                M = self.motion.data.oMf[self.robot.contact_frame_ids[ci]]
+                if (R_f @ M.translation + y[4:7])[2] <= self.floor_z:
+                    self.land(ci, t, y, local.q)
+        out = self.deriv(t, y, local, rest)
+        if self.floor_mode:
+            # A foot still pushing a quarter into its swing is torn off the floor (a force step,
+            # kept in the episode): the floor cannot hold it, nor the robot drag it further.
+            gone = [ci for ci in range(self.nc) if releasing[ci] and (
+                out[1].wrenches[ci, 2] <= 0.0
+                or t >= swinging[ci].lift + 0.25 * (swinging[ci].land - swinging[ci].lift))]
+            for ci in gone:
+                self.episodes[ci]["release_force"] = [float(x) for x in out[1].wrenches[ci, :3]]
+                self.release(ci, t)
+            if gone:
+                out = self.deriv(t, y, local, rest)
+        return out
+
+    def local_at(self, k, s):
+        """The local sample at ``(k + s) dt``: quintic Hermite between the samples, the pelvis analytic."""
+        samples, dt = self.samples, self.dt
+        if s == 0.0:
+            return samples[k]
+        s0, s1 = samples[k], samples[k + 1]
+        H, dH, ddH = _hermite5(s, dt)
+        ql = s0.q.copy()
+        vl = s0.v.copy()
+        al = s0.a.copy()
+        J0 = slice(7, None)
+        V0 = slice(6, None)
+        basis = np.array([s0.q[J0], s0.v[V0], s0.a[V0], s1.q[J0], s1.v[V0], s1.a[V0]])
+        ql[J0] = H @ basis
+        vl[V0] = dH @ basis
+        al[V0] = ddH @ basis
+        # pelvis: analytic
+        base = self.motion
+        p, dp, ddp = base.q_ref[:3].copy(), np.zeros(3), np.zeros(3)
+        for seg in base.base_segments:
+            x, dx, ddx = seg(k * dt + s * dt)
+            p += x
+            dp += dx
+            ddp += ddx
+        R_l = _quat_to_R(np.array([ql[6], ql[3], ql[4], ql[5]]))
+        ql[:3] = p
+        vl[:3] = R_l.T @ dp
+        al[:3] = R_l.T @ ddp
+        return LocalSample(ql, vl, al, s0.active)
+
+    def contact_events(self, tk, local):
+        """The contact set for the interval starting at ``tk``: scheduled landings not touched
+        yet land, feet starting to lift swing (and leave the floor once unloaded)."""
+        rest, scheduled = self.rest, self.scheduled
+        for ci in range(self.nc):
+            if local.active[ci] and rest[ci] is None:  # scheduled landing, not touched yet
+                self.land(ci, tk, self.y, local.q)
+            elif not local.active[ci] and scheduled[ci]:  # the foot starts to lift
+                self.swinging[ci] = self.motion.swing_at(ci, tk)
+                if self.floor_mode:  # it leaves the floor when its spring is unloaded
+                    self.releasing[ci] = True
+                else:
+                    self.release(ci, tk)
+            scheduled[ci] = bool(local.active[ci])
+
+    def record(self, k, tk, local, ev):
+        """The truth and the true sensor signals at sample ``k``."""
+        y, truth, robot, nc, rest = self.y, self.truth, self.robot, self.nc, self.rest
+        qw = y[:4] / np.linalg.norm(y[:4])
+        self.truth_R[k] = _quat_to_R(qw)
+        truth["t"][k] = y[4:7]
+        truth["w"][k] = y[7:10]
+        truth["v"][k] = y[10:13]
+        truth["dw"][k] = ev.dw
+        truth["a"][k] = ev.a
+        self.truth_wrench[k] = ev.wrenches
+        self.truth_ext[k] = ev.external
+        self.truth_amb[k] = ev.ambient
+        self.ft_true[k] = ev.local_wrenches
+        self.active[k] = [M is not None for M in rest]
+        commanded = self.motion.contact_targets(tk)[0]
+        for ci in range(nc):
+            if rest[ci] is not None:
+                # the placement the robot's kinematics holds the contact at: its landing, or
+                # while it brakes, levels or lifts, where the leg puts it
+                self.rec_rest_p[k, ci] = commanded[ci].translation
+                self.rec_rest_R[k, ci] = commanded[ci].rotation
+            else:
+                # placement in the air: where the contact frame is in the local frame
+                pin.framesForwardKinematics(self.motion.model, self.motion.data, local.q)
+                M = self.motion.data.oMf[robot.contact_frame_ids[ci]]
+                self.rec_rest_p[k, ci] = M.translation
+                self.rec_rest_R[k, ci] = M.rotation
+        # sensors from pinocchio's kinematics of the simulated robot in the world
+        model, data = self.sim.sim_model, self.sim.sim_data
+        pin.forwardKinematics(model, data, ev.q_w, ev.v_w, ev.a_w)
+        fid = robot.imu_frame_id
+        M = pin.updateFramePlacement(model, data, fid)
+        self.gyro_true[k] = pin.getFrameVelocity(model, data, fid, pin.LOCAL).angular
+        self.accel_true[k] = (pin.getFrameClassicalAcceleration(model, data, fid, pin.LOCAL).linear
+                              + M.rotation.T @ (self.sim.g * E_Z))
+        for li, lf in enumerate(robot.link_frame_ids):
+            self.links[k, li] = pin.updateFramePlacement(model, data, lf).translation
+        truth["cop"][k] = center_of_pressure(ev.wrenches.sum(axis=0), z0=0.0)
+
+    def interval(self, k, tk, local, k1_sample):
+        """Integrate from sample ``k`` to ``k + 1`` (classical Runge-Kutta at ``sim_rate``)."""
+        samples, amb, sub, h, rest = self.samples, self.amb, self.sub, self.h, self.rest
+        y = self.y
+        for j in range(sub):
+            s0 = j / sub
+            t0 = tk + j * h
+            if amb is not None:
+                self.disturbance = amb[k * sub + j]
+            k1 = k1_sample if j == 0 else self.deriv_with_events(t0, y, self.local_at(k, s0))[0]
+            if self.replanned:  # an early touch-down at t0 changed the motion: re-solve the next sample
+                samples[k + 1] = self.motion.sample(float(self.times[k + 1]))
+                self.replanned = False
+            lm = self.local_at(k, s0 + 0.5 / sub)
+            l1 = self.local_at(k, s0 + 1.0 / sub) if j < sub - 1 else LocalSample(
+                samples[k + 1].q, samples[k + 1].v, samples[k + 1].a, local.active)
+            if amb is not None:
+                self.disturbance = 0.5 * (amb[k * sub + j] + amb[k * sub + j + 1])
+            k2, _ = self.deriv(t0 + 0.5 * h, y + 0.5 * h * k1, lm, rest)
+            k3, _ = self.deriv(t0 + 0.5 * h, y + 0.5 * h * k2, lm, rest)
+            if amb is not None:
+                self.disturbance = amb[k * sub + j + 1]
+            k4, _ = self.deriv(t0 + h, y + h * k3, l1, rest)
+            y = y + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+            y[:4] /= np.linalg.norm(y[:4])
+            self.y = y
+        if not np.all(np.isfinite(y)) or np.max(np.abs(y[4:7])) > 1.0:
+            raise ModelError(f"simulation diverged at t = {tk:.3f} s (flexibility translation "
+                             f"{np.abs(y[4:7]).max():.3g} m): the stiffness cannot hold the robot")
+
+    def run(self, progress: Callable[[float], None] | None) -> Recording:
+        n = self.n
+        for k in range(n):
+            tk = float(self.times[k])
+            local = self.samples[k]
+            if self.amb is not None:
+                self.disturbance = self.amb[k * self.sub]
+            # contact set for the interval starting at t_k (see the module documentation, Touch-down)
+            self.contact_events(tk, local)
+            k1_sample, ev = self.deriv_with_events(tk, self.y, local)
+            self.record(k, tk, local, ev)
+            if k == n - 1:
+                break
+            self.samples.append(self.motion.sample(float(self.times[k + 1])))
+            self.replanned = False
+            self.interval(k, tk, local, k1_sample)
+            if progress is not None and k % 20 == 0:
+                progress(k / (n - 1))
+        if progress is not None:
+            progress(1.0)
+        sim = self.sim
+        sim.episodes = self.closed + [e for e in self.episodes if e is not None]
+        sim.episodes.sort(key=lambda e: (e["start"], e["contact"]))
+        return sim._recording(self.times, self.samples, self.truth_R, self.truth, self.truth_wrench, self.truth_ext,
+                              self.truth_amb, self.links, self.ft_true, self.gyro_true, self.accel_true,
+                              self.rec_rest_p, self.rec_rest_R, self.active)
 
 
 def simulate(scenario: Scenario | str, robot: str | RobotModel | None = None, noise: bool | None = None,

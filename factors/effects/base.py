@@ -328,12 +328,13 @@ _TRAIT_NAMES = tuple(f.name for f in fields(EffectTraits))
 
 def traits(effect: object) -> EffectTraits:
     """The optional parts ``effect`` declares, the defaults of :class:`EffectTraits` for the rest."""
-    found = {}
+    found: dict[str, Any] = {}
     for name in _TRAIT_NAMES:
         value = getattr(effect, name, None)
         if value is not None:
             found[name] = tuple(value) if name in ("acts_on", "excites") else value
     return EffectTraits(**found)
+
 
 _AX = ("x", "y", "z")
 _CHI2_6_999 = 22.458  # chi^2_6 99.9 % quantile

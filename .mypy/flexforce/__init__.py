@@ -1,1 +1,0 @@
-../../flexforce/__init__.py

@@ -1,1 +1,0 @@
-../../flexforce/errors.py

@@ -1,1 +1,0 @@
-../../flexforce/jit.py

@@ -1,1 +1,0 @@
-../../flexforce/options.py

@@ -1,1 +1,0 @@
-../../flexforce/pipeline.py
