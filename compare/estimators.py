@@ -3,10 +3,15 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from flexforce.errors import ConfigError
 from flexforce.options import article
+
+if TYPE_CHECKING:
+    from flexforce.datasets.estimate import Estimate
+    from flexforce.datasets.recording import Recording
+    from flexforce.factors.model import ModelConfig
 
 ESTIMATORS = ("ekf", "fixed-lag", "batch")
 """Names accepted by :func:`run_estimator` (``fixed_lag`` is accepted for ``fixed-lag``)."""
@@ -24,7 +29,7 @@ def estimator_key(name: str) -> str:
     return key
 
 
-def nominal_model(rec, robot: Any = None, **overrides):
+def nominal_model(rec: Recording, robot: Any = None, **overrides) -> ModelConfig:
     """The nominal model of ``rec`` with the robot configuration ``robot``, its springs checked
     against gravity toppling on the recording's first sample.
 
@@ -64,8 +69,8 @@ def nominal_model(rec, robot: Any = None, **overrides):
     return ModelConfig.from_recording(rec, robot=config, **overrides)
 
 
-def run_estimator(name: str, rec, model=None, config: Any = None, progress: Callable[[float], None] | None = None,
-                  **options):
+def run_estimator(name: str, rec: Recording, model: ModelConfig | None = None, config: Any = None,
+                  progress: Callable[[float], None] | None = None, **options) -> Estimate:
     """Run estimator ``name`` on a Recording and return its Estimate.
 
     Args:

@@ -19,6 +19,9 @@ from flexforce.smoother.batch import BatchConfig, FitStatistics, fit, run_batch
 from flexforce.smoother.problem import FAMILIES, Effect, NoiseRule, Problem, ProblemView, derive_sigmas
 
 if TYPE_CHECKING:
+    from flexforce.datasets.estimate import Estimate
+    from flexforce.datasets.recording import Recording
+    from flexforce.factors.model import ModelConfig
     from flexforce.smoother.fixed_lag import FixedLagConfig
     from flexforce.smoother.graph import GtsamKeys, from_gtsam, to_gtsam
 
@@ -43,8 +46,8 @@ def __getattr__(name: str) -> Any:
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-def run_fixed_lag(rec, model, config: FixedLagConfig | None = None, rest_p=None, rest_R=None,
-                  progress: Callable[[float], None] | None = None, **options):
+def run_fixed_lag(rec: Recording, model: ModelConfig, config: FixedLagConfig | None = None, rest_p=None,
+                  rest_R=None, progress: Callable[[float], None] | None = None, **options) -> Estimate:
     """Fixed-lag smoothing (:func:`flexforce.smoother.fixed_lag.run_fixed_lag`; ``config`` None: the
     default :class:`FixedLagConfig`)."""
     from flexforce.smoother.fixed_lag import FixedLagConfig

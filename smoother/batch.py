@@ -42,6 +42,8 @@ from flexforce.smoother.result import make_estimate
 
 if TYPE_CHECKING:
     from flexforce.datasets.estimate import Estimate
+    from flexforce.datasets.recording import Recording
+    from flexforce.factors.model import ModelConfig
 
 S_CORE = 18
 
@@ -481,8 +483,8 @@ class BatchConfig:
         check_bool(o, "secant", self.secant)
 
 
-def run_batch(rec, model, config: BatchConfig = BatchConfig(), rest_p=None, rest_R=None,
-              progress: Callable[[float], None] | None = None, **options):
+def run_batch(rec: Recording, model: ModelConfig, config: BatchConfig = BatchConfig(), rest_p=None, rest_R=None,
+              progress: Callable[[float], None] | None = None, **options) -> Estimate:
     """Batch (whole-recording) smoothing of a Recording; returns an :class:`Estimate`.
 
     Args:
@@ -611,7 +613,8 @@ class FitStatistics:
     the evidence and the estimates are then those of where it stopped."""
 
 
-def fit(rec, model, progress: Callable[[float], None] | None = None, rule: NoiseRule | None = None,
+def fit(rec: Recording, model: ModelConfig, progress: Callable[[float], None] | None = None,
+        rule: NoiseRule | None = None,
         max_iterations: int = 200, global_constants: bool | None = None,
         start: tuple | None = None, evidence_tol: float = 0.0,
         watch: Callable[[Problem, Trajectory], str | None] | None = None,

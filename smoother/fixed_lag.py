@@ -65,7 +65,10 @@ from flexforce.smoother.result import make_estimate
 if TYPE_CHECKING:
     import gtsam
 
+    from flexforce.datasets.estimate import Estimate
+    from flexforce.datasets.recording import Recording
     from flexforce.factors import gtsam_factors as gf
+    from flexforce.factors.model import ModelConfig
 
 S = core.STATE_DIM
 
@@ -677,8 +680,8 @@ class FixedLagConfig:
         check_bool(o, "compiled", self.compiled)
 
 
-def run_fixed_lag(rec, model, config: FixedLagConfig = FixedLagConfig(), rest_p=None, rest_R=None,
-                  progress: Callable[[float], None] | None = None, **options):
+def run_fixed_lag(rec: Recording, model: ModelConfig, config: FixedLagConfig = FixedLagConfig(), rest_p=None,
+                  rest_R=None, progress: Callable[[float], None] | None = None, **options) -> Estimate:
     """Fixed-lag smoothing of a Recording, one update per sample; returns an :class:`Estimate`.
 
     Args:

@@ -106,6 +106,8 @@ from flexforce.compare.metrics import evaluate
 from flexforce.errors import ConfigError, FlexforceError
 
 if TYPE_CHECKING:
+    from flexforce.datasets.recording import Recording
+    from flexforce.factors.model import ModelConfig
     from flexforce.smoother.screening import Identifiability
 
 # Names the tests and benchmarks import from here.
@@ -123,7 +125,7 @@ __all__ = [
 ]
 
 
-def diagnose(rec, model=None, candidates: Iterable | None = None, add: Iterable = (),
+def diagnose(rec: Recording, model: ModelConfig | None = None, candidates: Iterable | None = None, add: Iterable = (),
              config: DiagnoseConfig | None = None, *, extra_candidates: Iterable = (),
              progress: Callable[[str, float], None] | None = None, **options) -> Diagnosis:
     """Fit the nominal model, rank the candidate effects, and refit with the ``add``-ed ones.
@@ -352,7 +354,8 @@ def _criterion_record(cfg: DiagnoseConfig, nominal: Fit) -> dict:
             if level is not None else "none: every candidate refitted"}
 
 
-def identifiability(rec, candidates: Iterable | None = None, model=None, window: float = DEFAULT.screen_window,
+def identifiability(rec: Recording, candidates: Iterable | None = None, model: ModelConfig | None = None,
+                    window: float = DEFAULT.screen_window,
                     progress: Callable[[float], None] | None = None) -> Identifiability:
     """Before any refit: fit the nominal model and say which candidates the recording sees and
     which pairs it cannot tell apart (:func:`flexforce.smoother.screening.identifiability`).
