@@ -32,6 +32,9 @@ from flexforce.errors import ConfigError, ConfigWarning
 ROBOTS_DIR = Path(__file__).resolve().parent / "robots"
 DEFAULT_ROBOT = "romeo"
 
+IMU_FILTERS = ("none", "savgol")
+"""The values of ``[ros] imu_filter`` (:attr:`RosConfig.imu_filter`)."""
+
 STIFFNESS_UNITS = {"k_fs": "N/m", "k_fd": "N s/m", "k_ts": "N m/rad", "k_td": "N m s/rad"}
 """The keys of a robot configuration's ``[stiffness]`` section (all four required) and their units."""
 
@@ -216,6 +219,13 @@ class RosConfig:
     """Savitzky-Golay window, s (rounded to an odd number of grid samples, at least order + 2)."""
     savgol_order: int = 3
     """Savitzky-Golay polynomial order."""
+    imu_filter: str = "none"
+    """The IMU readings' bandwidth.  ``none``: as the messages give them (resampled on the grid);
+    ``savgol``: through the joints' Savitzky-Golay smoother (``savgol_window``, ``savgol_order``,
+    zero-phase, ``mode="interp"`` at the ends), so that the accelerometer and gyrometer see the
+    same band as their kinematic prediction, which is formed from the smoothed joint derivatives.
+    A reading the filter cannot use (missing, or at the sensor's full scale, ``[imu_noise]``) makes
+    every output whose window holds it missing on that axis.  docs/real-logs.md, "IMU bandwidth"."""
     ignore_joints: str | None = None
     """Regular expression of JointState names to ignore (joints the URDF does not have)."""
 
@@ -233,6 +243,9 @@ class RosConfig:
             raise ConfigError(f"ros.rate = {self.rate} Hz; expected a positive rate")
         if not self.max_gap > 0 or not self.gap_factor > 0:
             raise ConfigError("ros.max_gap (s) and ros.gap_factor must be positive")
+        if self.imu_filter not in IMU_FILTERS:
+            raise ConfigError(f"ros.imu_filter = {self.imu_filter!r}; expected 'none' (the readings as given) "
+                              "or 'savgol' (the joints' Savitzky-Golay smoother)")
         if self.savgol_window <= 0 or self.savgol_order < 2:
             raise ConfigError(f"ros.savgol_window = {self.savgol_window} s must be positive and "
                               f"ros.savgol_order = {self.savgol_order} at least 2")
