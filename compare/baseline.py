@@ -1,4 +1,7 @@
-r"""Leg odometry: what a user has without an estimator, as a row beside the estimators.
+r"""Baselines: what a user has without an estimator, as rows beside the estimators.
+
+Leg odometry (:func:`leg_odometry`, ``leg-odometry``) and the equal split of the weight
+(:func:`weight_equal`, ``weight-equal``) are computed from the Recording alone, no estimation.
 
 The rigid robot: the flexibility is the identity (R = I, t = 0), so the base's world orientation
 is its orientation in the local (leg-odometry) frame, ``Recording.base_pose``; velocity and
@@ -15,15 +18,23 @@ contact points):
 Forces are vertical, applied at the contact origins (no sole torque), so the CoP is the
 force-weighted mean of the contact points.  The CoM acceleration is left out: this is the static
 split a rigid-robot controller uses, not a dynamic estimate.
+
+The equal split is the same rigid robot with the weight split equally over the contacts in
+force, m g / k each: the plainest force estimate there is, the yardstick for the static split.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 
 from flexforce.datasets.estimate import Estimate
 
 NAME = "leg-odometry"
+"""The leg-odometry baseline's name (summary key ``leg_odometry``)."""
+EQUAL_NAME = "weight-equal"
+"""The equal-split baseline's name (summary key ``weight_equal``)."""
 
 
 def static_split(com_xy: np.ndarray, feet_xy: np.ndarray, weight: float) -> np.ndarray:
@@ -44,8 +55,17 @@ def static_split(com_xy: np.ndarray, feet_xy: np.ndarray, weight: float) -> np.n
     return f * (weight / f.sum()) if f.sum() > 0 else np.full(k, weight / k)
 
 
-def leg_odometry(rec) -> Estimate:
-    """The leg-odometry baseline of ``rec`` as an :class:`Estimate` (no covariance, no timing)."""
+def equal_split(com_xy: np.ndarray, feet_xy: np.ndarray, weight: float) -> np.ndarray:
+    """(k,) vertical forces (N): ``weight`` split equally over the ``k`` contacts at ``feet_xy`` (k, 2);
+    ``com_xy`` is not used (the signature of :func:`static_split`)."""
+    k = feet_xy.shape[0]
+    return np.full(k, weight / k) if k else np.zeros(0)
+
+
+def _rigid_estimate(rec, name: str, split: Callable[[np.ndarray, np.ndarray, float], np.ndarray],
+                    force_split: str) -> Estimate:
+    """The rigid robot of ``rec`` (R = I, t = 0, zero velocities) carrying m g split by ``split``
+    (com_xy (2,), feet_xy (k, 2), weight N -> (k,) N) as vertical forces at the contact origins."""
     n, c = rec.n, len(rec.contact_names)
     weight = rec.mass * rec.gravity
     wrench = np.zeros((n, c, 6))
@@ -55,7 +75,7 @@ def leg_odometry(rec) -> Estimate:
         if idx.size == 0:
             continue
         p = rec.contact_p[k, idx]
-        fz = static_split(rec.com[k, :2], p[:, :2], weight)
+        fz = split(rec.com[k, :2], p[:, :2], weight)
         F = np.zeros((idx.size, 3))
         F[:, 2] = fz
         wrench[k, idx, :3] = F
@@ -63,7 +83,22 @@ def leg_odometry(rec) -> Estimate:
         cop[k] = fz @ p / weight
     eye = np.tile(np.eye(3), (n, 1, 1))
     zeros = np.zeros((n, 3))
-    return Estimate(estimator=NAME, t_ns=rec.t_ns.copy(), contact_names=tuple(rec.contact_names), R=eye,
+    return Estimate(estimator=name, t_ns=rec.t_ns.copy(), contact_names=tuple(rec.contact_names), R=eye,
                     t=zeros.copy(), w=zeros.copy(), v=zeros.copy(), dw=zeros.copy(), a=zeros.copy(),
-                    wrench=wrench, cop=cop, meta={"kind": "baseline",
-                                                  "force_split": "static CoM (lever rule between the feet)"})
+                    wrench=wrench, cop=cop, meta={"kind": "baseline", "force_split": force_split})
+
+
+def leg_odometry(rec) -> Estimate:
+    """The leg-odometry baseline of ``rec`` as an :class:`Estimate` (no covariance, no timing)."""
+    return _rigid_estimate(rec, NAME, static_split, "static CoM (lever rule between the feet)")
+
+
+def weight_equal(rec) -> Estimate:
+    """The equal-split baseline of ``rec``: leg odometry's pose, m g / k on each of the k contacts in
+    force (vertical, at the contact origins), as an :class:`Estimate` (no covariance, no timing)."""
+    return _rigid_estimate(rec, EQUAL_NAME, equal_split, "equal over the contacts in force")
+
+
+BASELINES: dict[str, Callable[..., Estimate]] = {NAME: leg_odometry, EQUAL_NAME: weight_equal}
+"""Name -> function of the Recording giving the baseline's Estimate, in the order the rows appear.
+The static split by the CoM is leg odometry's own force part, so it has no row of its own."""

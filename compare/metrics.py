@@ -15,6 +15,11 @@ Errors are taken per step and summarised as RMSE and max:
 - ``hand_m``: world position error of the tracked links (the hands) when the estimated
   flexibility is used to place them: the paper's hand-compensation experiment.
 
+Where the contacts are what is judged (:func:`phase_metrics`, added by the comparison runner):
+the per-foot and total vertical force in the contact frames and the rotation (tilt) error over
+each contact phase (:data:`PHASES`), raw and after a zero-phase low-pass of both estimate and
+reference (:data:`LOWPASS_HZ`); and the estimate's physical violations (:func:`violations`).
+
 Consistency: NEES of the 18-D state (mean over the run, with its 95% two-sided chi-square band
 for the mean of N independent draws) and, for filters, NIS of the 6-D innovation.
 """
@@ -75,6 +80,12 @@ class Metrics:
     components it needs."""
     contact_errors: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     """Contact name -> key -> (N,) error series behind :attr:`per_contact` (NaN where undefined)."""
+    per_phase: dict = field(default_factory=dict)
+    """Phase (``all`` and :data:`PHASES`) -> ``samples``, ``rmse`` (``foot_vertical_force_N``,
+    ``total_vertical_force_N``, ``rotation_rad``) and :func:`lowpass_key` (the forces after the
+    low-pass): :func:`phase_metrics`; empty where it was not computed."""
+    violations: dict = field(default_factory=dict)
+    """Counts and fractions of physically impossible contact wrenches: :func:`violations`."""
     extra: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
@@ -100,6 +111,10 @@ class Metrics:
             "kind": self.kind,
             "per_contact": {c: {k: clean(v) for k, v in d.items()} for c, d in self.per_contact.items()},
             **({"extra": self.extra} if self.extra else {}),
+            **({"per_phase": {ph: {k: ({q: clean(x) for q, x in v.items()} if isinstance(v, dict) else v)
+                                   for k, v in d.items()} for ph, d in self.per_phase.items()}}
+               if self.per_phase else {}),
+            **({"violations": self.violations} if self.violations else {}),
         }
 
 
@@ -360,3 +375,166 @@ def _against_sensors(m: Metrics, est, rec, keep):
             e[~keep] = np.nan
             m.rmse[name], m.max[name] = _summ(e.ravel())
             m.references[name] = "reference: F/T"
+
+
+# ----------------------------------------------------------------------------------------------
+# Contact phases, low-passed forces and physical violations (the comparison's plain verdict)
+# ----------------------------------------------------------------------------------------------
+
+PHASES = ("single_support", "double_support", "transition")
+"""Contact phases of :func:`phase_masks`, besides ``all``."""
+TRANSITION_S = 0.05
+"""Half-width of a transition, s: the samples within this of a contact switch (a contact made or
+released) are the ``transition`` phase and belong to no support phase."""
+LOWPASS_HZ = 5.0
+"""Cut-off of the low-pass applied to both estimate and reference before the low-passed RMSEs, Hz:
+the iCub's F/T forces come through the robot's dynamics filtered, so the raw RMSE also counts
+the estimate's content above the reference's band."""
+LOWPASS_ORDER = 4
+"""Order of the Butterworth low-pass (applied forward and backward: zero phase, twice the order)."""
+FRICTION_MU = 0.7
+"""Friction coefficient of the friction-cone check (no robot config gives one)."""
+NO_SOLE = ("no sole dimensions: the robot configs give each contact a name and a frame only "
+           "(no foot size, no contact extent)")
+"""Why the CoP-in-sole check is skipped when no sole is given."""
+
+
+def lowpass_key(cutoff_hz: float = LOWPASS_HZ) -> str:
+    """``rmse_lowpass_5Hz``: the key of the low-passed RMSEs, the cut-off in it."""
+    return f"rmse_lowpass_{cutoff_hz:g}Hz"
+
+
+def lowpass(x: np.ndarray, cutoff_hz: float, rate_hz: float, order: int = LOWPASS_ORDER) -> np.ndarray:
+    """Zero-phase Butterworth low-pass of ``x`` (N, ...) along axis 0 (``scipy.signal.sosfiltfilt``).
+
+    Each run of finite samples of each column is filtered on its own; a run too short for the
+    filter's padding, and every NaN, comes back NaN.
+
+    Raises:
+        ValueError: ``cutoff_hz`` is not below the Nyquist frequency ``rate_hz / 2``.
+    """
+    from scipy.signal import butter, sosfiltfilt
+
+    if not 0 < cutoff_hz < rate_hz / 2:
+        raise ValueError(f"low-pass cut-off {cutoff_hz} Hz; expected between 0 and the Nyquist frequency "
+                         f"{rate_hz / 2:g} Hz")
+    sos = butter(order, cutoff_hz / (rate_hz / 2), output="sos")
+    pad = 3 * (2 * len(sos) + 1)  # sosfiltfilt's default padding
+    flat = np.asarray(x, dtype=float).reshape(len(x), -1)
+    out = np.full(flat.shape, np.nan)
+    for j in range(flat.shape[1]):
+        ok = np.isfinite(flat[:, j])
+        for a, b in _runs(ok):
+            if b - a > pad:
+                out[a:b, j] = sosfiltfilt(sos, flat[a:b, j])
+    return out.reshape(np.shape(x))
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """[start, stop) index ranges of the runs where ``mask`` is true."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(np.int8), [0]])))
+    return list(zip(edges[::2], edges[1::2]))
+
+
+def phase_masks(rec, skip: float = 0.0, window: float = TRANSITION_S) -> dict[str, np.ndarray]:
+    """(N,) bool masks of the samples after ``skip`` s: ``all``, ``single_support`` (one contact in
+    force), ``double_support`` (two or more), ``transition`` (within ``window`` s of a contact
+    switch); the support phases leave the transitions out; samples with no contact are in ``all`` only."""
+    t = rec.time
+    keep = t >= skip
+    act = rec.contact_active
+    near = np.zeros(rec.n, dtype=bool)
+    switches = np.flatnonzero(np.any(act[1:] != act[:-1], axis=1)) + 1
+    for k in switches:
+        near |= np.abs(t - t[k]) <= window
+    count = act.sum(axis=1)
+    return {"all": keep, "single_support": keep & (count == 1) & ~near,
+            "double_support": keep & (count >= 2) & ~near, "transition": keep & near}
+
+
+def _reference_contact_fz(rec) -> np.ndarray | None:
+    """(N, C) reference normal forces in the contact frames: the truth's, else the F/T's; None without."""
+    if rec.truth is not None:
+        return contact_frame_wrench(rec.truth.R, rec.truth.t, rec.truth.wrench, rec)[:, :, 2]
+    if rec.ft is not None and np.isfinite(rec.ft[:, :, 2]).any():
+        return rec.ft[:, :, 2]
+    return None
+
+
+def _rms(e: np.ndarray) -> float | None:
+    e = e[np.isfinite(e)]
+    return float(np.sqrt(np.mean(e * e))) if e.size else None
+
+
+def phase_metrics(m: Metrics, est, rec, skip: float = 0.0, cutoff_hz: float = LOWPASS_HZ) -> None:
+    """Fill ``m.per_phase``: per contact phase (:func:`phase_masks`) the RMSE of
+
+    - ``foot_vertical_force_N``: each contact's normal force in its frame (zero when released)
+      against the reference, over every (step, contact) -- on real logs the ``vertical_force_N``
+      of :attr:`Metrics.rmse`;
+    - ``total_vertical_force_N``: the sum of the contacts' normal forces against the reference's sum;
+    - ``rotation_rad``: ``m.errors["rotation_rad"]`` (the tilt against motion capture on real logs);
+
+    and the two forces again after :func:`lowpass` at ``cutoff_hz`` of both the estimate and the
+    reference (:func:`lowpass_key`; left out when the rate is too low for the cut-off).  Nothing
+    is filled without contacts or a force reference.
+    """
+    ref = _reference_contact_fz(rec)
+    if ref is None or not rec.contact_names:
+        return
+    fz = contact_frame_wrench(est.R, est.t, est.wrench, rec)[:, :, 2]
+    filtered = None
+    rate = 1.0 / rec.dt if rec.dt > 0 else 0.0
+    if 0 < cutoff_hz < rate / 2 and rec.n > 1:
+        filtered = (lowpass(fz, cutoff_hz, rate), lowpass(ref, cutoff_hz, rate))
+    rot = m.errors.get("rotation_rad")
+    for phase, mask in phase_masks(rec, skip).items():
+        entry: dict = {"samples": int(mask.sum())}
+        entry["rmse"] = {"foot_vertical_force_N": _rms((fz - ref)[mask].ravel()),
+                         "total_vertical_force_N": _rms(fz[mask].sum(axis=1) - ref[mask].sum(axis=1)),
+                         "rotation_rad": _rms(rot[mask]) if rot is not None else None}
+        if filtered is not None:
+            a, b = filtered
+            entry[lowpass_key(cutoff_hz)] = {"foot_vertical_force_N": _rms((a - b)[mask].ravel()),
+                                             "total_vertical_force_N": _rms(a[mask].sum(axis=1) - b[mask].sum(axis=1))}
+        m.per_phase[phase] = entry
+
+
+def violations(est, rec, skip: float = 0.0, mu: float = FRICTION_MU,
+               sole: tuple[float, float, float, float] | None = None) -> dict:
+    """Physically impossible contact wrenches of ``est``, over the (step, contact) pairs in force
+    after ``skip`` s, in the contact frames (:func:`contact_frame_wrench`, z the contact normal):
+
+    - ``negative_normal``: normal force F_z below 0 N (the ground pulls);
+    - ``friction_cone``: outside the cone |F_xy| <= ``mu`` F_z (a negative normal force included);
+    - ``cop_outside_sole``: the contact's CoP (x = -T_y / F_z, y = T_x / F_z, where F_z > 0)
+      outside ``sole`` = (x_min, x_max, y_min, y_max), m, in the contact frame; without a sole
+      ``{"skipped": reason}``.
+
+    Returns:
+        ``samples_in_contact``, ``friction_mu`` and per check ``count`` and ``fraction`` (of the
+        samples in contact; None when there are none).
+    """
+    keep = rec.time >= skip
+    on = rec.contact_active & keep[:, None]
+    n = int(on.sum())
+    w = contact_frame_wrench(est.R, est.t, est.wrench, rec)[on]  # (n, 6)
+
+    def counted(bad: np.ndarray, total: int = n) -> dict:
+        c = int(np.sum(bad))
+        return {"count": c, "fraction": c / total if total else None}
+
+    fn = w[:, 2]
+    ft = np.linalg.norm(w[:, :2], axis=1)
+    out: dict = {"samples_in_contact": n, "friction_mu": mu, "negative_normal": counted(fn < 0),
+                 "friction_cone": counted((fn < 0) | (ft > mu * fn))}
+    if sole is None:
+        out["cop_outside_sole"] = {"skipped": NO_SOLE}
+    else:
+        x0, x1, y0, y1 = sole
+        pos = fn > 0
+        cx = -w[pos, 4] / fn[pos]
+        cy = w[pos, 3] / fn[pos]
+        out["cop_outside_sole"] = {**counted((cx < x0) | (cx > x1) | (cy < y0) | (cy > y1)),
+                                   "sole_m": list(sole)}
+    return out

@@ -12,7 +12,18 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from flexforce.compare.metrics import RMSE_KEYS, Metrics, evaluate
+from flexforce.compare.metrics import (
+    FRICTION_MU,
+    LOWPASS_HZ,
+    LOWPASS_ORDER,
+    RMSE_KEYS,
+    TRANSITION_S,
+    Metrics,
+    evaluate,
+    lowpass_key,
+    phase_metrics,
+    violations,
+)
 from flexforce.errors import ConfigError, FlexforceError
 
 if TYPE_CHECKING:
@@ -88,8 +99,8 @@ class Comparison:
     crb: CramerRao | None = None
     """:class:`flexforce.compare.crb.CramerRao` of the recording (simulated data only)."""
     baselines: dict[str, Metrics] = field(default_factory=dict)
-    """summary key -> metrics of a row without estimation (``leg_odometry``), kept apart from the
-    estimators: it has no timing, no covariance and no NEES."""
+    """summary key -> metrics of a row without estimation (``leg_odometry``, ``weight_equal``), kept
+    apart from the estimators: it has no timing, no covariance and no NEES."""
     baseline_estimates: dict = field(default_factory=dict)
     """summary key -> the baseline's Estimate-like object."""
 
@@ -101,6 +112,9 @@ class Comparison:
             out["baselines"] = {k: m.to_dict() for k, m in self.baselines.items()}
         if self.failures:
             out["failures"] = self.failures
+        rows = [*self.metrics.values(), *self.baselines.values()]
+        if any(m.per_phase or m.violations for m in rows):
+            out["definitions"] = DEFINITIONS
         ekf = self.metrics.get("ekf")
         if ekf is not None:
             rel = {}
@@ -117,6 +131,96 @@ class Comparison:
                 "rmse_relative_to_bound": {k: self.crb.efficiency(m.rmse) for k, m in self.metrics.items()},
             }
         return out
+
+
+DEFINITIONS = {
+    "phases": {
+        "all": "every sample after the skipped start",
+        "single_support": "one contact in force, not within the transition window of a contact switch",
+        "double_support": "two or more contacts in force, not within the transition window of a contact switch",
+        "transition": f"within ±{TRANSITION_S * 1000:g} ms of a contact switch (a contact made or released)",
+    },
+    "foot_vertical_force_N": "each contact's normal force in its own frame (zero when released) against the "
+                             "reference, RMSE over every (step, contact)",
+    "total_vertical_force_N": "sum over the contacts of the normal force against the reference's sum",
+    "rotation_rad": "rotation error (on real logs: tilt of the base against motion capture)",
+    lowpass_key(): f"both the estimate and the reference low-passed first: zero-phase Butterworth, order "
+                   f"{LOWPASS_ORDER} forward and backward (scipy sosfiltfilt), cut-off {LOWPASS_HZ:g} Hz",
+    "violations": f"over the (step, contact) pairs in force after the skipped start, contact frames: normal force "
+                  f"below 0 N; outside the friction cone |F_xy| <= mu F_z, mu = {FRICTION_MU:g} (a negative normal "
+                  "force included); CoP outside the sole",
+}
+"""summary.json's ``definitions``: what the per-phase, low-passed and violation numbers mean."""
+
+
+def _display(key: str) -> str:
+    """A row's name in a sentence: ``ekf`` -> ``EKF``, ``leg_odometry`` -> ``leg-odometry``."""
+    return "EKF" if key == "ekf" else key.replace("_", "-")
+
+
+HEADLINE_QUANTITIES = (
+    ("Per-foot vertical force", lambda m: ((m.get("per_phase") or {}).get("all") or {}).get("rmse", {})
+     .get("foot_vertical_force_N"), 1.0, "N"),
+    ("Total vertical force", lambda m: ((m.get("per_phase") or {}).get("all") or {}).get("rmse", {})
+     .get("total_vertical_force_N"), 1.0, "N"),
+    ("Tilt", lambda m: (m.get("rmse") or {}).get("rotation_rad"), 1e3, "mrad"),
+)
+"""(quantity, its RMSE in a summary row or None, scale, unit) of the headline's sentences."""
+
+
+TIE = 1e-3
+"""Relative difference of two rows' RMSEs below which :func:`headline` names them together."""
+
+
+def headline(summary: dict) -> list[str]:
+    """One sentence per quantity (:data:`HEADLINE_QUANTITIES`) naming the best estimator and
+    whether it beats the best baseline, by how much, from the numbers of ``summary``
+    (:meth:`Comparison.summary`); a quantity no row has is left out.  On simulated data the
+    rotation is the full rotation error, so ``Tilt`` reads ``Rotation``."""
+    estimators = summary.get("estimators") or {}
+    baselines = summary.get("baselines") or {}
+    out = []
+    for name, value, scale, unit in HEADLINE_QUANTITIES:
+        if name == "Tilt" and (summary.get("recording") or {}).get("has_truth"):
+            name = "Rotation"
+
+        def best(rows: dict, value=value) -> tuple[str, float] | None:
+            """(name, RMSE) of the lowest row; rows within :data:`TIE` of it named together."""
+            scored = [(k, v) for k, m in rows.items() if (v := value(m)) is not None]
+            if not scored:
+                return None
+            low = min(v for _, v in scored)
+            tied = [_display(k) for k, v in scored if v <= low * (1 + TIE)]
+            return " and ".join(tied), low
+
+        e, b = best(estimators), best(baselines)
+        if e is None and b is None:
+            continue
+
+        def num(v: float, scale=scale, unit=unit) -> str:
+            return f"{v * scale:.3g} {unit}"
+
+        if b is None:
+            assert e is not None
+            out.append(f"{name}: {e[0]} {'are the best estimators' if ' and ' in e[0] else 'is the best estimator'} "
+                       f"({num(e[1])}); no baseline to compare.")
+            continue
+        plural = " and " in b[0]
+        if e is None:
+            out.append(f"{name}: the {b[0]} baseline{'s are' if plural else ' is'} best ({num(b[1])}); "
+                       "no estimator to compare.")
+        elif e[1] < b[1]:
+            pct = 100.0 * (b[1] - e[1]) / b[1]
+            out.append(f"{name}: {e[0]} {'are' if ' and ' in e[0] else 'is'} best ({num(e[1])}), {pct:.0f} % "
+                       "better than the best "
+                       f"baseline{'s' if plural else ''}, {b[0]} ({num(b[1])}).")
+        else:
+            pct = 100.0 * (e[1] - b[1]) / b[1] if b[1] > 0 else math.inf
+            worse = "no better" if pct < 0.5 else f"{pct:.0f} % worse"
+            many = " and " in e[0]
+            out.append(f"{name}: the {b[0]} baseline{'s are' if plural else ' is'} best ({num(b[1])}); the best "
+                       f"estimator{'s' if many else ''}, {e[0]}, {'are' if many else 'is'} {worse} ({num(e[1])}).")
+    return out
 
 
 def describe(rec) -> dict:
@@ -149,7 +253,12 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
         skip: seconds at the start left out of the statistics (filter convergence).
         progress: called with (estimator name, fraction done).
         options: estimator name -> keyword options.
-        baseline: add the leg-odometry row (:func:`flexforce.compare.baseline.leg_odometry`).
+        baseline: add the rows without estimation (:data:`flexforce.compare.baseline.BASELINES`:
+            leg odometry, the equal split of the weight).
+
+    Every row also gets its per-phase and low-passed errors
+    (:func:`flexforce.compare.metrics.phase_metrics`) and its physical violations
+    (:func:`flexforce.compare.metrics.violations`).
     """
     from flexforce.compare.estimators import nominal_model, run_estimator
 
@@ -171,6 +280,7 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
             est.total_time = time.perf_counter() - t0
         result.estimates[key] = est
         result.metrics[key] = evaluate(est, rec, skip=skip, peak_memory_mb=mem.peak_mb)
+        _contact_checks(result.metrics[key], est, rec, skip)
         chosen = (options or {}).get(name)
         if chosen:
             result.metrics[key].extra["options"] = {k: (v if isinstance(v, bool | int | float | str) else repr(v))
@@ -185,16 +295,18 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
                 "count": len(rejected), "summary": summarize(rejected) if rejected else "",
                 "samples": rejected[:REJECTED_LISTED], "listed": min(len(rejected), REJECTED_LISTED)}
     if baseline:
-        from flexforce.compare.baseline import NAME, leg_odometry
+        from flexforce.compare.baseline import BASELINES
 
-        key = summary_key(NAME)
-        est = leg_odometry(rec)
-        m = evaluate(est, rec, skip=skip)
-        m.kind = "baseline"
-        m.time_per_step = {}
-        m.total_time = None
-        result.baseline_estimates[key] = est
-        result.baselines[key] = m
+        for name, make in BASELINES.items():
+            key = summary_key(name)
+            est = make(rec)
+            m = evaluate(est, rec, skip=skip)
+            m.kind = "baseline"
+            m.time_per_step = {}
+            m.total_time = None
+            _contact_checks(m, est, rec, skip)
+            result.baseline_estimates[key] = est
+            result.baselines[key] = m
     if crb and rec.truth is not None:
         from flexforce.compare.crb import cramer_rao
 
@@ -203,6 +315,14 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
         except FlexforceError as err:
             result.failures["cramer_rao"] = f"{type(err).__name__}: {err}"
     return result
+
+
+def _contact_checks(m: Metrics, est, rec, skip: float) -> None:
+    """Per-phase and low-passed errors and physical violations of ``est`` into ``m`` (where the
+    recording has contacts)."""
+    phase_metrics(m, est, rec, skip=skip)
+    if rec.contact_names:
+        m.violations = violations(est, rec, skip=skip)
 
 
 AUTO_JOBS = "auto"

@@ -273,6 +273,9 @@ def _compare_one(rec, args, out: Path):
 
 
 def _print_table(comp) -> None:
+    from flexforce.compare.metrics import PHASES, lowpass_key
+    from flexforce.compare.runner import headline
+
     def f(x, s=1.0):
         return f"{x * s:.3g}" if x is not None else "-"
 
@@ -291,16 +294,31 @@ def _print_table(comp) -> None:
                 f"{f(r.get('hand_m'), 1e3):>8s} {f(m.nees):>7s} {f(med, 1e6):>9s}")
         line += "".join(f" {f(m.per_contact.get(c, {}).get('vertical_force_N')):>12s}" for c in contacts)
         print(line)
+    if any(m.per_phase for _, m, _ in rows):
+        lp = lowpass_key()
+        phases = [p for p in ("all", *PHASES) if any(m.per_phase.get(p, {}).get("samples") for _, m, _ in rows)]
+        print(f"{'foot/total Fz[N]':17s}" + "".join(f" {p.replace('_support', ''):>13s}" for p in phases)
+              + f" {'all ' + lp.replace('rmse_lowpass_', 'lp '):>13s}")
+        for key, m, baseline in rows:
+            def pair(block, phase, m=m):
+                d = m.per_phase.get(phase, {}).get(block) or {}
+                return f"{f(d.get('foot_vertical_force_N'))}/{f(d.get('total_vertical_force_N'))}"
+
+            print(f"{key + (' *' if baseline else ''):17s}" + "".join(f" {pair('rmse', p):>13s}" for p in phases)
+                  + f" {pair(lp, 'all'):>13s}")
     refs = sorted({v for _, m, _ in rows for v in m.references.values()})
     notes = []
     if comp.baselines:
-        notes.append("* baseline without estimation (rigid robot, static CoM split)")
+        notes.append("* baseline without estimation (rigid robot; leg_odometry: static CoM split, weight_equal: "
+                     "equal split)")
     if refs:
         notes.append("errors against " + ", ".join(refs))
     if notes:
         print("; ".join(notes))
     for key, msg in comp.failures.items():
         print(f"{key:13s} failed: {msg}")
+    for sentence in headline(comp.summary()):
+        print(sentence)
 
 
 def _cmd_compare(args) -> int:

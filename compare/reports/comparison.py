@@ -19,12 +19,21 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from flexforce.compare.metrics import RMSE_KEYS  # noqa: E402
+from flexforce.compare.metrics import (  # noqa: E402
+    FRICTION_MU,
+    LOWPASS_HZ,
+    LOWPASS_ORDER,
+    PHASES,
+    RMSE_KEYS,
+    TRANSITION_S,
+    lowpass_key,
+)
 from flexforce.datasets.safeio import replaceable_by_report, safe_output  # noqa: E402
 from flexforce.errors import OutputError  # noqa: E402
 from flexforce.factors import so3  # noqa: E402
 
-COLORS = {"ekf": "tab:red", "fixed_lag": "tab:blue", "batch": "tab:green", "leg_odometry": "tab:gray"}
+COLORS = {"ekf": "tab:red", "fixed_lag": "tab:blue", "batch": "tab:green", "leg_odometry": "tab:gray",
+          "weight_equal": "tab:brown"}
 LABELS = {
     "force_N": "force [N]", "moment_Nm": "moment [N m]", "cop_m": "CoP [m]", "rotation_rad": "rotation [rad]",
     "translation_m": "translation [m]", "hand_m": "hand [m]", "angular_velocity_rad_s": "ang. vel. [rad/s]",
@@ -485,6 +494,43 @@ def _contact_groups(summary: dict) -> list:
     return groups
 
 
+PHASE_LABELS = {"all": "all", "single_support": "single support", "double_support": "double support",
+                "transition": "transition"}
+PHASE_QUANTITIES = (("foot_vertical_force_N", "per-foot F_z [N]", 1), ("total_vertical_force_N", "total F_z [N]", 1),
+                    ("rotation_rad", "rotation [mrad]", 1e3))
+"""Columns of each phase in the per-phase table: (key of the phase's ``rmse``, header, scale)."""
+
+
+def _phases(summary: dict) -> list:
+    """(phase, label, samples) of the phases some row has samples in (``all`` first)."""
+    out = []
+    for ph in ("all", *PHASES):
+        n = next(((m.get("per_phase") or {}).get(ph, {}).get("samples") for _, m, _ in _table_rows(summary)
+                  if (m.get("per_phase") or {}).get(ph)), None)
+        if n:
+            out.append((ph, PHASE_LABELS[ph], n))
+    return out
+
+
+def _phase_quantities(summary: dict) -> list:
+    """The per-phase columns with a number in some row; the rotation is named tilt on real logs."""
+    refs = _references(summary)
+    cols = []
+    for key, label, scale in PHASE_QUANTITIES:
+        if key == "rotation_rad" and refs.get(key, "truth") != "truth":
+            label = "tilt [mrad]"
+        if any(((m.get("per_phase") or {}).get("all") or {}).get("rmse", {}).get(key) is not None
+               for _, m, _ in _table_rows(summary)):
+            cols.append((key, label, scale))
+    return cols
+
+
+def _sole_skipped(summary: dict) -> list[str]:
+    """The reasons the CoP-in-sole check was skipped (each once)."""
+    return list(dict.fromkeys(s for _, m, _ in _table_rows(summary)
+                              if (s := ((m.get("violations") or {}).get("cop_outside_sole") or {}).get("skipped"))))
+
+
 def summary_table_html(summary: dict) -> str:
     """The summary table, from the very numbers of summary.json (estimators, then baselines)."""
     tables = environment().get_template("_tables.html.j2").module
@@ -544,6 +590,10 @@ def _write_report(comp, rec, out: Path, title: str | None) -> None:
             extra.append(f"Uncompensated, the flexibility moves the hands by up to {d * 1000:.1f} mm.")
             break
     win = info.get("window")
+    from flexforce.compare.runner import headline
+
+    lp = lowpass_key()
+    has_lp = any(lp in ((m.get("per_phase") or {}).get("all") or {}) for _, m, _ in _table_rows(summary))
     page = environment().get_template("comparison.html.j2").render(
         title=title or f"flexforce comparison — {info.get('scenario') or info.get('robot')}",
         info=info,
@@ -554,7 +604,14 @@ def _write_report(comp, rec, out: Path, title: str | None) -> None:
         references=sorted({v for v in _references(summary).values() if v != "truth"}),
         has_baselines=bool(summary.get("baselines")), extra=extra,
         contact_groups=_contact_groups(summary), relative=summary.get("rmse_relative_to_ekf") or {},
-        rmse_keys=RMSE_KEYS, crb=summary.get("cramer_rao"), failures=comp.failures, figures=figures)
+        rmse_keys=RMSE_KEYS, crb=summary.get("cramer_rao"), failures=comp.failures, figures=figures,
+        headline=headline(summary), phases=_phases(summary), phase_quantities=_phase_quantities(summary),
+        lowpass_block=lp if has_lp else None,
+        lowpass_quantities=[q for q in _phase_quantities(summary) if q[0] != "rotation_rad"],
+        lowpass_hz=LOWPASS_HZ, lowpass_order=LOWPASS_ORDER, transition_ms=TRANSITION_S * 1000,
+        has_violations=any(m.get("violations") for _, m, _ in _table_rows(summary)),
+        mu=next((v["friction_mu"] for _, m, _ in _table_rows(summary) if (v := m.get("violations"))), FRICTION_MU),
+        sole_skipped=_sole_skipped(summary))
     (out / "index.html").write_text(page)
 
 

@@ -1,0 +1,118 @@
+"""Benchmark: the estimators' contact forces and tilt on the real iCub recordings, beside the baselines.
+
+    python benchmarks/real_forces.py [--data ../shared/data/icub] [--output benchmarks/results/real_forces.json]
+
+Runs ``flexforce compare <recording> --robot icub-identified`` (the default estimators, the
+baselines without estimation) on the iCub walk (``icub-walk-12s``, single and double support) and
+the CoM sway (``icub-com-sinusoid-20s.bag``, double support throughout), and keeps, per estimator
+and baseline, against the F/T sensors and Vicon (references, not ground truth):
+
+- ``foot_vertical_force_N``, ``total_vertical_force_N``: RMSE of each foot's normal force and of
+  their sum, raw and low-passed (``lowpass_5Hz``: zero-phase Butterworth of both the estimate and
+  the reference, summary.json's ``definitions``);
+- ``tilt_mrad``: RMSE of the base tilt against Vicon;
+- ``per_phase``: the same per contact phase (single support, double support, transitions within
+  ±50 ms of a contact switch; a phase without samples is left out);
+- ``violations``: counts and fractions of negative normal forces and of forces outside the
+  friction cone, over the samples in contact;
+
+and each recording's ``headline``: the sentences naming the best estimator per quantity against
+the best baseline (:func:`flexforce.compare.runner.headline`).  Writes the JSON record to
+``benchmarks/results/real_forces.json`` and prints it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import json
+import os
+import platform
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from flexforce.cli import main as cli_main
+from flexforce.compare.metrics import lowpass_key
+from flexforce.compare.runner import headline
+
+HERE = Path(__file__).resolve().parent
+DATA = HERE.parents[1] / "shared" / "data" / "icub"
+RECORDINGS = {"walk": "icub-walk-12s", "sway": "icub-com-sinusoid-20s.bag"}
+"""Record key -> the recording under ``--data``."""
+ROBOT = "icub-identified"
+
+
+def _row(m: dict) -> dict:
+    """The figures of one summary row (summary.json's estimator or baseline entry)."""
+    lp = lowpass_key()
+    short = lp.replace("rmse_", "")
+
+    def forces(block: dict) -> dict:
+        return {"foot_vertical_force_N": block.get("foot_vertical_force_N"),
+                "total_vertical_force_N": block.get("total_vertical_force_N")}
+
+    phases = m.get("per_phase") or {}
+    whole = phases.get("all") or {}
+    tilt = (m.get("rmse") or {}).get("rotation_rad")
+    out = {"kind": m.get("kind"), **forces(whole.get("rmse") or {}), short: forces(whole.get(lp) or {}),
+           "tilt_mrad": None if tilt is None else tilt * 1e3, "per_phase": {}}
+    for phase, d in phases.items():
+        if phase == "all" or not d.get("samples"):
+            continue
+        rot = (d.get("rmse") or {}).get("rotation_rad")
+        out["per_phase"][phase] = {"samples": d["samples"], **forces(d.get("rmse") or {}),
+                                   "tilt_mrad": None if rot is None else rot * 1e3, short: forces(d.get(lp) or {})}
+    v = m.get("violations") or {}
+    out["violations"] = {"samples_in_contact": v.get("samples_in_contact"), "friction_mu": v.get("friction_mu"),
+                         **{check: {"count": (v.get(check) or {}).get("count"),
+                                    "fraction": (v.get(check) or {}).get("fraction")}
+                            for check in ("negative_normal", "friction_cone")},
+                         "cop_outside_sole": (v.get("cop_outside_sole") or {}).get("skipped")
+                         or (v.get("cop_outside_sole") or {}).get("count")}
+    return out
+
+
+def run(path: Path) -> dict:
+    """The record of one recording: ``flexforce compare`` into a temporary folder, its summary.json read back."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "report"
+        t0 = time.perf_counter()
+        with contextlib.redirect_stdout(io.StringIO()):
+            status = cli_main(["compare", str(path), "--robot", ROBOT, "-o", str(out), "-q"])
+        seconds = time.perf_counter() - t0
+        if status != 0:
+            raise SystemExit(f"flexforce compare {path} exited with status {status}")
+        summary = json.loads((out / "summary.json").read_text())
+    rec = summary["recording"]
+    return {"recording": path.name, "samples": rec.get("samples"), "duration_s": rec.get("duration_s"),
+            "headline": headline(summary), "compare_s": round(seconds, 1),
+            "estimators": {k: _row(m) for k, m in summary["estimators"].items()},
+            "baselines": {k: _row(m) for k, m in (summary.get("baselines") or {}).items()},
+            "failures": summary.get("failures") or {}}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=DATA, help="folder of the iCub recordings")
+    parser.add_argument("--output", type=Path, default=HERE / "results" / "real_forces.json")
+    args = parser.parse_args()
+    record: dict = {"benchmark": "real_forces", "command": "python benchmarks/real_forces.py", "robot": ROBOT,
+                    "reference": "F/T normal forces and Vicon tilt (references, not ground truth)",
+                    "skip_s": 0.5, "machine": {"python": platform.python_version(),
+                                               "processor": platform.processor() or platform.machine(),
+                                               "numpy": np.__version__}}
+    for key, name in RECORDINGS.items():
+        record[key] = run(args.data / name)
+    record["load_average_at_end"] = [round(x, 2) for x in os.getloadavg()]
+    text = json.dumps(record, indent=2, allow_nan=False)
+    print(text)
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(text + "\n")
+
+
+if __name__ == "__main__":
+    main()
