@@ -255,3 +255,17 @@ def test_imu_bias_random_walks_may_be_zero():
     with pytest.raises(ConfigError, match=r"imu_noise.accel_bias_rw = -1.0 m/s\^3/sqrt\(Hz\); expected a finite "
                                           "random walk >= 0"):
         ImuNoise(accel_bias_rw=-1.0)
+
+
+def test_imu_filter_is_checked():
+    """``[ros] imu_filter``: ``none`` by default; another value than ``none`` or ``savgol`` is refused,
+    naming the key, the value, the configuration and the expected values."""
+    from flexforce.datasets.robot import RosConfig
+
+    assert RosConfig().imu_filter == "none" and RosConfig(imu_filter="savgol").imu_filter == "savgol"
+    raw = {"name": "x", "urdf": "x", "imu_frame": "x", "contacts": [],
+           "stiffness": {"k_fs": 1e4, "k_fd": 1e2, "k_ts": 3e2, "k_td": 5.0}, "ros": {"imu_filter": "lowpass"}}
+    with pytest.raises(ConfigError, match=r"ros.imu_filter = 'lowpass'; expected 'none' \(the readings as given\) "
+                                          r"or 'savgol' \(the joints' Savitzky-Golay smoother\) in robot "
+                                          "configuration x.toml"):
+        RobotConfig.from_dict(raw, source="x.toml")

@@ -16,10 +16,11 @@ import pytest
 import rosbags.rosbag1
 import rosbags.rosbag2
 from conftest import ICUB_DIR as ICUB  # noqa: E402
+from scipy.signal import savgol_filter
 
 from flexforce.datasets.contacts import fixed_contacts, phases, schmitt_trigger
 from flexforce.datasets.io.bagio import load_recording, save_recording
-from flexforce.datasets.io.rosimport import import_bag, is_flexforce_bag
+from flexforce.datasets.io.rosimport import import_bag, imu_smoothed, is_flexforce_bag, window_holds
 from flexforce.datasets.robot import RobotConfig, RobotModel, RosConfig
 from flexforce.errors import BagError, ConfigError, DataError
 
@@ -427,6 +428,56 @@ def test_nan_imu_reading_is_missing_not_refused(romeo, tmp_path, good_topics):
         good_topics["/imu"][1][k][1]["gyro"] = np.array([np.inf, 0.0, 0.0])
     with pytest.raises(DataError, match="missing"):
         import_bag(write_bag(tmp_path / "m", "mcap", good_topics), romeo)
+
+
+def test_imu_filter_is_the_joints_savgol_smoother(romeo, tmp_path, good_topics):
+    """``ros.imu_filter = "savgol"``: the IMU readings on the grid through scipy's savgol_filter with
+    the joints' window and order (zero-phase, ``mode="interp"``); a 20 Hz vibration on top of the
+    smooth readings is what it takes out, as the joints' derivatives lose it."""
+    for t, f in good_topics["/imu"][1]:  # a 20 Hz vibration of the pelvis on the accelerometer
+        f["accel"] = f["accel"] + np.array([0.0, 0.0, 0.5 * np.sin(2 * np.pi * 20 * (t - T0) * 1e-9)])
+    path = write_bag(tmp_path / "v", "mcap", good_topics)
+    raw = import_bag(path, romeo)
+    band = dataclasses.replace(romeo.config, ros=dataclasses.replace(ROS, imu_filter="savgol"))
+    rec = import_bag(path, band)
+    assert raw.meta["imu_filter"] == "none" and rec.meta["imu_filter"] == "savgol"
+    win = int(round(ROS.savgol_window / rec.dt)) | 1
+    for name in ("gyro", "accel"):
+        expected = savgol_filter(getattr(raw, name), win, ROS.savgol_order, axis=0, mode="interp")
+        np.testing.assert_allclose(getattr(rec, name), expected, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(rec.joint_v, raw.joint_v)  # the joints are untouched
+
+    # a vibration: the smoother's response at 20 Hz is its own, |H(20 Hz)| < 0.2 for 9 samples at 100 Hz
+    t = np.arange(400) * 0.01
+    x = np.stack([np.sin(2 * np.pi * 20 * t), np.sin(2 * np.pi * 0.5 * t), np.ones_like(t)], axis=1)
+    y = imu_smoothed(x, np.inf, win, lambda z: savgol_filter(z, win, ROS.savgol_order, axis=0, mode="interp"))
+    inner = slice(win, -win)
+    assert np.abs(y[inner, 0]).max() < 0.2 * np.abs(x[inner, 0]).max()
+    np.testing.assert_allclose(y[inner, 1:], x[inner, 1:], atol=1e-4)  # slow motion and gravity kept
+
+
+def test_imu_filter_leaves_missing_what_it_cannot_use():
+    """A missing (NaN) or clipped reading makes missing, on its axis, every output whose window
+    holds it (the centred window inside, the first or last at the ends); the others are scipy's."""
+    win, order, n = 9, 3, 60
+    rng = np.random.default_rng(4)
+    x = rng.normal(size=(n, 3))
+    x[30, 0] = np.nan
+    x[2, 1] = 16.0  # at the full scale
+    x[n - 1, 2] = -16.0
+
+    def smooth(z):
+        return savgol_filter(z, win, order, axis=0, mode="interp")
+
+    y = imu_smoothed(x, 16.0, win, smooth)
+    bad = np.zeros((n, 3), dtype=bool)
+    bad[26:35, 0] = True  # 30 +- 4
+    bad[:7, 1] = True  # rows 0..6: the first window (rows 0..8) or, for 5 and 6, the centred one
+    bad[n - 5:, 2] = True  # the last window's rows and the centred ones reaching n - 1
+    assert np.array_equal(np.isnan(y), bad)
+    clean = smooth(np.where(np.isfinite(x) & (np.abs(x) < 15.9), x, 0.0))
+    np.testing.assert_array_equal(y[~bad], clean[~bad])
+    assert np.array_equal(window_holds(np.isnan(x), win), bad & (np.arange(3) == 0))
 
 
 def test_nan_joint_position(romeo, tmp_path, good_topics):

@@ -208,6 +208,28 @@ def test_stream_import_equals_offline_import(walk_offline, velocity):
 
 
 @needs_icub
+def test_stream_import_filters_the_imu_as_offline():
+    """``ros.imu_filter = "savgol"``: the streamed IMU readings are the offline import's (the same
+    smoother over the same rows, with the joints' delay), and so is every input."""
+    config = RobotConfig.load(ROBOT)
+    assert config.ros is not None
+    config = dataclasses.replace(config, ros=dataclasses.replace(config.ros, imu_filter="savgol"))
+    offline = import_bag(WALK, config)
+    parts = list(stream_bag(WALK, config, rate=offline.meta["grid"]["rate_hz"], part_seconds=0.37))
+    assert all(p.meta["stream"]["imu_filter"] == "savgol" for p in parts)
+    rec = parts[0]
+    for p in parts[1:]:
+        rec = concat_recordings(rec, p)
+    assert np.array_equal(rec.t_ns, offline.t_ns)
+    for name in offline.per_step_fields():
+        a, b = getattr(offline, name), getattr(rec, name)
+        if a.dtype == bool:
+            continue
+        assert np.array_equal(np.isnan(a), np.isnan(b)), name
+        assert np.nanmax(np.abs(a - b)) <= EXACT, name
+
+
+@needs_icub
 def test_blocks_on_the_icub_walk(walk_offline):
     """Ten samples per update through the iCub walk (touch-downs, IMU outliers): the smoother
     holds, and its per-foot F_z error against the F/T stays within 1.5 times one update per

@@ -36,6 +36,10 @@ Method (docs/real-logs.md has the long form):
   positions.  Joint accelerations: a Savitzky-Golay first derivative of the velocities taken
   from messages, or the second derivative of the positions (scipy.signal.savgol_filter, window
   ``savgol_window`` s, order ``savgol_order``, ``mode="interp"``).
+* **IMU bandwidth.** ``ros.imu_filter = "savgol"``: the IMU readings on the grid through the same
+  Savitzky-Golay smoother (zeroth derivative), so that they see the band of their kinematic
+  prediction (formed from the smoothed joint derivatives); a missing or clipped reading makes the
+  outputs whose window holds it missing (:func:`imu_smoothed`).  ``"none"``: as resampled.
 * **Contacts.** ``contacts="ft"``: Schmitt trigger on the F/T normal force (``contact_on`` /
   ``contact_off``; :mod:`flexforce.datasets.contacts`); ``contacts="fixed"``: ``fixed_contacts``
   (all contacts by default) active throughout.
@@ -59,6 +63,7 @@ import pinocchio as pin
 from scipy.signal import savgol_filter
 
 from flexforce.datasets.contacts import fixed_contacts, phases, schmitt_trigger
+from flexforce.datasets.faults import RANGE_TOLERANCE
 from flexforce.datasets.io.localframe import anchored_local_frame
 from flexforce.datasets.recording import Recording
 from flexforce.datasets.robot import RobotConfig, RobotModel, RosConfig
@@ -220,9 +225,41 @@ def _require_finite(topic: _Topic, values: np.ndarray, what: str, t0: int, label
                         f"inf in {what}{name}; expected finite values")
 
 
-def _savgol(x: np.ndarray, dt: float, deriv: int, ros: RosConfig) -> np.ndarray:
+def savgol_samples(ros: RosConfig, dt: float) -> int:
+    """The Savitzky-Golay window in grid samples: ``ros.savgol_window`` rounded to an odd number,
+    at least ``ros.savgol_order + 2``."""
     win = int(round(ros.savgol_window / dt)) | 1
-    win = max(win, ros.savgol_order + 2 + ((ros.savgol_order + 1) % 2))
+    return max(win, ros.savgol_order + 2 + ((ros.savgol_order + 1) % 2))
+
+
+def window_holds(bad: np.ndarray, win: int) -> np.ndarray:
+    """(N, ...) bool: the rows whose Savitzky-Golay window (``win`` samples, ``mode="interp"``) holds
+    a True of ``bad`` (N, ...): the window centred on the row, the first (last) window for the
+    ``win // 2`` rows at the start (end), whose outputs are that window's polynomial fit."""
+    n, h = len(bad), win // 2
+    count = np.concatenate([np.zeros((1,) + bad.shape[1:], dtype=np.int64), np.cumsum(bad, axis=0)])
+    start = np.clip(np.arange(n) - h, 0, max(n - win, 0))
+    stop = np.minimum(start + win, n)
+    return (count[stop] - count[start]) > 0
+
+
+def imu_smoothed(x: np.ndarray, full_scale: float, win: int, smooth) -> np.ndarray:
+    """The (N, 3) IMU readings ``x`` of one sensor through ``smooth`` (the Savitzky-Golay smoother of
+    ``win`` samples on a finite (N, 3) array), :attr:`RosConfig.imu_filter` ``"savgol"``.
+
+    A reading the smoother cannot use -- missing (NaN) or at the sensor's ``full_scale`` (within
+    :data:`~flexforce.datasets.faults.RANGE_TOLERANCE`: clipped, the smoothed value would hide it) --
+    leaves NaN (missing, which the estimators skip) on its axis at every output whose window holds it.
+    """
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(x) | (np.abs(x) >= full_scale * (1.0 - RANGE_TOLERANCE))
+    out = np.array(smooth(np.where(bad, 0.0, x)), dtype=float)
+    out[window_holds(bad, win)] = np.nan
+    return out
+
+
+def _savgol(x: np.ndarray, dt: float, deriv: int, ros: RosConfig) -> np.ndarray:
+    win = savgol_samples(ros, dt)
     if win > len(x):
         raise DataError(f"recording has {len(x)} samples, fewer than the Savitzky-Golay window of {win} "
                         f"samples (ros.savgol_window = {ros.savgol_window} s); expected a longer log")
@@ -263,6 +300,10 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
     gaps = _GapCheck(grid, ros.gap_factor * dt, ros.max_gap)
     gyro, accel, imu_missing = _imu_on_grid(imu, model, grid, gaps)
     joint = _joints_on_grid(joints, model, ros, grid, dt, t_first, gaps)
+    if ros.imu_filter == "savgol":
+        win, noise = savgol_samples(ros, dt), config.imu_noise
+        gyro = imu_smoothed(gyro, noise.gyro_range, win, lambda x: _savgol(x, dt, 0, ros))
+        accel = imu_smoothed(accel, noise.accel_range, win, lambda x: _savgol(x, dt, 0, ros))
     report(0.3)
     ft = _ft_on_grid(topics, model, ros, grid, joint.q, gaps)
     active, method = _contact_states(model, ros, contacts, ft, len(grid))
@@ -661,6 +702,7 @@ def _import_meta(source: dict, model: RobotModel, ros: RosConfig, grid: np.ndarr
         "imu_missing_messages": imu_missing,
         "joint_velocity": joint.velocity_source,
         "derivative_filter": {"method": "savgol", "window_s": ros.savgol_window, "order": ros.savgol_order},
+        "imu_filter": ros.imu_filter,
         "joints_not_measured": [nm for nm, ok in zip(model.joint_names, joint.measured) if not ok],
         "gaps": _merge_gaps(gaps),
         "contacts": {**method, "phases": {p.name: [list(iv) for iv in p.intervals]

@@ -17,7 +17,8 @@ log of any length is imported without being loaded.  Same method as the offline 
   the inputs lag the messages by ``h`` samples (``ros.savgol_window / 2``: 0.1 s on iCub).  The
   first and last ``h`` steps use the window's polynomial fit, as offline (``mode="interp"``).
   This delay adds to the smoother's lag: the estimate of a step leaves ``lag + savgol_window/2``
-  after its time (plus ``report_every`` samples).
+  after its time (plus ``report_every`` samples).  With ``ros.imu_filter = "savgol"`` the IMU
+  readings go through the same smoother over the same rows, with the same delay (no more).
 * **Contacts.** The Schmitt trigger runs step by step with its state carried; it starts at a
   contact's first finite force (offline: the same).
 * **Local frame** (:class:`flexforce.datasets.io.localframe.LocalFrameTracker`) and kinematics, step by
@@ -51,6 +52,7 @@ from flexforce.datasets.io.rosimport import (
     _typestore,
     _wrench_to_contact_frame,
     check_touch_downs,
+    imu_smoothed,
     local_inputs,
 )
 from flexforce.datasets.recording import Recording
@@ -461,10 +463,17 @@ class StreamImporter:
         vel = vel.copy()
         vel[:, ~self.measured] = 0.0
         acc[:, ~self.measured] = 0.0
+        gyro, accel = rows["gyro"], rows["accel"]
+        if ros.imu_filter == "savgol":  # the IMU through the same smoother, over the same rows
+            noise = self.config.imu_noise
+            gyro = imu_smoothed(np.array(gyro), noise.gyro_range, win,
+                                lambda x: self._savgol(x, win, 0, dt, lo, hi))
+            accel = imu_smoothed(np.array(accel), noise.accel_range, win,
+                                 lambda x: self._savgol(x, win, 0, dt, lo, hi))
         for j in range(lo, hi):
             k = s + j
             r = k - a
-            self._ready.append({"k": k, "gyro": rows["gyro"][r], "accel": rows["accel"][r], "q": seg[j],
+            self._ready.append({"k": k, "gyro": gyro[r], "accel": accel[r], "q": seg[j],
                                 "v": vel[j, :nj], "a": acc[j, :nj], "ft": rows["ft"][r]})
         self._k_deriv = stop
         # drop the rows the filter no longer needs (it needs h before the next step to differentiate)
@@ -546,7 +555,8 @@ class StreamImporter:
                            "period_ns": self.period, "t0_ns": int(self.grid0),
                            "joint_velocity": self.velocity_source,
                            "derivative_filter": {"method": "savgol", "window_s": self.ros.savgol_window,
-                                                 "order": self.ros.savgol_order}}}
+                                                 "order": self.ros.savgol_order},
+                           "imu_filter": self.ros.imu_filter}}
         self.steps_out += n
         return Recording(
             t_ns=grid, robot=self.config.source or self.config.name, contact_names=self.names_c,
