@@ -463,7 +463,9 @@ class StreamImporter:
         vel = vel.copy()
         vel[:, ~self.measured] = 0.0
         acc[:, ~self.measured] = 0.0
-        gyro, accel = rows["gyro"], rows["accel"]
+        # the rows as buffered (a list), or filtered (an array): both indexed by row below
+        gyro: Any = rows["gyro"]
+        accel: Any = rows["accel"]
         if ros.imu_filter == "savgol":  # the IMU through the same smoother, over the same rows
             noise = self.config.imu_noise
             gyro = imu_smoothed(np.array(gyro), noise.gyro_range, win,
