@@ -1,8 +1,8 @@
 """The Estimate: what every estimator (EKF, batch and fixed-lag smoothers) returns.
 
 One type for all, so that every comparison is like for like (DESIGN.md, "Data flow").  Shapes:
-``N`` steps, ``C`` contacts.  The state covariance is over world-frame increments in the order of
-:mod:`flexforce.factors.physics`: ``(theta, t, w, v, dw, a)``, 18 components.
+``N`` steps, ``C`` contacts.  The state covariance is over world-frame increments in the state
+layout of :mod:`flexforce.datasets.layout`: ``(theta, t, w, v, dw, a)``, 18 components.
 """
 
 from __future__ import annotations
@@ -13,12 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
+from flexforce.datasets.layout import STATE_LABELS as STATE_LABELS  # re-exported; defined by the layout
 from flexforce.datasets.safeio import safe_output
 from flexforce.errors import DataError
-
-STATE_LABELS = ("theta_x", "theta_y", "theta_z", "t_x", "t_y", "t_z", "w_x", "w_y", "w_z",
-                "v_x", "v_y", "v_z", "dw_x", "dw_y", "dw_z", "a_x", "a_y", "a_z")
-"""Names of the 18 state components (rad, m, rad/s, m/s, rad/s^2, m/s^2)."""
 
 
 @dataclass
@@ -48,7 +45,8 @@ class Estimate:
     cop: np.ndarray
     """(N, 3) centre of pressure, m (NaN without vertical force)."""
     cov: np.ndarray | None = None
-    """(N, 18, 18) marginal covariance of the state (world-frame increments)."""
+    """(N, 18, 18) marginal covariance of the state (world-frame increments, in the order of
+    :data:`flexforce.datasets.layout.STATE`)."""
     wrench_cov: np.ndarray | None = None
     """(N, 6, 6) covariance of the total contact wrench."""
     cop_cov: np.ndarray | None = None
@@ -90,7 +88,7 @@ class Estimate:
         return self.wrench.sum(axis=1)
 
     def state_std(self) -> np.ndarray | None:
-        """(N, 18) standard deviations of the state components."""
+        """(N, 18) standard deviations of the state components (:data:`STATE_LABELS`)."""
         if self.cov is None:
             return None
         return np.sqrt(np.maximum(np.diagonal(self.cov, axis1=1, axis2=2), 0.0))

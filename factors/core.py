@@ -16,7 +16,8 @@ State of one step (the columns of every Jacobian, world-frame increments, rotati
 
     s = (theta, t, w, v, dw, a)        18 components: rad, m, rad/s, m/s, rad/s^2, m/s^2
 
-passed as ``R`` (3x3, local to world) and ``q = (t, w, v, dw, a)`` (15,).  A wrench is
+(the state layout :data:`flexforce.datasets.layout.STATE`, whose ``STATE_DIM`` this module
+re-exports), passed as ``R`` (3x3, local to world) and ``q = (t, w, v, dw, a)`` (15,).  A wrench is
 ``(F, T)`` (N, N m about the world origin), world axes.  A contact's rest placement in the world
 (its foothold) is ``(p_r, R_r)``; its increments are ``p_r <- p_r + d_p`` and
 ``R_r <- exp([d_r]x) R_r`` (world frame), columns ``(d_p, d_r)`` of the 6x6 ``Jr``.
@@ -28,11 +29,9 @@ import math
 
 import numpy as np
 
+from flexforce.datasets.layout import STATE_DIM as STATE_DIM  # columns of a per-step Jacobian
 from flexforce.jit import HAVE_NUMBA as HAVE_NUMBA  # re-exported: the kernels decorate with core.njit
 from flexforce.jit import njit as njit
-
-STATE_DIM = 18
-"""Columns of a per-step Jacobian: (theta, t, w, v, dw, a)."""
 
 # ----------------------------------------------------------------------------------------------
 # 3-vectors and 3x3 matrices as tuples

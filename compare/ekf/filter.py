@@ -35,8 +35,9 @@ algebra and numerical Jacobians (the authors' way), kept under ``tests/reference
 Output
 ------
 :func:`run_ekf` returns the common :class:`~flexforce.datasets.estimate.Estimate`: its ``cov`` is
-over world-frame increments in the physics order ``(theta, t, w, v, dw, a)``, converted from the
-filter's ``(t, Omega, v, w, a, dw)``.
+over world-frame increments in the state layout ``(theta, t, w, v, dw, a)``
+(:data:`flexforce.datasets.layout.STATE`), converted from the filter's ``(t, Omega, v, w, a, dw)``
+(:data:`PAPER_ORDER`, a permutation of the layout's blocks).
 """
 
 from __future__ import annotations
@@ -53,6 +54,7 @@ import numpy as np
 from flexforce.compare.ekf import kernel as K
 from flexforce.datasets import faults
 from flexforce.datasets.estimate import Estimate
+from flexforce.datasets.layout import STATE, STATE_DIM
 from flexforce.datasets.recording import Recording
 from flexforce.errors import ConfigError, DataError, EstimatorError, ModelError
 from flexforce.factors import so3
@@ -71,19 +73,27 @@ from flexforce.options import (
 
 __all__ = [
     "EKF", "EKFConfig", "run_ekf", "noise_model",
-    "STATE_LABELS", "IMU_LABELS", "paper_to_world", "world_to_paper_cov",
+    "STATE_LABELS", "IMU_LABELS", "PAPER_ORDER", "PAPER_INDEX", "paper_to_world", "world_to_paper_cov",
 ]
 
-STATE_LABELS = ("t_x", "t_y", "t_z", "Omega_x", "Omega_y", "Omega_z", "v_x", "v_y", "v_z",
-                "w_x", "w_y", "w_z", "a_x", "a_y", "a_z", "dw_x", "dw_y", "dw_z")
-"""The filter's state, eq. (4): m, rad, m/s, rad/s, m/s^2, rad/s^2."""
+PAPER_ORDER = ("t", "theta", "v", "w", "a", "dw")
+"""The filter's state, eq. (4), as a permutation of the blocks of the state layout
+(:data:`flexforce.datasets.layout.STATE`).  The block ``theta`` stands for the paper's
+``Omega = log R``: its increments are the layout's up to ``d_theta = J_l(Omega) d_Omega``
+(:func:`paper_to_world`), so that at ``Omega = 0`` the change of order is the permutation alone."""
+
+PAPER_INDEX = STATE.index(PAPER_ORDER)
+"""(18,) int: a vector in the state layout rearranged into the filter's order, ``s[PAPER_INDEX]``."""
+
+STATE_LABELS = tuple(STATE.labels[i].replace("theta_", "Omega_") for i in PAPER_INDEX)
+"""The filter's state, eq. (4): ``t_x .. dw_z`` in m, rad, m/s, rad/s, m/s^2, rad/s^2."""
 
 IMU_LABELS = ("gyro_x [rad/s]", "gyro_y [rad/s]", "gyro_z [rad/s]",
               "accel_x [m/s^2]", "accel_y [m/s^2]", "accel_z [m/s^2]")
 """Components of the innovation (IMU frame)."""
 
-# Slices of the paper's state x = (t, Omega, v, w, a, dw).
-T, OM, V, W, A, DW = (slice(3 * i, 3 * i + 3) for i in range(6))
+# Slices of the paper's state x = (t, Omega, v, w, a, dw), in the order of PAPER_ORDER.
+T, OM, V, W, A, DW = STATE.slices(PAPER_ORDER)
 _I3 = np.eye(3)
 
 
@@ -186,13 +196,9 @@ class EKFConfig:
 def paper_to_world(Omega: np.ndarray) -> np.ndarray:
     r"""18x18 ``M`` with ``d_world = M d_x``: world increments ``(theta, t, w, v, dw, a)`` from
     increments of the paper's ``(t, Omega, v, w, a, dw)``; ``d_theta = J_l(Omega) d_Omega``."""
-    M = np.zeros((18, 18))
-    M[0:3, OM] = so3.left_jacobian(Omega)
-    M[3:6, T] = _I3
-    M[6:9, W] = _I3
-    M[9:12, V] = _I3
-    M[12:15, DW] = _I3
-    M[15:18, A] = _I3
+    M = np.zeros((STATE_DIM, STATE_DIM))
+    for name, paper in zip(PAPER_ORDER, STATE.slices(PAPER_ORDER)):
+        M[STATE[name], paper] = so3.left_jacobian(Omega) if name == "theta" else _I3
     return M
 
 

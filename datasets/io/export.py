@@ -10,7 +10,7 @@ CSV (:func:`export_csv`): one row per step, a header row of column names with un
   total ``total_F_*``, ``total_T_*``;
 * ``cop_x cop_y cop_z`` [m];
 * when the estimate has covariances: ``std_<state label>`` for the 18 state components
-  (:data:`flexforce.datasets.estimate.STATE_LABELS`), ``std_cop_x std_cop_y``.
+  (:data:`flexforce.datasets.layout.STATE_LABELS`), ``std_cop_x std_cop_y``.
 
 Numbers have 15 significant digits (within 1e-14 of the estimate, relatively: the .npz is the
 lossless output), ``t_ns`` is exact (:mod:`flexforce.datasets.io.csvformat`).
@@ -51,8 +51,9 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from flexforce.datasets.estimate import STATE_LABELS, Estimate
+from flexforce.datasets.estimate import Estimate
 from flexforce.datasets.io.csvformat import format_rows
+from flexforce.datasets.layout import STATE, STATE_LABELS
 from flexforce.datasets.recording import Recording
 from flexforce.datasets.safeio import is_bag_folder, safe_output
 from flexforce.errors import BagError, DataError
@@ -370,8 +371,8 @@ def _estimate_streams(ts, est: Estimate) -> list[tuple[str, str, Callable[..., A
                         lambda k, h, i=i: T["geometry_msgs/msg/WrenchStamped"](
                             header=h, wrench=M.wrench(est.wrench[k, i]))))
     if est.cov is not None:
-        # state order (theta, t, ...) -> ROS pose covariance order (x, y, z, rot x, rot y, rot z)
-        idx = np.r_[3:6, 0:3]
+        # state layout -> ROS pose covariance order (x, y, z, rot x, rot y, rot z)
+        idx = np.r_[STATE["t"], STATE["theta"]]
         cov6 = est.cov[:, idx][:, :, idx]
         streams.append((f"{base}/flexibility_cov", "geometry_msgs/msg/PoseWithCovarianceStamped",
                         lambda k, h: T["geometry_msgs/msg/PoseWithCovarianceStamped"](
