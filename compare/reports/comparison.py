@@ -547,6 +547,14 @@ def per_contact_table_html(summary: dict) -> str:
     return str(tables.per_contact_table(list(_table_rows(summary)), groups))
 
 
+def recording_name(rec, info: dict) -> str:
+    """What a report calls a recording: its scenario, else the file or folder it was read from, else
+    its robot configuration."""
+    source = (getattr(rec, "meta", None) or {}).get("source")
+    path = source.get("path") if isinstance(source, dict) else None
+    return str(info.get("scenario") or (Path(path).name if path else None) or info.get("robot"))
+
+
 def write_report(comp, rec, out_dir: str | Path, title: str | None = None) -> Path:
     """Write index.html, summary.json and the figures of a comparison into ``out_dir``.
 
@@ -595,7 +603,7 @@ def _write_report(comp, rec, out: Path, title: str | None) -> None:
     lp = lowpass_key()
     has_lp = any(lp in ((m.get("per_phase") or {}).get("all") or {}) for _, m, _ in _table_rows(summary))
     page = environment().get_template("comparison.html.j2").render(
-        title=title or f"flexforce comparison — {info.get('scenario') or info.get('robot')}",
+        title=title or f"flexforce comparison — {recording_name(rec, info)}",
         info=info,
         window_text=(f", the window {win['start_s']:.3f}–{win['end_s']:.3f} s of a {win['of_duration_s']:.3f} s "
                      "recording" if win else ""),
