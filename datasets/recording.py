@@ -197,21 +197,7 @@ class Recording:
                 increase or are not uniform; an array of the wrong shape, a non-finite input, a
                 non-positive mass (:meth:`validate`).
         """
-        t = np.asarray(t_ns)
-        if t.ndim != 1:
-            raise DataError(f"t_ns has shape {t.shape}; expected (N,) integer nanoseconds")
-        if not np.issubdtype(t.dtype, np.integer):
-            span = f", values {t.min():g} to {t.max():g}" if t.size and np.issubdtype(t.dtype, np.number) else ""
-            raise DataError(f"t_ns has dtype {t.dtype}{span}; expected integer nanoseconds (int64), e.g. "
-                            "np.round(t_seconds * 1e9).astype(np.int64)")
-        if t.size >= 2:
-            steps = np.diff(t.astype(np.int64))
-            median = float(np.median(steps))
-            if np.all(steps > 0) and median < cls.MIN_STEP_NS:
-                raise DataError(f"t_ns steps by {median:g} ns (median), a rate of "
-                                f"{1e9 / median:.3g} Hz: these look like seconds, milliseconds or "
-                                "microseconds; expected integer nanoseconds, e.g. "
-                                "np.round(t_seconds * 1e9).astype(np.int64)")
+        t = cls._checked_time_stamps(t_ns)
 
         def floats(value: ArrayLike) -> np.ndarray:
             return np.asarray(value, dtype=np.float64)
@@ -233,9 +219,34 @@ class Recording:
         return rec.validate()
 
     MIN_STEP_NS = 10_000
-    """Shortest median time step :meth:`from_arrays` takes, ns (10 us: 100 kHz): a shorter one is
-    time counted in seconds, milliseconds or microseconds (steps of 1 to a few thousand), not in
-    nanoseconds."""
+    """Shortest median time step :meth:`from_arrays` and :meth:`validate` take, ns (10 us: 100 kHz):
+    a shorter one is time counted in seconds, milliseconds or microseconds (steps of 1 to a few
+    thousand), not in nanoseconds."""
+
+    @classmethod
+    def _checked_time_stamps(cls, t_ns: ArrayLike) -> np.ndarray:
+        """``t_ns`` as an (N,) array of integer nanoseconds, or a DataError naming its dtype or step.
+
+        Raises:
+            DataError: not one-dimensional; not integers (floats: seconds?); increasing by a median
+                step under :attr:`MIN_STEP_NS` (seconds, milliseconds or microseconds).
+        """
+        t = np.asarray(t_ns)
+        if t.ndim != 1:
+            raise DataError(f"t_ns has shape {t.shape}; expected (N,) integer nanoseconds")
+        if not np.issubdtype(t.dtype, np.integer):
+            span = f", values {t.min():g} to {t.max():g}" if t.size and np.issubdtype(t.dtype, np.number) else ""
+            raise DataError(f"t_ns has dtype {t.dtype}{span}; expected integer nanoseconds (int64), e.g. "
+                            "np.round(t_seconds * 1e9).astype(np.int64)")
+        if t.size >= 2:
+            steps = np.diff(t.astype(np.int64))
+            median = float(np.median(steps))
+            if np.all(steps > 0) and median < cls.MIN_STEP_NS:
+                raise DataError(f"t_ns steps by {median:g} ns (median), a rate of "
+                                f"{1e9 / median:.3g} Hz: these look like seconds, milliseconds or "
+                                "microseconds; expected integer nanoseconds, e.g. "
+                                "np.round(t_seconds * 1e9).astype(np.int64)")
+        return t
 
     @property
     def n(self) -> int:
@@ -391,7 +402,14 @@ class Recording:
         of the samples.
 
         Returns the recording itself so that calls can be chained.
+
+        Raises:
+            DataError: time stamps that are not integer nanoseconds (a float dtype, or steps that
+                look like seconds, milliseconds or microseconds), that do not increase or are not
+                uniform; fewer than 2 samples; a field of the wrong shape or not finite; too many
+                missing IMU readings; a non-positive mass.
         """
+        self._checked_time_stamps(self.t_ns)
         n = self.n
         if n < 2:
             raise DataError(f"recording has {n} sample(s); at least 2 are needed")

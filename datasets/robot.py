@@ -35,6 +35,11 @@ DEFAULT_ROBOT = "romeo"
 IMU_FILTERS = ("none", "savgol")
 """The values of ``[ros] imu_filter`` (:attr:`RosConfig.imu_filter`)."""
 
+ROS_RATE_RANGE = (10.0, 10_000.0)
+"""Bounds of ``[ros] rate``, Hz: state estimation of a legged robot runs at its IMU's and
+encoders' rates, tens of Hz to a few kHz; below the grid would alias the gait, above it the grid
+only interpolates the messages, with a cost in memory and time growing with the rate."""
+
 STIFFNESS_UNITS = {"k_fs": "N/m", "k_fd": "N s/m", "k_ts": "N m/rad", "k_td": "N m s/rad"}
 """The keys of a robot configuration's ``[stiffness]`` section (all four required) and their units."""
 
@@ -137,7 +142,8 @@ class ImuNoise:
             if not (isinstance(value, numbers.Real) and not isinstance(value, bool) and value > 0
                     and not math.isnan(value)):
                 raise ConfigError(f"imu_noise.{key} = {value!r} {unit}; expected the sensor's positive full scale "
-                                  "(inf: no saturation check)")
+                                  "(a reading at or beyond it is saturated, so a range <= 0 would leave no valid "
+                                  "reading; inf: no saturation check)")
 
     def gyro_sigma(self, rate: float) -> float:
         """Per-sample gyro standard deviation (rad/s) at ``rate`` Hz."""
@@ -239,8 +245,12 @@ class RosConfig:
                               "0 <= contact_off_weight < contact_on_weight <= 1")
         if self.joint_velocity not in ("message", "differentiate"):
             raise ConfigError(f"ros.joint_velocity = {self.joint_velocity!r}; expected 'message' or 'differentiate'")
-        if self.rate is not None and not self.rate > 0:
-            raise ConfigError(f"ros.rate = {self.rate} Hz; expected a positive rate")
+        if self.rate is not None and (isinstance(self.rate, bool) or not isinstance(self.rate, numbers.Real)
+                                      or not ROS_RATE_RANGE[0] <= self.rate <= ROS_RATE_RANGE[1]):
+            lo, hi = ROS_RATE_RANGE
+            raise ConfigError(f"ros.rate = {self.rate!r} Hz; expected a grid rate between {lo:g} Hz and {hi:g} Hz "
+                              "(a robot's state estimation: IMUs and joint encoders sample at tens of Hz to a "
+                              "few kHz) or no rate (the IMU's median message rate)")
         if not self.max_gap > 0 or not self.gap_factor > 0:
             raise ConfigError("ros.max_gap (s) and ros.gap_factor must be positive")
         if self.imu_filter not in IMU_FILTERS:
@@ -367,6 +377,14 @@ class RobotConfig:
     """Mapping of raw ROS bags onto the robot (``[ros]`` table), for :mod:`flexforce.datasets.io.rosimport`."""
     source: str = ""
     """Where the configuration was read from."""
+
+    def __post_init__(self):
+        accel_range = self.imu_noise.accel_range
+        if _positive_number(self.gravity) and not accel_range > self.gravity:
+            raise ConfigError(f"imu_noise.accel_range = {accel_range!r} m/s^2; expected a full scale above "
+                              f"gravity ({self.gravity:g} m/s^2): an accelerometer at rest reads g, so a smaller "
+                              "range would clip every reading (inf: no saturation check)"
+                              + (f" in robot configuration {self.source}" if self.source else ""))
 
     @classmethod
     def load(cls, name_or_path: str | Path | RobotConfig) -> RobotConfig:

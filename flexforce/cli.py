@@ -157,7 +157,7 @@ def _simulate(args) -> int:
     scenario = Scenario.load(args.scenario)
     if args.robot:
         scenario.robot = args.robot
-    if args.duration:
+    if args.duration is not None:  # checked by the scenario: a positive number of seconds, within its bound
         scenario.duration = args.duration
     if args.seed is not None:
         scenario.seed = args.seed
@@ -387,6 +387,19 @@ def _jobs(text: str) -> int | str:
         raise argparse.ArgumentTypeError(f"{text!r}; expected a number of worker processes or 'auto'") from None
 
 
+def _whole(minimum: int, what: str):
+    """An argparse type: a whole number at least ``minimum``; ``what`` names what it counts."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or value < minimum:
+            raise argparse.ArgumentTypeError(f"{text!r}; expected {what}, a whole number >= {minimum}")
+        return value
+    return parse
+
+
 def _check_jobs(args) -> None:
     jobs = getattr(args, "jobs", 1)
     if jobs != "auto" and jobs < 1:
@@ -602,7 +615,7 @@ def _add_simulate_parser(sub) -> None:
     p.add_argument("-o", "--output", required=True, type=Path, help="bag directory to write")
     p.add_argument("--robot", help="robot name or .toml configuration (overrides the scenario's)")
     p.add_argument("--duration", type=float, help="duration in s (overrides the scenario's)")
-    p.add_argument("--seed", type=int, help="noise seed (overrides the scenario's)")
+    p.add_argument("--seed", type=_whole(0, "a noise seed"), help="noise seed (overrides the scenario's)")
     p.add_argument("--no-noise", action="store_true", help="exact sensor readings")
     p.add_argument("--force", action="store_true", help="overwrite an existing output")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
@@ -651,7 +664,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("recordings", nargs="+", help="bags, or built-in scenario names / scenario files to simulate")
     p.add_argument("-o", "--output", required=True, type=Path, help="report folder")
     p.add_argument("--estimators", default="ekf,fixed-lag,batch", help="comma-separated list")
-    p.add_argument("--seeds", type=int, help="simulate each scenario with this many noise seeds and aggregate")
+    p.add_argument("--seeds", type=_whole(1, "a number of noise seeds"),
+                   help="simulate each scenario with this many noise seeds and aggregate")
     _add_input_options(p)
     p.add_argument("--ft", action="store_true", help="fuse the recording's F/T readings as measurements")
     p.add_argument("--footholds", action="store_true",
@@ -682,7 +696,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--candidates", help="comma-separated effect names to rank (default: every built-in effect)")
     p.add_argument("--plugin", action="append", default=[], type=Path, metavar="FILE.py",
                    help="Python file with user-written effects, ranked like the built-in ones (repeatable)")
-    p.add_argument("--max-effects", type=int, default=3, help="at most this many effects selected (default 3)")
+    p.add_argument("--max-effects", type=_whole(0, "a number of effects"), default=3,
+                   help="at most this many effects selected (default 3)")
     p.add_argument("--no-rank", action="store_true", help="only refit with --add, no ranking")
     p.add_argument("--screen-level", type=float, default=0.01, metavar="P",
                    help="refit only the candidates whose score test at the nominal fit has p < P (default 0.01)")
@@ -695,7 +710,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-constancy", action="store_true",
                    help="take a constant effect without fitting it again on each half of the recording "
                         "(the constancy check: halves that disagree make it implausible)")
-    p.add_argument("--seed", type=int, help="noise seed when simulating a scenario")
+    p.add_argument("--seed", type=_whole(0, "a noise seed"), help="noise seed when simulating a scenario")
     _add_input_options(p)
     p.add_argument("--ft", action="store_true", help="fuse the recording's F/T readings as measurements")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")

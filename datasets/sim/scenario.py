@@ -56,6 +56,7 @@ robot tracks (stiff position control) are smooth; contacts switch only at swing 
 from __future__ import annotations
 
 import math
+import numbers
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -183,6 +184,36 @@ def _number(where: str, key: str, value, unit: str, expect: str, ok) -> float:
     if isinstance(value, bool) or not math.isfinite(x) or not ok(x):
         raise ConfigError(f"{where}: {key} = {value!r} {unit}: expected {expect}")
     return x
+
+
+def _timing(where: str, key: str, value) -> None:
+    """A ConfigError unless ``value`` suits the scenario's timing field ``key`` (duration, rate,
+    sim_rate: positive, finite numbers; seed: a whole number >= 0).  A string is refused, not
+    converted: ``duration = "five"`` is a mistake in the file."""
+    if key == "seed":
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 0:
+            raise ConfigError(f"{where}: seed = {value!r}: expected a noise seed, a whole number >= 0")
+        return
+    unit, what = TIMING_FIELDS[key]
+    if (isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value)
+            or not value > 0):
+        raise ConfigError(f"{where}: {key} = {value!r} {unit}: expected {what}, a positive, "
+                          "finite number (duration, rate and sim_rate must be positive)")
+
+
+TIMING_FIELDS = {"duration": ("s", "the recording's length in seconds"),
+                 "rate": ("Hz", "the recording's sampling rate in Hz"),
+                 "sim_rate": ("Hz", "the integration rate in Hz")}
+"""The scenario's timing fields checked on every assignment: their units and meaning."""
+
+MAX_SAMPLES = 1_000_000
+"""Most recorded samples (``duration * rate``) a scenario may ask for: the simulator keeps the whole
+recording, its ground truth and its per-sample kinematics in memory until it writes them."""
+
+BYTES_PER_SAMPLE = 10_000
+"""An upper estimate of the simulator's peak memory per recorded sample, bytes (kinematics,
+ground truth, sensors, ambient table at ``sim_rate = 5 * rate``); it only sizes the message of
+:data:`MAX_SAMPLES`."""
 
 
 @dataclass(frozen=True)
@@ -393,6 +424,33 @@ class Scenario:
     the legs' inverse kinematics)."""
     source: str = ""
 
+    def __setattr__(self, key: str, value) -> None:
+        """Assign a field; ``duration``, ``rate``, ``sim_rate`` and ``seed`` are checked on every
+        assignment (the file's values and a command line's overrides alike).
+
+        Raises:
+            ConfigError: a timing field that is not a positive, finite number (a seed: a whole
+                number >= 0), or a ``duration * rate`` above :data:`MAX_SAMPLES`.
+        """
+        if key in TIMING_FIELDS or key == "seed":
+            _timing(f"scenario {self.__dict__.get('name', '?')}", key, value)
+        super().__setattr__(key, value)
+        if key in TIMING_FIELDS and "duration" in self.__dict__ and "rate" in self.__dict__:
+            self.check_size()
+
+    def check_size(self) -> None:
+        """A ConfigError when ``duration * rate`` exceeds :data:`MAX_SAMPLES` recorded samples,
+        before any work starts, naming the bound, the memory it would take and how to proceed."""
+        samples = self.duration * self.rate
+        if samples > MAX_SAMPLES:
+            gb = samples * BYTES_PER_SAMPLE / 1e9
+            raise ConfigError(
+                f"scenario {self.name}: duration = {self.duration:g} s at rate = {self.rate:g} Hz is "
+                f"{samples:.3g} samples, above the bound of {MAX_SAMPLES:,} samples (the simulator holds the "
+                f"whole recording in memory: about {gb:.3g} GB here, {BYTES_PER_SAMPLE / 1e3:g} kB a sample); "
+                f"expected at most {MAX_SAMPLES / self.rate:g} s at this rate: shorten the duration or simulate "
+                "several shorter recordings (e.g. other seeds) and compare them together")
+
     @classmethod
     def load(cls, name_or_path: str | Path) -> Scenario:
         """A built-in scenario by name, or a scenario TOML file."""
@@ -418,9 +476,7 @@ class Scenario:
         if unknown:
             raise ConfigError(f"unknown key(s) {sorted(unknown)} in scenario {source or raw.get('name')}; "
                               f"known keys: {sorted(known)}")
-        sc = cls(**raw, source=source)
-        if sc.duration <= 0 or sc.rate <= 0 or sc.sim_rate <= 0:
-            raise ConfigError("scenario duration, rate and sim_rate must be positive")
+        sc = cls(**raw, source=source)  # the timing fields are checked on assignment (__setattr__)
         ratio = sc.sim_rate / sc.rate
         if abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 1:
             raise ConfigError(f"sim_rate ({sc.sim_rate} Hz) must be a multiple of rate ({sc.rate} Hz)")
