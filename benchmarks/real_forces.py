@@ -2,10 +2,11 @@
 
     python benchmarks/real_forces.py [--data ../shared/data/icub] [--output benchmarks/results/real_forces.json]
 
-Runs ``flexforce compare <recording> --robot icub-identified`` (the default estimators, the
-baselines without estimation) on the iCub walk (``icub-walk-12s``, single and double support) and
-the CoM sway (``icub-com-sinusoid-20s.bag``, double support throughout), and keeps, per estimator
-and baseline, against the F/T sensors and Vicon (references, not ground truth):
+Runs ``flexforce compare <recording> --robot icub-identified --peers`` (the default estimators, the
+baselines without estimation, GTSAM's legged estimators as peers) on the iCub walk
+(``icub-walk-12s``, single and double support) and the CoM sway (``icub-com-sinusoid-20s.bag``,
+double support throughout), and keeps, per estimator and baseline, against the F/T sensors and
+Vicon (references, not ground truth):
 
 - ``foot_vertical_force_N``, ``total_vertical_force_N``: RMSE of each foot's normal force and of
   their sum, raw and low-passed (``lowpass_5Hz``: zero-phase Butterworth of both the estimate and
@@ -16,8 +17,10 @@ and baseline, against the F/T sensors and Vicon (references, not ground truth):
 - ``violations``: counts and fractions of negative normal forces and of forces outside the
   friction cone, over the samples in contact;
 
-and each recording's ``headline``: the sentences naming the best estimator per quantity against
-the best baseline (:func:`flexforce.compare.runner.headline`).  Writes the JSON record to
+GTSAM's legged estimators (``peers``: IMU and leg kinematics, no forces) keep their tilt, per
+phase too, and their time per step; and each recording's ``headline``: the sentences naming the
+best estimator per quantity against the best baseline (:func:`flexforce.compare.runner.headline`).
+Writes the JSON record to
 ``benchmarks/results/real_forces.json`` and prints it.
 """
 
@@ -32,6 +35,7 @@ import platform
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -58,7 +62,7 @@ def _row(m: dict) -> dict:
     phases = m.get("per_phase") or {}
     whole = phases.get("all") or {}
     tilt = (m.get("rmse") or {}).get("rotation_rad")
-    out = {"kind": m.get("kind"), **forces(whole.get("rmse") or {}), short: forces(whole.get(lp) or {}),
+    out: dict[str, Any] = {"kind": m.get("kind"), **forces(whole.get("rmse") or {}), short: forces(whole.get(lp) or {}),
            "tilt_mrad": None if tilt is None else tilt * 1e3, "per_phase": {}}
     for phase, d in phases.items():
         if phase == "all" or not d.get("samples"):
@@ -76,13 +80,28 @@ def _row(m: dict) -> dict:
     return out
 
 
+def _peer_row(m: dict) -> dict:
+    """The figures of one peer row (summary.json's ``peers`` entry): tilt, per phase, and time per step."""
+    tilt = (m.get("rmse") or {}).get("rotation_rad")
+    steps = m.get("time_per_step_s") or {}
+    out: dict[str, Any] = {"kind": m.get("kind"), "tilt_mrad": None if tilt is None else tilt * 1e3, "per_phase": {},
+           "time_per_step_us": {k: None if v is None else v * 1e6 for k, v in steps.items()},
+           "total_time_s": m.get("total_time_s")}
+    for phase, d in (m.get("per_phase") or {}).items():
+        if phase == "all" or not d.get("samples"):
+            continue
+        rot = (d.get("rmse") or {}).get("rotation_rad")
+        out["per_phase"][phase] = {"samples": d["samples"], "tilt_mrad": None if rot is None else rot * 1e3}
+    return out
+
+
 def run(path: Path) -> dict:
     """The record of one recording: ``flexforce compare`` into a temporary folder, its summary.json read back."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "report"
         t0 = time.perf_counter()
         with contextlib.redirect_stdout(io.StringIO()):
-            status = cli_main(["compare", str(path), "--robot", ROBOT, "-o", str(out), "-q"])
+            status = cli_main(["compare", str(path), "--robot", ROBOT, "-o", str(out), "-q", "--peers"])
         seconds = time.perf_counter() - t0
         if status != 0:
             raise SystemExit(f"flexforce compare {path} exited with status {status}")
@@ -92,6 +111,7 @@ def run(path: Path) -> dict:
             "headline": headline(summary), "compare_s": round(seconds, 1),
             "estimators": {k: _row(m) for k, m in summary["estimators"].items()},
             "baselines": {k: _row(m) for k, m in (summary.get("baselines") or {}).items()},
+            "peers": {k: _peer_row(m) for k, m in (summary.get("peers") or {}).items()},
             "failures": summary.get("failures") or {}}
 
 

@@ -6,6 +6,7 @@ import math
 import os
 import threading
 import time
+import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -103,6 +104,13 @@ class Comparison:
     apart from the estimators: it has no timing, no covariance and no NEES."""
     baseline_estimates: dict = field(default_factory=dict)
     """summary key -> the baseline's Estimate-like object."""
+    peers: dict[str, Metrics] = field(default_factory=dict)
+    """summary key -> metrics of a peer: another project's estimator of the same inputs
+    (:data:`flexforce.compare.peers.PEERS`, GTSAM's legged estimators: tilt and velocities, no forces),
+    kept apart from the estimators and the baselines so that their rows and the headline stay
+    flexforce's own."""
+    peer_estimates: dict = field(default_factory=dict)
+    """summary key -> the peer's Estimate."""
 
     def summary(self) -> dict:
         """The numbers of the report's table (summary.json)."""
@@ -110,6 +118,8 @@ class Comparison:
                                "estimators": {k: m.to_dict() for k, m in self.metrics.items()}}
         if self.baselines:
             out["baselines"] = {k: m.to_dict() for k, m in self.baselines.items()}
+        if self.peers:
+            out["peers"] = {k: m.to_dict() for k, m in self.peers.items()}
         if self.failures:
             out["failures"] = self.failures
         rows = [*self.metrics.values(), *self.baselines.values()]
@@ -242,7 +252,7 @@ def describe(rec) -> dict:
 
 def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
             progress: Callable[[str, float], None] | None = None, options: dict | None = None,
-            crb: bool = True, baseline: bool = True) -> Comparison:
+            crb: bool = True, baseline: bool = True, peers: bool | None = None) -> Comparison:
     """Run each estimator on ``rec`` and evaluate it.
 
     Args:
@@ -255,6 +265,11 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
         options: estimator name -> keyword options.
         baseline: add the rows without estimation (:data:`flexforce.compare.baseline.BASELINES`:
             leg odometry, the equal split of the weight).
+        peers: add GTSAM's legged estimators as peer rows (:mod:`flexforce.compare.peers`, summary.json's
+            ``peers``): None, the cheap ones (:data:`~flexforce.compare.peers.CHEAP_PEERS`); True, all of
+            :data:`~flexforce.compare.peers.PEERS`; False, none.  Each runs on the same ``model``, timed
+            like the estimators, with its per-phase tilt; options under ``options[peer name]``.  A peer
+            that fails is a ``failures`` entry.
 
     Every row also gets its per-phase and low-passed errors
     (:func:`flexforce.compare.metrics.phase_metrics`) and its physical violations
@@ -307,6 +322,8 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
             _contact_checks(m, est, rec, skip)
             result.baseline_estimates[key] = est
             result.baselines[key] = m
+    if peers is None or peers:
+        _add_peers(result, rec, model, skip, all_peers=bool(peers), options=options)
     if crb and rec.truth is not None:
         from flexforce.compare.crb import cramer_rao
 
@@ -315,6 +332,49 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
         except FlexforceError as err:
             result.failures["cramer_rao"] = f"{type(err).__name__}: {err}"
     return result
+
+
+def _add_peers(result: Comparison, rec, model, skip: float, all_peers: bool, options: dict | None) -> None:
+    """The peer rows of ``result`` (:func:`compare`'s ``peers``): metrics and per-phase tilt, no
+    violation checks (a peer estimates no forces)."""
+    from flexforce.compare.peers import CHEAP_PEERS, PEERS, run_peer
+
+    for name in (PEERS if all_peers else CHEAP_PEERS):
+        key = summary_key(name)
+        try:
+            with PeakMemory() as mem:
+                est = run_peer(name, rec, model, **(options or {}).get(name, {}))
+        except FlexforceError as err:
+            result.failures[key] = f"{type(err).__name__}: {err}"
+            continue
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # the NaN wrenches' empty means, blanked below
+            m = evaluate(est, rec, skip=skip, peak_memory_mb=mem.peak_mb)
+        m.kind = "peer"
+        phase_metrics(m, est, rec, skip=skip)
+        _without_forces(m)
+        result.peer_estimates[key] = est
+        result.peers[key] = m
+
+
+PEER_KEYS = ("rotation_rad", "translation_m", "angular_velocity_rad_s", "linear_velocity_m_s", "hand_m")
+"""The errors a peer row keeps: those of the pose and velocities; its force errors are left out (None)."""
+
+
+def _without_forces(m: Metrics) -> None:
+    """Blank the force errors of a peer's metrics: a peer estimates no wrench (NaN), and the contact
+    frames' comparison reads a contact out of force as zero, which would score it as an estimate."""
+    for group in (m.rmse, m.max):
+        for k in group:
+            if k not in PEER_KEYS:
+                group[k] = None
+    m.errors = {k: e for k, e in m.errors.items() if k in PEER_KEYS}
+    m.per_contact, m.contact_errors = {}, {}
+    m.references = {k: v for k, v in m.references.items() if k in PEER_KEYS}
+    for entry in m.per_phase.values():
+        entry["rmse"] = {k: (v if k == "rotation_rad" else None) for k, v in entry["rmse"].items()}
+        for k in [k for k in entry if k not in ("samples", "rmse")]:
+            del entry[k]
 
 
 def _contact_checks(m: Metrics, est, rec, skip: float) -> None:
@@ -587,6 +647,9 @@ def aggregate(comparisons: list[Comparison]) -> dict:
     if any(c.baselines for c in comparisons):
         out["baselines"] = {}
         groups.append(("baselines", lambda c: c.baselines))
+    if any(c.peers for c in comparisons):
+        out["peers"] = {}
+        groups.append(("peers", lambda c: c.peers))
     for group, rows in groups:
         for key in sorted({k for c in comparisons for k in rows(c)}):
             out[group][key] = _aggregate_rows([rows(c)[key] for c in comparisons if key in rows(c)])

@@ -23,6 +23,7 @@ import sys
 import time
 import warnings
 from pathlib import Path
+from typing import Any
 
 from flexforce.errors import ConfigError, FlexforceError
 
@@ -267,7 +268,8 @@ def _compare_one(rec, args, out: Path):
     options = None
     if getattr(args, "footholds", False):
         options = {name: {"footholds": True} for name in args.estimators if name != "ekf"}
-    comp = compare(rec, estimators=args.estimators, model=model, progress=progress, options=options)
+    comp = compare(rec, estimators=args.estimators, model=model, progress=progress, options=options,
+                   peers=True if getattr(args, "peers", False) else None)
     write_report(comp, rec, out)
     return comp
 
@@ -279,7 +281,13 @@ def _print_table(comp) -> None:
     def f(x, s=1.0):
         return f"{x * s:.3g}" if x is not None else "-"
 
-    rows = [(k, m, False) for k, m in comp.metrics.items()] + [(k, m, True) for k, m in comp.baselines.items()]
+    rows: list[tuple[str, Any, bool | str]] = [(k, m, False) for k, m in comp.metrics.items()]
+    rows += [(k, m, True) for k, m in comp.baselines.items()]
+    rows += [(k, m, "+") for k, m in getattr(comp, "peers", {}).items()]
+
+    def tag(marker) -> str:
+        return " +" if marker == "+" else " *" if marker else ""
+
     contacts = list(dict.fromkeys(c for _, m, _ in rows for c in m.per_contact))
     short = {c: c.replace("_foot", "").replace("foot_", "")[:6] for c in contacts}
     head = (f"{'estimator':13s} {'force[N]':>9s} {'Fz[N]':>7s} {'CoP[mm]':>8s} {'rot[mrad]':>9s} {'hand[mm]':>8s} "
@@ -289,7 +297,7 @@ def _print_table(comp) -> None:
     for key, m, baseline in rows:
         r = m.rmse
         med = (m.time_per_step.get("median") or m.time_per_step.get("amortized")) if m.time_per_step else None
-        line = (f"{key + (' *' if baseline else ''):13s} {f(r.get('force_N')):>9s} {f(r.get('vertical_force_N')):>7s} "
+        line = (f"{key + tag(baseline):13s} {f(r.get('force_N')):>9s} {f(r.get('vertical_force_N')):>7s} "
                 f"{f(r.get('cop_m'), 1e3):>8s} {f(r.get('rotation_rad'), 1e3):>9s} "
                 f"{f(r.get('hand_m'), 1e3):>8s} {f(m.nees):>7s} {f(med, 1e6):>9s}")
         line += "".join(f" {f(m.per_contact.get(c, {}).get('vertical_force_N')):>12s}" for c in contacts)
@@ -304,13 +312,15 @@ def _print_table(comp) -> None:
                 d = m.per_phase.get(phase, {}).get(block) or {}
                 return f"{f(d.get('foot_vertical_force_N'))}/{f(d.get('total_vertical_force_N'))}"
 
-            print(f"{key + (' *' if baseline else ''):17s}" + "".join(f" {pair('rmse', p):>13s}" for p in phases)
+            print(f"{key + tag(baseline):17s}" + "".join(f" {pair('rmse', p):>13s}" for p in phases)
                   + f" {pair(lp, 'all'):>13s}")
     refs = sorted({v for _, m, _ in rows for v in m.references.values()})
     notes = []
     if comp.baselines:
         notes.append("* baseline without estimation (rigid robot; leg_odometry: static CoM split, weight_equal: "
                      "equal split)")
+    if getattr(comp, "peers", None):
+        notes.append("+ peer: GTSAM's legged estimator on the same IMU and contacts (tilt only, no forces)")
     if refs:
         notes.append("errors against " + ", ".join(refs))
     if notes:
@@ -670,6 +680,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ft", action="store_true", help="fuse the recording's F/T readings as measurements")
     p.add_argument("--footholds", action="store_true",
                    help="smoothers: estimate every contact episode's foothold (docs/smoother.md)")
+    p.add_argument("--peers", action="store_true",
+                   help="add every GTSAM legged estimator as a peer row, the fixed-lag smoother too (default: "
+                        "the invariant EKF only)")
     p.add_argument("--jobs", "-j", type=_jobs, default=1, metavar="N",
                    help="compare N recordings at a time, in worker processes (default 1; 'auto': one per usable "
                         "core, as memory allows); the results are the same")

@@ -191,12 +191,12 @@ def _timing(where: str, key: str, value) -> None:
     sim_rate: positive, finite numbers; seed: a whole number >= 0).  A string is refused, not
     converted: ``duration = "five"`` is a mistake in the file."""
     if key == "seed":
-        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 0:
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or int(value) < 0:
             raise ConfigError(f"{where}: seed = {value!r}: expected a noise seed, a whole number >= 0")
         return
     unit, what = TIMING_FIELDS[key]
     if (isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value)
-            or not value > 0):
+            or not float(value) > 0):
         raise ConfigError(f"{where}: {key} = {value!r} {unit}: expected {what}, a positive, "
                           "finite number (duration, rate and sim_rate must be positive)")
 
