@@ -55,7 +55,7 @@ if TYPE_CHECKING:
 
 __all__ = ["FootholdPrior", "Footholds", "episode_starts", "held_rest", "rest_placements", "touches_down"]
 
-WALK_WITHIN = 1e-3
+WALK_WITHIN = 1e-5
 """Random-walk sigma of a foothold within an episode, relative to its kinematic sigma."""
 GAUGE = 1e-3
 """Prior sigma of the first stance footholds' horizontal position and yaw, relative to the

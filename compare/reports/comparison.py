@@ -547,6 +547,23 @@ def per_contact_table_html(summary: dict) -> str:
     return str(tables.per_contact_table(list(_table_rows(summary)), groups))
 
 
+def _peer_rows(summary: dict) -> list[dict]:
+    """The peers' rows of the report: tilt RMSE overall and per contact phase (mrad), median step (µs)."""
+    def mrad(x):
+        return "–" if x is None else f"{1e3 * x:.3g}"
+
+    out = []
+    for key, m in (summary.get("peers") or {}).items():
+        phases = m.get("per_phase") or {}
+        tilt = {ph: (phases.get(ph) or {}).get("rmse", {}).get("rotation_rad") for ph in
+                ("single_support", "double_support", "transition")}
+        step = (m.get("time_per_step_s") or {}).get("median")
+        out.append({"key": key, "tilt": mrad((m.get("rmse") or {}).get("rotation_rad")),
+                    "single": mrad(tilt["single_support"]), "double": mrad(tilt["double_support"]),
+                    "transition": mrad(tilt["transition"]), "step": "–" if step is None else f"{1e6 * step:.3g}"})
+    return out
+
+
 def recording_name(rec, info: dict) -> str:
     """What a report calls a recording: its scenario, else the file or folder it was read from, else
     its robot configuration."""
@@ -610,7 +627,7 @@ def _write_report(comp, rec, out: Path, title: str | None) -> None:
         effects=[json.dumps(e) for e in info.get("hidden_effects") or []],
         rows=list(_table_rows(summary)), columns=_summary_columns(summary), refs=_references(summary),
         references=sorted({v for v in _references(summary).values() if v != "truth"}),
-        has_baselines=bool(summary.get("baselines")), extra=extra,
+        has_baselines=bool(summary.get("baselines")), extra=extra, peers=_peer_rows(summary),
         contact_groups=_contact_groups(summary), relative=summary.get("rmse_relative_to_ekf") or {},
         rmse_keys=RMSE_KEYS, crb=summary.get("cramer_rao"), failures=comp.failures, figures=figures,
         headline=headline(summary), phases=_phases(summary), phase_quantities=_phase_quantities(summary),
