@@ -29,7 +29,7 @@ estimated by the smoothers with every other unknown.  Three kinds of factors dec
   force; ``"plane"``: ``normal`` and ``height`` as given (world = local frame at the first sample);
   ``"none"``: no ground factor.
 - **Constancy.**  Within an episode (and through the swing that follows it) the correction is a
-  random walk of ``1e-5`` of the kinematic sigma per step, numerically constant; the walk is cut
+  random walk of ``1e-3`` of the kinematic sigma per step (``WALK_WITHIN``); the walk is cut
   (``1e3`` times the kinematic sigma) where the contact touches down, so each episode is its own
   foothold.  This is a per-episode landmark written as per-step copies tied by equality: the
   graph stays a chain (block tridiagonal, O(N D^3)) instead of gaining long-range edges.
@@ -55,7 +55,7 @@ if TYPE_CHECKING:
 
 __all__ = ["FootholdPrior", "Footholds", "episode_starts", "held_rest", "rest_placements", "touches_down"]
 
-WALK_WITHIN = 1e-5
+WALK_WITHIN = 1e-3
 """Random-walk sigma of a foothold within an episode, relative to its kinematic sigma."""
 GAUGE = 1e-3
 """Prior sigma of the first stance footholds' horizontal position and yaw, relative to the
