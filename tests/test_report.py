@@ -162,3 +162,90 @@ def test_real_walk_window_references_and_leg_odometry(tmp_path, capsys):
     up_vicon = Rotation.from_quat(moc[ok, 3:]).as_matrix()[:, 2, :]
     tilt = float(np.sqrt(np.mean(np.arccos(np.clip(np.sum(up_odo * up_vicon, axis=1), -1, 1)) ** 2)))
     assert base["rmse"]["rotation_rad"] == pytest.approx(tilt, rel=1e-9)
+
+
+def test_plot_functions_draw_on_the_given_axes(rec, report):
+    from flexforce.compare.metrics import contact_frame_wrench
+    from flexforce.compare.reports.comparison import plot_contact_force, plot_series
+
+    comp, _ = report
+    fig, (ax1, ax2) = plt.subplots(2, 1)
+    figures = plt.get_fignums()
+    plot_series(ax1, rec.time, comp.estimates, lambda e: e.total_wrench[:, 2], truth=rec.truth.total_wrench[:, 2])
+    local = {"ekf": contact_frame_wrench(comp.estimates["ekf"].R, comp.estimates["ekf"].t,
+                                         comp.estimates["ekf"].wrench, rec)}
+    plot_contact_force(ax2, rec, 0, 0, local)
+    assert plt.get_fignums() == figures  # no figure of their own
+    assert [ln.get_label() for ln in ax1.lines] == ["truth", "ekf"]
+    assert "F_x" in ax2.get_ylabel() and [ln.get_label() for ln in ax2.lines] == ["ekf"]
+    plt.close(fig)
+
+
+def test_line_styles_keep_fixed_lag_visible_over_batch():
+    from flexforce.compare.reports.comparison import _style
+
+    batch, fixed = _style("batch"), _style("fixed_lag")
+    assert batch["ls"] == "-" and fixed["ls"] != "-" and fixed["zorder"] > batch["zorder"]
+
+
+def _summary(nees, nis=6.0):
+    row = {"nees": nees, "nees_bounds": [17.7, 18.3], "nis": nis, "nis_bounds": [5.8, 6.2]}
+    return {"recording": {"hidden_effects": []}, "estimators": {"batch": row}}
+
+
+def test_nees_sentence_only_out_of_band():
+    from flexforce.compare.reports.comparison import consistency_sentences
+
+    assert consistency_sentences(_summary(18.0)) == []
+    (above,) = consistency_sentences(_summary(722.0))
+    assert "NEES above" in above and "batch 722" in above and "×6.3" in above and "too small" in above
+    (below,) = consistency_sentences(_summary(4.5))
+    assert "NEES below" in below and "×0.5" in below and "too large" in below
+    (nis,) = consistency_sentences(_summary(18.0, nis=24.0))
+    assert "NIS above" in nis and "×2" in nis
+
+
+def test_report_page_says_what_an_out_of_band_nees_means(report):
+    comp, out = report
+    page = (out / "index.html").read_text()
+    s = json.loads((out / "summary.json").read_text())
+    row = s["estimators"]["ekf"]
+    out_of_band = not (row["nees_bounds"][0] <= row["nees"] <= row["nees_bounds"][1])
+    assert ('class="consistency"' in page and "NEES " in page.split('class="consistency"')[1]) == out_of_band
+    assert "Units: forces N" in page
+
+
+def test_foot_forces_overlay_the_ft_reference(rec, report):
+    from flexforce.compare.metrics import contact_frame_wrench
+    from flexforce.compare.reports.comparison import figure_foot_forces
+
+    comp, _ = report
+    real = rec.slice(0, rec.n)
+    real.ft = contact_frame_wrench(rec.truth.R, rec.truth.t, rec.truth.wrench, rec)
+    real.truth = None
+    fig = figure_foot_forces(comp, real)
+    labels = [[ln.get_label() for ln in ax.lines] for ax in fig.axes]
+    assert len(fig.axes) == 3 * len(rec.contact_names)  # F_z, F_x, F_y per contact
+    assert all("reference: F/T" in ls for ls in labels)
+    plt.close(fig)
+    real.ft = None
+    fig = figure_foot_forces(comp, real)
+    assert not any("reference: F/T" in ln.get_label() for ax in fig.axes for ln in ax.lines)
+    plt.close(fig)
+
+
+def test_hidden_effects_and_contact_switches_are_marked(rec, report):
+    from flexforce.compare.reports.comparison import contact_switches, figure_forces, hidden_spans
+
+    comp, _ = report
+    pushed = rec.slice(0, rec.n)
+    pushed.meta = {**rec.meta, "hidden_effects": [{"type": "external-wrench", "link": "@base", "force": [30, 0, 0],
+                                                   "start": 0.4, "duration": 0.2}, {"type": "constant-bias"}]}
+    assert hidden_spans(pushed) == [(0.4, pytest.approx(0.6), "external-wrench @base 30 N")]
+    pushed.contact_active = rec.contact_active.copy()
+    pushed.contact_active[rec.n // 2:, 0] = False
+    assert contact_switches(pushed) == [pytest.approx(rec.time[rec.n // 2])]
+    fig = figure_forces(comp, pushed)
+    labels = fig.axes[0].get_legend_handles_labels()[1]
+    assert "hidden effect" in labels and "contact switch" in labels
+    plt.close(fig)

@@ -42,8 +42,23 @@ LABELS = {
 }
 
 
+LINESTYLES = {"fixed_lag": (0, (5, 2)), "leg_odometry": ":", "weight_equal": "-."}
+"""Line style per row: the fixed-lag smoother dashed over the batch one (solid), which it often
+follows to within a line width; the baselines dotted and dash-dotted."""
+ZORDERS = {"ekf": 2.0, "batch": 2.1, "fixed_lag": 2.2}
+"""Drawing order per row: the fixed-lag dashes on top of the batch line."""
+UNITS_SENTENCE = ("Units: forces N, moments N m, lengths mm (CoP, translation, hands, sinking), rotations and "
+                  "tilt mrad, time s.")
+"""Said once in the report: every table and figure uses these units."""
+
+
 def _color(key: str) -> str:
     return COLORS.get(key, "tab:purple")
+
+
+def _style(key: str, lw: float = 0.9) -> dict:
+    """Matplotlib keyword arguments of a row's line: its colour, style and drawing order."""
+    return {"color": _color(key), "ls": LINESTYLES.get(key, "-"), "zorder": ZORDERS.get(key, 1.9), "lw": lw}
 
 
 def _rows(comp) -> dict:
@@ -117,6 +132,51 @@ def _shade_contact(ax, rec, i):
         ax.axvspan(a, b, color="tab:olive", alpha=0.12, lw=0)
 
 
+def hidden_spans(rec) -> list[tuple[float, float, str]]:
+    """(start, end, label) in the recording's seconds of each time-limited hidden effect of a simulated
+    recording (``meta["hidden_effects"]``, the entries with a ``start``, shifted by ``meta["window"]``);
+    an effect without a start acts all the time and has no span.  Empty on real logs."""
+    effects = (getattr(rec, "meta", None) or {}).get("hidden_effects") or []
+    window = rec.meta.get("window") if isinstance(rec.meta.get("window"), dict) else {}
+    t0 = float(window.get("start_s", 0.0))
+    t_end = float(rec.time[-1]) if rec.n else 0.0
+    out = []
+    for e in effects:
+        if not isinstance(e, dict) or "start" not in e:
+            continue
+        a = float(e["start"]) - t0
+        b = a + float(e.get("duration", math.inf))
+        if b < 0.0 or a > t_end:
+            continue
+        force = e.get("force")
+        what = e.get("type", "effect") + (f" {e['link']}" if e.get("link") else "")
+        if force is not None:
+            what += f" {float(np.linalg.norm(force)):.3g} N"
+        out.append((max(a, 0.0), min(b, t_end), what))
+    return out
+
+
+def contact_switches(rec) -> list[float]:
+    """Times (s) at which any contact is made or released (``contact_active`` changes)."""
+    act = np.asarray(rec.contact_active, dtype=bool)
+    if act.shape[0] < 2:
+        return []
+    changed = np.flatnonzero(np.any(act[1:] != act[:-1], axis=1))
+    return [float(rec.time[k + 1]) for k in changed]
+
+
+def plot_events(ax, rec, legend: bool = False, switches: bool = True) -> None:
+    """Mark the events of ``rec`` on a time axis: its hidden effects as shaded spans (orange), its contact
+    switches as thin vertical lines (grey; not with ``switches=False``); with ``legend`` the first of
+    each kind is labelled."""
+    for k, (a, b, _what) in enumerate(hidden_spans(rec)):
+        ax.axvspan(a, max(b, a + rec.dt), color="tab:orange", alpha=0.18, lw=0, zorder=0,
+                   label="hidden effect" if legend and k == 0 else None)
+    for k, t in enumerate(contact_switches(rec) if switches else []):
+        ax.axvline(t, color="0.45", lw=0.5, alpha=0.6, zorder=0.5,
+                   label="contact switch" if legend and k == 0 else None)
+
+
 # ----------------------------------------------------------------------------------------------
 # Plot functions: each draws on the Axes it is given
 # ----------------------------------------------------------------------------------------------
@@ -124,18 +184,19 @@ def _shade_contact(ax, rec, i):
 
 def plot_series(ax, time, estimates: dict, value, std=None, truth=None, label: str = "", scale: float = 1.0,
                 truth_label: str = "truth"):
-    """One quantity over time: the truth or reference (black) and each estimate with a +-2 sigma band.
+    """One quantity over time on ``ax``: the truth or reference (black) and each estimate (:func:`_style`)
+    with a +-2 sigma band; ``value``/``std`` map an estimate to (N,) arrays, multiplied by ``scale``.
 
     The y limits come from :func:`robust_limits`, so a single spike does not flatten the rest.
     """
     shown = []
     if truth is not None:
-        ax.plot(time, truth * scale, color="k", lw=1.2, label=truth_label)
+        ax.plot(time, truth * scale, color="k", lw=1.2, label=truth_label, zorder=2.5)
         shown.append(truth * scale)
     for key, est in estimates.items():
         y = value(est) * scale
         shown.append(y)
-        ax.plot(est.time, y, color=_color(key), lw=0.9, label=key)
+        ax.plot(est.time, y, label=key, **_style(key))
         if std is not None:
             s = std(est)
             if s is not None:
@@ -166,13 +227,17 @@ def _rotvec(R):
     return np.array([so3.log(r) for r in R])
 
 
-def _series_figure(time, estimates: dict, panels: list[tuple], title: str):
+def _series_figure(time, estimates: dict, panels: list[tuple], title: str, rec=None):
     """A figure of one :func:`plot_series` panel per row of ``panels``, ``(value, std, truth, label,
-    keyword arguments)``, on a shared time axis (s), the legend on the first panel."""
-    fig, axes = plt.subplots(len(panels), 1, figsize=(10, 8), sharex=True)
-    for ax, (value, std, truth, label, options) in zip(axes, panels):
+    keyword arguments)``, on a shared time axis (s), the legend on the first panel; the events of
+    ``rec`` (:func:`plot_events`) marked on every panel."""
+    fig, axes = plt.subplots(len(panels), 1, figsize=(10, 2.6 * len(panels) + 0.4), sharex=True, squeeze=False)
+    axes = axes[:, 0]
+    for k, (ax, (value, std, truth, label, options)) in enumerate(zip(axes, panels)):
+        if rec is not None:
+            plot_events(ax, rec, legend=k == 0)
         plot_series(ax, time, estimates, value, std, truth, label, **options)
-    axes[0].legend(loc="upper right", fontsize=8, ncol=4)
+    axes[0].legend(loc="upper right", fontsize=7, ncol=4)
     axes[-1].set_xlabel("time [s]")
     fig.suptitle(title)
     return fig
@@ -187,8 +252,40 @@ def figure_forces(comp, rec):
                tr.total_wrench[:, 2] if tr is not None else ft_sum, "total F_z [N]",
                {"truth_label": "truth" if tr is not None else "reference: F/T (sum)"})]
     panels += [(lambda e, i=i: e.cop[:, i], lambda e, i=i: _cop_std(e, i), None if tr is None else tr.cop[:, i],
-                f"CoP {axis} [cm]", {"scale": 100}) for i, axis in enumerate("xy")]
-    return _series_figure(rec.time, _rows(comp), panels, "Contact force and centre of pressure (bands: ±2σ)")
+                f"CoP {axis} [mm]", {"scale": 1000}) for i, axis in enumerate("xy")]
+    return _series_figure(rec.time, _rows(comp), panels, "Contact force and centre of pressure (bands: ±2σ; "
+                          "shaded: hidden effects, grey lines: contact switches)", rec)
+
+
+class _Rigid:
+    """An estimate with no flexibility (R = identity): what :func:`base_tilt_error` turns into the
+    reference's own tilt of the rigid robot's vertical."""
+
+    def __init__(self, n: int):
+        self.R = np.tile(np.eye(3), (n, 1, 1))
+
+
+def reference_tilt(rec) -> tuple[np.ndarray, str] | None:
+    """(N,) tilt (rad) of the flexibility as motion capture sees it, and the system's name; None without.
+
+    The angle between the rigid robot's vertical (leg odometry: ``Recording.base_pose``) and the
+    motion-capture one, in the base frame: :func:`flexforce.compare.metrics.base_tilt_error` of an
+    identity flexibility, the very quantity the leg-odometry row's tilt error is made of.  An estimate's
+    own tilt on the same scale is :func:`flexibility_tilt`.
+    """
+    from flexforce.compare.metrics import base_tilt_error, mocap_label
+
+    base = rec.meta.get("base_frame")
+    if base not in rec.mocap or rec.base_pose is None:
+        return None
+    tilt = base_tilt_error(_Rigid(rec.n), rec, base)
+    return (tilt, mocap_label(rec)) if np.isfinite(tilt).any() else None
+
+
+def flexibility_tilt(R: np.ndarray) -> np.ndarray:
+    """(N,) tilt (rad) of flexibilities ``R`` (N, 3, 3): the angle between ``R^T e_z`` and ``e_z``; the
+    angle :func:`reference_tilt` measures, since rotating both verticals by the base pose keeps it."""
+    return np.arccos(np.clip(R[:, 2, 2], -1.0, 1.0))
 
 
 def figure_flexibility(comp, rec):
@@ -197,10 +294,21 @@ def figure_flexibility(comp, rec):
     panels = [(lambda e, i=i: _rotvec(e.R)[:, i], lambda e, i=i: _state_std(e, i),
                None if true_rv is None else true_rv[:, i], f"{name} [mrad]", {"scale": 1000})
               for i, name in enumerate(("roll", "pitch"))]
+    ref = reference_tilt(rec)
+    if ref is not None:
+        panels.append((lambda e: flexibility_tilt(e.R), None, ref[0], "tilt [mrad]",
+                       {"scale": 1000, "truth_label": f"reference: {ref[1]}"}))
     panels.append((lambda e: e.t[:, 2], lambda e: _state_std(e, 5), None if tr is None else tr.t[:, 2],
                    "sinking t_z [mm]", {"scale": 1000}))
-    return _series_figure(rec.time, comp.estimates, panels,
-                          "Flexibility: rotation vector and vertical translation (bands: ±2σ)")
+    title = "Flexibility: rotation vector and vertical translation (bands: ±2σ)"
+    if ref is not None:
+        title += f"\ntilt: the angle between the rigid robot's vertical and the estimate's, {ref[1]}'s (black)"
+    return _series_figure(rec.time, comp.estimates, panels, title, rec)
+
+
+ERROR_UNITS = {"force_N": ("force [N]", 1.0), "vertical_force_N": ("vertical force [N]", 1.0),
+               "cop_m": ("CoP [mm]", 1e3), "rotation_rad": ("rotation [mrad]", 1e3), "hand_m": ("hand [mm]", 1e3)}
+"""Label and scale (from SI) of each error series of :func:`figure_errors`, in the report's units."""
 
 
 def figure_errors(comp, rec):
@@ -212,19 +320,21 @@ def figure_errors(comp, rec):
     if not keys:
         return None
     fig, axes = plt.subplots(len(keys), 1, figsize=(10, 2.2 * len(keys) + 1), sharex=True, squeeze=False)
-    for ax, key in zip(axes[:, 0], keys):
+    for k, (ax, key) in enumerate(zip(axes[:, 0], keys)):
+        plot_events(ax, rec, legend=k == 0)
         shown = []
         ref = None
+        label, scale = ERROR_UNITS[key]
         for name, m in rows.items():
             e = m.errors.get(key)
             if e is not None:
-                ax.semilogy(rec.time, np.maximum(e, 1e-12), color=_color(name), lw=0.8, label=_row_label(name, comp))
-                shown.append(e)
+                ax.semilogy(rec.time, np.maximum(e * scale, 1e-12), label=_row_label(name, comp), **_style(name, 0.8))
+                shown.append(e * scale)
                 ref = ref or m.references.get(key)
-        ax.set_ylabel(LABELS[key] + (f"\n{ref}" if ref and ref != "truth" else ""), fontsize=8)
+        ax.set_ylabel(label + (f"\n{ref}" if ref and ref != "truth" else ""), fontsize=8)
         ax.grid(alpha=0.3, which="both")
         robust_limits(ax, shown, log=True)
-    axes[0, 0].legend(loc="upper right", fontsize=8, ncol=4)
+    axes[0, 0].legend(loc="upper right", fontsize=7, ncol=4)
     axes[-1, 0].set_xlabel("time [s]")
     fig.suptitle("Estimation errors against ground truth" if rec.truth is not None else
                  "Estimation errors against reference sensors (references, not ground truth)")
@@ -240,32 +350,48 @@ def _reference_contact_wrench(rec):
     return rec.ft
 
 
+def plot_contact_force(ax, rec, i: int, axis: int, local: dict, ref=None, comp=None) -> None:
+    """Component ``axis`` (0: F_x, 1: F_y, 2: F_z; N, contact frame) of contact ``i`` over time (s) on
+    ``ax``: ``ref`` (N, C, 6, the truth's or the F/T's wrenches) in black where finite, each row of
+    ``local`` (key -> (N, C, 6) wrenches in the contact frames) in its :func:`_style`; the contact's
+    active spans and the hidden effects shaded."""
+    _shade_contact(ax, rec, i)
+    plot_events(ax, rec, switches=False)
+    shown = []
+    if ref is not None and np.isfinite(ref[:, i, axis]).any():
+        ax.plot(rec.time, ref[:, i, axis], color="k", lw=1.1, label=_reference_label(rec), zorder=2.5)
+        shown.append(ref[:, i, axis])
+    elif ref is not None or rec.truth is None:
+        ax.text(0.01, 0.03, "no reference for this component", transform=ax.transAxes, fontsize=7, color="0.3")
+    for key, w in local.items():
+        ax.plot(rec.time, w[:, i, axis], label=_row_label(key, comp), **_style(key, 0.8))
+        shown.append(w[:, i, axis])
+    ax.set_ylabel(f"{rec.contact_names[i]}\nF_{'xyz'[axis]} [N]", fontsize=8)
+    ax.grid(alpha=0.3)
+    robust_limits(ax, shown)
+
+
 def figure_foot_forces(comp, rec):
-    """One panel per contact: each row's F_z (contact frame) against the reference, contact shaded."""
+    """One row per contact, its normal (F_z) and horizontal (F_x, F_y) forces in the contact frame,
+    each row's against the reference (truth or F/T), contact and hidden effects shaded."""
     from flexforce.compare.metrics import contact_frame_wrench
 
     ref = _reference_contact_wrench(rec)
     names = rec.contact_names
     if not names:
         return None
-    fig, axes = plt.subplots(len(names), 1, figsize=(10, 2.4 * len(names) + 1), sharex=True, squeeze=False)
+    fig, axes = plt.subplots(len(names), 3, figsize=(15, 2.6 * len(names) + 1), sharex=True, squeeze=False)
     rows = _rows(comp)
     local = {key: contact_frame_wrench(e.R, e.t, e.wrench, rec) for key, e in rows.items()}
-    for i, (ax, name) in enumerate(zip(axes[:, 0], names)):
-        _shade_contact(ax, rec, i)
-        shown = []
-        if ref is not None and np.isfinite(ref[:, i, 2]).any():
-            ax.plot(rec.time, ref[:, i, 2], color="k", lw=1.1, label=_reference_label(rec))
-            shown.append(ref[:, i, 2])
-        for key, w in local.items():
-            ax.plot(rec.time, w[:, i, 2], color=_color(key), lw=0.8, label=_row_label(key, comp))
-            shown.append(w[:, i, 2])
-        ax.set_ylabel(f"{name}\nF_z [N]", fontsize=8)
-        ax.grid(alpha=0.3)
-        robust_limits(ax, shown)
-    axes[0, 0].legend(loc="upper right", fontsize=7, ncol=5)
-    axes[-1, 0].set_xlabel("time [s]")
-    fig.suptitle("Per-contact normal force in the sole frame (shaded: contact active)")
+    for i in range(len(names)):
+        for c, axis in enumerate((2, 0, 1)):
+            plot_contact_force(axes[i, c], rec, i, axis, local, ref, comp)
+    # above the panels: inside, it would cover the robust-limits note and the first samples
+    axes[0, 0].legend(loc="lower left", bbox_to_anchor=(0.0, 1.0), fontsize=6, ncol=3, frameon=False)
+    for ax in axes[-1]:
+        ax.set_xlabel("time [s]")
+    fig.suptitle("Per-contact forces in the sole frame: normal F_z, horizontal F_x, F_y "
+                 "(green: contact active, orange: hidden effects)")
     return fig
 
 
@@ -297,12 +423,13 @@ def figure_foot_wrench(comp, rec):
         for c, (label, f) in enumerate(series):
             ax = axes[r, c]
             _shade_contact(ax, rec, i)
+            plot_events(ax, rec, switches=False)
             y = f(ref)
-            ax.plot(rec.time, y, color="k", lw=1.0, label=_reference_label(rec))
+            ax.plot(rec.time, y, color="k", lw=1.0, label=_reference_label(rec), zorder=2.5)
             shown = [y]
             for key, w in local.items():
                 yy = f(w)
-                ax.plot(rec.time, yy, color=_color(key), lw=0.7, label=_row_label(key, comp))
+                ax.plot(rec.time, yy, label=_row_label(key, comp), **_style(key, 0.7))
                 shown.append(yy)
             ax.set_ylabel(f"{name}\n{label}", fontsize=8)
             ax.grid(alpha=0.3)
@@ -379,10 +506,48 @@ def figure_residuals(comp, rec):
         return None
     fig, axes = plt.subplots(len(fams), 1, figsize=(10, 1.8 * len(fams) + 1), sharex=True, squeeze=False)
     for ax, (key, fam) in zip(axes[:, 0], fams):
+        plot_events(ax, rec)
         plot_family(ax, comp.estimates[key], fam, title=f"{key}\n")
+        robust_limits(ax, [comp.estimates[key].residuals[fam]])
     axes[-1, 0].set_xlabel("time [s]")
-    fig.suptitle("Whitened residuals per factor family (dashed: ±3σ)")
+    fig.suptitle("Whitened residuals per factor family (dashed: ±3σ; orange: hidden effects, grey: contact "
+                 "switches)")
     return fig
+
+
+RESIDUAL_PEAK_SIGMA = 10.0
+"""A whitened residual above this (σ) is named in the report beside the residual figure, with the
+event it falls in."""
+
+
+def residual_peaks(comp, rec, threshold: float = RESIDUAL_PEAK_SIGMA) -> list[str]:
+    """One sentence per (estimator, factor family) whose largest |whitened residual| exceeds
+    ``threshold`` σ: its size, axis, time (s) and the marked event it falls in or next to (a hidden
+    effect's span, or within two steps of a contact switch)."""
+    spans = hidden_spans(rec)
+    switches = np.asarray(contact_switches(rec))
+    out = []
+    for key, est in comp.estimates.items():
+        for fam, r in est.residuals.items():
+            a = np.abs(np.asarray(r, dtype=float))
+            if a.size == 0 or not np.isfinite(a).any():
+                continue
+            k, j = np.unravel_index(int(np.nanargmax(a)), a.shape)
+            peak = float(a[k, j])
+            if peak <= threshold:
+                continue
+            t = float(est.time[k])
+            labels = est.residual_labels.get(fam, ())
+            axis = labels[j] if j < len(labels) else str(j)
+            where = [f"inside the hidden effect {what} ({a0:.2f}–{b0:.2f} s): the model lacks it, the data "
+                     "carry it" for a0, b0, what in spans if a0 - 2 * rec.dt <= t <= b0 + 2 * rec.dt]
+            if not where and switches.size and np.min(np.abs(switches - t)) <= 2 * rec.dt:
+                where.append("at a contact switch, where the contact model changes within one step")
+            if not where:
+                where.append("at none of the marked events")
+            out.append(f"{key}: the {fam} residual peaks at {peak:.3g}σ ({axis}) at t = {t:.2f} s, "
+                       f"{where[0]}.")
+    return out
 
 
 def figure_consistency(comp, rec):
@@ -390,11 +555,13 @@ def figure_consistency(comp, rec):
     if not series:
         return None
     fig, axes = plt.subplots(2, 1, figsize=(10, 5), sharex=True)
+    for k, ax in enumerate(axes):
+        plot_events(ax, rec, legend=k == 0)
     for key, m in series:
         if m.nees_series is not None:
-            axes[0].semilogy(rec.time, np.maximum(m.nees_series, 1e-6), color=_color(key), lw=0.6, label=key)
+            axes[0].semilogy(rec.time, np.maximum(m.nees_series, 1e-6), label=key, **_style(key, 0.6))
         if m.nis_series is not None:
-            axes[1].semilogy(rec.time, np.maximum(m.nis_series, 1e-6), color=_color(key), lw=0.6, label=key)
+            axes[1].semilogy(rec.time, np.maximum(m.nis_series, 1e-6), label=key, **_style(key, 0.6))
     axes[0].axhline(18, color="k", ls="--", lw=0.8)
     axes[1].axhline(6, color="k", ls="--", lw=0.8)
     axes[0].set_ylabel("NEES (18-D)")
@@ -564,6 +731,52 @@ def _peer_rows(summary: dict) -> list[dict]:
     return out
 
 
+CONSISTENCY_DOF = {"nees": 18, "nis": 6}
+"""Dimension of the state error (NEES) and of the EKF's innovation (NIS): a consistent estimator's
+run mean equals it."""
+
+
+def consistency_sentences(summary: dict) -> list[str]:
+    """One sentence per statistic (NEES, NIS) and direction whose run mean falls outside its 95% band
+    in some estimator's row: what it means, with the factor sqrt(mean / dof) by which the estimator's
+    covariance understates (above the band) or overstates (below it) its errors.  Empty when every
+    mean is in its band."""
+    out = []
+    hidden = bool((summary.get("recording") or {}).get("hidden_effects"))
+    for stat, dof in CONSISTENCY_DOF.items():
+        what = "state error" if stat == "nees" else "innovation"
+        for above in (True, False):
+            rows = []
+            for key, m in (summary.get("estimators") or {}).items():
+                value, band = m.get(stat), m.get(f"{stat}_bounds")
+                if value is None or not band or not (value > band[1] if above else value < band[0]):
+                    continue
+                rows.append((key, value, band, math.sqrt(value / dof)))
+            if not rows:
+                continue
+            lo, hi = rows[0][2]
+            listed = ", ".join(f"{k} {v:.3g} (×{f:.2g})" for k, v, _, f in rows)
+            if above:
+                text = (f"{stat.upper()} above its 95% band [{lo:.3g}, {hi:.3g}] for {dof} dimensions: {listed}. "
+                        f"The {what} is larger than the covariance says by about √({stat.upper()}/{dof}), the "
+                        "factor in brackets: the covariance is too small for the errors (overconfident).")
+                if hidden and stat == "nees":
+                    text += (" This recording has hidden effects the nominal model lacks (shaded on the figures): "
+                             "the errors they cause are outside every estimator's covariance.")
+            else:
+                text = (f"{stat.upper()} below its 95% band [{lo:.3g}, {hi:.3g}] for {dof} dimensions: {listed}. "
+                        f"The {what} is smaller than the covariance says by about √({stat.upper()}/{dof}), the "
+                        "factor in brackets: the covariance is too large for the errors (underconfident).")
+            out.append(text)
+    return out
+
+
+def _crb_columns(keys) -> list[tuple[str, str, float]]:
+    """(key, header in the report's units, scale from SI) of the Cramér–Rao table's columns."""
+    heads = {k: (h.replace(" RMSE", ""), sc) for k, h, sc in TABLE_COLUMNS}
+    return [(k, *heads.get(k, (k, 1.0))) for k in keys]
+
+
 def recording_name(rec, info: dict) -> str:
     """What a report calls a recording: its scenario, else the file or folder it was read from, else
     its robot configuration."""
@@ -636,7 +849,9 @@ def _write_report(comp, rec, out: Path, title: str | None) -> None:
         lowpass_hz=LOWPASS_HZ, lowpass_order=LOWPASS_ORDER, transition_ms=TRANSITION_S * 1000,
         has_violations=any(m.get("violations") for _, m, _ in _table_rows(summary)),
         mu=next((v["friction_mu"] for _, m, _ in _table_rows(summary) if (v := m.get("violations"))), FRICTION_MU),
-        sole_skipped=_sole_skipped(summary))
+        sole_skipped=_sole_skipped(summary), consistency=consistency_sentences(summary),
+        units=UNITS_SENTENCE, crb_columns=_crb_columns(RMSE_KEYS), residual_peaks=residual_peaks(comp, rec),
+        residual_peak_sigma=RESIDUAL_PEAK_SIGMA)
     (out / "index.html").write_text(page)
 
 
