@@ -92,12 +92,16 @@ class Progress:
         self._last = -1
 
     def note(self, message: str) -> None:
-        """Off a terminal, one line with the stage's news (which candidate, its statistic); on a
-        terminal the bar says enough."""
-        if self.mode != "lines" or not message:
+        """One line with the stage's news (which candidate, its statistic, the round), in full; on
+        a terminal above the bar, which is drawn again after it."""
+        if self.mode == "off" or not message:
             return
         since = time.time() - PROGRESS_ORIGIN
-        sys.stderr.write(f"[{since:7.1f} s] {self.label.strip()}: {message}\n")
+        line = f"[{since:7.1f} s] {self.label.strip()}: {message}\n"
+        if self.mode == "bar":
+            line = "\r\x1b[K" + line  # over the bar's line; the next update draws the bar below
+            self._last = -1
+        sys.stderr.write(line)
         sys.stderr.flush()
 
     def __call__(self, fraction: float) -> None:
@@ -195,14 +199,14 @@ def _model(rec, args):
 
 def _cmd_run(args) -> int:
     from flexforce.compare.estimators import estimator_key
-    from flexforce.datasets.safeio import check_output, is_bag_folder, output_lock
+    from flexforce.datasets.safeio import check_output, output_lock
     from flexforce.errors import OutputError
 
     args.estimator = estimator_key(args.estimator)
     out = Path(args.output)
     if out.suffix == ".mcap":
-        check_output(out, "estimate bag", folder=True, overwrite=args.force, replaceable=is_bag_folder,
-                     replaceable_what="a ROS 2 bag directory")
+        check_output(out, "estimate bag", overwrite=args.force,
+                     replaceable=lambda p: p.is_file() and p.suffix == ".mcap", replaceable_what="an MCAP file")
     else:
         check_output(out, "estimate", suffixes=(".npz", ".csv", ".mcap"))
     if Path(args.recording).exists() and out.resolve() == Path(args.recording).resolve():
@@ -507,6 +511,7 @@ def _diagnose_job(args, job) -> dict:
     what the terminal shows and the index lists."""
     global PROGRESS_PREFIX
     from flexforce.compare.diagnostics.config import DiagnoseConfig
+    from flexforce.compare.diagnostics.progress import DiagnosisProgress
     from flexforce.compare.diagnostics.run import diagnose, load_plugin
     from flexforce.compare.reports.diagnosis import diagnosis_summary, write_diagnosis
 
@@ -520,12 +525,15 @@ def _diagnose_job(args, job) -> dict:
         # recording (the footholds without a touch-down), and the plugins' effects beside it
         candidates = [c.strip() for c in args.candidates.split(",") if c.strip()] if args.candidates else None
         bars = {}
+        # rounds, time elapsed and left; the default catalogue's size is read from its screening
+        notes = DiagnosisProgress(args.max_effects, len(candidates) + len(plugins) if candidates else None)
 
         def progress(label, fraction, message=None):
             if label not in bars:
-                bars[label] = Progress(f"  {label}"[:24], enabled=not args.quiet and None)
-            if message:
-                bars[label].note(message)
+                bars[label] = Progress(f"  {label}", enabled=not args.quiet and None)
+            note = notes.update(label, fraction, message)
+            if note:
+                bars[label].note(note)
             bars[label](fraction)
 
         level = None if args.no_screen else args.screen_level
@@ -573,7 +581,8 @@ def _cmd_layout(args) -> int:
         text = render_layout(args.kind, topics)
         with safe_output(out) as tmp:
             tmp.write_text(text)
-    print(f"wrote {out}: {args.kind} layout for /estimate/{topics.estimator}/, contacts {', '.join(topics.contacts)}"
+    print(f"wrote {out}: {args.kind} layout for /estimate/{topics.estimator}/ of robot {topics.robot}, contacts "
+          f"{', '.join(topics.contacts)}"
           + (f", F/T {', '.join(topics.ft.values())}" if topics.ft else "") + (", truth" if topics.truth else ""))
     return 0
 
@@ -734,7 +743,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("kind", choices=("foxglove", "plotjuggler"), help="the viewer")
     p.add_argument("-o", "--output", required=True, type=Path, help="layout file: .json (foxglove), .xml (plotjuggler)")
     p.add_argument("--robot", help="robot name or .toml configuration: its contacts, and for raw robot bags its "
-                                   "[ros] F/T and IMU topics (default romeo)")
+                                   "[ros] F/T and IMU topics (required without --bag; with --bag, default: the "
+                                   "robot the bag names)")
     p.add_argument("--bag", type=Path, help="the exported bag: take the estimator, contacts, F/T and truth topics "
                                             "from it")
     p.add_argument("--estimator", help="the estimator of 'flexforce run' (default ekf)")

@@ -73,7 +73,7 @@ class RunConfig:
     realtime: bool = False
     """Streaming fixed-lag: pace the input at the recording's clock and count missed deadlines."""
     overwrite: bool = False
-    """Replace an existing ``.mcap`` output (a ROS 2 bag directory only)."""
+    """Replace an existing ``.mcap`` output (an MCAP file only)."""
 
     def __post_init__(self):
         from flexforce.compare.estimators import estimator_key
@@ -250,8 +250,10 @@ def stream_recording(recording, output, config: RunConfig, progress: ProgressFac
     if config.block is not None:
         options["block"] = config.block
     smoother = FixedLagConfig(**options)
-    with EstimateWriter(out, overwrite=config.overwrite) as writer:
+    with EstimateWriter(out, overwrite=config.overwrite, robot=config.robot) as writer:
         parts, rec = stream_parts(recording, config, writer.copy if out.suffix == ".mcap" else None, progress)
+        if rec is not None and not config.robot:
+            writer.robot = rec.robot
         if rec is not None:  # a flexforce bag: every topic of it (inputs, truth) into the .mcap
             if out.suffix == ".mcap":
                 writer.copy_bag(recording)
@@ -295,11 +297,13 @@ def _estimator_options(config: RunConfig) -> dict[str, Any]:
     return options
 
 
-def write_estimate(est, output, recording=None, overwrite: bool = False) -> Path:
+def write_estimate(est, output, recording=None, overwrite: bool = False, robot: Any = None) -> Path:
     """Write ``est`` to ``output`` by its suffix: ``.csv``
-    (:func:`flexforce.datasets.io.export.export_csv`), ``.mcap`` beside the topics of the bag
-    ``recording`` (:func:`flexforce.datasets.io.export.export_mcap`; ``overwrite`` an existing
-    bag), else ``.npz`` (:meth:`flexforce.datasets.estimate.Estimate.save`); returns the path written."""
+    (:func:`flexforce.datasets.io.export.export_csv`), ``.mcap``: the MCAP file ``output`` with
+    the estimate beside the topics of the bag ``recording`` and ``robot`` (name, ``.toml`` path or
+    RobotConfig) in its description (:func:`flexforce.datasets.io.export.export_mcap`;
+    ``overwrite`` an existing file), else ``.npz`` (:meth:`flexforce.datasets.estimate.Estimate.save`);
+    returns the path written."""
     out = Path(output)
     if out.suffix == ".csv":
         from flexforce.datasets.io.export import export_csv
@@ -308,7 +312,7 @@ def write_estimate(est, output, recording=None, overwrite: bool = False) -> Path
     if out.suffix == ".mcap":
         from flexforce.datasets.io.export import export_mcap
 
-        return export_mcap(est, recording, out, overwrite=overwrite)
+        return export_mcap(est, recording, out, overwrite=overwrite, robot=robot)
     return est.save(out)
 
 
@@ -327,7 +331,7 @@ def run_offline(recording, output, config: RunConfig, progress: ProgressFactory 
     model = nominal_model(rec, config.robot, use_ft=config.use_ft)
     options = _estimator_options(config)
     est = run_estimator(config.estimator, rec, model, progress=_stage(progress, config.estimator), **options)
-    out = write_estimate(est, output, recording, overwrite=config.overwrite)
+    out = write_estimate(est, output, recording, overwrite=config.overwrite, robot=config.robot or rec.robot)
     return RunResult(out, est.n, streamed=False, estimate=est)
 
 

@@ -353,3 +353,19 @@ def test_compare_with_footholds(stand_bag, tmp_path):
     assert rows["fixed_lag"]["extra"]["options"] == {"footholds": True}
     assert "footholds estimated" in rows["fixed_lag"]["extra"]["footholds"]
     assert "options" not in rows["ekf"]["extra"]
+
+
+def test_run_mcap_output_is_the_named_file(tmp_path, capsys):
+    """``run REC -o walk.mcap`` writes the MCAP file walk.mcap (no folder holding walk.mcap.mcap),
+    offline and streamed, and names its robot for ``layout --bag``."""
+    from flexforce.datasets.io.export import export_info
+
+    rec = tmp_path / "rec"
+    assert main(["simulate", "stand", "--duration", "0.3", "--robot", "talos", "-o", str(rec), "-q"]) == 0
+    for estimator in ("ekf", "fixed-lag"):
+        out = tmp_path / f"walk-{estimator}.mcap"
+        assert main(["run", str(rec), "--estimator", estimator, "-o", str(out), "-q"]) == 0, capsys.readouterr().err
+        assert out.is_file() and export_info(out)["robot"] == "talos"
+        assert main(["run", str(rec), "--estimator", estimator, "-o", str(out), "-q"]) == 1
+        assert "exists already" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rec", "walk-ekf.mcap", "walk-fixed-lag.mcap"]

@@ -115,3 +115,46 @@ def test_mcap_from_a_recording(tmp_path):
     np.testing.assert_allclose([m.linear_acceleration.z for _, m in got["/imu"]], rec.accel[:, 2])
     assert list(got["/joint_states"][0][1].name) == list(rec.joint_names)
     assert got["/ft/left_foot"][0][1].header.frame_id == "left_foot"
+
+
+def test_an_mcap_path_is_one_mcap_file(tmp_path):
+    """``X.mcap`` is the MCAP file itself (no bag folder around it), with the export's description;
+    it is replaced only with overwrite, and no temporary is left beside it."""
+    from flexforce.datasets.io.export import export_info
+
+    t = T0 + np.arange(15, dtype=np.int64) * 10_000_000
+    est = make_estimate(t)
+    out = export_mcap(est, None, tmp_path / "walk.mcap", robot="icub")
+    assert out == tmp_path / "walk.mcap" and out.is_file()
+    assert {p.name for p in tmp_path.iterdir()} == {"walk.mcap"}
+    got = read_bag(out)
+    assert len(got["/estimate/fixed_lag/flexibility"]) == 15
+    assert export_info(out) == {"format": "flexforce-estimate", "version": 1, "estimator": "fixed_lag",
+                                "contact_names": ["left_foot", "right_foot"], "robot": "icub"}
+    with pytest.raises(BagError, match="exists already"):
+        export_mcap(est, None, out)
+    export_mcap(make_estimate(t[:5]), None, out, overwrite=True)
+    assert len(read_bag(out)["/estimate/fixed_lag/flexibility"]) == 5 and export_info(out)["robot"] is None
+    # a bag folder keeps its form; its description is in metadata.yaml
+    folder = export_mcap(est, out, tmp_path / "folder", robot="talos")
+    assert (folder / "metadata.yaml").is_file() and export_info(folder)["robot"] == "talos"
+    assert {p.name for p in tmp_path.iterdir()} == {"walk.mcap", "folder"}
+    (tmp_path / "dir.mcap").mkdir()
+    with pytest.raises(BagError, match="it is a folder"):
+        export_mcap(est, None, tmp_path / "dir.mcap", overwrite=True)
+
+
+def test_streamed_mcap_is_one_file(tmp_path):
+    from flexforce.datasets.io.export import EstimateWriter, export_info
+    from flexforce.errors import DataError
+
+    t = T0 + np.arange(12, dtype=np.int64) * 10_000_000
+    est = make_estimate(t, name="fixed-lag")
+    out = tmp_path / "s.mcap"
+    with EstimateWriter(out, robot="romeo") as writer:
+        writer.write(est)
+    assert out.is_file() and {p.name for p in tmp_path.iterdir()} == {"s.mcap"}
+    assert export_info(out)["robot"] == "romeo" and export_info(out)["estimator"] == "fixed_lag"
+    with pytest.raises(DataError, match="no estimate was written"), EstimateWriter(tmp_path / "e.mcap"):
+        pass
+    assert {p.name for p in tmp_path.iterdir()} == {"s.mcap"}

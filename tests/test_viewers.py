@@ -154,3 +154,65 @@ def test_layout_of_a_streamed_fixed_lag_run(exported, tmp_path, capsys):
         # the streamed run writes the sensor topics of a flexforce bag (no /truth/...)
         if not topics.truth:
             assert text == render_layout(kind, layout_topics("romeo", "fixed-lag"))
+
+
+@pytest.mark.parametrize("robot", ["talos", "icub"])
+def test_the_bag_names_its_robot(tmp_path, robot):
+    """A bag exported for a simulated recording of ``robot`` gives that robot's layout, no --robot asked."""
+    from flexforce.datasets.robot import RobotConfig
+
+    sc = Scenario.load("stand")
+    sc.duration = 0.3
+    sc.robot = robot
+    rec = Simulator(sc).run()
+    out = export_mcap(run_estimator("ekf", rec), rec, tmp_path / f"{robot}.mcap")
+    topics = layout_topics_of_bag(out)
+    config = RobotConfig.load(robot)
+    assert topics.robot == robot and topics.contacts == tuple(c.name for c in config.contacts)
+    assert topics.ft == {c: f"/ft/{c}" for c in topics.contacts}
+    check_layout("foxglove", render_layout("foxglove", topics), out)
+
+
+def test_a_raw_icub_bag_shows_its_ft_topics(tmp_path, capsys):
+    """The issue's case: the export of a raw iCub bag draws the F/T of the configuration's [ros]
+    table, the robot read from the export's description."""
+    import numpy as np
+    from test_export import T0, make_estimate
+    from test_rosimport import write_bag
+
+    t = T0 + np.arange(20, dtype=np.int64) * 10_000_000
+    raw = {"/imu": ("sensor_msgs/msg/Imu", [(tt, {"gyro": [0, 0, 0], "accel": [0, 0, 9.8], "frame": "imu"})
+                                            for tt in t])}
+    for side in ("left", "right"):
+        raw[f"/{side}_foot/wrench"] = ("geometry_msgs/msg/WrenchStamped",
+                                       [(tt, {"w": [0, 0, 150.0, 0, 0, 0], "frame": f"{side[0]}_sole"}) for tt in t])
+    src = write_bag(tmp_path / "raw", "mcap", raw)
+    out = export_mcap(make_estimate(t, name="ekf"), src, tmp_path / "icub-ekf.mcap", robot="icub")
+    topics = layout_topics_of_bag(out)
+    assert topics.robot == "icub"
+    assert topics.ft == {"left_foot": "/left_foot/wrench", "right_foot": "/right_foot/wrench"}
+    assert "/right_foot/wrench" in check_layout("foxglove", render_layout("foxglove", topics), out)
+    layout = tmp_path / "icub.json"
+    assert main(["layout", "foxglove", "--bag", str(out), "-o", str(layout)]) == 0
+    assert "robot icub" in capsys.readouterr().out and "/left_foot/wrench" in layout.read_text()
+
+
+def test_a_bag_that_names_no_robot_is_refused(tmp_path, capsys):
+    """No robot in the bag and none given: a ConfigError saying what is missing and how to give it."""
+    import numpy as np
+    from test_export import T0, make_estimate
+
+    from flexforce.errors import ConfigError
+
+    out = export_mcap(make_estimate(T0 + np.arange(10) * 10_000_000, name="ekf"), None, tmp_path / "anon.mcap")
+    with pytest.raises(ConfigError, match=r"does not say which robot.*expected --robot NAME\|CONFIG.toml"):
+        layout_topics_of_bag(out)
+    assert main(["layout", "foxglove", "--bag", str(out), "-o", str(tmp_path / "a.json")]) == 1
+    err = capsys.readouterr().err
+    assert "does not say which robot" in err and "--robot" in err and err.count("\n") == 1
+    assert not (tmp_path / "a.json").exists()
+    assert layout_topics_of_bag(out, "talos").robot == "talos"
+    with pytest.raises(ConfigError, match="needs the robot"):
+        layout_topics(None)
+    assert main(["layout", "foxglove", "-o", str(tmp_path / "b.json")]) == 1
+    assert "expected --robot" in capsys.readouterr().err

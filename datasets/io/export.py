@@ -15,8 +15,9 @@ CSV (:func:`export_csv`): one row per step, a header row of column names with un
 Numbers have 15 significant digits (within 1e-14 of the estimate, relatively: the .npz is the
 lossless output), ``t_ns`` is exact (:mod:`flexforce.datasets.io.csvformat`).
 
-MCAP (:func:`export_mcap`): a ROS 2 bag directory (MCAP storage, Humble message definitions
-embedded) for PlotJuggler or Foxglove, with under ``/estimate/<estimator>/``:
+MCAP (:func:`export_mcap`): a ROS 2 bag (MCAP storage, Humble message definitions embedded) for
+PlotJuggler or Foxglove: an output path ending in ``.mcap`` is that one MCAP file, any other a ROS 2
+bag directory (``metadata.yaml`` beside the MCAP file).  Under ``/estimate/<estimator>/``:
 
 ========================  ========================================  ==========
 topic                     message                                   frame_id
@@ -39,11 +40,20 @@ CDR); given a :class:`Recording` instead of a bag, its ``/imu``, ``/joint_states
 ``/ft/<contact>`` and ``/mocap/<link>`` are written on its grid.  Stamps are the input's
 absolute times, so estimates and measurements line up.  :mod:`flexforce.datasets.io.viewers` writes
 Foxglove and PlotJuggler layouts for these topics (``flexforce layout``).
+
+What the bag holds is described in the rosbag2 ``custom_data`` under the key :data:`INFO_KEY` (in
+``metadata.yaml``, and in the MCAP file's ``rosbag2`` metadata record, which ROS 2 reads as well): a
+JSON object ``{"format": "flexforce-estimate", "version": 1, "estimator": <topic token>,
+"contact_names": [...], "robot": <robot configuration: built-in name or .toml path, or null>}``;
+:func:`export_info` reads it back.
 """
 
 from __future__ import annotations
 
+import json
+import os
 import re
+import shutil
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -58,9 +68,14 @@ from flexforce.datasets.recording import Recording
 from flexforce.datasets.safeio import is_bag_folder, safe_output
 from flexforce.errors import BagError, DataError
 
-__all__ = ["EstimateWriter", "csv_columns", "export_csv", "export_mcap"]
+__all__ = ["INFO_KEY", "EstimateWriter", "csv_columns", "export_csv", "export_info", "export_mcap"]
 
 _NS = 1_000_000_000
+
+INFO_KEY = "flexforce"
+"""Key of the exported bag's rosbag2 ``custom_data`` describing it (module docstring)."""
+INFO_FORMAT = "flexforce-estimate"
+"""Value of ``"format"`` in that description."""
 
 
 def csv_columns(estimate: Estimate) -> list[str]:
@@ -129,18 +144,24 @@ class EstimateWriter:
         with EstimateWriter("out.csv") as w:
             for est in estimates:
                 w.write(est)
+
+    Args:
+        path: ``.csv`` file, or ``.mcap`` file (one MCAP file, no bag directory).
+        overwrite: replace an existing ``.mcap`` file.
+        robot: the robot configuration (built-in name, ``.toml`` path or RobotConfig) recorded in
+            the MCAP's description (:data:`INFO_KEY`); settable as :attr:`robot` until the block ends.
     """
 
-    def __init__(self, path, *, overwrite: bool = False):
+    def __init__(self, path, *, overwrite: bool = False, robot=None):
         self.path = Path(path)
         self.kind = self.path.suffix
         if self.kind not in (".csv", ".mcap"):
             raise DataError(f"streamed estimates are written to .csv or .mcap; got {self.path}")
-        if self.kind == ".mcap" and self.path.exists():
-            if not overwrite:
-                raise BagError(f"{self.path} exists already; expected a new path (or overwrite=True)")
-            if not is_bag_folder(self.path):
-                raise BagError(f"cannot overwrite {self.path}: it is not a ROS 2 bag directory; remove it yourself")
+        if self.kind == ".mcap":
+            _check_mcap_target(self.path, overwrite)
+        self.robot = robot
+        self._info: dict | None = None
+        self._bag: Path | None = None
         self.steps = 0
         self.t0_ns: int | None = None
         self._cm: Any = None
@@ -152,8 +173,9 @@ class EstimateWriter:
         self._cols: list[str] | None = None
 
     def __enter__(self) -> EstimateWriter:
-        self._cm = safe_output(self.path, folder=self.kind == ".mcap")
+        self._cm = safe_output(self.path)
         tmp = self._cm.__enter__()
+        self._tmp = tmp
         try:
             if self.kind == ".csv":
                 self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -162,9 +184,11 @@ class EstimateWriter:
                 from rosbags.rosbag2 import StoragePlugin, Writer
 
                 self._ts = _typestore()
-                self._writer = Writer(tmp, version=8, storage_plugin=StoragePlugin.MCAP)
+                self._bag = _bag_folder(tmp, single=True)
+                self._writer = Writer(self._bag, version=8, storage_plugin=StoragePlugin.MCAP)
                 self._writer.open()
         except BaseException as err:
+            self._discard_bag()
             self._cm.__exit__(type(err), err, err.__traceback__)
             raise
         return self
@@ -174,15 +198,26 @@ class EstimateWriter:
             if self._file is not None:
                 self._file.close()
             if self._writer is not None:
+                if self._info is not None:
+                    self._info["robot"] = _robot_ref(self.robot)
+                    self._writer.set_custom_data(INFO_KEY, json.dumps(self._info))
                 self._writer.close()
+                if err is None and self.steps and self._bag is not None:
+                    _take_mcap(self._bag, self._tmp)
         except Exception as close_err:  # noqa: BLE001 -- reported as the block's failure
             if err is None:
                 kind, err, tb = type(close_err), close_err, close_err.__traceback__
+        finally:
+            self._discard_bag()
         if err is None and self.steps == 0:
             empty = DataError(f"no estimate was written to {self.path}; expected at least one step")
             self._cm.__exit__(DataError, empty, None)
             raise empty
         return self._cm.__exit__(kind, err, tb)
+
+    def _discard_bag(self) -> None:
+        if self._bag is not None:
+            shutil.rmtree(self._bag, ignore_errors=True)
 
     def write(self, est: Estimate | None) -> None:
         """Append the steps of ``est`` (after those written before; None: nothing)."""
@@ -201,6 +236,8 @@ class EstimateWriter:
                                 f"{len(self._cols)}); expected one kind of estimate")
             self._file.writelines(_csv_lines(est, self.t0_ns))
         else:
+            if self._info is None:
+                self._info = _info(est, None)
             _write_streams(self._writer, self._ts, _estimate_streams(self._ts, est), est.t_ns, "world", self._conns)
         self.steps += est.n
 
@@ -249,42 +286,189 @@ def _token(name: str) -> str:
     return token if re.match(r"^[A-Za-z]", token) else f"e_{token}"
 
 
-def export_mcap(estimate: Estimate, source, out_path, *, overwrite: bool = False) -> Path:
+def export_mcap(estimate: Estimate, source, out_path, *, overwrite: bool = False, robot=None) -> Path:
     """Write the estimate, beside copies of the inputs, into a ROS 2 bag (MCAP) at ``out_path``.
 
     Args:
         estimate: the estimate to export.
         source: the input bag (path) whose topics are copied, a :class:`Recording` whose sensor
             topics are written, or ``None`` for the estimate alone.
-        out_path: bag directory to create; an existing one is refused unless ``overwrite``
-            (and even then only a ROS 2 bag directory is replaced).
+        out_path: ``X.mcap``: the MCAP file to create; any other name: the ROS 2 bag directory to
+            create.  An existing one is refused unless ``overwrite`` (and even then only an MCAP
+            file, or a ROS 2 bag directory, is replaced by its own kind).
+        robot: the robot configuration (built-in name, ``.toml`` path or RobotConfig) recorded in
+            the bag's description (:data:`INFO_KEY`); default: the ``Recording``'s, else none.
+
+    Raises:
+        BagError: the output refused, the input unreadable, the writer failed.
     """
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     _check(estimate)
     out_path = Path(out_path)
-    if out_path.exists():
+    single = out_path.suffix == ".mcap"
+    if single:
+        _check_mcap_target(out_path, overwrite)
+    elif out_path.exists():
         if not overwrite:
             raise BagError(f"{out_path} exists already; expected a new path (or overwrite=True)")
         if not is_bag_folder(out_path):
             raise BagError(f"cannot overwrite {out_path}: it is not a ROS 2 bag directory; remove it yourself")
     if isinstance(source, (str, Path)) and Path(source).resolve() == out_path.resolve():
         raise BagError(f"output {out_path} is the input bag; expected a new path beside it")
+    if robot is None and isinstance(source, Recording):
+        robot = source.robot
     ts = _typestore()
-    # Written aside and swapped in when complete: an interrupted export leaves the previous bag.
-    with safe_output(out_path, folder=True) as tmp:
+    # Written aside and moved into place when complete: an interrupted export leaves the previous bag.
+    with safe_output(out_path, folder=not single) as tmp:
+        bag = _bag_folder(tmp, single)
         try:
-            with Writer(tmp, version=8, storage_plugin=StoragePlugin.MCAP) as writer:
+            with Writer(bag, version=8, storage_plugin=StoragePlugin.MCAP) as writer:
                 if isinstance(source, Recording):
                     _write_recording(writer, ts, source)
                 elif source is not None:
                     _copy_bag(writer, ts, Path(source))
                 _write_estimate(writer, ts, estimate)
+                writer.set_custom_data(INFO_KEY, json.dumps(_info(estimate, robot)))
+            if single:
+                _take_mcap(bag, tmp)
         except BagError:
             raise
         except Exception as err:  # noqa: BLE001 -- a writer failure: report one line
             raise BagError(f"cannot write bag {out_path}: {' '.join(str(err).split()) or type(err).__name__}") from err
+        finally:
+            if single:
+                shutil.rmtree(bag, ignore_errors=True)
     return out_path
+
+
+def _check_mcap_target(path: Path, overwrite: bool) -> None:
+    """An MCAP file may be written at ``path``: new, or an existing file with ``overwrite``."""
+    if not (path.exists() or path.is_symlink()):
+        return
+    if not overwrite:
+        raise BagError(f"{path} exists already; expected a new path (or overwrite=True)")
+    if path.is_dir():
+        raise BagError(f"cannot overwrite {path}: it is a folder; expected an MCAP file there (remove the folder "
+                       "yourself to reuse its name)")
+
+
+def _bag_folder(tmp: Path, single: bool) -> Path:
+    """The folder the rosbags writer creates: ``tmp`` itself (a bag directory), or for one MCAP
+    file a sibling of ``tmp`` whose storage file :func:`_take_mcap` moves to ``tmp``."""
+    return tmp.with_name(tmp.name + ".bag") if single else tmp
+
+
+def _take_mcap(bag: Path, target: Path) -> None:
+    """Move the one MCAP file of the bag directory ``bag`` to ``target`` (the folder is left)."""
+    files = sorted(bag.glob("*.mcap"))
+    if len(files) != 1:
+        raise BagError(f"the bag written at {bag} holds {len(files)} MCAP files; expected exactly one")
+    os.replace(files[0], target)
+
+
+def _robot_ref(robot) -> str | None:
+    """A robot configuration as :meth:`flexforce.datasets.robot.RobotConfig.load` takes it back:
+    a built-in's name, another configuration's ``.toml`` path; None stays None."""
+    if robot is None or robot == "":
+        return None
+    from flexforce.datasets.robot import ROBOTS_DIR, RobotConfig
+
+    if not isinstance(robot, RobotConfig):
+        return str(robot)
+    if not robot.source or Path(robot.source).parent.resolve() == Path(ROBOTS_DIR).resolve():
+        return robot.name
+    return robot.source
+
+
+def _info(est: Estimate, robot) -> dict:
+    """The bag's description (:data:`INFO_KEY`) for ``est`` and ``robot``."""
+    return {"format": INFO_FORMAT, "version": 1, "estimator": _token(est.estimator),
+            "contact_names": [str(c) for c in est.contact_names], "robot": _robot_ref(robot)}
+
+
+def export_info(path) -> dict:
+    """The description (:data:`INFO_KEY`) of a bag written by :func:`export_mcap` or
+    :class:`EstimateWriter`: ``{"format", "version", "estimator", "contact_names", "robot"}``;
+    ``{}`` for a bag without one (another writer's, or an export older than the description).
+
+    Raises:
+        BagError: ``path`` missing, or its metadata unreadable.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise BagError(f"bag {path} does not exist")
+    try:
+        if path.is_dir():
+            custom = _yaml_custom_data((path / "metadata.yaml").read_text()) if (path / "metadata.yaml").is_file() \
+                else {}
+        elif path.suffix == ".mcap":
+            custom = _mcap_custom_data(path)
+        else:
+            custom = {}
+        doc = json.loads(custom[INFO_KEY]) if INFO_KEY in custom else {}
+    except BagError:
+        raise
+    except Exception as err:  # noqa: BLE001 -- unreadable metadata: one line
+        raise BagError(f"cannot read the metadata of bag {path}: {' '.join(str(err).split()) or type(err).__name__}"
+                       ) from err
+    return doc if isinstance(doc, dict) and doc.get("format") == INFO_FORMAT else {}
+
+
+def _yaml_custom_data(text: str, top: str | None = "rosbag2_bagfile_information") -> dict:
+    from ruamel.yaml import YAML
+
+    doc = YAML(typ="safe").load(text) or {}
+    if top is not None:
+        doc = doc.get(top) or {}
+    return dict(doc.get("custom_data") or {})
+
+
+def _mcap_custom_data(path: Path) -> dict:
+    """The ``custom_data`` of an MCAP file's ``rosbag2`` metadata record, found through its summary
+    (MCAP specification: footer, Metadata Index 0x0D, Metadata 0x0C); ``{}`` without one."""
+    import struct
+
+    def string(buf: bytes, at: int) -> tuple[str, int]:
+        (n,) = struct.unpack_from("<I", buf, at)
+        return buf[at + 4:at + 4 + n].decode(), at + 4 + n
+
+    with path.open("rb") as f:
+        size = f.seek(0, 2)
+        if size < 8 + 37:
+            return {}
+        f.seek(size - 37)
+        footer = f.read(37)
+        if footer[0] != 0x02 or footer[-8:] != b"\x89MCAP0\r\n":
+            raise BagError(f"{path} does not end with an MCAP footer; expected a complete MCAP file")
+        (summary_start,) = struct.unpack_from("<Q", footer, 9)
+        if summary_start == 0:
+            return {}
+        f.seek(summary_start)
+        summary = f.read(size - 37 - summary_start)
+        at = 0
+        while at + 9 <= len(summary):
+            op, length = summary[at], struct.unpack_from("<Q", summary, at + 1)[0]
+            body = summary[at + 9:at + 9 + length]
+            at += 9 + length
+            if op != 0x0D:
+                continue
+            offset, rec_length = struct.unpack_from("<QQ", body, 0)
+            name, _ = string(body, 16)
+            if name != "rosbag2":
+                continue
+            f.seek(offset)
+            record = f.read(rec_length)
+            name, pos = string(record, 9)
+            (map_length,) = struct.unpack_from("<I", record, pos)
+            pos += 4
+            end = pos + map_length
+            while pos < end:
+                key, pos = string(record, pos)
+                value, pos = string(record, pos)
+                if key == "serialized_metadata":
+                    return _yaml_custom_data(value, top=None)
+    return {}
 
 
 def _copy_bag(writer, ts, path: Path) -> None:
@@ -308,6 +492,8 @@ def _copy_bag(writer, ts, path: Path) -> None:
                     conns[rconn.id] = writer.add_connection(rconn.topic, rconn.msgtype, typestore=store)
                 else:
                     conns[rconn.id] = next(c for c in writer.connections if c.topic == rconn.topic)
+            if not conns:  # nothing to copy (rosbags reads every connection when given none)
+                return
             for rconn, t, raw in reader.messages(connections=[c for c in reader.connections if c.id in conns]):
                 data = raw if reader.is2 else ts.ros1_to_cdr(raw, rconn.msgtype)
                 writer.write(conns[rconn.id], t, data)

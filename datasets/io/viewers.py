@@ -22,7 +22,9 @@ foot both F_z are the normal force.
 
 Topic names follow :mod:`flexforce.datasets.io.bagio` (``/imu``, ``/ft/<contact>``,
 ``/truth/...``) for flexforce bags, and the robot configuration's ``[ros]`` table
-(``ft_topics``, ``imu_topic``) for raw robot bags.
+(``ft_topics``, ``imu_topic``) for raw robot bags.  The robot is never assumed: it is given, or
+read from the bag (the export's description, :func:`flexforce.datasets.io.export.export_info`, or
+a flexforce recording's ``/flexforce/meta``), else the layout is refused (:func:`bag_robot`).
 """
 
 from __future__ import annotations
@@ -30,14 +32,18 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from flexforce.errors import BagError, ConfigError
 
-__all__ = ["KINDS", "Curve", "LayoutTopics", "Plot", "layout_topics", "layout_topics_of_bag", "panels",
+__all__ = ["KINDS", "Curve", "LayoutTopics", "Plot", "bag_robot", "layout_topics", "layout_topics_of_bag", "panels",
            "render_layout", "topics_of_layout"]
 
 KINDS = {"foxglove": ".json", "plotjuggler": ".xml"}
 """Layout kind -> suffix of its file."""
+
+_INFO = "flexforce"
+"""The key of the export's description (:data:`flexforce.datasets.io.export.INFO_KEY`)."""
 
 COLORS = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f")
 
@@ -62,6 +68,8 @@ class LayoutTopics:
     """sensor_msgs/Imu topic of the readings, or None."""
     truth: bool = False
     """Whether the bag holds the simulator's ``/truth/...`` topics."""
+    robot: str | None = None
+    """Name of the robot configuration the topics were chosen for (not drawn)."""
 
     @property
     def base(self) -> str:
@@ -82,11 +90,12 @@ class Plot:
     curves: tuple[Curve, ...]
 
 
-def layout_topics(robot=None, estimator: str = "ekf", ft: bool = True, truth: bool = False,
+def layout_topics(robot, estimator: str = "ekf", ft: bool = True, truth: bool = False,
                   raw: bool | None = None) -> LayoutTopics:
     """The topics of an exported bag of ``robot`` (name, .toml path or RobotConfig).
 
     Args:
+        robot: the robot configuration; required (None is a ConfigError: no robot is assumed).
         estimator: the estimator of ``flexforce run`` (``ekf``, ``fixed-lag``, ``batch``).
         ft: draw the F/T readings.
         truth: draw the ground truth (bags of ``flexforce simulate``).
@@ -96,7 +105,10 @@ def layout_topics(robot=None, estimator: str = "ekf", ft: bool = True, truth: bo
     """
     from flexforce.datasets.robot import RobotConfig
 
-    config = RobotConfig.load(robot or "romeo")
+    if robot is None or robot == "":
+        raise ConfigError("a layout made without a bag needs the robot: its contacts and F/T topics; expected "
+                          "--robot NAME|CONFIG.toml (e.g. --robot icub), or --bag OUT.mcap of 'flexforce run'")
+    config = RobotConfig.load(robot)
     contacts = tuple(_token(c.name) for c in config.contacts)
     ros = config.ros
     if raw is None:
@@ -112,7 +124,7 @@ def layout_topics(robot=None, estimator: str = "ekf", ft: bool = True, truth: bo
         else:
             ft_topics = {c: f"/ft/{c}" for c in contacts}
     return LayoutTopics(estimator=_token(str(estimator).replace("-", "_").lower()), contacts=contacts, ft=ft_topics,
-                        imu=imu, truth=truth)
+                        imu=imu, truth=truth, robot=config.name)
 
 
 def bag_topics(path) -> dict[str, str]:
@@ -129,11 +141,76 @@ def bag_topics(path) -> dict[str, str]:
         raise BagError(f"cannot read bag {path}: {' '.join(str(err).split()) or type(err).__name__}") from err
 
 
+def bag_robot(path, topics: dict[str, str] | None = None) -> str | None:
+    """The robot configuration (built-in name or ``.toml`` path) a bag says it was recorded or
+    exported for: the export's description (:func:`flexforce.datasets.io.export.export_info`),
+    else the ``robot`` of a flexforce recording's ``/flexforce/meta``; None when it says neither.
+
+    Args:
+        topics: the bag's topic -> message type (:func:`bag_topics`), if already read.
+
+    Raises:
+        BagError: a missing or unreadable bag.
+    """
+    import json
+
+    from flexforce.datasets.io.bagio import META_TOPIC
+    from flexforce.datasets.io.export import export_info
+
+    path = Path(path)
+    topics = bag_topics(path) if topics is None else topics
+    robot = export_info(path).get("robot")
+    if robot:
+        return str(robot)
+    if META_TOPIC not in topics:
+        return None
+    from rosbags.highlevel import AnyReader
+
+    try:
+        with AnyReader([path]) as reader:
+            conns = [c for c in reader.connections if c.topic == META_TOPIC]
+            for conn, _, raw in reader.messages(connections=conns):
+                msg: Any = reader.deserialize(raw, conn.msgtype)  # std_msgs/String
+                doc = json.loads(msg.data)
+                return str(doc["robot"]) if isinstance(doc, dict) and doc.get("robot") else None
+    except Exception as err:  # noqa: BLE001 -- an unreadable description: one line
+        raise BagError(f"cannot read {META_TOPIC} of bag {path}: {' '.join(str(err).split()) or type(err).__name__}"
+                       ) from err
+    return None
+
+
+def _bag_robot_config(path, topics: dict[str, str], robot=None):
+    """The robot configuration of ``robot`` when given, else of the robot the bag names; a
+    ConfigError when neither says (no robot is assumed)."""
+    from flexforce.datasets.robot import RobotConfig
+
+    if robot is not None and robot != "":
+        return RobotConfig.load(robot)
+    named = bag_robot(path, topics)
+    if named is None:
+        raise ConfigError(f"bag {path} does not say which robot it holds (no robot in its '{_INFO}' metadata, "
+                          "no /flexforce/meta topic): its F/T and IMU topics are unknown; expected --robot "
+                          "NAME|CONFIG.toml (e.g. --robot icub)")
+    try:
+        return RobotConfig.load(named)
+    except ConfigError as err:
+        raise ConfigError(f"bag {path} names robot {named!r}, which cannot be loaded here ({err}); expected "
+                          "--robot NAME|CONFIG.toml") from err
+
+
 def layout_topics_of_bag(path, robot=None) -> LayoutTopics:
     """The topics of a bag written by ``flexforce run ... -o OUT.mcap``, read from the bag itself.
 
     The estimator and the contacts come from its ``/estimate/<estimator>/wrench/<contact>`` topics;
-    F/T readings are ``/ft/<contact>`` topics, or those of ``robot``'s ``[ros] ft_topics`` when given.
+    F/T readings are ``/ft/<contact>`` topics, or those of the robot configuration's
+    ``[ros] ft_topics`` (and ``imu_topic``) that the bag holds.  The robot is ``robot`` when given,
+    else the one the bag names (:func:`bag_robot`).
+
+    Raises:
+        BagError: a missing or unreadable bag, one without ``/estimate/<estimator>/`` topics or
+            with several estimators'.
+        ConfigError: neither ``robot`` nor the bag names the robot, or its configuration cannot
+            be loaded.
     """
     topics = bag_topics(path)
     found = sorted({m[1] for t in topics if (m := re.match(r"^/estimate/([^/]+)/", t))})
@@ -147,19 +224,17 @@ def layout_topics_of_bag(path, robot=None) -> LayoutTopics:
     wrench = "geometry_msgs/msg/WrenchStamped"
     ft = {c: f"/ft/{c}" for c in contacts if topics.get(f"/ft/{c}") == wrench}
     imu: str | None = "/imu"
-    if robot is not None:
-        from flexforce.datasets.robot import RobotConfig
-
-        ros = RobotConfig.load(robot).ros
-        if ros is not None:
-            ft.update({_token(c): t for c, t in ros.ft_topics.items() if _token(c) in contacts
-                       and topics.get(t) == wrench})
-            if ros.imu_topic in topics:
-                imu = ros.imu_topic
+    config = _bag_robot_config(path, topics, robot)
+    ros = config.ros
+    if ros is not None:
+        ft.update({_token(c): t for c, t in ros.ft_topics.items() if _token(c) in contacts
+                   and topics.get(t) == wrench})
+        if ros.imu_topic in topics:
+            imu = ros.imu_topic
     if topics.get(imu or "") != "sensor_msgs/msg/Imu":
         imu = None
     truth = "/truth/cop" in topics
-    return LayoutTopics(estimator=est, contacts=contacts, ft=ft, imu=imu, truth=truth)
+    return LayoutTopics(estimator=est, contacts=contacts, ft=ft, imu=imu, truth=truth, robot=config.name)
 
 
 def panels(topics: LayoutTopics) -> list[tuple[str, list[Plot]]]:
