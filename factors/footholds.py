@@ -18,10 +18,13 @@ estimated by the smoothers with every other unknown.  Three kinds of factors dec
   ``touchdown = "zero-deflection"``: landing creates no force jump.  (The paper's convention,
   ``p_r = p_l``, preloads a foot landing while the flexibility is deflected by that deflection.)
   A contact already in force at the first sample has no such factor (the robot stands on
-  deflected springs); its correction has a first-step prior instead: ``N(0, kinematics sigmas)``
-  in height and tilt, and ``GAUGE`` (1e-3) times them in horizontal position and yaw, which
-  fixes where the world is: the first stance soles' placements (a common horizontal shift or yaw
-  of every foothold is seen by no sensor).
+  deflected springs); its correction has a first-step prior instead: ``GAUGE`` (1e-3) times the
+  kinematic sigmas in horizontal position and yaw, which fixes where the world is: the first
+  stance soles' placements (a common horizontal shift or yaw of every foothold is seen by no
+  sensor).  In height and tilt the prior is ``N(0, kinematics sigmas)``, or, with
+  ``anchor_first_stance``, ``GAUGE`` times them too: the local frame at the first sample is
+  defined by the first stance soles flat on the floor (:class:`~flexforce.datasets.robot.FootholdConfig`),
+  so their placements are the frame's definition, not unknowns.
 - **Ground.**  At the first step of every episode the corrected sole lies on the floor plane
   (``n . p_r' = h`` within ``ground_sigma_height``; its z axis along ``n`` within
   ``ground_sigma_tilt``, two rows: the components of ``R_r' e_z`` on the plane's tangent axes).
@@ -29,7 +32,8 @@ estimated by the smoothers with every other unknown.  Three kinds of factors dec
   force; ``"plane"``: ``normal`` and ``height`` as given (world = local frame at the first sample);
   ``"none"``: no ground factor.
 - **Constancy.**  Within an episode (and through the swing that follows it) the correction is a
-  random walk of ``1e-3`` of the kinematic sigma per step (``WALK_WITHIN``); the walk is cut
+  random walk of ``walk_within`` (default ``WALK_WITHIN``, 1e-3) of the kinematic sigma per
+  step; the walk is cut
   (``1e3`` times the kinematic sigma) where the contact touches down, so each episode is its own
   foothold.  This is a per-episode landmark written as per-step copies tied by equality: the
   graph stays a chain (block tridiagonal, O(N D^3)) instead of gaining long-range edges.
@@ -49,6 +53,7 @@ import numpy as np
 from flexforce.datasets.quantities import FootholdPrior
 from flexforce.errors import ConfigError, DataError
 from flexforce.factors import core
+from flexforce.options import check_bool, check_positive
 
 if TYPE_CHECKING:
     from flexforce.factors.effects import ProblemView
@@ -56,7 +61,12 @@ if TYPE_CHECKING:
 __all__ = ["FootholdPrior", "Footholds", "episode_starts", "held_rest", "rest_placements", "touches_down"]
 
 WALK_WITHIN = 1e-3
-"""Random-walk sigma of a foothold within an episode, relative to its kinematic sigma."""
+"""Random-walk sigma of a foothold within an episode, relative to its kinematic sigma (the
+default of :class:`Footholds`' ``walk_within``)."""
+WALK_WITHIN_ANCHORED = 1e-5
+"""``walk_within`` of the smoothers' footholds (``footholds = True``, with ``anchor_first_stance``):
+over a recording of ``N`` steps an episode's correction may drift by ``1e-5 sqrt(N)`` of its
+kinematic sigma, so it stays one foothold instead of following the model's errors."""
 GAUGE = 1e-3
 """Prior sigma of the first stance footholds' horizontal position and yaw, relative to the
 kinematic sigmas: the world's horizontal origin and heading are theirs."""
@@ -142,6 +152,23 @@ class Footholds:
     every touch-down of a real walk.  Without it the smoothers read such an error as a deflection
     of the flexibility, and the forces and the tilt follow it.  The diagnosis makes one per
     recording (:meth:`bind`: one per contact, the robot's ``[footholds]`` priors).
+
+    Args:
+        n_contacts: contacts of the recording (one correction of 6 unknowns each).
+        prior: the priors (sigmas, terrain); default :class:`FootholdPrior` ``()``.
+        anchor_first_stance: give the footholds in force at the first sample the ``GAUGE`` prior
+            in all six components (height and tilt too), not only in horizontal position and yaw:
+            the first stance soles define the local frame, they are not estimated.  The
+            smoothers' ``footholds = True`` sets it (:func:`flexforce.smoother.problem.with_footholds`):
+            on real logs whose model errors are many sigmas the first stance footholds otherwise
+            absorb them (the standing feet at different heights move load between them).  Off for
+            the diagnosis' candidate (:meth:`bind`), which must find a shim under a standing foot.
+        walk_within: random-walk sigma of a correction within an episode, relative to its
+            kinematic sigma (dimensionless, > 0; default ``WALK_WITHIN``).
+
+    Raises:
+        ConfigError: ``n_contacts`` not a positive count, ``anchor_first_stance`` not a bool,
+            ``walk_within`` not a finite positive number.
     """
 
     name = "foothold"
@@ -159,7 +186,8 @@ class Footholds:
     plausible_rotation = 0.35
     """rad (20 deg): a correction beyond this is no foothold error."""
 
-    def __init__(self, n_contacts: int = 2, prior: FootholdPrior | None = None):
+    def __init__(self, n_contacts: int = 2, prior: FootholdPrior | None = None, *,
+                 anchor_first_stance: bool = False, walk_within: float = WALK_WITHIN):
         try:
             nc = int(n_contacts)
         except (TypeError, ValueError):
@@ -167,8 +195,13 @@ class Footholds:
         if nc < 1 or isinstance(n_contacts, bool):
             raise ConfigError(f"foothold: n_contacts = {n_contacts!r}; expected a positive count of contacts "
                               "(default 2, a biped's feet)")
+        check_bool("foothold", "anchor_first_stance", anchor_first_stance)
+        check_positive("foothold", "walk_within", walk_within, "",
+                       "a positive random-walk sigma relative to the kinematic sigma (default 1e-3)")
         self.nc = nc
         self.dim = 6 * self.nc
+        self.anchor_first_stance = bool(anchor_first_stance)
+        self.walk_within = float(walk_within)
         self._prior_given = prior is not None
         self.prior_config = FootholdPrior() if prior is None else prior
         self.labels = tuple(f"c{i} {kind}{a} [{u}]" for i in range(self.nc)
@@ -199,7 +232,10 @@ class Footholds:
 
     def bind(self, rec, model) -> Footholds:
         """This effect for ``rec`` and ``model``: one correction per contact of the recording, the
-        priors the effect was given or else the model's (the robot's ``[footholds]`` table)."""
+        priors the effect was given or else the model's (the robot's ``[footholds]`` table); the
+        first stance not anchored and the default ``walk_within`` whatever this effect's (the
+        diagnosis' candidate must be able to find a shim under a foot standing from the first
+        sample)."""
         prior = self.prior_config if self._prior_given else getattr(model, "foothold_prior", None)
         return Footholds(len(rec.contact_names), prior)
 
@@ -248,14 +284,17 @@ class Footholds:
 
     # -- the Effect protocol --------------------------------------------------------------------
     def prior(self, problem: ProblemView):
-        """Zero mean; the kinematic sigmas (per axis of the world, diagonal of the covariances), but
-        ``GAUGE`` times them for the horizontal position and yaw of the contacts in force at the
-        first sample: they define where the world is (a common horizontal shift or yaw of every
-        foothold and of the flexibility changes no measurement), and a gauge held only loosely
-        leaves the batch smoother's Gauss-Newton steps wandering along it."""
+        """Zero mean (6 C,) and sigmas (6 C,): the kinematic sigmas (per axis of the world, diagonal
+        of the covariances), but ``GAUGE`` times them for the horizontal position and yaw of the
+        contacts in force at the first sample: they define where the world is (a common
+        horizontal shift or yaw of every foothold and of the flexibility changes no measurement),
+        and a gauge held only loosely leaves the batch smoother's Gauss-Newton steps wandering
+        along it.  With ``anchor_first_stance`` their height and tilt get ``GAUGE`` times the
+        kinematic sigmas too (the first stance soles, flat on the floor, define the local frame)."""
         sigma = self._setup(problem)["sigma0"].copy()
+        anchored = [0, 1, 2, 3, 4, 5] if self.anchor_first_stance else [0, 1, 5]
         for i in np.flatnonzero(np.asarray(problem.active, dtype=bool)[0]):
-            sigma[[6 * i, 6 * i + 1, 6 * i + 5]] *= GAUGE
+            sigma[[6 * i + j for j in anchored]] *= GAUGE
         return np.zeros(self.dim), sigma
 
     def kinematic_sigmas(self, problem: ProblemView) -> np.ndarray:
@@ -263,12 +302,13 @@ class Footholds:
         return self._setup(problem)["sigma0"].copy()
 
     def random_walk_sigma(self, problem: ProblemView):
-        """(N - 1, 6 C): tiny within an episode and through the swing, cut at a touch-down."""
+        """(N - 1, 6 C): ``walk_within`` times the kinematic sigmas within an episode and through
+        the swing, ``WALK_CUT`` times them at a touch-down."""
         info = self._setup(problem)
         s0 = info["sigma0"]
         starts = info["starts"][1:]  # transition k-1 -> k cut where contact i starts at k
         cut = np.repeat(starts, 6, axis=1)
-        return np.where(cut, WALK_CUT * s0, WALK_WITHIN * s0)
+        return np.where(cut, WALK_CUT * s0, self.walk_within * s0)
 
     def rest(self, problem: ProblemView, steps, e):
         """Corrected rest placements ``p_r'`` (n, C, 3), ``R_r'`` (n, C, 3, 3) and the left

@@ -47,7 +47,7 @@ from flexforce.datasets.faults import ROBUST_LOSSES, imu_validity
 from flexforce.errors import ConfigError, DataError, ModelError
 from flexforce.factors import core
 from flexforce.factors.effects import Effect, ProblemView
-from flexforce.factors.footholds import Footholds, held_rest, rest_placements
+from flexforce.factors.footholds import WALK_WITHIN_ANCHORED, Footholds, held_rest, rest_placements
 from flexforce.factors.model import unmodelled_acceleration
 from flexforce.factors.physics import ContactParams
 from flexforce.options import check_positive, invalid, require_config, with_options
@@ -319,11 +319,17 @@ def _inputs(rec, k: int) -> tuple:
 
 def with_footholds(rec, model, rest_p=None, rest_R=None):
     """``(model, rest_p, rest_R)`` with the footholds of the contact episodes as unknowns
-    (:class:`~flexforce.factors.footholds.Footholds`, its priors from ``model.foothold_prior``; the
-    model unchanged when they already are); the rest placements as given (None: :meth:`Problem.build`
-    holds the nominal ones over each episode, as for any model with footholds)."""
+    (:class:`~flexforce.factors.footholds.Footholds`, its priors from ``model.foothold_prior``, the
+    first stance anchored and the within-episode walk ``WALK_WITHIN_ANCHORED``; the model unchanged
+    when they already are); the rest placements as given (None: :meth:`Problem.build` holds the
+    nominal ones over each episode, as for any model with footholds).
+
+    The first stance soles define the local frame (flat on the floor at the first sample): anchored
+    in all six components, they cannot absorb the model's errors, which on real logs otherwise set
+    the standing feet at different heights and move load between them (docs/smoother.md)."""
     if not any(isinstance(e, Footholds) for e in model.effects):
-        eff = Footholds(len(rec.contact_names), model.foothold_prior)
+        eff = Footholds(len(rec.contact_names), model.foothold_prior, anchor_first_stance=True,
+                        walk_within=WALK_WITHIN_ANCHORED)
         model = replace(model, effects=tuple(model.effects) + (eff,))
     return model, rest_p, rest_R
 
