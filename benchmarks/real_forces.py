@@ -19,7 +19,8 @@ Vicon (references, not ground truth):
 
 GTSAM's legged estimators (``peers``: IMU and leg kinematics, no forces) keep their tilt, per
 phase too, and their time per step; and each recording's ``headline``: the sentences naming the
-best estimator per quantity against the best baseline (:func:`flexforce.compare.runner.headline`).
+best estimator per quantity against the best baseline (:func:`flexforce.compare.runner.headline`);
+and ``footholds_estimated``: the smoothers' rows again with ``--footholds``.
 Writes the JSON record to
 ``benchmarks/results/real_forces.json`` and prints it.
 """
@@ -95,23 +96,31 @@ def _peer_row(m: dict) -> dict:
     return out
 
 
-def run(path: Path) -> dict:
-    """The record of one recording: ``flexforce compare`` into a temporary folder, its summary.json read back."""
+def _compare(path: Path, *options: str) -> tuple[dict, float]:
+    """``flexforce compare`` into a temporary folder: its summary.json and the seconds it took."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "report"
         t0 = time.perf_counter()
         with contextlib.redirect_stdout(io.StringIO()):
-            status = cli_main(["compare", str(path), "--robot", ROBOT, "-o", str(out), "-q", "--peers"])
+            status = cli_main(["compare", str(path), "--robot", ROBOT, "-o", str(out), "-q", *options])
         seconds = time.perf_counter() - t0
         if status != 0:
-            raise SystemExit(f"flexforce compare {path} exited with status {status}")
-        summary = json.loads((out / "summary.json").read_text())
+            raise SystemExit(f"flexforce compare {path} {' '.join(options)} exited with status {status}")
+        return json.loads((out / "summary.json").read_text()), seconds
+
+
+def run(path: Path) -> dict:
+    """The record of one recording: the comparison with the peers, and the smoothers again with their
+    footholds estimated (``--footholds``: per episode, the first stance anchored)."""
+    summary, seconds = _compare(path, "--peers")
+    footholds, _ = _compare(path, "--footholds", "--estimators", "fixed-lag,batch")
     rec = summary["recording"]
     return {"recording": path.name, "samples": rec.get("samples"), "duration_s": rec.get("duration_s"),
             "headline": headline(summary), "compare_s": round(seconds, 1),
             "estimators": {k: _row(m) for k, m in summary["estimators"].items()},
             "baselines": {k: _row(m) for k, m in (summary.get("baselines") or {}).items()},
             "peers": {k: _peer_row(m) for k, m in (summary.get("peers") or {}).items()},
+            "footholds_estimated": {k: _row(m) for k, m in footholds["estimators"].items()},
             "failures": summary.get("failures") or {}}
 
 
