@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 import os
+import signal
+import sys
 import threading
 import time
 import warnings
@@ -476,6 +478,50 @@ def resolve_jobs(jobs, items: int | None = None, per_worker: int | None = None) 
     return max(1, n)
 
 
+_PR_SET_PDEATHSIG = 1
+"""prctl(2) option: the signal the kernel sends this process when its parent dies (Linux)."""
+
+
+def _libc_prctl() -> Callable[..., int] | None:
+    """libc's ``prctl`` (Linux); None where the platform has none or it cannot be loaded."""
+    if not sys.platform.startswith("linux"):
+        return None
+    import ctypes
+
+    try:
+        return ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+
+
+def _watch_parent(parent_pid: int, period: float = 1.0) -> None:
+    """End this process (``os._exit``) once its parent is no longer ``parent_pid``; checks every
+    ``period`` s, forever."""
+    while os.getppid() == parent_pid:
+        time.sleep(period)
+    os._exit(1)
+
+
+def _exit_with_parent(parent_pid: int, initializer: Callable[..., None] | None = None, initargs: tuple = ()) -> None:
+    """A worker process's initializer: the worker ends when its parent ``parent_pid`` dies, then
+    ``initializer(*initargs)`` when given.
+
+    A parent killed outright (SIGKILL, out of memory) runs no clean-up, and its pool's workers
+    would wait for work for ever, each holding its memory (issue 42).  On Linux the kernel sends the
+    worker SIGTERM when the parent dies (``prctl(PR_SET_PDEATHSIG)``; strictly, when the parent's
+    thread that started the worker ends: the pools here are started and shut down by one thread);
+    elsewhere a daemon thread checks the parent every second.  A parent that died before that was
+    set up is seen at once: the worker's parent is no longer ``parent_pid``, and it exits.
+    """
+    prctl = _libc_prctl()
+    if prctl is None or prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0) != 0:
+        threading.Thread(target=_watch_parent, args=(parent_pid,), name="flexforce-watch-parent", daemon=True).start()
+    if os.getppid() != parent_pid:
+        os._exit(1)
+    if initializer is not None:
+        initializer(*initargs)
+
+
 def run_jobs(fn: Callable[[Any], Any], items: list, jobs: int | str = 1, initializer: Callable[..., None] | None = None,
              initargs: tuple = ()) -> Iterator[Any]:
     """``fn(item)`` for every item, yielded in the items' order; in ``jobs`` worker processes when
@@ -486,7 +532,8 @@ def run_jobs(fn: Callable[[Any], Any], items: list, jobs: int | str = 1, initial
     here, for the first item that failed, and the items not started yet are cancelled.
 
     ``jobs="auto"``: :func:`resolve_jobs` (each spawned worker assumed to need
-    :data:`WORKER_MEMORY`).
+    :data:`WORKER_MEMORY`).  ``initializer(*initargs)``, when given, runs first in each worker.
+    The workers end when this process does, even killed (:func:`_exit_with_parent`).
 
     Raises:
         ConfigError: ``jobs`` is not a positive integer or ``"auto"``.
@@ -500,7 +547,7 @@ def run_jobs(fn: Callable[[Any], Any], items: list, jobs: int | str = 1, initial
     from concurrent.futures import ProcessPoolExecutor
 
     with ProcessPoolExecutor(max_workers=min(jobs, len(items)), mp_context=multiprocessing.get_context("spawn"),
-                             initializer=initializer, initargs=initargs) as pool:
+                             initializer=_exit_with_parent, initargs=(os.getpid(), initializer, initargs)) as pool:
         futures = [pool.submit(fn, item) for item in items]
         try:
             for future in futures:
@@ -564,6 +611,7 @@ def fork_map(fn: Callable[[Any], Any], items: list, jobs: int | str = 1) -> Iter
     what ``jobs=1`` computes; a result that does not pickle is computed again here.  An exception
     of ``fn`` is returned, not raised (``ok`` False).  ``jobs="auto"``: :func:`resolve_jobs` when
     called (a worker assumed to need what this process then holds, at least :data:`WORKER_MEMORY`).
+    The workers end when this process does, even killed (:func:`_exit_with_parent`).
 
     Raises:
         EstimatorError: a worker process ended abruptly (killed, out of memory).
@@ -613,7 +661,8 @@ def fork_map(fn: Callable[[Any], Any], items: list, jobs: int | str = 1) -> Iter
     _FORK_TASKS.append((fn, items, claim))
     try:
         workers = min(jobs, len(items)) - 1
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_exit_with_parent,
+                                 initargs=(os.getpid(),)) as pool:
             # one request per item: a worker's request takes the next item left, or none
             futures = [pool.submit(_fork_task) for _ in items]
             pending = list(futures)

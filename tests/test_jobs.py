@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import re
+import sys
 
 import pytest
 
@@ -250,3 +251,75 @@ def test_a_container_cpu_quota_bounds_the_usable_cores(tmp_path, monkeypatch):
     assert runner.usable_cores() == 1
     monkeypatch.setattr(runner, "cpu_quota", lambda: None)
     assert runner.usable_cores() == 64
+
+
+PARENT_SCRIPT = """
+import os, sys, time
+
+from flexforce.compare import runner
+
+
+def nap(x):
+    os.write(1, f"{os.getpid()}\\n".encode())  # one write: the workers' lines do not interleave
+    time.sleep(600)
+
+
+if __name__ == "__main__":
+    pool, watch = sys.argv[1:]
+    if watch == "poll":  # as where prctl is not available (inherited by the forked workers)
+        runner._libc_prctl = lambda: None
+    if pool == "run_jobs":  # spawned workers: compare of many recordings
+        list(runner.run_jobs(nap, [0, 1], jobs=2))
+    else:  # forked workers (two, and this process) as in the diagnosis
+        list(runner.fork_map(nap, [0, 1, 2], jobs=3))
+"""
+
+
+def _alive(pid: int) -> bool:
+    """The process ``pid`` runs (a zombie, ended but not reaped by its new parent, does not)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] not in ("Z", "X")
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+@pytest.mark.parametrize("pool, watch", [("run_jobs", "prctl"), ("fork_map", "prctl"), ("fork_map", "poll")])
+def test_workers_end_when_their_parent_is_killed(tmp_path, pool, watch):
+    """A parent killed outright (SIGKILL: no clean-up) takes its pool's workers with it: through
+    the kernel (prctl PR_SET_PDEATHSIG) or, where that is not available, a thread watching the parent."""
+    import os
+    import select
+    import signal
+    import subprocess
+    import time
+
+    script = tmp_path / "parent.py"
+    script.write_text(PARENT_SCRIPT)
+    proc = subprocess.Popen([sys.executable, str(script), pool, watch], stdout=subprocess.PIPE)
+    workers: set[int] = set()
+    try:
+        printed = b""
+        deadline = time.monotonic() + 60
+        while len(workers) < 2 and time.monotonic() < deadline:
+            if select.select([proc.stdout], [], [], 1.0)[0]:
+                chunk = os.read(proc.stdout.fileno(), 4096)  # unbuffered: select sees all that is left
+                assert chunk, f"the parent ended before its workers started (exit {proc.wait()})"
+                printed += chunk
+                # fork_map's parent works through the items too
+                workers = {int(pid) for pid in printed.split(b"\n")[:-1]} - {proc.pid}
+        assert len(workers) == 2, printed
+        time.sleep(0.2)  # the workers are in their task, past the initializer
+        proc.kill()
+        proc.wait()
+        deadline = time.monotonic() + 5
+        while any(map(_alive, workers)) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not [pid for pid in workers if _alive(pid)]
+    finally:
+        proc.kill()
+        for pid in workers:
+            if _alive(pid):
+                os.kill(pid, signal.SIGKILL)
+        proc.stdout.close()
