@@ -287,7 +287,7 @@ def _print_table(comp) -> None:
 
     rows: list[tuple[str, Any, bool | str]] = [(k, m, False) for k, m in comp.metrics.items()]
     rows += [(k, m, True) for k, m in comp.baselines.items()]
-    rows += [(k, m, "+") for k, m in getattr(comp, "peers", {}).items()]
+    rows += [(k, m, "+") for k, m in comp.peers.items()]
 
     def tag(marker) -> str:
         return " +" if marker == "+" else " *" if marker else ""
@@ -323,7 +323,7 @@ def _print_table(comp) -> None:
     if comp.baselines:
         notes.append("* baseline without estimation (rigid robot; leg_odometry: static CoM split, weight_equal: "
                      "equal split)")
-    if getattr(comp, "peers", None):
+    if comp.peers:
         notes.append("+ peer: GTSAM's legged estimator on the same IMU and contacts (tilt only, no forces)")
     if refs:
         notes.append("errors against " + ", ".join(refs))

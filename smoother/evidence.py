@@ -339,10 +339,11 @@ def _varied_groups(prob) -> list[frozenset[str] | None]:
     effect that does not name them)."""
     out: list[frozenset[str] | None] = []
     for eff, d in zip(prob.effects, prob.effect_dims):
-        acts = traits(eff).acts_on
+        declared = traits(eff)
+        acts = declared.acts_on
         groups = None
         if acts is not None and set(acts) <= {"newton_euler", "contact", "imu", "ft"}:
-            groups = frozenset(acts) | ({"effects"} if traits(eff).factors is not None else frozenset())
+            groups = frozenset(acts) | ({"effects"} if declared.factors is not None else frozenset())
         out += [groups] * int(d)
     return out
 
@@ -357,8 +358,9 @@ def _jacobians_held(prob, base: Linearization, traj, eff, col: int, h: float) ->
     (log-tail, Huber) and every sample of those families keeps weight 1 with a whitened norm
     short of the threshold by more than the step moves it.  An accelerometer or gyro bias on the
     20 s iCub sway: 222 of the diagnosis's 370 columns, 444 linearisations of 740."""
-    acts = traits(eff).acts_on
-    if not traits(eff).additive or acts is None or not set(acts) <= {"imu", "ft"}:
+    declared = traits(eff)
+    acts = declared.acts_on
+    if not declared.additive or acts is None or not set(acts) <= {"imu", "ft"}:
         return False
     sig = prob.sigmas
     kind = sig.imu_robust

@@ -343,7 +343,8 @@ def _effect_rows(at: _Point) -> None:
             J = np.zeros((1, eff.dim, D))
             J[0, :, cols] = np.eye(eff.dim)
             lin.unary[f"effect_prior/{eff.name}"] = _whiten_rows((ev[0] - mean)[None, :], J, np.asarray(sigma))
-        level = traits(eff).step_prior_sigma
+        declared = prob.effect_traits[ie]
+        level = declared.step_prior_sigma
         if level is not None:
             def level_rows(eff=eff, cols=cols, level=level):
                 mean, _ = eff.prior(prob)
@@ -354,7 +355,7 @@ def _effect_rows(at: _Point) -> None:
 
             mean, sl_, Jl = _constant_rows(prob, (ie, "level"), (k0 - base, n, D), level_rows)
             lin.unary[f"effect_level/{eff.name}"] = ((ev - mean) * (1.0 / sl_), Jl)
-        own = traits(eff).factors
+        own = declared.factors
         if own is not None:
             for key, (r, dr_ds, dr_de, weight) in own(prob, at.steps, at.R, at.q, ev).items():
                 w = np.asarray(weight, dtype=float)[:, None]
@@ -730,9 +731,10 @@ def is_global(eff, prob=None) -> bool:
     matter over the recording (``rw sqrt(N - 1) < 1e-3`` of the prior sigma, as
     :func:`flexforce.smoother.batch.effective_dof` decides), so that a user's effect written
     without the attribute is treated like the built-in constants."""
-    if traits(eff).step_prior_sigma is not None:
+    declared = traits(eff)
+    if declared.step_prior_sigma is not None:
         return False
-    constant = traits(eff).constant
+    constant = declared.constant
     if constant is not None:
         return constant is True
     if prob is None:

@@ -46,7 +46,7 @@ import numpy as np
 from flexforce.datasets.faults import ROBUST_LOSSES, imu_validity
 from flexforce.errors import ConfigError, DataError, ModelError
 from flexforce.factors import core
-from flexforce.factors.effects import Effect, ProblemView
+from flexforce.factors.effects import Effect, EffectTraits, ProblemView, traits
 from flexforce.factors.footholds import WALK_WITHIN_ANCHORED, Footholds, held_rest, rest_placements
 from flexforce.factors.model import unmodelled_acceleration
 from flexforce.factors.physics import ContactParams
@@ -442,6 +442,8 @@ class Problem:
     beta: np.ndarray = field(init=False, repr=False, compare=False)
     iso: np.ndarray = field(init=False, repr=False, compare=False)
     effect_dims: tuple[int, ...] = field(init=False, repr=False, compare=False)
+    effect_traits: tuple[EffectTraits, ...] = field(init=False, repr=False, compare=False)
+    """The optional parts each effect declares (:func:`~flexforce.factors.effects.traits`), read once."""
     prior_mean: tuple[np.ndarray, np.ndarray] = field(init=False, repr=False, compare=False)
     integration_whitener: np.ndarray = field(init=False, repr=False, compare=False)
     ne_whitener: np.ndarray = field(init=False, repr=False, compare=False)
@@ -502,6 +504,7 @@ class Problem:
         prob.ft_use = c(np.isfinite(rec.ft), float) if use_ft else None
         (prob.K_fs, prob.K_fd, prob.K_ts, prob.K_td), prob.beta, prob.iso = _contact_arrays(model.contact_params)
         prob.effect_dims = tuple(int(e.dim) for e in prob.effects)
+        prob.effect_traits = tuple(traits(e) for e in prob.effects)
         prob.prior_mean = part_of.prior_mean if part_of is not None else prob.equilibrium(0)
         if part_of is not None:  # the same noise: its whiteners
             prob.integration_whitener = part_of.integration_whitener

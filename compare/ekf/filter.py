@@ -341,9 +341,12 @@ class EKF:
         G = np.empty((6, 12))
         f = lambda a: np.ascontiguousarray(a, dtype=float)  # noqa: E731
         if not K.dynamics_into(f(R), f(t), f(w), f(v), self.U[k], self.CP, self.rec.mass, self.g, acc, G):
-            raise ModelError(f"the Newton-Euler system is singular at sample {k}: check the mass "
-                             f"({self.rec.mass} kg, expected > 0) and the inertia inputs")
+            raise self._singular(k)
         return (acc, G) if jacobian else acc
+
+    def _singular(self, k: int) -> ModelError:
+        return ModelError(f"the Newton-Euler system is singular at sample {k}: check the mass "
+                          f"({self.rec.mass} kg, expected > 0) and the inertia inputs")
 
     def transition(self, x: np.ndarray, k: int, jacobian: bool = False):
         """``f(x_{k-1})``: the predicted state at step k, and its 18x18 Jacobian ``F``."""
@@ -351,8 +354,7 @@ class EKF:
         x1 = np.empty(18)
         F = np.empty((18, 18))
         if not K.transition(x, self.U[k], self.CP, self.dt, self.rec.mass, self.g, x1, F):
-            raise ModelError(f"the Newton-Euler system is singular at sample {k}: check the mass "
-                             f"({self.rec.mass} kg, expected > 0) and the inertia inputs")
+            raise self._singular(k)
         return (x1, F) if jacobian else x1
 
     def measurement(self, x: np.ndarray, k: int, jacobian: bool = False):
