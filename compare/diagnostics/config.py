@@ -82,6 +82,13 @@ class DiagnoseConfig:
     check_constancy: bool = True
     """Before a round takes a constant effect, fit it on each half of the recording
     (:func:`constancy`); halves that disagree make it implausible."""
+    check_veto: bool = True
+    """Before a round takes an effect, hold its fit against what the fits did not use (the truth of
+    a simulated recording, the reference sensors of a real one: :attr:`Candidate.check`); an effect
+    that raises one of those errors by more than :attr:`check_worse` over the round's base or over
+    the nominal model is turned down like an implausible one, and the round goes on to the next.
+    Without references nothing is vetoed.  A rise below :data:`CHECK_FLOORS` (a tenth of a
+    millimetre of position, say) is no reason: at that size the references' own noise decides."""
 
     def __post_init__(self) -> None:
         level = self.screen_level
@@ -92,6 +99,14 @@ class DiagnoseConfig:
             raise ConfigError(f"refit_best = {best!r}; expected an integer >= 1 (candidates refitted per round) "
                               "or None (every candidate that passes the screening)")
 
+
+CHECK_FLOORS = {"force_N": 0.5, "moment_Nm": 0.5, "cop_m": 1e-3, "rotation_rad": 1e-3, "translation_m": 1e-3,
+                "hand_m": 1e-3, "vertical_force_N": 0.5, "contact_force_N": 0.5, "contact_moment_Nm": 0.5,
+                "contact_cop_m": 1e-3}
+"""Smallest rise of each error (SI units: N, N m, m, rad) that lets the check veto an effect
+(:attr:`DiagnoseConfig.check_veto`): half a newton or newton-metre, a millimetre, a milliradian --
+below what a balance controller or a state estimate acts on.  A rise must exceed both this and
+:attr:`DiagnoseConfig.check_worse`."""
 
 DEFAULT = DiagnoseConfig()
 """The defaults (what the module-level names of :mod:`.diagnose` hold)."""

@@ -93,6 +93,7 @@ class Candidate:
                 "indistinguishable_from": list(self.rivals), "refitted": bool(self.refitted),
                 "status": self.status, "finding": self.finding or self.summary,
                 **({"implausible": self.implausible} if self.implausible else {}),
+                **({"turned_down_by_check": True} if self.vetoed else {}),
                 **({"screen": self.screen.to_dict(self.screen_level)} if self.screen is not None else {}),
                 **({"not_refitted": f"not refitted: {self.deferred}" if self.deferred else
                     f"not refitted: score p = {self.screen.p_value:.2g}"}
@@ -117,6 +118,9 @@ class Candidate:
     level: float | None = None
     """Level its likelihood-ratio p-value was tested at: ``alpha / m``, ``m`` the candidates in its
     round (Holm: :func:`score`); None when not scored (not refitted, or the fit failed)."""
+    vetoed: bool = False
+    """True when :attr:`implausible` is its check's word (:attr:`DiagnoseConfig.check_veto`): the fit
+    with it raised an error against the truth or the references."""
     constancy: dict | None = None
     """For a constant effect the selection would take: its estimate on each half of the recording
     (:func:`constancy`); when the halves disagree the effect is :attr:`implausible`."""

@@ -183,6 +183,10 @@ def diagnose(rec: Recording, model: ModelConfig | None = None, candidates: Itera
             recording (:func:`constancy`); halves that disagree beyond ``constancy_z`` sigma make
             it implausible (the round takes the next).  Costs two fits of half the recording per
             round that takes a constant effect.
+        check_veto: before a round takes an effect, hold its fit against the truth or the
+            reference sensors; one that raises an error by more than ``check_worse`` over the
+            round's base or the nominal model is turned down (the round takes the next) and never
+            added by ``add=["auto"]``.
 
     Raises:
         ConfigError: an unknown candidate, two candidates of one name, no candidate to rank, a

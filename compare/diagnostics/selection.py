@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from flexforce.compare.diagnostics.candidates import _constant, _plausibility, _score_understates
-from flexforce.compare.diagnostics.config import DEFAULT
+from flexforce.compare.diagnostics.config import CHECK_FLOORS, DEFAULT
 from flexforce.compare.diagnostics.constancy import constancy
 from flexforce.compare.diagnostics.fitting import Fit, _criterion, score
 from flexforce.compare.diagnostics.results import Candidate
@@ -176,7 +176,8 @@ def run_rounds(s: Session, sel: Selection) -> None:
         for c in (sel.rounds[-1] if sel.rounds else []):
             if c.implausible and c.effect in sel.remaining:
                 sel.remaining.remove(c.effect)
-                sel.waited(c.effect, len(sel.rounds) + 1, f"its refit in round {c.round} was implausible ("
+                sel.waited(c.effect, len(sel.rounds) + 1, f"its refit in round {c.round} was "
+                           + ("turned down by its check (" if c.vetoed else "implausible (")
                            + (f"score {c.score:.1f}: " if c.score is not None else "")
                            + f"{c.implausible})", cfg.screen_level)
         if not sel.remaining:
@@ -322,7 +323,44 @@ def _best_plausible(s: Session, sel: Selection, row: list[Candidate], base: Fit)
                 c.significant = False
                 c.finding = finding(c, c.parameters, s.makers[c.effect]())
                 continue
+        if cfg.check_veto and c.significant and len(selected) < cfg.max_effects:
+            t0 = time.perf_counter()
+            veto = _vetoed(s, c, base)
+            if veto:
+                c.implausible, c.vetoed = veto, True
+                c.significant = False
+                c.finding = finding(c, c.parameters, s.makers[c.effect]())
+                s.say(f"check of {c.effect}", f"{c.effect}: turned down, {veto}", t0)
+                continue
         return c
+    return None
+
+
+def _vetoed(s: Session, c: Candidate, base: Fit) -> str | None:
+    """Why the check turns ``c`` down (:attr:`DiagnoseConfig.check_veto`), or None: an error against
+    the truth or the references of the fit with ``c`` above ``1 + check_worse`` times the round's
+    base's, or the nominal model's, by more than its :data:`CHECK_FLOORS`.  Sets
+    :attr:`Candidate.check` (against the base)."""
+    from flexforce.compare.diagnostics.text import _check_items, _check_keys, _check_reference
+
+    worse = s.config.check_worse
+    fit = s.cache.get(tuple(sorted(tuple(c.base) + (c.effect,))))
+    if fit is None:
+        return None
+    checks = [("its base" if c.base else "the nominal model", s.check(base, fit))]
+    if c.base:
+        checks.append(("the nominal model", s.check(s.fitted(()), fit)))
+    c.check = checks[0][1]
+    for against, chk in checks:
+        if not chk:
+            continue
+        rises = [(key, a - b) for key, b in chk["before"].items()
+                 if b is not None and (a := chk["after"].get(key)) is not None and a > (1.0 + worse) * b]
+        big = {key for key, rise in rises if rise > CHECK_FLOORS.get(key, 0.0)}
+        items = [text for key, (_, _, _, text) in zip(_check_keys(chk), _check_items(chk)) if key in big]
+        if items:
+            return (f"its check against {_check_reference(chk)} disagrees: {', '.join(items)} "
+                    f"(more than {worse:.0%} above {against})")
     return None
 
 

@@ -43,6 +43,11 @@ def _check_items(check: dict) -> list[tuple[str, float, float, str]]:
     return out
 
 
+def _check_keys(check: dict) -> list[str]:
+    """The error keys of :func:`_check_items`' items, in the same order."""
+    return [key for key, b in check["before"].items() if b is not None and check["after"].get(key) is not None]
+
+
 def _check_reference(check: dict) -> str:
     """What a check holds the fit against: ``the truth``, ``the F/T and motion capture``, ..."""
     if check["against"] == "truth":
@@ -334,6 +339,8 @@ def finding(c: Candidate, rep: dict, effect) -> str:
     """The row's sentence, consistent with its status: a significant effect's size, evidence and
     when it acts; an implausible one flagged as such; a non-significant one never "found"."""
     summary = c.summary
+    if c.implausible and c.vetoed:
+        return f"turned down: {c.implausible} (estimate {summary}); not taken, not added by --add auto"
     if c.implausible:
         return f"implausible: {c.implausible} (estimate {summary}); not a finding: another effect in disguise"
     if c.score is None:
