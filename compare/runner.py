@@ -113,6 +113,9 @@ class Comparison:
     flexforce's own."""
     peer_estimates: dict = field(default_factory=dict)
     """summary key -> the peer's Estimate."""
+    warnings: list[dict] = field(default_factory=list)
+    """The sensor faults recognised in the recording's data (``Recording.meta['sensor_faults']``,
+    :mod:`flexforce.datasets.sensorcheck`): summary.json's ``warnings`` when there are any."""
 
     def summary(self) -> dict:
         """The numbers of the report's table (summary.json)."""
@@ -124,6 +127,8 @@ class Comparison:
             out["peers"] = {k: m.to_dict() for k, m in self.peers.items()}
         if self.failures:
             out["failures"] = self.failures
+        if self.warnings:
+            out["warnings"] = self.warnings
         rows = [*self.metrics.values(), *self.baselines.values()]
         if any(m.per_phase or m.violations for m in rows):
             out["definitions"] = DEFINITIONS
@@ -282,7 +287,7 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
     rec.validate()
     if model is None:
         model = nominal_model(rec)
-    result = Comparison(recording=describe(rec))
+    result = Comparison(recording=describe(rec), warnings=list(rec.meta.get("sensor_faults") or []))
     for name in estimators:
         key = summary_key(name)
         cb = (lambda f, _n=name: progress(_n, f)) if progress else None

@@ -388,6 +388,13 @@ class Recording:
                         cut.append([round(a - t0, 6), round(b - t0, 6)])
                 phases[name] = cut
             contacts["phases"] = phases
+        if isinstance(meta.get("sensor_faults"), list):  # flexforce.datasets.sensorcheck's findings
+            faults = []
+            for f in meta["sensor_faults"]:
+                if isinstance(f, dict) and f.get("t1", t1) >= t0 - eps and f.get("t0", t0) <= t1 + eps:
+                    faults.append({**f, "t0": round(max(f.get("t0", t0), t0) - t0, 6),
+                                   "t1": round(min(f.get("t1", t1), t1) - t0, 6)})
+            meta["sensor_faults"] = faults
         if isinstance(meta.get("grid"), dict) and "n" in meta["grid"]:
             meta["grid"]["n"] = int(idx.size)
         out.meta = meta

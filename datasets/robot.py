@@ -43,6 +43,12 @@ only interpolates the messages, with a cost in memory and time growing with the 
 STIFFNESS_UNITS = {"k_fs": "N/m", "k_fd": "N s/m", "k_ts": "N m/rad", "k_td": "N m s/rad"}
 """The keys of a robot configuration's ``[stiffness]`` section (all four required) and their units."""
 
+STIFFNESS_MAX = {"k_fs": 1e9, "k_fd": 1e7, "k_ts": 1e8, "k_td": 1e6}
+"""Upper bounds of the ``[stiffness]`` values (units of :data:`STIFFNESS_UNITS`): legged robots'
+soles and bushes lie between 1e3 and 1e7 N/m; beyond the bounds a contact is rigid and the
+filter's covariances (spring periods of microseconds against a millisecond step) are no longer
+numbers it can hold."""
+
 
 def _positive_number(value) -> bool:
     return (isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
@@ -91,10 +97,14 @@ class Stiffness:
                 ok = len(value) == 3 and all(_positive_number(v) for v in value)
             else:
                 ok = _positive_number(value)
+            shown = list(value) if isinstance(value, tuple | np.ndarray) else value
             if not ok:
-                shown = list(value) if isinstance(value, tuple | np.ndarray) else value
                 raise ConfigError(f"stiffness.{key} = {shown!r} {unit}; expected a positive, finite {kind} (a number, "
                                   "or 3 numbers: one per axis of the contact frame)")
+            if float(np.max(value)) > STIFFNESS_MAX[key]:
+                raise ConfigError(f"stiffness.{key} = {shown!r} {unit}; expected a {kind} of at most "
+                                  f"{STIFFNESS_MAX[key]:g} {unit} (a contact stiffer than steel on steel is rigid: "
+                                  "the estimators' covariances lose their precision long before)")
 
     def minimum(self, key: str) -> float:
         """The smallest value of ``key`` over the axes (the value itself when isotropic)."""
@@ -236,6 +246,28 @@ class RosConfig:
     """Regular expression of JointState names to ignore (joints the URDF does not have)."""
 
     def __post_init__(self):
+        for key, unit, what, optional in (
+                ("contact_on", "N", "a normal force", True), ("contact_off", "N", "a normal force", True),
+                ("contact_on_weight", "", "a fraction of the weight", False),
+                ("contact_off_weight", "", "a fraction of the weight", False),
+                ("gap_factor", "", "a number of grid periods", False), ("max_gap", "s", "a duration", False),
+                ("savgol_window", "s", "a duration", False)):
+            value = getattr(self, key)
+            if optional and value is None:
+                continue
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+                shown = f"{value!r} {unit}".rstrip()
+                raise ConfigError(f"ros.{key} = {shown}; expected {what}, a finite number")
+        if isinstance(self.savgol_order, bool) or not isinstance(self.savgol_order, numbers.Integral):
+            raise ConfigError(f"ros.savgol_order = {self.savgol_order!r}; expected a whole number >= 2 (the "
+                              "Savitzky-Golay polynomial order)")
+        for key in ("imu_topic", "joint_states_topic"):
+            if not isinstance(getattr(self, key), str):
+                raise ConfigError(f"ros.{key} = {getattr(self, key)!r}; expected a topic name (a string)")
+        for key in ("ft_topics", "mocap_topics"):
+            table = getattr(self, key)
+            if not isinstance(table, dict) or not all(isinstance(v, str) for v in table.values()):
+                raise ConfigError(f"ros.{key} = {table!r}; expected a table of name = \"/topic\" entries")
         if self.contact_on is not None and self.contact_off is not None and not self.contact_off < self.contact_on:
             raise ConfigError(f"ros.contact_off = {self.contact_off} N must be below ros.contact_on = "
                               f"{self.contact_on} N (Schmitt trigger hysteresis)")
@@ -434,6 +466,13 @@ class RobotConfig:
         if missing := [k for k in STIFFNESS_UNITS if k not in raw["stiffness"]]:
             raise ConfigError(f"[stiffness] lacks {', '.join(f'{k} ({STIFFNESS_UNITS[k]})' for k in missing)}{where}; "
                               "expected all of k_fs, k_fd, k_ts and k_td")
+        for key in ("name", "urdf", "imu_frame"):
+            if not isinstance(raw[key], str) or not raw[key]:
+                raise ConfigError(f"{key} = {raw[key]!r}{where}; expected a non-empty string")
+        _check_contacts(raw["contacts"], where)
+        for key in ("footholds", "ros"):
+            if key in raw and not isinstance(raw[key], dict):
+                raise ConfigError(f"{key} = {raw[key]!r}{where}; expected a [{key}] table")
         if "gravity" in raw and not _positive_number(raw["gravity"]):
             raise ConfigError(f"gravity = {raw['gravity']!r} m/s^2{where}; expected a positive, finite acceleration")
         try:
@@ -536,6 +575,23 @@ def check_toppling(stiffness: Stiffness, mass: float, com, contact_p, contact_R,
                       "hold the robot upright, so single support (steps, walking) will not be explained; expected "
                       f"k_ts > {m_g_h:.0f} N m/rad unless the robot always stands on several contacts",
                       ConfigWarning, stacklevel=2)
+
+
+def _check_contacts(contacts, where: str) -> None:
+    """A ConfigError unless ``contacts`` is a list of ``{name, frame}`` tables with distinct names
+    (``where`` names the configuration)."""
+    example = 'e.g. contacts = [{ name = "left_foot", frame = "l_sole" }, ...]'
+    if not isinstance(contacts, list):
+        raise ConfigError(f"contacts = {contacts!r}{where}; expected a list of contact tables, {example}")
+    seen: set[str] = set()
+    for i, c in enumerate(contacts):
+        if not isinstance(c, dict) or set(c) != {"name", "frame"} or not all(
+                isinstance(v, str) and v for v in c.values()):
+            raise ConfigError(f"contacts[{i}] = {c!r}{where}; expected a table with exactly a name and a frame "
+                              f"(non-empty strings), {example}")
+        if c["name"] in seen:
+            raise ConfigError(f"contacts[{i}] repeats the contact name '{c['name']}'{where}; expected distinct names")
+        seen.add(c["name"])
 
 
 def _resolve(path: str, base: Path | None) -> str:

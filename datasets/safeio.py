@@ -6,7 +6,8 @@ goes through :func:`safe_output`:
 - **one writer per target**: ``<target>.lock`` is created exclusively (``O_CREAT | O_EXCL``) and
   holds the writer's PID; a second writer of the same target is refused with an
   :class:`~flexforce.errors.OutputError` naming the PID.  A lock whose PID is no longer running
-  (a writer killed with SIGKILL, a power cut) is stale and taken over.  The lock is re-entrant
+  (a writer killed with SIGKILL, a power cut) is stale and taken over; whoever takes a lock removes
+  the temporaries its dead writers left beside the target (:func:`clean_temporaries`).  The lock is re-entrant
   within one process (the command line holds it for the whole command, the writer inside takes
   it again);
 - **all or nothing**: the content is written under a temporary name in the target's own folder
@@ -28,6 +29,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import re
 import shutil
 import signal
 import threading
@@ -116,6 +118,7 @@ def _acquire(target: Path) -> None:
             os.write(fd, f"{os.getpid()}\n".encode())
         finally:
             os.close(fd)
+        clean_temporaries(target)
         return
     raise OutputError(f"cannot take the lock {lock}: other writers keep taking it; expected one writer at a time")
 
@@ -146,9 +149,40 @@ def output_lock(target: str | Path) -> Iterator[Path]:
                         lock.unlink()
 
 
+_TAGS = ("tmp", "old", "probe")
+"""The tags of :func:`_temporary_name`: a file or folder being written, an old folder being
+swapped out, a write probe."""
+
+
 def _temporary_name(target: Path, tag: str) -> Path:
-    """A hidden sibling of ``target`` keeping its suffix (numpy adds ``.npz`` to names without it)."""
+    """A hidden sibling of ``target`` keeping its suffix (numpy adds ``.npz`` to names without it):
+    ``.<stem>.<tag>-<pid>-<8 hex digits><suffix>``, the PID its writer's."""
     return target.with_name(f".{target.stem}.{tag}-{os.getpid()}-{uuid.uuid4().hex[:8]}{target.suffix}")
+
+
+def clean_temporaries(target: str | Path) -> list[Path]:
+    """Remove the temporaries of ``target`` (:func:`_temporary_name`) left by writers that are no
+    longer running (killed with SIGKILL, a power cut): called when the lock is taken, so that no
+    writer is using them.  A temporary of a running process (or of this one) is kept.  Returns the
+    paths removed."""
+    target = _key(Path(target))
+    pattern = re.compile(rf"^\.{re.escape(target.stem)}\.(?:{'|'.join(_TAGS)})-(\d+)-[0-9a-f]{{8}}"
+                         rf"{re.escape(target.suffix)}$")
+    removed: list[Path] = []
+    try:
+        siblings = list(target.parent.iterdir())
+    except OSError:
+        return removed
+    for path in siblings:
+        match = pattern.match(path.name)
+        if match is None:
+            continue
+        pid = int(match.group(1))
+        if pid == os.getpid() or _pid_running(pid):
+            continue
+        _remove(path)
+        removed.append(path)
+    return removed
 
 
 @contextlib.contextmanager

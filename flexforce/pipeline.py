@@ -114,14 +114,19 @@ def open_recording(path, robot: Any = None, contacts: str = "ft", progress: Prog
     Raises:
         BagError: a missing or unreadable bag.
         ConfigError: a raw robot bag without ``robot``.
-        DataError: a recording the import or the validation refuses.
+        DataError: a recording the import or the validation refuses, or an accelerometer in the
+            wrong unit.
+
+    The sensor faults the data reveal are checked (:func:`flexforce.datasets.sensorcheck.screen`:
+    each a warning naming the fault, its span and its effect, listed in ``meta['sensor_faults']``).
     """
     from flexforce.datasets.io.bagio import load_recording
     from flexforce.datasets.io.rosimport import import_bag, is_flexforce_bag
+    from flexforce.datasets.sensorcheck import screen
 
     path = Path(path)
     if not path.exists() or is_flexforce_bag(path):
-        return load_recording(path)
+        return screen(load_recording(path), where=str(path))
     if not robot:
         raise ConfigError(_RAW_BAG.format(path=path))
     return import_bag(path, robot, contacts=contacts, progress=_stage(progress, f"import {path.name}"))
@@ -130,12 +135,14 @@ def open_recording(path, robot: Any = None, contacts: str = "ft", progress: Prog
 def load_or_simulate(source, seed: int | None = None, robot: Any = None, contacts: str = "ft",
                      progress: ProgressFactory | None = None):
     """A recording from a bag (:func:`open_recording`), or simulated from a built-in scenario name
-    or a scenario ``.toml`` file (``seed``: its noise seed; ``robot``: replacing its robot).
+    or a scenario ``.toml`` file (``seed``: its noise seed; ``robot``: replacing its robot), its
+    sensor faults checked (:func:`flexforce.datasets.sensorcheck.screen`).
 
     Raises:
         BagError: ``source`` is neither an existing bag nor a scenario (the bag's "does not exist").
     """
     from flexforce.datasets.io.bagio import load_recording
+    from flexforce.datasets.sensorcheck import screen
     from flexforce.datasets.sim.scenario import Scenario, builtin_scenarios
     from flexforce.datasets.sim.simulator import Simulator
 
@@ -149,7 +156,7 @@ def load_or_simulate(source, seed: int | None = None, robot: Any = None, contact
         if seed is not None:
             scenario.seed = seed
         label = f"simulate {scenario.name}" + (f" #{seed}" if seed is not None else "")
-        return Simulator(scenario).run(progress=_stage(progress, label))
+        return screen(Simulator(scenario).run(progress=_stage(progress, label)), where=f"scenario {scenario.name}")
     return load_recording(path)  # raises the clear "does not exist" error
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -182,3 +183,378 @@ def _arrays(rec: Recording) -> dict:
     names = ("com", "com_vel", "com_acc", "inertia", "inertia_dot", "sigma", "sigma_dot", "imu_R", "imu_p",
              "imu_v", "imu_a", "imu_w", "contact_active", "contact_p", "contact_R", "gyro", "accel")
     return {k: getattr(rec, k) for k in names}
+
+
+# ----------------------------------------------------------------------------------------------
+# sensor faults recognised from the data: clipping, units, stuck and missing sensors
+# ----------------------------------------------------------------------------------------------
+
+
+def _live(n: int = 400, seed: int = 0) -> Recording:
+    """4 s at 100 Hz of a swaying robot: noisy IMU readings (the gyrometer follows the joint
+    kinematics' rotation rate), force-only F/T sensors on two feet (torques NaN, as iCub's)."""
+    rng = np.random.default_rng(seed)
+    s = np.arange(n) * 0.01
+    eye = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
+    imu_w = np.stack([0.6 * np.sin(2 * s), 0.4 * np.cos(3 * s), 0.3 * np.sin(s)], axis=1)
+    accel = np.stack([2.0 * np.sin(2 * s), 1.0 * np.cos(s), 9.81 + 0.5 * np.sin(5 * s)], axis=1)
+    ft = np.full((n, 2, 6), np.nan)
+    ft[:, :, :3] = np.stack([200.0 + 20.0 * np.sin(s + 1.0), 150.0 - 20.0 * np.sin(s)], axis=1)[:, :, None]
+    ft[:, :, :3] += rng.normal(scale=2.0, size=(n, 2, 3))
+    return Recording.from_arrays(
+        np.arange(n, dtype=np.int64) * 10_000_000, robot="r", contact_names=("left_foot", "right_foot"), mass=30.0,
+        com=np.zeros((n, 3)), com_vel=np.zeros((n, 3)), com_acc=np.zeros((n, 3)), inertia=eye,
+        inertia_dot=np.zeros((n, 3, 3)), sigma=np.zeros((n, 3)), sigma_dot=np.zeros((n, 3)), imu_R=eye,
+        imu_p=np.zeros((n, 3)), imu_v=np.zeros((n, 3)), imu_a=np.zeros((n, 3)), imu_w=imu_w,
+        contact_active=np.ones((n, 2), dtype=bool), contact_p=np.zeros((n, 2, 3)),
+        contact_R=np.broadcast_to(np.eye(3), (n, 2, 3, 3)).copy(),
+        gyro=imu_w + rng.normal(scale=0.005, size=(n, 3)), accel=accel + rng.normal(scale=0.02, size=(n, 3)), ft=ft)
+
+
+def _kinds(findings) -> list[tuple[str, str]]:
+    return [(f.sensor, f.kind) for f in findings]
+
+
+def test_sensor_check_finds_nothing_on_live_data():
+    from flexforce.datasets.sensorcheck import check_recording, screen
+
+    rec = _live()
+    assert check_recording(rec) == []
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert screen(rec) is rec
+    assert "sensor_faults" not in rec.meta
+
+
+@pytest.mark.parametrize("name, axis, limit", [("accel", 0, 1.5), ("gyro", 0, 0.3), ("gyro", 2, 0.2)])
+def test_clipped_imu_is_recognised_from_its_flat_tops(name, axis, limit):
+    from flexforce.datasets.sensorcheck import check_recording
+
+    rec = _live()
+    getattr(rec, name)[:, axis] = np.clip(getattr(rec, name)[:, axis], -limit, limit)
+    found = [f for f in check_recording(rec) if f.kind == "clipped"]
+    assert {f.sensor for f in found} == {name} and len(found) == 2  # both sides
+    top = next(f for f in found if f"at {limit:g} " in f.detail)
+    assert f"axis {'xyz'[axis]}" in top.detail and f"imu_noise.{name}_range = {limit:g}" in top.effect
+    at = np.flatnonzero(getattr(rec, name)[:, axis] == limit)
+    assert top.t0 == pytest.approx(rec.time[at[0]]) and top.t1 == pytest.approx(rec.time[at[-1]])
+    assert "clipped from t = " in top.message() and "effect: " in top.message()
+
+
+def test_an_axis_constant_to_rounding_is_not_clipping():
+    """A noise-free simulation at rest: the accelerometer's z sits at its extreme throughout, varying
+    by 1e-13 m/s^2 only (rounding): constant, not clipped."""
+    from flexforce.datasets.sensorcheck import check_recording
+
+    rec = _live()
+    rng = np.random.default_rng(1)
+    rec.accel[:] = np.array([-0.1287, 3.4e-4, 9.80915]) + 1e-13 * rng.standard_normal(rec.accel.shape)
+    assert [f for f in check_recording(rec) if f.kind == "clipped"] == []
+
+
+def test_quantised_extremes_are_not_clipping():
+    """A coarsely quantised axis repeats its extreme value without being clipped."""
+    from flexforce.datasets.sensorcheck import check_recording
+
+    rec = _live()
+    rec.gyro[:] = np.round(rec.gyro / 0.1) * 0.1
+    assert [f for f in check_recording(rec) if f.kind == "clipped"] == []
+
+
+@pytest.mark.parametrize("scale, match", [
+    (1 / 9.81, r"accel units from t = 0.000 s to 3.990 s: the accelerometer's norm has a median of 1.0\d* over the "
+               r"recording against gravity 9.81 m/s\^2: the readings are in g; expected m/s\^2"),
+    (1000 / 9.81, r"median of 1\d{3}.* times gravity .*not in m/s\^2 \(mg\? cm/s\^2\?\)"),
+])
+def test_accelerometer_in_g_or_mg_is_refused(scale, match):
+    from flexforce.datasets.sensorcheck import screen
+
+    rec = _live()
+    rec.accel *= scale
+    with pytest.raises(DataError, match=match) as exc:
+        screen(rec, where="walk.mcap")
+    assert str(exc.value).startswith("walk.mcap: ")
+
+
+def test_accelerometer_off_gravity_is_a_warning():
+    from flexforce.datasets.sensorcheck import SensorFaultWarning, screen
+
+    rec = _live()
+    rec.accel *= 0.8
+    with pytest.warns(SensorFaultWarning, match=r"accel units .*median of 7.9\d* m/s\^2 .*\(-19 %\).*effect: "):
+        screen(rec)
+    assert [f["kind"] for f in rec.meta["sensor_faults"]] == ["units"]
+
+
+def test_gyrometer_in_degrees_is_recognised_against_the_kinematics():
+    from flexforce.datasets.sensorcheck import check_recording
+
+    rec = _live()
+    rec.gyro = np.degrees(rec.gyro)
+    (found,) = check_recording(rec)
+    assert (found.sensor, found.kind) == ("gyro", "units")
+    assert re.search(r"reads 5\d.\d times the rotation rate of the joint kinematics .*deg/s", found.detail)
+    # without joint kinematics (a rigid IMU mount), a median rate no walking robot reaches
+    rec.imu_w[:] = 0.0
+    (found,) = check_recording(rec)
+    assert "median of" in found.detail and "deg/s?" in found.detail
+    rec.gyro = np.radians(rec.gyro)
+    assert check_recording(rec) == []
+
+
+def test_stuck_sensors_are_reported_with_their_span():
+    from flexforce.datasets.sensorcheck import STUCK_MIN_S, check_recording
+
+    rec = _live()
+    rec.ft[100:, :, 2] = rec.ft[100, :, 2]  # both feet frozen from t = 1 s
+    rec.accel[50:70, 1] = rec.accel[50, 1]  # 0.2 s: a network hold, not reported
+    found = check_recording(rec, topics={"ft/left_foot": "/lf/wrench"})
+    assert _kinds(found) == [("ft/left_foot (/lf/wrench)", "stuck"), ("ft/right_foot", "stuck")]
+    assert found[0].t0 == pytest.approx(1.0) and found[0].t1 == pytest.approx(3.99)
+    assert "F_z is constant at" in found[0].detail and "contact states" in found[0].effect
+    rec.accel[50:50 + int(STUCK_MIN_S / 0.01) + 1, 1] = rec.accel[50, 1]
+    assert ("accel", "stuck") in _kinds(check_recording(rec))
+    rec.meta["noise"] = False  # a noise-free simulation may be exactly constant
+    assert check_recording(rec) == []
+
+
+def test_missing_ft_is_reported_per_contact_and_span():
+    from flexforce.datasets.sensorcheck import check_recording
+
+    rec = _live()
+    rec.ft[100:300] = np.nan  # both F/T sensors silent for 2 s
+    rec.ft[350:352, 0] = np.nan  # 20 ms: below the reported span
+    found = check_recording(rec)
+    assert _kinds(found) == [("ft/left_foot", "missing"), ("ft/right_foot", "missing")]
+    assert (found[0].t0, found[0].t1) == pytest.approx((1.0, 2.99))
+    assert "200 samples (2.000 s)" in found[0].detail and "hold their last value" in found[0].effect
+
+
+def test_window_keeps_and_shifts_the_fault_spans():
+    from flexforce.datasets.sensorcheck import screen
+
+    rec = _live()
+    rec.ft[100:300] = np.nan
+    with pytest.warns(RuntimeWarning, match="missing"):
+        screen(rec)
+    cut = rec.window(2.0, 3.5)
+    assert [(f["t0"], f["t1"]) for f in cut.meta["sensor_faults"]] == [(0.0, 0.99), (0.0, 0.99)]
+    assert rec.window(3.2, 3.9).meta["sensor_faults"] == []
+
+
+def test_faults_reach_the_command_line_and_summary_json(tmp_path, capsys):
+    """``flexforce run`` on a flexforce bag with a stuck F/T prints one warning naming the fault, its
+    span and effect; a comparison writes it into summary.json's ``warnings``."""
+    from flexforce import simulate
+    from flexforce.compare.runner import compare
+    from flexforce.datasets.io.bagio import save_recording
+    from flexforce.pipeline import load_or_simulate
+
+    rec = simulate("stand", duration=1.0, seed=1)
+    rec.ft[60:, 0] = rec.ft[60, 0]
+    bag = save_recording(rec, tmp_path / "stuck.mcap")
+    assert main(["run", str(bag), "--estimator", "ekf", "-o", str(tmp_path / "est.npz"), "-q"]) == 0
+    err = capsys.readouterr().err
+    assert re.search(r"flexforce run: warning: .*stuck.mcap: ft/left_foot stuck from t = 0.300 s to 1.000 s: F_x is "
+                     r"constant at .*; effect: the F/T reference is wrong there", err), err
+    with pytest.warns(RuntimeWarning, match="stuck"):
+        loaded = load_or_simulate(bag)
+    comp = compare(loaded.window(0.1, None), estimators=("ekf",), baseline=False, peers=False, crb=False)
+    kinds = {(w["sensor"], w["kind"], w["t0"]) for w in comp.summary()["warnings"]}
+    assert ("ft/left_foot", "stuck", 0.2) in kinds
+
+
+def test_importer_names_the_topic_and_refuses_g(tmp_path):
+    """A raw bag: a frozen F/T topic is a warning naming the topic; an accelerometer in g is refused
+    naming the bag."""
+    from test_rosimport import ROS, UPPER, Motion, robot_topics, stamps, write_bag
+
+    from flexforce.datasets.io.rosimport import import_bag
+    from flexforce.datasets.robot import RobotModel
+    from flexforce.datasets.sensorcheck import SensorFaultWarning
+
+    model = RobotModel(dataclasses.replace(RobotConfig.load("romeo"), ros=ROS))
+    t = stamps(n=160)
+    forces = 200.0 + np.random.default_rng(2).normal(scale=2.0, size=(len(t), 2))
+    forces[60:, 1] = forces[60, 1]
+    topics = robot_topics(model, Motion(model, UPPER), t, forces=forces)
+    with pytest.warns(SensorFaultWarning) as caught:
+        rec = import_bag(write_bag(tmp_path / "stuck", "mcap", topics), model)
+    assert [str(w.message).split(" from t")[0] for w in caught] == [f"{tmp_path / 'stuck'}: ft/right_foot (/rf/wrench) "
+                                                                    "stuck"]
+    assert rec.meta["sensor_faults"][0]["kind"] == "stuck"
+    for _, f in topics["/imu"][1]:
+        f["accel"] = f["accel"] / 9.81
+    with pytest.raises(DataError, match=r"g: accel \(/imu\) units from t = 0.000 s .* the readings are in g"):
+        import_bag(write_bag(tmp_path / "g", "mcap", topics), model)
+
+
+def test_real_icub_logs_raise_no_sensor_fault():
+    """The shipped iCub recordings (irregular stamps, 0.17 s network gaps, held values) are clean."""
+    from conftest import ICUB_DIR
+
+    from flexforce.datasets.io.rosimport import import_bag
+
+    bags = [ICUB_DIR / "icub-walk-12s", ICUB_DIR / "icub-com-sinusoid-20s.bag"]
+    if not all(b.exists() for b in bags):
+        pytest.skip("iCub recordings not available")
+    for bag in bags:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", RuntimeWarning)
+            rec = import_bag(bag, "icub-identified")
+        assert "sensor_faults" not in rec.meta
+
+
+# ----------------------------------------------------------------------------------------------
+# effect plugins: validated when loaded, their file named in every error
+# ----------------------------------------------------------------------------------------------
+
+_NAN_PLUGIN = '''
+import numpy as np
+
+
+class NanBias:
+    name = "nan-bias"
+    dim = 3
+    labels = ("b_x [rad/s]", "b_y [rad/s]", "b_z [rad/s]")
+
+    def prior(self, problem):
+        return np.full(3, {mean}), np.full(3, 0.1)
+
+    def random_walk_sigma(self, problem):
+        return np.full(3, 1e-8)
+
+    def residual_terms(self, family, problem, steps, R, q, W, e):
+        if family != "imu":
+            return None
+        n = len(steps)
+        dr = np.zeros((n, 6))
+        dr[:, :3] = e * {scale}
+        return dr, np.zeros((n, 6, 18)), np.zeros((n, 6, 3))
+
+    def report(self, values, cov):
+        return {{"value": values[-1].tolist(), "summary": "nan bias"}}
+'''
+
+
+@pytest.mark.parametrize("name, text, match", [
+    ("effects.txt", "x = 1\n", r"effect plugin {path} is not a Python file \(suffix '.txt'\); expected a .py file"),
+    ("effects", "x = 1\n", r"effect plugin {path} is not a Python file \(suffix 'none'\)"),
+    ("broken.py", "raise ValueError('bad constant')\n", r"cannot load effect plugin {path}: ValueError: bad constant"),
+    ("exits.py", "import sys\nsys.exit(3)\n", r"cannot load effect plugin {path}: SystemExit: 3"),
+    ("syntax.py", "def f(:\n", r"cannot load effect plugin {path}: SyntaxError"),
+    ("listed.py", "EFFECTS = [42]\n", r"effect plugin {path}: EFFECTS entry 42 does not implement the Effect protocol"),
+    ("empty.py", "x = 1\n", r"effect plugin {path} defines no Effect"),
+])
+def test_plugin_errors_name_the_file(name, text, match, tmp_path):
+    from flexforce.compare.diagnostics.candidates import load_plugin
+
+    path = tmp_path / name
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=match.format(path=re.escape(str(path)))):
+        load_plugin(path)
+
+
+def test_plugin_effect_returning_nan_fails_naming_file_and_effect(tmp_path):
+    from flexforce.compare.diagnostics.candidates import effect_factory, load_plugin
+    from flexforce.factors.effects import Effect
+
+    good = tmp_path / "good.py"
+    good.write_text(_NAN_PLUGIN.format(mean="0.0", scale="1.0"))
+    (eff,) = load_plugin(good)
+    assert isinstance(eff, Effect) and effect_factory(eff)[0] == "nan-bias" and eff.dim == 3
+    mean, sigma = eff.prior(None)
+    assert np.array_equal(mean, np.zeros(3))
+    e = np.ones((2, 3))
+    assert eff.residual_terms("imu", None, np.arange(2), None, None, None, e)[0][0, 0] == 1.0
+    assert eff.residual_terms("contact", None, np.arange(2), None, None, None, e) is None
+
+    bad = tmp_path / "nan.py"
+    bad.write_text(_NAN_PLUGIN.format(mean="np.nan", scale="np.nan"))
+    (eff,) = load_plugin(bad)
+    with pytest.raises(ConfigError, match=rf"effect plugin {re.escape(str(bad))}: effect 'nan-bias' prior\(\) returned "
+                                          r"mean with 3 of 3 value\(s\) NaN or inf; expected finite numbers"):
+        eff.prior(None)
+    with pytest.raises(ConfigError, match=r"effect 'nan-bias' residual_terms\('imu'\) returned dr with 6 of 12"):
+        eff.residual_terms("imu", None, np.arange(2), None, None, None, e)
+
+
+# ----------------------------------------------------------------------------------------------
+# robot configurations and scenarios: every number within sane bounds, the file and key named
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("old, new, match", [
+    ("k_fs = 28000.0", "k_fs = 1e30", r"stiffness.k_fs = 1e\+30 N/m; expected a stiffness of at most 1e\+09 N/m"),
+    ("k_fs = 28000.0", "k_fs = 0.0", r"stiffness.k_fs = 0.0 N/m; expected a positive, finite stiffness"),
+    ("k_fs = 28000.0", "k_fs = [1e4, 1e4, 1e12]",
+     r"stiffness.k_fs = \[10000.0, 10000.0, 1000000000000.0\] N/m; expected a stiffness of at most"),
+    ("k_fd = 420.0", "k_fd = -1.0", r"stiffness.k_fd = -1.0 N s/m; expected a positive, finite damping"),
+    ("k_td = 8.0", "k_td = 1e9", r"stiffness.k_td = 1000000000.0 N m s/rad; expected a damping of at most"),
+])
+def test_robot_stiffness_bounds(old, new, match, tmp_path):
+    text = ROMEO.read_text()
+    assert old in text
+    path = tmp_path / "robot.toml"
+    path.write_text(text.replace(old, new, 1))
+    with pytest.raises(ConfigError, match=match) as exc:
+        RobotConfig.load(path)
+    assert str(path) in str(exc.value)
+
+
+@pytest.mark.parametrize("extra, match", [
+    ('[ros]\nsavgol_window = "wide"', r"ros.savgol_window = 'wide' s; expected a duration, a finite number"),
+    ("[ros]\nsavgol_order = 2.5", r"ros.savgol_order = 2.5; expected a whole number >= 2"),
+    ('[ros]\nmax_gap = "long"', r"ros.max_gap = 'long' s; expected a duration"),
+    ("[ros]\ncontact_on = true", r"ros.contact_on = True N; expected a normal force"),
+    ("[ros]\nimu_topic = 3", r"ros.imu_topic = 3; expected a topic name"),
+    ("[ros]\nft_topics = 3", r"ros.ft_topics = 3; expected a table of name = \"/topic\" entries"),
+])
+def test_robot_ros_numbers_are_checked(extra, match, tmp_path):
+    path = _robot(tmp_path, extra)
+    with pytest.raises(ConfigError, match=match) as exc:
+        RobotConfig.load(path)
+    assert str(path) in str(exc.value)
+
+
+def _edited(tmp_path: Path, edit) -> Path:
+    path = tmp_path / "robot.toml"
+    path.write_text(edit(ROMEO.read_text()))
+    return path
+
+
+def _top(line: str):
+    """Insert ``line`` among the top-level keys (before the first table)."""
+    return lambda text: text.replace("\n[", f"\n{line}\n[", 1)
+
+
+@pytest.mark.parametrize("edit, match", [
+    (_top("ros = 3"), r"ros = 3 in robot configuration .*; expected a \[ros\] table"),
+    (_top("footholds = 3"), r"footholds = 3 in robot configuration .*; expected a \[footholds\] table"),
+    (lambda t: re.sub(r"(?s)contacts = \[.*?\n\]", 'contacts = "feet"', t, count=1),
+     r"contacts = 'feet' in robot configuration .*; expected a list of contact tables"),
+    (lambda t: t.replace('name = "right_foot"', 'name = "left_foot"'),
+     r"contacts\[1\] repeats the contact name 'left_foot' in robot configuration .*; expected distinct names"),
+    (lambda t: t.replace('name = "right_foot"', 'name = 3'), r"contacts\[1\] = \{.*\} in robot configuration .*; "
+                                                             r"expected a table with exactly a name and a frame"),
+])
+def test_robot_structure_is_checked(edit, match, tmp_path):
+    path = _edited(tmp_path, edit)
+    with pytest.raises(ConfigError, match=match):
+        RobotConfig.load(path)
+
+
+def test_builtin_robots_are_within_the_bounds():
+    for name in ("romeo", "talos", "icub", "icub-identified"):
+        RobotConfig.load(name)
+
+
+@pytest.mark.parametrize("line, match", [
+    ("sim_rate = 1e6", r"scenario s: sim_rate = 1000000.0 Hz: expected the integration rate in Hz, at most 50000 Hz"),
+    ("rate = 1e5", r"scenario s: rate = 100000.0 Hz: expected the recording's sampling rate in Hz, at most 10000 Hz"),
+])
+def test_scenario_rates_have_an_upper_bound(line, match, tmp_path):
+    path = tmp_path / "s.toml"
+    path.write_text(f'name = "s"\nduration = 1.0\n{line}\n')
+    with pytest.raises(ConfigError, match=match):
+        Scenario.load(path)

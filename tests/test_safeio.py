@@ -171,3 +171,46 @@ def test_is_report_folder(tmp_path):
     assert is_report_folder(rep)
     (rep / "thesis.tex").write_text("")
     assert not is_report_folder(rep) and not replaceable_by_report(rep)
+
+
+def _dead_pid() -> int:
+    """The PID of a process that has ended."""
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def test_taking_over_a_dead_writers_lock_removes_its_temporaries(tmp_path):
+    """A writer killed mid-write (SIGKILL) leaves its lock and a hidden temporary beside the output:
+    the next writer takes the lock over and removes the temporary (file or folder), and only the
+    temporaries of that target whose writer is gone."""
+    target = tmp_path / "est.npz"
+    dead = _dead_pid()
+    lock_path(target).write_text(f"{dead}\n")
+    leftover = tmp_path / f".est.tmp-{dead}-0123abcd.npz"
+    leftover.write_bytes(b"half")
+    old_folder = tmp_path / f".est.old-{dead}-89abcdef.npz"
+    (old_folder / "inside").mkdir(parents=True)
+    other_target = tmp_path / f".other.tmp-{dead}-0123abcd.npz"
+    other_target.write_bytes(b"not ours")
+    alive = tmp_path / f".est.tmp-{os.getppid()}-0123abcd.npz"  # a running process's: kept
+    alive.write_bytes(b"busy")
+    with safe_output(target) as tmp:
+        tmp.write_bytes(b"x")
+    assert target.read_bytes() == b"x"
+    assert _leftovers(tmp_path) == sorted([alive.name, other_target.name])
+
+
+def test_a_killed_writer_leaves_nothing_after_the_next_run(tmp_path):
+    target = tmp_path / "est.csv"
+    code = ("import os, signal, sys\n"
+            "from flexforce.datasets.safeio import safe_output\n"
+            f"with safe_output({str(target)!r}) as tmp:\n"
+            "    tmp.write_text('partial')\n"
+            "    os.kill(os.getpid(), signal.SIGKILL)\n")
+    proc = subprocess.run([sys.executable, "-c", code], check=False)
+    assert proc.returncode == -9
+    assert len(_leftovers(tmp_path)) == 2  # the lock and the temporary
+    with safe_output(target) as tmp:
+        tmp.write_text("a\n")
+    assert target.read_text() == "a\n" and _leftovers(tmp_path) == []

@@ -169,32 +169,64 @@ def _plausibility(effect, report: dict, problem) -> str | None:
 def load_plugin(path) -> list:
     """The user-written effects of a Python file: its ``EFFECTS`` (a dict or list of Effect classes
     or instances) if it defines one, else every class defined in it whose instances (made without
-    arguments) implement the Effect protocol."""
+    arguments) implement the Effect protocol.
+
+    Each is returned as a :class:`flexforce.factors.effects.base.CheckedEffect` instance naming
+    ``path``: an effect whose prior, random walk or residual terms are not finite fails with the
+    file and the effect named where it is screened or fitted.
+
+    Raises:
+        ConfigError: naming ``path``: it does not exist or is not a ``.py`` file; importing it
+            raises (its error quoted); an ``EFFECTS`` entry that is not an Effect class or
+            instance, or a class that cannot be made without arguments; no Effect found.
+    """
     import importlib.util
     from pathlib import Path
+
+    from flexforce.factors.effects.base import CheckedEffect
 
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"effect plugin {path} does not exist; expected a Python file defining Effect classes")
+    if path.suffix != ".py":
+        raise ConfigError(f"effect plugin {path} is not a Python file (suffix {path.suffix or 'none'!r}); expected a "
+                          ".py file defining Effect classes")
     spec = importlib.util.spec_from_file_location(f"flexforce_plugin_{path.stem.replace('-', '_')}", path)
-    # spec is None only for a file whose suffix is not a Python one
-    module = importlib.util.module_from_spec(spec)  # type: ignore[arg-type]
+    if spec is None or spec.loader is None:
+        raise ConfigError(f"effect plugin {path} cannot be imported; expected a .py file defining Effect classes")
+    module = importlib.util.module_from_spec(spec)
     try:
-        spec.loader.exec_module(module)  # type: ignore[union-attr]
-    except Exception as err:  # a user's file: any error is a configuration error
+        spec.loader.exec_module(module)
+    except (Exception, SystemExit) as err:  # a user's file: any error is a configuration error
         raise ConfigError(f"cannot load effect plugin {path}: {type(err).__name__}: {err}") from err
+
+    def made(obj, where: str):
+        if isinstance(obj, type):
+            try:
+                inst = obj()
+            except Exception as err:  # noqa: BLE001 - a user's constructor may raise anything
+                raise ConfigError(f"effect plugin {path}: {where} {obj.__name__}() raised {type(err).__name__}: "
+                                  f"{err}; expected an Effect class made without arguments") from err
+        else:
+            inst = obj
+        if not _is_effect(inst):
+            raise ConfigError(f"effect plugin {path}: {where} {obj!r} does not implement the Effect protocol (name, "
+                              "dim, labels, prior, random_walk_sigma, residual_terms, report)")
+        return CheckedEffect(inst, str(path))
+
     declared = getattr(module, "EFFECTS", None)
     if declared is not None:
-        return list(declared.values()) if isinstance(declared, dict) else list(declared)
+        items = list(declared.values()) if isinstance(declared, dict) else list(declared)
+        return [made(obj, "EFFECTS entry") for obj in items]
     found = []
     for obj in vars(module).values():
         if isinstance(obj, type) and obj.__module__ == module.__name__:
             try:
                 inst = obj()
-            except TypeError:
+            except Exception:  # noqa: BLE001 - not an effect made without arguments: a helper class
                 continue
             if _is_effect(inst):
-                found.append(obj)
+                found.append(CheckedEffect(inst, str(path)))
     if not found:
         raise ConfigError(f"effect plugin {path} defines no Effect (name, dim, labels, prior, random_walk_sigma, "
                           "residual_terms, report)")

@@ -43,6 +43,10 @@ Method (docs/real-logs.md has the long form):
 * **Contacts.** ``contacts="ft"``: Schmitt trigger on the F/T normal force (``contact_on`` /
   ``contact_off``; :mod:`flexforce.datasets.contacts`); ``contacts="fixed"``: ``fixed_contacts``
   (all contacts by default) active throughout.
+* **Sensor faults.** Clipped, stuck or missing sensors and IMU readings in the wrong unit,
+  recognised from the data (:mod:`flexforce.datasets.sensorcheck`; the IMU as resampled, before
+  ``imu_filter``): an accelerometer in g, mg or cm/s^2 is a :class:`DataError`, every other
+  finding a warning naming the topic, the span and the effect, listed in ``meta['sensor_faults']``.
 * **Local frame.** Stance-foot leg odometry (:mod:`flexforce.datasets.io.localframe`), then
   :meth:`RobotModel.kinematics` gives the inputs, the IMU placement and the contacts.
 
@@ -67,6 +71,7 @@ from flexforce.datasets.faults import RANGE_TOLERANCE
 from flexforce.datasets.io.localframe import anchored_local_frame
 from flexforce.datasets.recording import Recording
 from flexforce.datasets.robot import RobotConfig, RobotModel, RosConfig
+from flexforce.datasets.sensorcheck import screen
 from flexforce.errors import BagError, ConfigError, DataError
 
 __all__ = ["import_bag", "is_flexforce_bag", "read_topics"]
@@ -282,8 +287,13 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
     Raises:
         BagError: missing/unreadable/truncated bag, missing topic, wrong message type,
             unknown joint or frame.
-        DataError: NaN, time going backwards, gaps longer than ``ros.max_gap``.
+        DataError: NaN, time going backwards, gaps longer than ``ros.max_gap``; an accelerometer
+            in g, mg or cm/s^2 (:func:`flexforce.datasets.sensorcheck.screen`).
         ConfigError: inconsistent configuration.
+
+    The sensor faults the data reveal (clipping, units, stuck or missing sensors) are checked
+    last (:func:`flexforce.datasets.sensorcheck.screen`): listed in ``meta['sensor_faults']``, each
+    a :class:`~flexforce.datasets.sensorcheck.SensorFaultWarning`.
     """
     path = Path(path)
     model = robot_config if isinstance(robot_config, RobotModel) else RobotModel(robot_config)
@@ -300,6 +310,7 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
     gaps = _GapCheck(grid, ros.gap_factor * dt, ros.max_gap)
     gyro, accel, imu_missing = _imu_on_grid(imu, model, grid, gaps)
     joint = _joints_on_grid(joints, model, ros, grid, dt, t_first, gaps)
+    resampled = {"gyro": gyro, "accel": accel}  # before the filter: flat tops and stuck values intact
     if ros.imu_filter == "savgol":
         win, noise = savgol_samples(ros, dt), config.imu_noise
         gyro = imu_smoothed(gyro, noise.gyro_range, win, lambda x: _savgol(x, dt, 0, ros))
@@ -330,7 +341,9 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
         base_pose=lf.base_pose,
         gravity=config.gravity, meta=meta, **arrays)
     report(1.0)
-    return rec.validate()
+    sensors = {"accel": ros.imu_topic, "gyro": ros.imu_topic,
+               **{f"ft/{c}": t for c, t in (ros.ft_topics or {}).items() if t in topics}}
+    return screen(rec.validate(), sensors, where=str(path), readings=resampled)
 
 
 def _check_ros_config(model: RobotModel, ros: RosConfig, contacts: str) -> None:

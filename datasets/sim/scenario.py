@@ -199,12 +199,21 @@ def _timing(where: str, key: str, value) -> None:
             or not float(value) > 0):
         raise ConfigError(f"{where}: {key} = {value!r} {unit}: expected {what}, a positive, "
                           "finite number (duration, rate and sim_rate must be positive)")
+    bound = TIMING_MAX.get(key)
+    if bound is not None and float(value) > bound:
+        raise ConfigError(f"{where}: {key} = {value!r} {unit}: expected {what}, at most {bound:g} {unit} (a "
+                          "robot's sensors sample at tens of Hz to a few kHz; the integration a few times faster)")
 
 
 TIMING_FIELDS = {"duration": ("s", "the recording's length in seconds"),
                  "rate": ("Hz", "the recording's sampling rate in Hz"),
                  "sim_rate": ("Hz", "the integration rate in Hz")}
 """The scenario's timing fields checked on every assignment: their units and meaning."""
+
+TIMING_MAX = {"rate": 10_000.0, "sim_rate": 50_000.0}
+"""Upper bounds of the rates, Hz: the recording's sampling (as ``[ros] rate`` of a robot
+configuration) and the integration (every step integrates the multibody dynamics: at the bound a
+second of simulation is 50,000 steps)."""
 
 MAX_SAMPLES = 1_000_000
 """Most recorded samples (``duration * rate``) a scenario may ask for: the simulator keeps the whole

@@ -336,6 +336,107 @@ def traits(effect: object) -> EffectTraits:
     return EffectTraits(**found)
 
 
+# ----------------------------------------------------------------------------------------------
+# A user's effect, its values checked
+# ----------------------------------------------------------------------------------------------
+
+
+class CheckedEffect:
+    """A user's effect (a plugin file's) whose values are checked as the estimators read them.
+
+    Everything is the wrapped effect's (its attributes, traits and ``report`` are read through);
+    :meth:`prior`, :meth:`random_walk_sigma` and :meth:`residual_terms` return what it returns
+    after checking that the arrays are finite and of the contract's shapes, so that an effect
+    returning NaN fails with its name and file where it is fitted or screened (the diagnosis lists
+    it with that reason) instead of dropping out of a ranking.  ``bind`` wraps the effect it makes.
+
+    Raises (from the checked methods):
+        ConfigError: naming the plugin file, the effect, the method and what was expected.
+    """
+
+    def __init__(self, effect: object, source: str):
+        self.__dict__["_inner"] = effect
+        self.__dict__["source"] = str(source)  # the plugin file the effect came from
+
+    def __getattr__(self, name: str) -> Any:
+        inner = self.__dict__.get("_inner")
+        if inner is None or (name.startswith("__") and name.endswith("__")):
+            raise AttributeError(name)
+        value = getattr(inner, name)
+        if name == "bind" and callable(value):
+            source = self.__dict__["source"]
+            return lambda *args, **kwargs: CheckedEffect(value(*args, **kwargs), source)
+        return value
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        setattr(self.__dict__["_inner"], name, value)
+
+    def __repr__(self) -> str:
+        return f"CheckedEffect({self.__dict__['_inner']!r}, source={self.__dict__['source']!r})"
+
+    @property
+    def wrapped(self) -> object:
+        """The user's effect itself."""
+        return self.__dict__["_inner"]
+
+    def _fail(self, method: str, what: str) -> None:
+        from flexforce.errors import ConfigError
+
+        name = getattr(self.__dict__["_inner"], "name", type(self.__dict__["_inner"]).__name__)
+        raise ConfigError(f"effect plugin {self.__dict__['source']}: effect '{name}' {method} {what}")
+
+    def _finite(self, method: str, label: str, value: Any, shapes: tuple[tuple[int, ...], ...] = ()) -> np.ndarray:
+        try:
+            arr = np.asarray(value, dtype=float)
+        except (TypeError, ValueError):
+            self._fail(method, f"returned {label} {value!r}; expected an array of numbers")
+        if shapes and arr.shape not in shapes:
+            self._fail(method, f"returned {label} of shape {arr.shape}; expected {' or '.join(map(str, shapes))}")
+        if not np.all(np.isfinite(arr)):
+            bad = int(np.size(arr) - np.count_nonzero(np.isfinite(arr)))
+            self._fail(method, f"returned {label} with {bad} of {arr.size} value(s) NaN or inf; expected finite "
+                               "numbers")
+        return arr
+
+    def prior(self, problem: ProblemView) -> tuple[np.ndarray, np.ndarray]:
+        """The wrapped effect's prior, checked: finite ``(dim,)`` mean and positive sigma."""
+        inner: Any = self.__dict__["_inner"]
+        out = inner.prior(problem)
+        try:
+            mean, sigma = out
+        except (TypeError, ValueError):
+            self._fail("prior()", f"returned {out!r}; expected (mean, sigma), each of shape ({inner.dim},)")
+        dim = (int(inner.dim),)
+        self._finite("prior()", "mean", mean, (dim,))
+        sig = self._finite("prior()", "sigma", sigma, (dim,))
+        if np.any(sig <= 0):
+            self._fail("prior()", f"returned sigma {sig.tolist()}; expected positive values")
+        return mean, sigma
+
+    def random_walk_sigma(self, problem: ProblemView) -> np.ndarray:
+        """The wrapped effect's random-walk sigma, checked: finite, non-negative."""
+        inner: Any = self.__dict__["_inner"]
+        out = inner.random_walk_sigma(problem)
+        sig = self._finite("random_walk_sigma()", "sigma", out)
+        if np.any(sig < 0):
+            self._fail("random_walk_sigma()", "returned a negative sigma; expected values >= 0")
+        return out
+
+    def residual_terms(self, family: str, problem: ProblemView, steps: np.ndarray, R: np.ndarray,
+                       q: np.ndarray, W: np.ndarray, e: np.ndarray):
+        """The wrapped effect's term in ``family``, checked: None or three finite arrays."""
+        inner: Any = self.__dict__["_inner"]
+        out = inner.residual_terms(family, problem, steps, R, q, W, e)
+        if out is None:
+            return None
+        if not (isinstance(out, tuple | list) and len(out) == 3):
+            self._fail(f"residual_terms('{family}')", f"returned {type(out).__name__}; expected None or "
+                                                       "(dr, dr_ds, dr_de)")
+        for label, value in zip(("dr", "dr_ds", "dr_de"), out):
+            self._finite(f"residual_terms('{family}')", label, value)
+        return out
+
+
 _AX = ("x", "y", "z")
 _CHI2_6_999 = 22.458  # chi^2_6 99.9 % quantile
 CONSTANT_RW = 1e-6

@@ -1,0 +1,327 @@
+"""Sensor faults recognised from the data of a Recording: clipping, wrong units, stuck and missing sensors.
+
+Faults that the readings themselves reveal, checked before any estimator runs
+(:func:`check_recording`, :func:`screen`):
+
+* **clipped** -- a flat top: several consecutive samples of one IMU axis equal (within
+  :data:`EQUAL_TOL`) at that axis's largest or smallest value, more of them than in the band just
+  below it, while the axis otherwise varies (a sensor saturating at its full scale);
+* **units** -- the accelerometer's norm has a median over the recording near 1 (g instead of
+  m/s^2) or far above gravity (mg, cm/s^2): refused, no robot on the ground can read that; a
+  median off gravity by more than :data:`ACCEL_NORM_TOL` is a warning (scale, clipping, bias); the
+  gyrometer reading :data:`DEG_SCALE_MIN` times or more the rotation rate of the joint kinematics
+  (``Recording.imu_w``), or a median rate above :data:`GYRO_MEDIAN_MAX` (deg/s instead of rad/s);
+* **stuck** -- an IMU or F/T channel exactly constant for :data:`STUCK_MIN_S` s or more (a
+  frozen driver repeats its last value; real sensors always show noise); an F/T channel that is
+  NaN or exactly 0 throughout is not measured (a force-only sensor), not stuck;
+* **missing** -- a span without F/T reading (NaN) in a channel measured elsewhere in the
+  recording, :data:`MISSING_MIN_S` s or longer.
+
+Times are seconds from the recording's first sample.  This module is plain numpy (the data layer).
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from flexforce.errors import DataError
+
+__all__ = ["ACCEL_NORM_TOL", "DEG_SCALE_MIN", "EQUAL_TOL", "GYRO_MEDIAN_MAX", "MISSING_MIN_S", "STUCK_MIN_S",
+           "Finding", "SensorFaultWarning", "check_recording", "screen"]
+
+EQUAL_TOL = 1e-9
+"""Two readings closer than this (in the sensor's unit) are equal: a flat top or a stuck value."""
+CLIP_MIN_RUN = 3
+"""Fewest consecutive samples at an axis's extreme value that make a flat top."""
+CLIP_MIN_LEVELS = 20
+"""Fewest distinct values an axis must take to be judged for a flat top (a coarsely quantised
+signal repeats its extremes without being clipped)."""
+CLIP_MIN_SPREAD = 1e-6
+"""Smallest spread of an axis, relative to its largest magnitude (at least 1), for it to be judged
+for a flat top: an axis that varies less is constant (a noise-free simulation at rest), not
+clipped."""
+CLIP_FLOOR = {"accel": 1.0, "gyro": 0.05}
+"""Smallest magnitude of a flat top that is a clip (m/s^2, rad/s): no sensor's full scale is lower."""
+ACCEL_NORM_TOL = 0.1
+"""Warn when the accelerometer norm's median differs from gravity by more than this fraction."""
+G_UNITS = (0.7, 1.4)
+"""An accelerometer norm median in this range of m/s^2 is gravity in g: refused."""
+ACCEL_NORM_MAX = 5.0
+"""An accelerometer norm median above this many g is a unit of mg or cm/s^2: refused."""
+DEG_SCALE_MIN = 10.0
+"""Warn when the gyrometer reads this many times the joint kinematics' rotation rate or more
+(deg/s give 57.3) with a correlation of at least :data:`KINEMATIC_CORRELATION`."""
+KINEMATIC_CORRELATION = 0.5
+"""Correlation of gyrometer and kinematic rate above which their ratio is trusted."""
+KINEMATIC_MIN_RATE = 0.02
+"""Rms rotation rate of the kinematics, rad/s, below which the ratio is not judged."""
+GYRO_MEDIAN_MAX = 3.0
+"""A median rotation rate above this, rad/s, is not a standing or walking robot (deg/s?)."""
+STUCK_MIN_S = 0.5
+"""Shortest span, s, of an exactly constant channel reported as stuck (real logs hold a value over
+a network gap for up to a few tenths of a second)."""
+STUCK_MIN_SAMPLES = 20
+"""Fewest samples of a stuck span, whatever the rate."""
+MISSING_MIN_S = 0.05
+"""Shortest span, s, without F/T reading reported as missing."""
+
+_AXES = ("x", "y", "z")
+_FT = ("F_x", "F_y", "F_z", "T_x", "T_y", "T_z")
+_UNIT = {"accel": "m/s^2", "gyro": "rad/s"}
+_RANGE_KEY = {"accel": "imu_noise.accel_range", "gyro": "imu_noise.gyro_range"}
+
+
+class SensorFaultWarning(RuntimeWarning):
+    """A sensor fault recognised from the data (:class:`Finding`); the command line prints it as one line."""
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One sensor fault recognised from the data."""
+
+    sensor: str
+    """``accel``, ``gyro`` or ``ft/<contact>``, with the topic it came from when known
+    (``ft/left_foot (/left_foot/wrench)``)."""
+    kind: str
+    """``clipped``, ``units``, ``stuck`` or ``missing``."""
+    t0: float
+    """Start of the span, s from the recording's first sample."""
+    t1: float
+    """End of the span, s from the recording's first sample."""
+    detail: str
+    """What was seen (channel, value, count)."""
+    effect: str
+    """What it does to the output."""
+    severity: str = "warning"
+    """``warning`` (reported) or ``error`` (the recording is refused)."""
+
+    def message(self) -> str:
+        """One line: the fault, its span and its effect."""
+        return (f"{self.sensor} {self.kind} from t = {self.t0:.3f} s to {self.t1:.3f} s: {self.detail}; "
+                f"effect: {self.effect}")
+
+    def to_dict(self) -> dict:
+        """JSON-serialisable form (``Recording.meta['sensor_faults']``, summary.json's ``warnings``)."""
+        return {**asdict(self), "t0": round(float(self.t0), 6), "t1": round(float(self.t1), 6)}
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """``[(first, last), ...]`` of the runs of True in the (N,) bool ``mask``."""
+    edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(edges == 1).tolist(), (np.flatnonzero(edges == -1) - 1).tolist()))
+
+
+def _named(sensor: str, topics: Mapping[str, str] | None) -> str:
+    topic = (topics or {}).get(sensor)
+    return f"{sensor} ({topic})" if topic else sensor
+
+
+def _clipped(time: np.ndarray, name: str, y: np.ndarray, topics) -> tuple[list[Finding], list[tuple[int, float]]]:
+    """Flat tops of the (N, 3) readings ``y`` of sensor ``name``; also ``(axis, value)`` of each."""
+    out, tops = [], []
+    for a in range(3):
+        x = y[:, a]
+        finite = np.isfinite(x)
+        if finite.sum() < CLIP_MIN_LEVELS or np.unique(x[finite]).size < CLIP_MIN_LEVELS:
+            continue
+        lo, hi = float(np.min(x[finite])), float(np.max(x[finite]))
+        if hi - lo <= CLIP_MIN_SPREAD * max(1.0, abs(hi), abs(lo)):
+            continue
+        band = 0.05 * (hi - lo)
+        for value, side in ((hi, 1.0), (lo, -1.0)):
+            if abs(value) < CLIP_FLOOR[name]:
+                continue
+            with np.errstate(invalid="ignore"):
+                at = finite & (np.abs(x - value) <= EQUAL_TOL)
+                near = finite & ~at & (side * (value - x) <= band)
+            runs = [(i, j) for i, j in _runs(at) if j - i + 1 >= CLIP_MIN_RUN]
+            if not runs or int(at.sum()) <= int(near.sum()):
+                continue
+            k = np.flatnonzero(at)
+            unit = _UNIT[name]
+            out.append(Finding(
+                _named(name, topics), "clipped", float(time[k[0]]), float(time[k[-1]]),
+                f"axis {_AXES[a]} sits at {value:.6g} {unit} (its {'largest' if side > 0 else 'smallest'} value) "
+                f"for {k.size} samples in {len(runs)} flat top(s) of up to "
+                f"{max(j - i + 1 for i, j in runs)} samples: the sensor saturates at about {abs(value):.4g} {unit}",
+                f"the true {name} reading is beyond the flat top there, so the IMU update pulls the estimated forces "
+                f"and tilt off; set {_RANGE_KEY[name]} = {abs(value):.6g} in the robot configuration to leave these "
+                "samples out"))
+            tops.append((a, value))
+    return out, tops
+
+
+def _stuck_channel(time: np.ndarray, dt: float, sensor: str, channel: str, x: np.ndarray, unit: str,
+                   effect: str, skip_value: float | None = None, cause: str = "") -> list[Finding]:
+    """Spans of at least :data:`STUCK_MIN_S` s where the (N,) channel ``x`` does not change."""
+    if x.size < 2:
+        return []
+    with np.errstate(invalid="ignore"):
+        same = np.abs(np.diff(x)) <= EQUAL_TOL * np.maximum(1.0, np.abs(x[1:]))
+    need = max(STUCK_MIN_SAMPLES, int(np.ceil(STUCK_MIN_S / dt)) if dt > 0 else STUCK_MIN_SAMPLES)
+    out = []
+    for i, j in _runs(same):
+        first, last = i, j + 1  # samples first..last are equal
+        if last - first + 1 < need:
+            continue
+        value = float(x[first])
+        if skip_value is not None and abs(value - skip_value) <= EQUAL_TOL:
+            continue  # a flat top, reported as clipped
+        out.append(Finding(sensor, "stuck", float(time[first]), float(time[last]),
+                           f"{channel} is constant at {value:.6g} {unit} for {last - first + 1} samples "
+                           f"({time[last] - time[first]:.3f} s) while a live sensor shows noise{cause}", effect))
+    return out
+
+
+def _accel_units(time: np.ndarray, accel: np.ndarray, gravity: float, topics) -> list[Finding]:
+    ok = np.isfinite(accel).all(axis=1)
+    if not ok.any():
+        return []
+    med = float(np.median(np.linalg.norm(accel[ok], axis=1)))
+    t0, t1 = float(time[0]), float(time[-1])
+    name = _named("accel", topics)
+    if G_UNITS[0] <= med <= G_UNITS[1]:
+        return [Finding(name, "units", t0, t1,
+                        f"the accelerometer's norm has a median of {med:.4g} over the recording against gravity "
+                        f"{gravity:.4g} m/s^2: the readings are in g; expected m/s^2 (multiply them by {gravity:.4g})",
+                        "every estimate would be wrong (gravity read 10 times too weak): refused", "error")]
+    if med > ACCEL_NORM_MAX * gravity:
+        return [Finding(name, "units", t0, t1,
+                        f"the accelerometer's norm has a median of {med:.6g} over the recording, "
+                        f"{med / gravity:.0f} times gravity {gravity:.4g} m/s^2: the readings are not in m/s^2 "
+                        "(mg? cm/s^2?); expected m/s^2",
+                        "every estimate would be wrong: refused", "error")]
+    if abs(med / gravity - 1.0) > ACCEL_NORM_TOL:
+        return [Finding(name, "units", t0, t1,
+                        f"the accelerometer's norm has a median of {med:.4g} m/s^2 over the recording against gravity "
+                        f"{gravity:.4g} m/s^2 ({100 * (med / gravity - 1):+.0f} %): a wrong scale, a clipped axis or a "
+                        "large bias",
+                        "the IMU update reads a wrong gravity: estimated forces and tilt are off")]
+    return []
+
+
+def _gyro_units(rec, g: np.ndarray, time: np.ndarray, topics) -> list[Finding]:
+    ok = np.isfinite(g).all(axis=1)
+    if not ok.any():
+        return []
+    t0, t1 = float(time[0]), float(time[-1])
+    name = _named("gyro", topics)
+    effect = ("the gyrometer is read as rad/s: the estimated rotation rates, tilt and forces are off by the same "
+              "factor; convert the readings to rad/s")
+    kin = np.einsum("nji,nj->ni", rec.imu_R[ok], rec.imu_w[ok])  # kinematic rate in the IMU frame
+    gc = g[ok] - g[ok].mean(axis=0)
+    kc = kin - kin.mean(axis=0)
+    kk = float((kc * kc).sum())
+    if np.isfinite(kk) and np.sqrt(kk / max(len(kc), 1)) > KINEMATIC_MIN_RATE:
+        gk = float((gc * kc).sum())
+        corr = gk / np.sqrt(max(float((gc * gc).sum()) * kk, 1e-300))
+        scale = gk / kk
+        if corr > KINEMATIC_CORRELATION and scale >= DEG_SCALE_MIN:
+            return [Finding(name, "units", t0, t1,
+                            f"the gyrometer reads {scale:.3g} times the rotation rate of the joint kinematics "
+                            f"(correlation {corr:.2f}): the readings look like deg/s (57.3); expected rad/s",
+                            effect)]
+    med = float(np.median(np.linalg.norm(g[ok], axis=1)))
+    if med > GYRO_MEDIAN_MAX:
+        return [Finding(name, "units", t0, t1,
+                        f"the gyrometer's rate has a median of {med:.4g} rad/s over the recording, more than "
+                        f"{GYRO_MEDIAN_MAX:g} rad/s for a standing or walking robot: deg/s? expected rad/s", effect)]
+    return []
+
+
+def _ft_checks(rec, time: np.ndarray, dt: float, topics, stuck: bool) -> list[Finding]:
+    out: list[Finding] = []
+    if rec.ft is None:
+        return out
+    need_missing = max(1, int(np.ceil(MISSING_MIN_S / dt))) if dt > 0 else 1
+    for c, contact in enumerate(rec.contact_names):
+        sensor = _named(f"ft/{contact}", topics)
+        effect_stuck = ("the F/T reference is wrong there: force errors against it, contact states detected from "
+                        "its normal force and the --ft measurement are off")
+        with np.errstate(invalid="ignore"):
+            zero = np.nanmax(np.abs(rec.ft[:, c]), axis=0, initial=0.0) == 0.0
+        measured = np.isfinite(rec.ft[:, c]).any(axis=0) & ~zero  # (6,) channels read (NaN or 0: not measured)
+        if not measured.any():
+            continue
+        lost = ~np.isfinite(rec.ft[:, c][:, measured]).any(axis=1)
+        for i, j in _runs(lost):
+            if j - i + 1 < need_missing:
+                continue
+            out.append(Finding(sensor, "missing", float(time[i]), float(time[j]),
+                               f"no F/T reading for {j - i + 1} samples ({time[j] - time[i] + dt:.3f} s)",
+                               "contact states detected from the F/T normal force hold their last value, force "
+                               "errors against F/T skip the span and --ft fuses nothing there"))
+        if stuck:
+            for ch in np.flatnonzero(measured):
+                out += _stuck_channel(time, dt, sensor, _FT[ch], rec.ft[:, c, ch], "N" if ch < 3 else "N m",
+                                      effect_stuck)
+    return out
+
+
+def check_recording(rec, topics: Mapping[str, str] | None = None,
+                    readings: Mapping[str, np.ndarray] | None = None) -> list[Finding]:
+    """The sensor faults the data of ``rec`` reveal (module docstring), in the order clipped, units,
+    stuck, missing.
+
+    Args:
+        rec: a :class:`flexforce.datasets.recording.Recording` (gyro and accel (N, 3), F/T (N, C, 6)
+            or None; NaN where missing).
+        topics: sensor (``"accel"``, ``"gyro"``, ``"ft/<contact>"``) -> the topic it came from,
+            named in the findings.
+        readings: ``"gyro"``/``"accel"`` -> (N, 3) readings judged instead of the recording's
+            (an importer's readings before a smoothing filter, which would round off flat tops).
+
+    Stuck channels are not judged on a noise-free simulation (``meta["noise"]`` False), whose
+    readings may be exactly constant.
+    """
+    time = rec.time
+    dt = rec.dt
+    stuck = rec.meta.get("noise", True) is not False
+    imu = {name: np.asarray((readings or {}).get(name, getattr(rec, name)), dtype=float) for name in ("accel", "gyro")}
+    out: list[Finding] = []
+    tops: dict[str, list[tuple[int, float]]] = {}
+    for name in ("accel", "gyro"):
+        found, tops[name] = _clipped(time, name, imu[name], topics)
+        out += found
+    out += _accel_units(time, imu["accel"], rec.gravity, topics)
+    out += _gyro_units(rec, imu["gyro"], time, topics)
+    if stuck:
+        for name in ("accel", "gyro"):
+            effect = (f"the {name} reading is frozen there: the IMU update pulls the estimated forces and tilt "
+                      "towards a stale value")
+            top = dict(tops[name])
+            for a in range(3):
+                out += _stuck_channel(time, dt, _named(name, topics), f"axis {_AXES[a]}", imu[name][:, a],
+                                      _UNIT[name], effect, top.get(a),
+                                      " (a frozen driver, or the axis saturated at its full scale throughout)")
+    out += _ft_checks(rec, time, dt, topics, stuck)
+    return out
+
+
+def screen(rec, topics: Mapping[str, str] | None = None, where: str = "",
+           readings: Mapping[str, np.ndarray] | None = None):
+    """Check ``rec`` (:func:`check_recording`), record the findings in ``rec.meta['sensor_faults']``
+    (left unset when there are none), warn (:class:`SensorFaultWarning`, one per finding) and
+    return ``rec``.
+
+    Args:
+        topics, readings: as :func:`check_recording`.
+        where: the recording's source, named in the messages (a bag's path).
+
+    Raises:
+        DataError: an unambiguous unit mistake (the accelerometer in g, mg or cm/s^2).
+    """
+    findings = check_recording(rec, topics, readings)
+    prefix = f"{where}: " if where else ""
+    for f in findings:
+        if f.severity == "error":
+            raise DataError(prefix + f.message())
+    if findings:
+        rec.meta["sensor_faults"] = [f.to_dict() for f in findings]
+    for f in findings:
+        warnings.warn(prefix + f.message(), SensorFaultWarning, stacklevel=2)
+    return rec
