@@ -147,9 +147,16 @@ def _check_report_output(path: Path) -> Path:
 
 
 def _cmd_simulate(args) -> int:
-    from flexforce.datasets.safeio import output_lock
+    """``simulate``: the output checked before any work (``X.mcap``: one MCAP file, replaceable
+    by its own kind with --force; any other name: a ROS 2 bag directory), then :func:`_simulate`."""
+    from flexforce.datasets.safeio import check_output, output_lock
 
-    out = _check_bag_output(args.output, args.force, "recording bag")
+    out = Path(args.output)
+    if out.suffix == ".mcap":
+        check_output(out, "recording bag", overwrite=args.force,
+                     replaceable=lambda p: p.is_file() and p.suffix == ".mcap", replaceable_what="an MCAP file")
+    else:
+        out = _check_bag_output(out, args.force, "recording bag")
     with output_lock(out):
         return _simulate(args)
 
@@ -168,7 +175,14 @@ def _simulate(args) -> int:
         scenario.seed = args.seed
     sim = Simulator(scenario, noise=not args.no_noise)
     rec = sim.run(progress=Progress(f"simulate {scenario.name}", enabled=not args.quiet and None))
-    out = save_recording(rec, args.output, overwrite=args.force)
+    out = Path(args.output)
+    if out.suffix == ".mcap":  # the one MCAP file its name says, as `run -o X.mcap` writes
+        from flexforce.datasets.io.export import mcap_file_output
+
+        with mcap_file_output(out, overwrite=args.force) as bag:
+            save_recording(rec, bag)
+    else:
+        out = save_recording(rec, out, overwrite=args.force)
     print(f"wrote {out}: {rec.n} samples at {1.0 / rec.dt:.0f} Hz, robot {sim.robot.name}, "
           f"scenario {scenario.name}")
     return 0
@@ -539,7 +553,8 @@ def _diagnose_job(args, job) -> dict:
         level = None if args.no_screen else args.screen_level
         config = DiagnoseConfig(rank=not args.no_rank, max_effects=args.max_effects, ekf=not args.no_ekf,
                                 screen_level=level, refit_best=args.refit_best or None,
-                                jobs=args.jobs if label is None else 1, check_constancy=not args.no_constancy)
+                                jobs=args.jobs if label is None else 1, check_constancy=not args.no_constancy,
+                                check_veto=not args.no_check_veto)
         diag = diagnose(rec, model, candidates=candidates, extra_candidates=plugins, add=args.add, config=config,
                         progress=progress)
         write_diagnosis(diag, out)
@@ -631,7 +646,8 @@ def _add_simulate_parser(sub) -> None:
     p = sub.add_parser("simulate", help="simulate a scenario into a ROS 2 bag (MCAP) with ground truth")
     p.add_argument("scenario", help="built-in scenario name (stand, com-step, push-pitch, push-roll, push-com, "
                                     "sway, weight-shift, step, walk, walk-short) or a scenario .toml file")
-    p.add_argument("-o", "--output", required=True, type=Path, help="bag directory to write")
+    p.add_argument("-o", "--output", required=True, type=Path, help="output: a bag directory, or X.mcap for "
+                                                                 "one MCAP file")
     p.add_argument("--robot", help="robot name or .toml configuration (overrides the scenario's)")
     p.add_argument("--duration", type=float, help="duration in s (overrides the scenario's)")
     p.add_argument("--seed", type=_whole(0, "a noise seed"), help="noise seed (overrides the scenario's)")
@@ -732,6 +748,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-constancy", action="store_true",
                    help="take a constant effect without fitting it again on each half of the recording "
                         "(the constancy check: halves that disagree make it implausible)")
+    p.add_argument("--no-check-veto", action="store_true",
+                   help="take an effect even when its check against the truth or the reference sensors says it raises "
+                        "an error by more than 5%% (default: turned down, and never added by --add auto)")
     p.add_argument("--seed", type=_whole(0, "a noise seed"), help="noise seed when simulating a scenario")
     _add_input_options(p)
     p.add_argument("--ft", action="store_true", help="fuse the recording's F/T readings as measurements")
@@ -812,6 +831,10 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("flexforce: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    if getattr(args, "quiet", False):
+        from flexforce.jit import set_compile_notice
+
+        set_compile_notice(False)
     with warnings.catch_warnings():
         warnings.showwarning = _show_warning(args.command)
         try:

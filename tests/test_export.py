@@ -158,3 +158,33 @@ def test_streamed_mcap_is_one_file(tmp_path):
     with pytest.raises(DataError, match="no estimate was written"), EstimateWriter(tmp_path / "e.mcap"):
         pass
     assert {p.name for p in tmp_path.iterdir()} == {"s.mcap"}
+
+
+def test_mcap_uncertainty_bands(tmp_path):
+    """With bands=True: the estimate -+ 2 sigma per component, for each covariance the estimate has."""
+    import dataclasses
+
+    from flexforce.datasets.io.export import BAND_SIGMAS
+
+    t = T0 + np.arange(10, dtype=np.int64) * 10_000_000
+    est = dataclasses.replace(make_estimate(t), wrench_cov=np.tile(np.diag([1.0, 4.0, 9.0, 0.1, 0.2, 0.3]), (10, 1, 1)))
+    plain = set(read_bag(export_mcap(est, None, tmp_path / "plain.mcap")))
+    got = read_bag(export_mcap(est, None, tmp_path / "bands.mcap", bands=True))
+    base = "/estimate/fixed_lag/band"
+    added = {f"{base}/{q}/{side}" for q in ("tilt", "position", "total_wrench", "cop") for side in ("low", "high")}
+    assert set(got) - plain == added and not any("/band/" in topic for topic in plain)
+    assert BAND_SIGMAS == 2.0
+    std = est.state_std()
+    rotvec = Rotation.from_matrix(est.R).as_rotvec()
+    for side, sign in (("low", -1), ("high", 1)):
+        tilt = np.array([(m.vector.x, m.vector.y, m.vector.z) for _, m in got[f"{base}/tilt/{side}"]])
+        np.testing.assert_allclose(tilt, rotvec + sign * 2 * std[:, 0:3], atol=1e-12)
+        pos = np.array([(m.point.x, m.point.y, m.point.z) for _, m in got[f"{base}/position/{side}"]])
+        np.testing.assert_allclose(pos, est.t + sign * 2 * std[:, 3:6], atol=1e-12)
+        fz = np.array([m.wrench.force.z for _, m in got[f"{base}/total_wrench/{side}"]])
+        np.testing.assert_allclose(fz, est.total_wrench[:, 2] + sign * 2 * np.sqrt(est.wrench_cov[:, 2, 2]))
+        cop = np.array([(m.point.x, m.point.y, m.point.z) for _, m in got[f"{base}/cop/{side}"]])
+        np.testing.assert_allclose(cop[:, 1], est.cop[:, 1] + sign * 2 * 0.02)
+        np.testing.assert_allclose(cop[:, 2], est.cop[:, 2])
+    without = read_bag(export_mcap(make_estimate(t, cov=False), None, tmp_path / "nocov.mcap", bands=True))
+    assert not any("/band/" in topic for topic in without)

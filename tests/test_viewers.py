@@ -85,14 +85,15 @@ def test_layouts_name_only_exported_topics(exported, kind):
 
 def test_layout_files_parse_and_hold_one_tab_per_question(exported):
     fox = json.loads(render_layout("foxglove", layout_topics_of_bag(exported)))
-    tabs = fox["configById"][fox["layout"]]["tabs"]
+    assert fox["version"] == 1 and fox["content"]["type"] == "tabs"  # foxglove-sdk's versioned format
+    tabs = fox["content"]["tabs"]
     assert [t["title"] for t in tabs] == ["feet", "cop", "tilt", "imu"]
-    plots = [k for k in fox["configById"] if k.startswith("Plot!")]
-
-    def leaves(node):
-        return [node] if isinstance(node, str) else leaves(node["first"]) + leaves(node["second"])
-
-    assert sorted(p for t in tabs for p in leaves(t["layout"])) == sorted(plots)
+    for tab in tabs:  # each tab: its panels in one column
+        assert tab["content"]["type"] == "split" and tab["content"]["direction"] == "column"
+        for item in tab["content"]["items"]:
+            panel = item["content"]
+            assert item["proportion"] > 0 and panel["type"] == "panel" and panel["version"] == 1
+            assert panel["panelType"] in ("Plot", "StateTransitions", "ThreeDee") and panel["title"]
     pj = ET.fromstring(render_layout("plotjuggler", layout_topics_of_bag(exported)))
     assert [t.attrib["tab_name"] for t in pj.iter("Tab")] == ["feet", "cop", "tilt", "imu"]
     for splitter in pj.iter("DockSplitter"):
@@ -216,3 +217,63 @@ def test_a_bag_that_names_no_robot_is_refused(tmp_path, capsys):
         layout_topics(None)
     assert main(["layout", "foxglove", "-o", str(tmp_path / "b.json")]) == 1
     assert "expected --robot" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def banded(tmp_path_factory):
+    """0.3 s of push-pitch with a motion-capture link, the EKF exported with its uncertainty bands."""
+    import dataclasses
+
+    import numpy as np
+
+    sc = Scenario.load("push-pitch")
+    sc.duration = 0.3
+    rec = Simulator(sc).run()
+    pose = np.zeros((rec.n, 7))
+    pose[:, 2], pose[:, 6] = 0.9, 1.0
+    rec = dataclasses.replace(rec, mocap={"root_link": pose})
+    est = run_estimator("ekf", rec)
+    return est, export_mcap(est, rec, tmp_path_factory.mktemp("banded") / "ekf.mcap", bands=True)
+
+
+def test_bands_contact_states_and_mocap_of_a_bag(banded):
+    from flexforce.datasets.io.viewers import BANDS
+
+    _, bag = banded
+    topics = layout_topics_of_bag(bag)
+    assert topics.bands == BANDS and topics.mocap == ("/mocap/root_link",)
+    for kind in KINDS:
+        named = check_layout(kind, render_layout(kind, topics), bag)
+        for q in BANDS:
+            assert {f"/estimate/ekf/band/{q}/low", f"/estimate/ekf/band/{q}/high"} <= named, (kind, q)
+        assert "/mocap/root_link" in named
+    fox = json.loads(render_layout("foxglove", topics))
+    tabs = {t["title"]: [i["content"] for i in t["content"]["items"]] for t in fox["content"]["tabs"]}
+    assert list(tabs) == ["feet", "cop", "tilt", "imu", "mocap"]
+    states = [p for p in tabs["feet"] if p["panelType"] == "StateTransitions"]
+    assert len(states) == 1
+    paths = states[0]["config"]["paths"]
+    assert [p["value"] for p in paths] == [f"/estimate/ekf/wrench/{c}.wrench.force.z" for c in topics.contacts]
+    assert all(p["customStates"]["states"] == [{"value": 0, "operator": "=", "label": "off", "color": "#7f7f7f"}]
+               for p in paths)
+    tilt = next(p for p in tabs["tilt"] if p["title"].startswith("tilt"))["config"]["paths"]
+    estimate, low, high = tilt[:3]  # tilt x, then its band, drawn dashed in the estimate's colour
+    assert estimate["value"] == "/estimate/ekf/tilt.vector.x" and low["value"] == "/estimate/ekf/band/tilt/low.vector.x"
+    assert low["color"] == high["color"] == estimate["color"] and low["lineStyle"] == "dashed"
+    three = [p for p in tabs["mocap"] if p["panelType"] == "ThreeDee"]
+    assert len(three) == 1 and set(three[0]["config"]["topics"]) == {"/mocap/root_link", "/estimate/ekf/flexibility"}
+    assert three[0]["config"]["followTf"] == "world"
+    # PlotJuggler has no state or 3-D panel: its plots only
+    pj = render_layout("plotjuggler", topics)
+    assert "contact states" not in pj and "3-D" not in pj and "/estimate/ekf/band/cop/high" in pj
+
+
+def test_a_layout_from_the_robot_draws_bands_when_asked():
+    plain = render_layout("foxglove", layout_topics("romeo", "batch"))
+    banded = render_layout("foxglove", layout_topics("romeo", "batch", bands=True))
+    assert "/band/" not in plain and "/estimate/batch/band/total_wrench/high.wrench.force.z" in banded
+
+
+def test_an_unversioned_foxglove_layout_is_still_read():
+    text = json.dumps({"configById": {"Plot!a": {"paths": [{"value": "/imu.angular_velocity.x"}]}}, "layout": "Plot!a"})
+    assert topics_of_layout("foxglove", text) == {("/imu", ("angular_velocity", "x"))}

@@ -33,6 +33,14 @@ topic                     message                                   frame_id
 ``cop``                   geometry_msgs/PointStamped                ``world``
 ``tilt``                  geometry_msgs/Vector3Stamped: rotation    ``world``
                           vector of R, rad (x, y: the tilt, z: yaw)
+``band/<q>/low``,         with ``bands=True``: the estimate -+      ``world``
+``band/<q>/high``         :data:`BAND_SIGMAS` standard deviations,
+                          per component, for the covariances the
+                          estimate has: ``tilt`` (Vector3Stamped;
+                          the rotation increment's, first order),
+                          ``position`` (PointStamped, t),
+                          ``total_wrench`` (WrenchStamped),
+                          ``cop`` (PointStamped, x and y)
 ========================  ========================================  ==========
 
 Every topic of the input is copied unchanged beside them (ROS 1 messages converted to ROS 2
@@ -50,11 +58,12 @@ JSON object ``{"format": "flexforce-estimate", "version": 1, "estimator": <topic
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -68,7 +77,7 @@ from flexforce.datasets.recording import Recording
 from flexforce.datasets.safeio import is_bag_folder, safe_output
 from flexforce.errors import BagError, DataError
 
-__all__ = ["INFO_KEY", "EstimateWriter", "csv_columns", "export_csv", "export_info", "export_mcap"]
+__all__ = ["INFO_KEY", "EstimateWriter", "csv_columns", "export_csv", "export_info", "export_mcap", "mcap_file_output"]
 
 _NS = 1_000_000_000
 
@@ -150,10 +159,12 @@ class EstimateWriter:
         overwrite: replace an existing ``.mcap`` file.
         robot: the robot configuration (built-in name, ``.toml`` path or RobotConfig) recorded in
             the MCAP's description (:data:`INFO_KEY`); settable as :attr:`robot` until the block ends.
+        bands: MCAP: also write the ``band/`` topics of :func:`export_mcap`.
     """
 
-    def __init__(self, path, *, overwrite: bool = False, robot=None):
+    def __init__(self, path, *, overwrite: bool = False, robot=None, bands: bool = False):
         self.path = Path(path)
+        self.bands = bands
         self.kind = self.path.suffix
         if self.kind not in (".csv", ".mcap"):
             raise DataError(f"streamed estimates are written to .csv or .mcap; got {self.path}")
@@ -238,7 +249,8 @@ class EstimateWriter:
         else:
             if self._info is None:
                 self._info = _info(est, None)
-            _write_streams(self._writer, self._ts, _estimate_streams(self._ts, est), est.t_ns, "world", self._conns)
+            _write_streams(self._writer, self._ts, _estimate_streams(self._ts, est, self.bands), est.t_ns, "world",
+                           self._conns)
         self.steps += est.n
 
     def copy(self, reader, conn, t_ns: int, raw) -> None:
@@ -286,7 +298,8 @@ def _token(name: str) -> str:
     return token if re.match(r"^[A-Za-z]", token) else f"e_{token}"
 
 
-def export_mcap(estimate: Estimate, source, out_path, *, overwrite: bool = False, robot=None) -> Path:
+def export_mcap(estimate: Estimate, source, out_path, *, overwrite: bool = False, robot=None,
+                bands: bool = False) -> Path:
     """Write the estimate, beside copies of the inputs, into a ROS 2 bag (MCAP) at ``out_path``.
 
     Args:
@@ -298,6 +311,8 @@ def export_mcap(estimate: Estimate, source, out_path, *, overwrite: bool = False
             file, or a ROS 2 bag directory, is replaced by its own kind).
         robot: the robot configuration (built-in name, ``.toml`` path or RobotConfig) recorded in
             the bag's description (:data:`INFO_KEY`); default: the ``Recording``'s, else none.
+        bands: also write the ``band/`` topics (the estimate -+ 2 standard deviations, for the
+            viewers' uncertainty bands; module docstring).
 
     Raises:
         BagError: the output refused, the input unreadable, the writer failed.
@@ -328,7 +343,7 @@ def export_mcap(estimate: Estimate, source, out_path, *, overwrite: bool = False
                     _write_recording(writer, ts, source)
                 elif source is not None:
                     _copy_bag(writer, ts, Path(source))
-                _write_estimate(writer, ts, estimate)
+                _write_estimate(writer, ts, estimate, bands)
                 writer.set_custom_data(INFO_KEY, json.dumps(_info(estimate, robot)))
             if single:
                 _take_mcap(bag, tmp)
@@ -351,6 +366,33 @@ def _check_mcap_target(path: Path, overwrite: bool) -> None:
     if path.is_dir():
         raise BagError(f"cannot overwrite {path}: it is a folder; expected an MCAP file there (remove the folder "
                        "yourself to reuse its name)")
+
+
+@contextlib.contextmanager
+def mcap_file_output(path, *, overwrite: bool = False) -> Iterator[Path]:
+    """Have a ROS 2 bag writer produce the one MCAP file ``path`` (no bag directory).
+
+    Yields the path of a bag directory to create (a hidden sibling of ``path``, not yet existing):
+    the caller writes a complete bag there (:func:`flexforce.datasets.io.bagio.save_recording`, a
+    rosbags ``Writer``...).  When the block ends normally the bag's single ``.mcap`` file is moved
+    to ``path`` and the directory removed; when it raises, ``path`` is left as it was (written aside
+    and moved into place: :func:`flexforce.datasets.safeio.safe_output`).  The rosbag2 metadata
+    lives on in the MCAP file (its ``rosbag2`` metadata record), so readers take the file alone.
+
+    Raises:
+        BagError: ``path`` exists (without ``overwrite``), is a folder, or the bag written holds
+            other than exactly one MCAP file.
+        OutputError: another process is writing ``path``, or the move fails.
+    """
+    path = Path(path)
+    _check_mcap_target(path, overwrite)
+    with safe_output(path) as tmp:
+        bag = _bag_folder(tmp, True)
+        try:
+            yield bag
+            _take_mcap(bag, tmp)
+        finally:
+            shutil.rmtree(bag, ignore_errors=True)
 
 
 def _bag_folder(tmp: Path, single: bool) -> Path:
@@ -529,7 +571,7 @@ class _Msgs:
         return self.T["geometry_msgs/msg/Wrench"](force=self.vec(w[:3]), torque=self.vec(w[3:]))
 
 
-def _estimate_streams(ts, est: Estimate) -> list[tuple[str, str, Callable[..., Any]]]:
+def _estimate_streams(ts, est: Estimate, bands: bool = False) -> list[tuple[str, str, Callable[..., Any]]]:
     M = _Msgs(ts)
     T = M.T
     base = f"/estimate/{_token(est.estimator)}"
@@ -556,6 +598,8 @@ def _estimate_streams(ts, est: Estimate) -> list[tuple[str, str, Callable[..., A
         streams.append((f"{base}/wrench/{_token(name)}", "geometry_msgs/msg/WrenchStamped",
                         lambda k, h, i=i: T["geometry_msgs/msg/WrenchStamped"](
                             header=h, wrench=M.wrench(est.wrench[k, i]))))
+    if bands:
+        streams += _band_streams(M, base, est, rotvec)
     if est.cov is not None:
         # state layout -> ROS pose covariance order (x, y, z, rot x, rot y, rot z)
         idx = np.r_[STATE["t"], STATE["theta"]]
@@ -567,8 +611,43 @@ def _estimate_streams(ts, est: Estimate) -> list[tuple[str, str, Callable[..., A
     return streams
 
 
-def _write_estimate(writer, ts, est: Estimate) -> None:
-    _write_streams(writer, ts, _estimate_streams(ts, est), est.t_ns, "world")
+BAND_SIGMAS = 2.0
+"""Half-width of the ``band/`` topics, in standard deviations (the reports' bands too)."""
+
+
+def _band_streams(M: _Msgs, base: str, est: Estimate, rotvec: np.ndarray) -> list[tuple[str, str, Callable[..., Any]]]:
+    """The ``band/<quantity>/low|high`` topics: the estimate -+ :data:`BAND_SIGMAS` standard
+    deviations, for the covariances ``est`` has (none without)."""
+    T = M.T
+    out: list[tuple[str, str, Callable[..., Any]]] = []
+    bands: list[tuple[str, str, np.ndarray, np.ndarray, Callable[..., Any]]] = []
+    std = est.state_std()
+    if std is not None:
+        vec = "geometry_msgs/msg/Vector3Stamped"
+        point = "geometry_msgs/msg/PointStamped"
+        bands.append(("tilt", vec, rotvec, std[:, STATE["theta"]],
+                      lambda h, v: T[vec](header=h, vector=M.vec(v))))
+        bands.append(("position", point, est.t, std[:, STATE["t"]],
+                      lambda h, v: T[point](header=h, point=M.point(v))))
+    if est.wrench_cov is not None:
+        wrench = "geometry_msgs/msg/WrenchStamped"
+        bands.append(("total_wrench", wrench, est.total_wrench,
+                      np.sqrt(np.maximum(np.diagonal(est.wrench_cov, axis1=1, axis2=2), 0.0)),
+                      lambda h, v: T[wrench](header=h, wrench=M.wrench(v))))
+    if est.cop_cov is not None:
+        point = "geometry_msgs/msg/PointStamped"
+        cop_std = np.zeros_like(est.cop)
+        cop_std[:, :2] = np.sqrt(np.maximum(np.diagonal(est.cop_cov, axis1=1, axis2=2), 0.0))
+        bands.append(("cop", point, est.cop, cop_std, lambda h, v: T[point](header=h, point=M.point(v))))
+    for name, msgtype, value, sd, make in bands:
+        for side, sign in (("low", -1.0), ("high", 1.0)):
+            edge = value + sign * BAND_SIGMAS * sd
+            out.append((f"{base}/band/{name}/{side}", msgtype, lambda k, h, edge=edge, make=make: make(h, edge[k])))
+    return out
+
+
+def _write_estimate(writer, ts, est: Estimate, bands: bool = False) -> None:
+    _write_streams(writer, ts, _estimate_streams(ts, est, bands), est.t_ns, "world")
 
 
 def _write_streams(writer, ts, streams, t_ns, frame, conns: dict | None = None) -> None:

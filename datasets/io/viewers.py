@@ -3,22 +3,32 @@
 A layout shows the estimate beside the inputs it was computed from, one tab per question:
 
 ========  ==================================================================================
-tab       plots
+tab       panels
 ========  ==================================================================================
 feet      per contact, the estimated normal force F_z beside the F/T reading (when the robot
-          has F/T sensors) and the ground truth (simulated bags); the total F_z
-cop       centre of pressure x and y, estimated and true
+          has F/T sensors) and the ground truth (simulated bags); the total F_z (with its
+          uncertainty band when the bag has one); the contact states (Foxglove only: a State
+          Transitions strip per contact, off where its estimated force is exactly zero)
+cop       centre of pressure x and y, estimated (with its band) and true
 tilt      the flexibility's tilt (rotation vector x, y, rad) and sinking (t_z, m), estimated
-          and true (t_z)
+          (with their bands) and true (t_z); the estimated angular velocity
 imu       the gyrometer and accelerometer readings the estimators were given
+mocap     when the bag holds ``/mocap/<link>`` poses: each link's position, and (Foxglove
+          only) a 3-D panel of the links' poses beside the estimated flexibility, world frame
 ========  ==================================================================================
 
+Uncertainty bands are the ``band/<q>/low|high`` topics an export carries with ``bands=True``
+(the estimate -+ 2 standard deviations), drawn dashed in the estimate's colour.
+
 The curves depend on the robot (its contact names, its F/T topics) and on the estimator
-(``/estimate/<estimator>/...``), so the layouts are rendered from templates shipped with the
-package (``datasets/io/layouts/*.j2``) for one robot and estimator (:func:`render_layout`), or for
-the topics of an exported bag (:func:`layout_topics_of_bag`); ``flexforce layout`` is the command
-line face.  The F/T readings are in each sensor's frame, the estimate in the world: for a flat
-foot both F_z are the normal force.
+(``/estimate/<estimator>/...``), so the layouts are made for one robot and estimator
+(:func:`render_layout`, :func:`layout_topics`), or for the topics of an exported bag
+(:func:`layout_topics_of_bag`); ``flexforce layout`` is the command line face.  Foxglove layouts
+are written in the foxglove-sdk's versioned format (``foxglove.layouts.Layout``:
+:data:`FOXGLOVE_LAYOUT_VERSION`, a ``content`` tree of tab and split containers and panels);
+PlotJuggler's from the template shipped with the package (``datasets/io/layouts/*.j2``).  The
+F/T readings are in each sensor's frame, the estimate in the world: for a flat foot both F_z are
+the normal force.
 
 Topic names follow :mod:`flexforce.datasets.io.bagio` (``/imu``, ``/ft/<contact>``,
 ``/truth/...``) for flexforce bags, and the robot configuration's ``[ros]`` table
@@ -36,8 +46,8 @@ from typing import Any
 
 from flexforce.errors import BagError, ConfigError
 
-__all__ = ["KINDS", "Curve", "LayoutTopics", "Plot", "bag_robot", "layout_topics", "layout_topics_of_bag", "panels",
-           "render_layout", "topics_of_layout"]
+__all__ = ["BANDS", "FOXGLOVE_LAYOUT_VERSION", "KINDS", "Curve", "LayoutTopics", "Plot", "bag_robot", "layout_topics",
+           "layout_topics_of_bag", "panels", "render_layout", "topics_of_layout"]
 
 KINDS = {"foxglove": ".json", "plotjuggler": ".xml"}
 """Layout kind -> suffix of its file."""
@@ -70,28 +80,51 @@ class LayoutTopics:
     """Whether the bag holds the simulator's ``/truth/...`` topics."""
     robot: str | None = None
     """Name of the robot configuration the topics were chosen for (not drawn)."""
+    bands: tuple[str, ...] = ()
+    """Quantities whose ``/estimate/<estimator>/band/<q>/low|high`` topics (the estimate -+ 2
+    standard deviations, :func:`flexforce.datasets.io.export.export_mcap` with ``bands=True``)
+    are drawn: a subset of :data:`BANDS`."""
+    mocap: tuple[str, ...] = ()
+    """geometry_msgs/PoseStamped topics of motion capture (``/mocap/<link>``, world frame) drawn
+    as the reference."""
 
     @property
     def base(self) -> str:
         return f"/estimate/{self.estimator}"
 
 
+BANDS = ("tilt", "position", "total_wrench", "cop")
+"""The quantities an export can carry uncertainty bands of (``band/<q>/low|high`` topics)."""
+
+
 @dataclass(frozen=True)
 class Curve:
+    """One series of a plot."""
+
     topic: str
     field: tuple[str, ...]
-    """Path of a numeric field in the message (``("wrench", "force", "z")``)."""
+    """Path of a numeric field in the message (``("wrench", "force", "z")``); empty for a
+    3-D panel's topic."""
     label: str
+    band: bool = False
+    """An edge of the uncertainty band of the curve before it: drawn dashed, in its colour."""
 
 
 @dataclass(frozen=True)
 class Plot:
+    """One panel: a time plot, a contact-state strip or a 3-D view."""
+
     title: str
     curves: tuple[Curve, ...]
+    kind: str = "plot"
+    """``plot`` (values over time), ``states`` (Foxglove State Transitions: a contact is off where
+    its estimated normal force is exactly zero, the estimators' contract for an inactive contact)
+    or ``3d`` (Foxglove 3D panel of the curves' pose topics in the ``world`` frame).  PlotJuggler
+    layouts hold the plots only."""
 
 
 def layout_topics(robot, estimator: str = "ekf", ft: bool = True, truth: bool = False,
-                  raw: bool | None = None) -> LayoutTopics:
+                  raw: bool | None = None, bands: bool = False) -> LayoutTopics:
     """The topics of an exported bag of ``robot`` (name, .toml path or RobotConfig).
 
     Args:
@@ -102,6 +135,7 @@ def layout_topics(robot, estimator: str = "ekf", ft: bool = True, truth: bool = 
         raw: the input was a raw robot bag, whose F/T and IMU topics are the robot configuration's
             ``[ros]`` table; default: when the configuration has one with F/T topics and ``truth``
             is not asked (simulated bags use ``/imu`` and ``/ft/<contact>``).
+        bands: draw the uncertainty bands (:data:`BANDS`) of an export written with them.
     """
     from flexforce.datasets.robot import RobotConfig
 
@@ -124,7 +158,7 @@ def layout_topics(robot, estimator: str = "ekf", ft: bool = True, truth: bool = 
         else:
             ft_topics = {c: f"/ft/{c}" for c in contacts}
     return LayoutTopics(estimator=_token(str(estimator).replace("-", "_").lower()), contacts=contacts, ft=ft_topics,
-                        imu=imu, truth=truth, robot=config.name)
+                        imu=imu, truth=truth, robot=config.name, bands=BANDS if bands else ())
 
 
 def bag_topics(path) -> dict[str, str]:
@@ -203,8 +237,9 @@ def layout_topics_of_bag(path, robot=None) -> LayoutTopics:
 
     The estimator and the contacts come from its ``/estimate/<estimator>/wrench/<contact>`` topics;
     F/T readings are ``/ft/<contact>`` topics, or those of the robot configuration's
-    ``[ros] ft_topics`` (and ``imu_topic``) that the bag holds.  The robot is ``robot`` when given,
-    else the one the bag names (:func:`bag_robot`).
+    ``[ros] ft_topics`` (and ``imu_topic``) that the bag holds; uncertainty bands are drawn for the
+    ``band/`` topics it holds, motion capture for its ``/mocap/<link>`` poses.  The robot is
+    ``robot`` when given, else the one the bag names (:func:`bag_robot`).
 
     Raises:
         BagError: a missing or unreadable bag, one without ``/estimate/<estimator>/`` topics or
@@ -234,12 +269,24 @@ def layout_topics_of_bag(path, robot=None) -> LayoutTopics:
     if topics.get(imu or "") != "sensor_msgs/msg/Imu":
         imu = None
     truth = "/truth/cop" in topics
-    return LayoutTopics(estimator=est, contacts=contacts, ft=ft, imu=imu, truth=truth, robot=config.name)
+    bands = tuple(q for q in BANDS if f"/estimate/{est}/band/{q}/low" in topics
+                  and f"/estimate/{est}/band/{q}/high" in topics)
+    mocap = tuple(t for t in sorted(topics) if t.startswith("/mocap/")
+                  and topics[t] == "geometry_msgs/msg/PoseStamped")
+    return LayoutTopics(estimator=est, contacts=contacts, ft=ft, imu=imu, truth=truth, robot=config.name,
+                        bands=bands, mocap=mocap)
 
 
 def panels(topics: LayoutTopics) -> list[tuple[str, list[Plot]]]:
-    """The tabs of a layout: (tab name, plots), each plot a list of curves."""
+    """The tabs of a layout: (tab name, panels), each panel a list of curves (module docstring)."""
     b = topics.base
+
+    def band(quantity: str, field: tuple[str, ...], label: str) -> list[Curve]:
+        if quantity not in topics.bands:
+            return []
+        return [Curve(f"{b}/band/{quantity}/{side}", field, f"{label} {side} (2 sigma)", band=True)
+                for side in ("low", "high")]
+
     feet = []
     for c in topics.contacts:
         curves = [Curve(f"{b}/wrench/{c}", ("wrench", "force", "z"), f"{c} F_z estimated")]
@@ -249,17 +296,25 @@ def panels(topics: LayoutTopics) -> list[tuple[str, list[Plot]]]:
             curves.append(Curve(f"/truth/wrench/{c}", ("wrench", "force", "z"), f"{c} F_z truth"))
         feet.append(Plot(f"{c}: normal force [N]", tuple(curves)))
     # the simulator writes per-contact truth wrenches only: the total is the estimate's
-    feet.append(Plot("total normal force [N]", (Curve(f"{b}/total_wrench", ("wrench", "force", "z"),
-                                                      "total F_z estimated"),)))
+    total_field = ("wrench", "force", "z")
+    feet.append(Plot("total normal force [N]", (Curve(f"{b}/total_wrench", total_field, "total F_z estimated"),
+                                                *band("total_wrench", total_field, "total F_z"))))
+    feet.append(Plot("contact states (off: estimated normal force exactly zero)",
+                     tuple(Curve(f"{b}/wrench/{c}", ("wrench", "force", "z"), c) for c in topics.contacts),
+                     kind="states"))
     cop = []
     for ax in "xy":
-        curves = [Curve(f"{b}/cop", ("point", ax), f"CoP {ax} estimated")]
+        curves = [Curve(f"{b}/cop", ("point", ax), f"CoP {ax} estimated"), *band("cop", ("point", ax), f"CoP {ax}")]
         if topics.truth:
             curves.append(Curve("/truth/cop", ("point", ax), f"CoP {ax} truth"))
         cop.append(Plot(f"centre of pressure {ax} [m]", tuple(curves)))
-    tilt = [Plot("tilt: rotation vector [rad]", (Curve(f"{b}/tilt", ("vector", "x"), "tilt x (roll) estimated"),
-                                                 Curve(f"{b}/tilt", ("vector", "y"), "tilt y (pitch) estimated")))]
-    sink = [Curve(f"{b}/flexibility", ("pose", "position", "z"), "t_z estimated")]
+    tilt_curves = []
+    for ax, name in (("x", "roll"), ("y", "pitch")):
+        tilt_curves += [Curve(f"{b}/tilt", ("vector", ax), f"tilt {ax} ({name}) estimated"),
+                        *band("tilt", ("vector", ax), f"tilt {ax}")]
+    tilt = [Plot("tilt: rotation vector [rad]", tuple(tilt_curves))]
+    sink = [Curve(f"{b}/flexibility", ("pose", "position", "z"), "t_z estimated"),
+            *band("position", ("point", "z"), "t_z")]
     if topics.truth:
         sink.append(Curve("/truth/flexibility", ("pose", "position", "z"), "t_z truth"))
     tilt.append(Plot("sinking t_z [m]", tuple(sink)))
@@ -271,6 +326,14 @@ def panels(topics: LayoutTopics) -> list[tuple[str, list[Plot]]]:
             Plot("gyrometer [rad/s]", tuple(Curve(topics.imu, ("angular_velocity", ax), f"gyro {ax}") for ax in "xyz")),
             Plot("accelerometer [m/s^2]", tuple(Curve(topics.imu, ("linear_acceleration", ax), f"accel {ax}")
                                                 for ax in "xyz"))]))
+    if topics.mocap:
+        mocap = [Plot(f"{t.removeprefix('/mocap/')}: motion-capture position (world) [m]",
+                      tuple(Curve(t, ("pose", "position", ax), f"{t.removeprefix('/mocap/')} {ax}") for ax in "xyz"))
+                 for t in topics.mocap]
+        mocap.append(Plot("3-D: motion-capture poses and the estimated flexibility (world frame)",
+                          (*(Curve(t, (), t.removeprefix("/mocap/")) for t in topics.mocap),
+                           Curve(f"{b}/flexibility", (), "flexibility estimated")), kind="3d"))
+        tabs.append(("mocap", mocap))
     return tabs
 
 
@@ -283,8 +346,56 @@ def _environment():
                               undefined=jinja2.StrictUndefined, keep_trailing_newline=True)
 
 
+FOXGLOVE_LAYOUT_VERSION = 1
+"""``version`` of the Foxglove layouts written: the versioned format of the foxglove-sdk's
+``foxglove.layouts.Layout`` (``{"version", "content"}``, containers ``tabs``/``split``, panels
+``{"type": "panel", "panelType", "title", "version", "config"}``)."""
+
+
+def _foxglove_panel(entry: dict) -> dict:
+    """One panel of the versioned Foxglove layout."""
+    common = {"type": "panel", "title": entry["title"], "version": 1}
+    if entry["kind"] == "3d":
+        topics = {c["topic"]: {"visible": True, "type": "axis", "axisScale": 0.2} for c in entry["curves"]}
+        return {**common, "panelType": "ThreeDee",
+                "config": {"followTf": "world", "fixedFrame": "world", "topics": topics,
+                           "layers": {"grid": {"layerId": "foxglove.Grid", "visible": True}}}}
+    paths = []
+    for c in entry["curves"]:
+        path = {"value": c["topic"] + "." + ".".join(c["field"]), "label": c["label"], "enabled": True,
+                "timestampMethod": "receiveTime"}
+        if entry["kind"] == "states":
+            path["customStates"] = {"type": "range",
+                                    "states": [{"value": 0, "operator": "=", "label": "off", "color": "#7f7f7f"}],
+                                    "otherwise": {"label": "in contact", "color": c["color"]}}
+        else:
+            path["color"] = c["color"]
+            if c["band"]:
+                path.update(lineStyle="dashed", lineSize=1)
+        paths.append(path)
+    if entry["kind"] == "states":
+        return {**common, "panelType": "StateTransitions", "config": {"paths": paths, "isSynced": True}}
+    return {**common, "panelType": "Plot",
+            "config": {"paths": paths, "showXAxisLabels": True, "showYAxisLabels": True, "showLegend": True,
+                       "legendDisplay": "floating", "showPlotValuesInLegend": False, "isSynced": True,
+                       "xAxisVal": "timestamp"}}
+
+
+def _foxglove(tabs: list[dict]) -> str:
+    """The versioned Foxglove layout (:data:`FOXGLOVE_LAYOUT_VERSION`): one tab container, one tab
+    per question, its panels stacked in a column."""
+    import json
+
+    content = {"type": "tabs", "selectedTabIndex": 0, "tabs": [
+        {"title": tab["name"], "content": {"type": "split", "direction": "column", "items": [
+            {"proportion": 1, "content": _foxglove_panel(entry)} for entry in tab["plots"]]}}
+        for tab in tabs]}
+    return json.dumps({"version": FOXGLOVE_LAYOUT_VERSION, "content": content}, indent=2) + "\n"
+
+
 def render_layout(kind: str, topics: LayoutTopics) -> str:
-    """The text of a ``kind`` layout (:data:`KINDS`) for ``topics``."""
+    """The text of a ``kind`` layout (:data:`KINDS`) for ``topics``: Foxglove's versioned JSON
+    (:data:`FOXGLOVE_LAYOUT_VERSION`), or PlotJuggler's XML (its plots only)."""
     if kind not in KINDS:
         raise ConfigError(f"unknown layout kind {kind!r}; expected one of {', '.join(KINDS)}")
     tabs = []
@@ -292,17 +403,44 @@ def render_layout(kind: str, topics: LayoutTopics) -> str:
     for name, plots in panels(topics):
         entries = []
         for plot in plots:
+            if kind == "plotjuggler" and plot.kind != "plot":
+                continue
             n += 1
-            entries.append({"id": f"Plot!ff{n}", "title": plot.title,
-                            "curves": [{"topic": c.topic, "field": c.field, "label": c.label,
-                                        "color": COLORS[i % len(COLORS)]} for i, c in enumerate(plot.curves)]})
-        tabs.append({"name": name, "plots": entries})
+            curves = []
+            color = COLORS[0]
+            index = 0
+            for c in plot.curves:
+                if not c.band:
+                    color = COLORS[index % len(COLORS)]
+                    index += 1
+                curves.append({"topic": c.topic, "field": c.field, "label": c.label, "color": color, "band": c.band})
+            entries.append({"id": f"Plot!ff{n}", "title": plot.title, "kind": plot.kind, "curves": curves})
+        if entries:
+            tabs.append({"name": name, "plots": entries})
+    if kind == "foxglove":
+        return _foxglove(tabs)
     template = _environment().get_template(f"{kind}{KINDS[kind]}.j2")
     return template.render(tabs=tabs, estimator=topics.estimator)
 
 
+def _foxglove_series(node) -> list[str]:
+    """The message paths of every Plot and State Transitions series under ``node`` (a versioned
+    layout's content, or an older layout's ``configById``)."""
+    out: list[str] = []
+    if isinstance(node, dict):
+        if node.get("type") == "panel" and node.get("panelType") in ("Plot", "StateTransitions"):
+            return [p["value"] for p in node.get("config", {}).get("paths", [])]
+        for value in node.values():
+            out += _foxglove_series(value)
+    elif isinstance(node, list):
+        for value in node:
+            out += _foxglove_series(value)
+    return out
+
+
 def topics_of_layout(kind: str, text: str, known: set[str] | dict | None = None) -> set[tuple[str, tuple[str, ...]]]:
-    """(topic, field path) of every curve a rendered layout names, read back from its text.
+    """(topic, field path) of every series (plot curve, contact state) a rendered layout names,
+    read back from its text (3-D panels' topics are not series).
 
     A PlotJuggler curve is one string (``/topic/field/...``): it is split after the longest of the
     ``known`` topics it starts with (the whole string is the topic when none does).
@@ -313,10 +451,13 @@ def topics_of_layout(kind: str, text: str, known: set[str] | dict | None = None)
     out = set()
     if kind == "foxglove":
         data = json.loads(text)
-        for config in data["configById"].values():
-            for path in config.get("paths", []):
-                topic, *fields = path["value"].split(".")
-                out.add((topic, tuple(fields)))
+        if "configById" in data:  # the unversioned format: panel id -> config
+            values = [p["value"] for c in data["configById"].values() for p in c.get("paths", [])]
+        else:
+            values = _foxglove_series(data.get("content"))
+        for value in values:
+            topic, *fields = value.split(".")
+            out.add((topic, tuple(fields)))
     elif kind == "plotjuggler":
         for curve in ET.fromstring(text).iter("curve"):
             name = curve.attrib["name"]

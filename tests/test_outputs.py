@@ -1,0 +1,205 @@
+"""Outputs are what their names say: ``simulate -o X.mcap`` writes the one MCAP file X.mcap."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from flexforce.cli import main
+from flexforce.datasets.io.bagio import load_recording
+from flexforce.datasets.io.export import mcap_file_output
+from flexforce.errors import BagError
+
+
+def test_simulate_into_an_mcap_name_writes_one_mcap_file(tmp_path, capsys):
+    out = tmp_path / "walk.mcap"
+    assert main(["simulate", "stand", "--duration", "0.2", "-o", str(out), "-q"]) == 0
+    assert f"wrote {out}:" in capsys.readouterr().out
+    assert out.is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["walk.mcap"]  # no folder, temporary or lock
+    rec = load_recording(out)
+    assert rec.n == 41 and rec.truth is not None and rec.meta["scenario"]["name"] == "stand"
+
+
+def test_simulate_into_an_mcap_name_refuses_then_replaces(tmp_path, capsys):
+    out = tmp_path / "r.mcap"
+    assert main(["simulate", "stand", "--duration", "0.1", "-o", str(out), "-q"]) == 0
+    first = out.read_bytes()
+    assert main(["simulate", "stand", "--duration", "0.2", "-o", str(out), "-q"]) == 1
+    assert "exists already" in capsys.readouterr().err and out.read_bytes() == first
+    assert main(["simulate", "stand", "--duration", "0.2", "-o", str(out), "--force", "-q"]) == 0
+    assert load_recording(out).n == 41
+    folder = tmp_path / "d.mcap"
+    folder.mkdir()
+    (folder / "keep.txt").write_text("x")
+    assert main(["simulate", "stand", "--duration", "0.1", "-o", str(folder), "--force", "-q"]) == 1
+    assert "not an MCAP file" in capsys.readouterr().err and (folder / "keep.txt").exists()
+
+
+def test_an_interrupted_mcap_file_output_leaves_the_previous_file(tmp_path):
+    out = tmp_path / "x.mcap"
+    out.write_bytes(b"previous")
+    with pytest.raises(KeyboardInterrupt), mcap_file_output(out, overwrite=True) as bag:
+        bag.mkdir()
+        (bag / "x_0.mcap").write_bytes(b"new")
+        raise KeyboardInterrupt
+    assert out.read_bytes() == b"previous"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.mcap"]
+
+
+def test_mcap_file_output_takes_exactly_one_mcap_file(tmp_path):
+    with pytest.raises(BagError, match="holds 0 MCAP files; expected exactly one"), \
+            mcap_file_output(tmp_path / "y.mcap") as bag:
+        bag.mkdir()
+    assert not (tmp_path / "y.mcap").exists()
+    with mcap_file_output(tmp_path / "z.mcap") as bag:
+        bag.mkdir()
+        (bag / "z_0.mcap").write_bytes(np.arange(3, dtype=np.uint8).tobytes())
+    assert (tmp_path / "z.mcap").read_bytes() == b"\x00\x01\x02"
+
+
+# ---- where the compiled kernels are cached (flexforce.jit) -------------------------------------------
+
+TINY = "from flexforce.jit import njit\n\n\n@njit\ndef add(a, b):\n    return a + b\n"
+
+
+def _tiny_kernel(folder, name="tiny_kernel"):
+    """A module holding one njit kernel, imported from ``folder`` (a fresh dispatcher each call)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, folder / "tiny_kernel.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.add
+
+
+@pytest.fixture
+def kernel_source(tmp_path, monkeypatch):
+    """A read-only source folder with the tiny kernel, a user cache under tmp_path, numba's own
+    cache setting cleared, the compile notice on and not yet written."""
+    numba = pytest.importorskip("numba")
+    from flexforce import jit
+
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / "tiny_kernel.py").write_text(TINY)
+    src.chmod(0o555)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    monkeypatch.setattr(numba.config, "CACHE_DIR", "")
+    monkeypatch.setattr(jit, "_announced", False)
+    monkeypatch.setattr(jit, "_notice_mode", True)
+    yield src
+    src.chmod(0o755)
+
+
+def _cached(folder):
+    return sorted(p.name for p in folder.rglob("*") if p.suffix in (".nbi", ".nbc"))
+
+
+def test_kernels_are_cached_in_the_user_cache_not_the_source_tree(kernel_source, tmp_path, capsys):
+    from flexforce import jit
+
+    assert jit.kernel_cache_dir() == tmp_path / "xdg" / "flexforce" / "numba"
+    add = _tiny_kernel(kernel_source)
+    assert add(2, 3) == 5
+    err = capsys.readouterr().err
+    assert err.startswith("flexforce: compiling the numerical kernels (first run") and err.count("\n") == 1
+    assert str(tmp_path / "xdg" / "flexforce" / "numba") in err
+    assert add.stats.cache_misses and not add.stats.cache_hits
+    assert any(name.startswith("tiny_kernel.add-") for name in _cached(tmp_path / "xdg" / "flexforce" / "numba"))
+    assert _cached(kernel_source) == []  # nothing beside the sources
+    # a second process (a fresh dispatcher, the notice not yet written) loads it, silently
+    jit._announced = False
+    again = _tiny_kernel(kernel_source, "tiny_kernel_again")
+    assert again(1.5, 2.0) == 3.5 and again(4, 5) == 9
+    assert again.stats.cache_hits and capsys.readouterr().err.count("compiling") == 1  # float64: compiled once
+
+
+def test_an_unwritable_user_cache_falls_back_to_the_source_tree(kernel_source, tmp_path, monkeypatch, capsys):
+    (tmp_path / "afile").write_text("x")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "afile"))  # a file: no cache folder can be made there
+    kernel_source.chmod(0o755)
+    add = _tiny_kernel(kernel_source)
+    assert add(2, 3) == 5 and add.stats.cache_misses
+    assert any(name.startswith("tiny_kernel.add-") for name in _cached(kernel_source / "__pycache__"))
+
+
+def test_the_compile_notice_follows_its_setting(kernel_source, monkeypatch, capsys):
+    from flexforce import jit
+
+    jit.set_compile_notice(False)
+    assert _tiny_kernel(kernel_source)(1, 1) == 2
+    assert capsys.readouterr().err == ""
+    jit.set_compile_notice(None)  # stderr captured by pytest: no terminal, no notice
+    assert _tiny_kernel(kernel_source, "tiny_b")(1.0, 1.0) == 2.0
+    assert capsys.readouterr().err == ""
+
+
+def test_relative_xdg_cache_home_is_ignored(monkeypatch):
+    from flexforce.jit import kernel_cache_dir
+
+    monkeypatch.setenv("XDG_CACHE_HOME", "relative/cache")
+    assert kernel_cache_dir() == Path.home() / ".cache" / "flexforce" / "numba"
+    monkeypatch.delenv("XDG_CACHE_HOME")
+    assert kernel_cache_dir() == Path.home() / ".cache" / "flexforce" / "numba"
+
+
+# ---- the demo report in a real browser --------------------------------------------------------------
+
+BROWSERS = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
+
+
+def _browser() -> str | None:
+    import shutil
+
+    return next((path for name in BROWSERS if (path := shutil.which(name))), None)
+
+
+def screenshot(browser: str, page: Path, png: Path, size=(1280, 4000)) -> None:
+    """A headless browser's screenshot of ``page`` (the top ``size`` pixels)."""
+    import subprocess
+
+    subprocess.run([browser, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
+                    f"--window-size={size[0]},{size[1]}", f"--screenshot={png}", page.resolve().as_uri()],
+                   capture_output=True, timeout=120, check=True)
+
+
+@pytest.mark.slow
+def test_the_demo_report_renders_in_a_browser(tmp_path):
+    """``flexforce demo`` writes a report that a headless Chromium draws: text, tables and figures
+    (not a blank page), the verdict sentence first, every figure loaded."""
+    import re
+    import subprocess
+    import sys
+
+    from PIL import Image
+
+    browser = _browser()
+    if browser is None:
+        pytest.skip(f"no headless browser: none of {', '.join(BROWSERS)} is on PATH (e.g. apt-get install chromium)")
+    out = tmp_path / "demo"
+    proc = subprocess.run([sys.executable, "-m", "flexforce.cli", "demo", "-o", str(out), "-q"], capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    html = (out / "index.html").read_text(encoding="utf-8")
+    verdict = re.search(r"[A-Z][\w -]*: \w+ is best \([\d.]+ [^)]*\)", html)
+    assert verdict, "the report states no verdict (which estimator is best, by how much)"
+    assert html.index(verdict[0]) < html.index("<h2"), "the verdict comes before the first section"
+    for src in re.findall(r'<img[^>]+src="([^"]+)"', html):
+        assert src.startswith("data:") or (out / src).is_file(), f"figure {src} is missing"
+    png = tmp_path / "report.png"
+    screenshot(browser, out / "index.html", png)
+    pixels = np.asarray(Image.open(png).convert("L"), dtype=float)
+    assert pixels.shape == (4000, 1280)
+    inked = (pixels < 200).mean()
+    assert 0.01 < inked < 0.6, f"{100 * inked:.2f} % of the screenshot is drawn: a blank or broken page"
+    assert pixels[:300].std() > 20, "no text at the top of the page"
+
+
+def test_the_browser_test_skips_with_a_reason_without_a_browser(monkeypatch):
+    import shutil
+
+    monkeypatch.setattr(shutil, "which", lambda name: None)
+    assert _browser() is None
