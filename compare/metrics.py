@@ -501,15 +501,16 @@ def phase_metrics(m: Metrics, est, rec, skip: float = 0.0, cutoff_hz: float = LO
 
 
 def violations(est, rec, skip: float = 0.0, mu: float = FRICTION_MU,
-               sole: tuple[float, float, float, float] | None = None) -> dict:
+               sole: tuple[float, float, float, float] | None = None, soles: tuple = ()) -> dict:
     """Physically impossible contact wrenches of ``est``, over the (step, contact) pairs in force
     after ``skip`` s, in the contact frames (:func:`contact_frame_wrench`, z the contact normal):
 
     - ``negative_normal``: normal force F_z below 0 N (the ground pulls);
     - ``friction_cone``: outside the cone |F_xy| <= ``mu`` F_z (a negative normal force included);
     - ``cop_outside_sole``: the contact's CoP (x = -T_y / F_z, y = T_x / F_z, where F_z > 0)
-      outside ``sole`` = (x_min, x_max, y_min, y_max), m, in the contact frame; without a sole
-      ``{"skipped": reason}``.
+      outside ``sole`` = (x_min, x_max, y_min, y_max), m, in the contact frame, or each contact's
+      own of ``soles`` (per contact, a rectangle or None: that contact's samples are not judged,
+      :attr:`flexforce.factors.model.ModelConfig.soles`); without a sole ``{"skipped": reason}``.
 
     Returns:
         ``samples_in_contact``, ``friction_mu`` and per check ``count`` and ``fraction`` (of the
@@ -528,13 +529,19 @@ def violations(est, rec, skip: float = 0.0, mu: float = FRICTION_MU,
     ft = np.linalg.norm(w[:, :2], axis=1)
     out: dict = {"samples_in_contact": n, "friction_mu": mu, "negative_normal": counted(fn < 0),
                  "friction_cone": counted((fn < 0) | (ft > mu * fn))}
-    if sole is None:
+    per = [sole] * len(rec.contact_names) if sole is not None else list(soles)
+    if not any(r is not None for r in per):
         out["cop_outside_sole"] = {"skipped": NO_SOLE}
-    else:
-        x0, x1, y0, y1 = sole
-        pos = fn > 0
-        cx = -w[pos, 4] / fn[pos]
-        cy = w[pos, 3] / fn[pos]
-        out["cop_outside_sole"] = {**counted((cx < x0) | (cx > x1) | (cy < y0) | (cy > y1)),
-                                   "sole_m": list(sole)}
+        return out
+    if len(per) != len(rec.contact_names):
+        raise ValueError(f"soles: {len(per)} given for {len(rec.contact_names)} contacts")
+    which = np.nonzero(on)[1]  # the contact of each judged (step, contact) pair, in w's order
+    box = np.array([r if r is not None else (np.nan,) * 4 for r in per], dtype=float)[which]  # (n, 4)
+    judged = (fn > 0) & np.isfinite(box[:, 0])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cx = np.where(judged, -w[:, 4] / fn, 0.0)
+        cy = np.where(judged, w[:, 3] / fn, 0.0)
+    bad = judged & ((cx < box[:, 0]) | (cx > box[:, 1]) | (cy < box[:, 2]) | (cy > box[:, 3]))
+    shown = list(sole) if sole is not None else [None if r is None else list(r) for r in per]
+    out["cop_outside_sole"] = {**counted(bad, int(judged.sum())), "sole_m": shown}
     return out

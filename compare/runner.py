@@ -302,7 +302,7 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
             est.total_time = time.perf_counter() - t0
         result.estimates[key] = est
         result.metrics[key] = evaluate(est, rec, skip=skip, peak_memory_mb=mem.peak_mb)
-        _contact_checks(result.metrics[key], est, rec, skip)
+        _contact_checks(result.metrics[key], est, rec, skip, model)
         chosen = (options or {}).get(name)
         if chosen:
             result.metrics[key].extra["options"] = {k: (v if isinstance(v, bool | int | float | str) else repr(v))
@@ -326,7 +326,7 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
             m.kind = "baseline"
             m.time_per_step = {}
             m.total_time = None
-            _contact_checks(m, est, rec, skip)
+            _contact_checks(m, est, rec, skip, model)
             result.baseline_estimates[key] = est
             result.baselines[key] = m
     if peers is None or peers:
@@ -384,12 +384,12 @@ def _without_forces(m: Metrics) -> None:
             del entry[k]
 
 
-def _contact_checks(m: Metrics, est, rec, skip: float) -> None:
+def _contact_checks(m: Metrics, est, rec, skip: float, model=None) -> None:
     """Per-phase and low-passed errors and physical violations of ``est`` into ``m`` (where the
-    recording has contacts)."""
+    recording has contacts; the CoP judged against the ``model``'s soles when it gives them)."""
     phase_metrics(m, est, rec, skip=skip)
     if rec.contact_names:
-        m.violations = violations(est, rec, skip=skip)
+        m.violations = violations(est, rec, skip=skip, soles=tuple(getattr(model, "soles", ()) or ()))
 
 
 AUTO_JOBS = "auto"

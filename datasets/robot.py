@@ -50,6 +50,10 @@ filter's covariances (spring periods of microseconds against a millisecond step)
 numbers it can hold."""
 
 
+def _finite_number(value) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+
+
 def _positive_number(value) -> bool:
     return (isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
             and float(value) > 0)
@@ -186,6 +190,10 @@ class ContactConfig:
     """Name used in recordings and reports (e.g. ``left_foot``)."""
     frame: str
     """Frame of the URDF at the contact (sole), whose origin is the contact point."""
+    sole: tuple[float, float, float, float] | None = None
+    """The sole's rectangle ``(x_min, x_max, y_min, y_max)``, m, in the contact frame (``x_min <
+    0 < x_max``, ``y_min < 0 < y_max``: the contact point lies on the sole); the CoP of the
+    contact's wrench must lie inside it.  None: not given (the CoP-in-sole check is skipped)."""
 
 
 @dataclass(frozen=True)
@@ -580,15 +588,24 @@ def check_toppling(stiffness: Stiffness, mass: float, com, contact_p, contact_R,
 def _check_contacts(contacts, where: str) -> None:
     """A ConfigError unless ``contacts`` is a list of ``{name, frame}`` tables with distinct names
     (``where`` names the configuration)."""
-    example = 'e.g. contacts = [{ name = "left_foot", frame = "l_sole" }, ...]'
+    example = 'e.g. contacts = [{ name = "left_foot", frame = "l_sole", sole = [-0.1, 0.15, -0.05, 0.05] }, ...]'
     if not isinstance(contacts, list):
         raise ConfigError(f"contacts = {contacts!r}{where}; expected a list of contact tables, {example}")
     seen: set[str] = set()
     for i, c in enumerate(contacts):
-        if not isinstance(c, dict) or set(c) != {"name", "frame"} or not all(
-                isinstance(v, str) and v for v in c.values()):
-            raise ConfigError(f"contacts[{i}] = {c!r}{where}; expected a table with exactly a name and a frame "
-                              f"(non-empty strings), {example}")
+        if not isinstance(c, dict) or not {"name", "frame"} <= set(c) <= {"name", "frame", "sole"} or not all(
+                isinstance(c[k], str) and c[k] for k in ("name", "frame")):
+            raise ConfigError(f"contacts[{i}] = {c!r}{where}; expected a table with a name and a frame "
+                              f"(non-empty strings) and optionally a sole, {example}")
+        if "sole" in c:
+            sole = c["sole"]
+            ok = (isinstance(sole, list) and len(sole) == 4 and all(_finite_number(v) for v in sole)
+                  and sole[0] < 0.0 < sole[1] and sole[2] < 0.0 < sole[3])
+            if not ok:
+                raise ConfigError(f"contacts[{i}].sole = {sole!r}{where}; expected [x_min, x_max, y_min, y_max] in m "
+                                  "in the contact frame, with x_min < 0 < x_max and y_min < 0 < y_max (the contact "
+                                  "point on the sole)")
+            c["sole"] = tuple(float(v) for v in sole)
         if c["name"] in seen:
             raise ConfigError(f"contacts[{i}] repeats the contact name '{c['name']}'{where}; expected distinct names")
         seen.add(c["name"])

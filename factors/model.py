@@ -43,6 +43,10 @@ class ModelConfig:
     foothold_prior: FootholdPrior = field(default_factory=FootholdPrior)
     """Leg-kinematics and ground priors of the footholds, when the smoothers estimate them
     (``BatchConfig.footholds``, ``FixedLagConfig.footholds``; the robot's ``[footholds]`` table)."""
+    soles: tuple = ()
+    """Per contact, its sole's rectangle ``(x_min, x_max, y_min, y_max)`` (m, contact frame) or
+    None; empty: none given.  Where the CoP of a contact's wrench may lie (the comparison counts
+    the samples outside: :func:`flexforce.compare.metrics.violations`)."""
 
     @classmethod
     def from_recording(cls, rec, robot=None, **overrides) -> ModelConfig:
@@ -75,8 +79,17 @@ class ModelConfig:
             gyro_range=float(noise["gyro_range"]),
             accel_range=float(noise["accel_range"]),
             foothold_prior=FootholdPrior.from_config(robot.footholds),
+            soles=_soles(robot, rec.contact_names),
         )
         return replace(cfg, **overrides) if overrides else cfg
+
+
+def _soles(robot, names) -> tuple:
+    """The soles of the recording's contacts ``names`` from the robot's contacts (by name), or ()
+    when the robot gives none."""
+    by_name = {c.name: c.sole for c in robot.contacts}
+    soles = tuple(by_name.get(n) for n in names)
+    return soles if any(s is not None for s in soles) else ()
 
 
 def unmodelled_acceleration(accel_sigma: float, imu_p: np.ndarray, contact_centroid: np.ndarray) -> tuple[float, float]:

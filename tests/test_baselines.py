@@ -4,6 +4,7 @@ and the headline sentences: on hand-built recordings whose answers are known by 
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -184,3 +185,38 @@ def test_headline_from_numbers():
     assert tilt == ("Tilt: batch is best (13.7 mrad), 31 % better than the best baselines, leg-odometry and "
                     "weight-equal (19.8 mrad).")
     assert headline({"estimators": {}, "baselines": {}}) == []
+
+
+def test_each_contact_is_judged_against_its_own_sole(rec):
+    """Per-contact soles (ModelConfig.soles): a contact without one is not judged; the count is of
+    the judged samples (in contact, positive normal force)."""
+    est = weight_equal(rec)
+    nc = len(rec.contact_names)
+    on = rec.contact_active & (rec.time >= 0.0)[:, None]
+    ahead = (0.01, 0.1, -0.05, 0.05)  # starts 1 cm ahead of the contact point: every CoP outside
+    around = (-0.1, 0.1, -0.05, 0.05)
+    v = violations(est, rec, soles=(ahead,) + (around,) * (nc - 1))["cop_outside_sole"]
+    assert v["count"] == int(on[:, 0].sum()) and v["fraction"] == pytest.approx(on[:, 0].sum() / on.sum())
+    assert v["sole_m"][0] == list(ahead)
+    v = violations(est, rec, soles=(ahead,) + (None,) * (nc - 1))["cop_outside_sole"]
+    assert v["count"] == int(on[:, 0].sum()) and v["fraction"] == 1.0
+    assert violations(est, rec, soles=(None,) * nc)["cop_outside_sole"] == {"skipped": NO_SOLE}
+
+
+def test_robot_config_soles_reach_the_model_and_bad_ones_are_refused(tmp_path):
+    from flexforce.datasets.robot import RobotConfig
+    from flexforce.errors import ConfigError
+    from flexforce.factors.model import _soles
+
+    cfg = RobotConfig.load("icub-identified")
+    assert [c.sole for c in cfg.contacts] == [(-0.066, 0.122, -0.042, 0.047), (-0.066, 0.122, -0.047, 0.042)]
+    assert _soles(cfg, ("right_foot", "left_foot")) == ((-0.066, 0.122, -0.047, 0.042), (-0.066, 0.122, -0.042, 0.047))
+    assert _soles(RobotConfig.load("romeo"), ("left_foot", "right_foot")) == ()
+    robots = Path(__file__).parents[1] / "datasets" / "robots"
+    src = (robots / "icub.toml").read_text()
+    bad = src.replace("sole = [-0.066, 0.122, -0.042, 0.047]", "sole = [0.01, 0.122, -0.042, 0.047]")
+    assert bad != src
+    p = tmp_path / "bad.toml"
+    p.write_text(bad.replace('urdf = "urdf/', f'urdf = "{robots}/urdf/'))
+    with pytest.raises(ConfigError, match=r"contacts\[0\]\.sole = \[0\.01.*x_min < 0 < x_max"):
+        RobotConfig.load(p)
