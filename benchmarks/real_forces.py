@@ -81,13 +81,14 @@ def _row(m: dict) -> dict:
     return out
 
 
-def _peer_row(m: dict) -> dict:
-    """The figures of one peer row (summary.json's ``peers`` entry): tilt, per phase, and time per step."""
+def _peer_row(m: dict, timing: dict) -> dict:
+    """The figures of one peer row (summary.json's ``peers`` entry): tilt, per phase, and time per step
+    (``timing``: the row's entry of timings.json)."""
     tilt = (m.get("rmse") or {}).get("rotation_rad")
-    steps = m.get("time_per_step_s") or {}
+    steps = timing.get("time_per_step_s") or {}
     out: dict[str, Any] = {"kind": m.get("kind"), "tilt_mrad": None if tilt is None else tilt * 1e3, "per_phase": {},
            "time_per_step_us": {k: None if v is None else v * 1e6 for k, v in steps.items()},
-           "total_time_s": m.get("total_time_s")}
+           "total_time_s": timing.get("total_time_s")}
     for phase, d in (m.get("per_phase") or {}).items():
         if phase == "all" or not d.get("samples"):
             continue
@@ -96,8 +97,9 @@ def _peer_row(m: dict) -> dict:
     return out
 
 
-def _compare(path: Path, *options: str) -> tuple[dict, float]:
-    """``flexforce compare`` into a temporary folder: its summary.json and the seconds it took."""
+def _compare(path: Path, *options: str) -> tuple[dict, dict, float]:
+    """``flexforce compare`` into a temporary folder: its summary.json, its timings.json and the
+    seconds it took."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "report"
         t0 = time.perf_counter()
@@ -106,20 +108,21 @@ def _compare(path: Path, *options: str) -> tuple[dict, float]:
         seconds = time.perf_counter() - t0
         if status != 0:
             raise SystemExit(f"flexforce compare {path} {' '.join(options)} exited with status {status}")
-        return json.loads((out / "summary.json").read_text()), seconds
+        return json.loads((out / "summary.json").read_text()), json.loads((out / "timings.json").read_text()), seconds
 
 
 def run(path: Path) -> dict:
     """The record of one recording: the comparison with the peers, and the smoothers again with their
     footholds estimated (``--footholds``: per episode, the first stance anchored)."""
-    summary, seconds = _compare(path, "--peers")
-    footholds, _ = _compare(path, "--footholds", "--estimators", "fixed-lag,batch")
+    summary, timings, seconds = _compare(path, "--peers")
+    footholds, _, _ = _compare(path, "--footholds", "--estimators", "fixed-lag,batch")
     rec = summary["recording"]
     return {"recording": path.name, "samples": rec.get("samples"), "duration_s": rec.get("duration_s"),
             "headline": headline(summary), "compare_s": round(seconds, 1),
             "estimators": {k: _row(m) for k, m in summary["estimators"].items()},
             "baselines": {k: _row(m) for k, m in (summary.get("baselines") or {}).items()},
-            "peers": {k: _peer_row(m) for k, m in (summary.get("peers") or {}).items()},
+            "peers": {k: _peer_row(m, (timings.get("peers") or {}).get(k) or {})
+                      for k, m in (summary.get("peers") or {}).items()},
             "footholds_estimated": {k: _row(m) for k, m in footholds["estimators"].items()},
             "failures": summary.get("failures") or {}}
 

@@ -89,33 +89,40 @@ class Metrics:
     extra: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
-        """JSON-serialisable summary (no series)."""
-        def clean(x):
-            if x is None:
-                return None
-            x = float(x)
-            return x if math.isfinite(x) else None
-
+        """JSON-serialisable summary (no series) of what the estimate is, the same for two runs on the
+        same input: no timing or memory, which measure the machine (:meth:`timings_dict`)."""
         return {
-            "rmse": {k: clean(v) for k, v in self.rmse.items()},
-            "max": {k: clean(v) for k, v in self.max.items()},
-            "time_per_step_s": {k: clean(v) for k, v in self.time_per_step.items()},
-            "total_time_s": clean(self.total_time),
-            "peak_memory_mb": clean(self.peak_memory_mb),
-            "nees": clean(self.nees),
+            "rmse": {k: _clean(v) for k, v in self.rmse.items()},
+            "max": {k: _clean(v) for k, v in self.max.items()},
+            "nees": _clean(self.nees),
             "nees_bounds": list(self.nees_bounds) if self.nees_bounds else None,
-            "nis": clean(self.nis),
+            "nis": _clean(self.nis),
             "nis_bounds": list(self.nis_bounds) if self.nis_bounds else None,
             "reference": self.reference,
             "references": dict(self.references),
             "kind": self.kind,
-            "per_contact": {c: {k: clean(v) for k, v in d.items()} for c, d in self.per_contact.items()},
+            "per_contact": {c: {k: _clean(v) for k, v in d.items()} for c, d in self.per_contact.items()},
             **({"extra": self.extra} if self.extra else {}),
-            **({"per_phase": {ph: {k: ({q: clean(x) for q, x in v.items()} if isinstance(v, dict) else v)
+            **({"per_phase": {ph: {k: ({q: _clean(x) for q, x in v.items()} if isinstance(v, dict) else v)
                                    for k, v in d.items()} for ph, d in self.per_phase.items()}}
                if self.per_phase else {}),
             **({"violations": self.violations} if self.violations else {}),
         }
+
+    def timings_dict(self) -> dict:
+        """JSON-serialisable cost of the run, which varies between two runs on the same input:
+        ``time_per_step_s`` (``median``, ``p99``, ``amortized``; s), ``total_time_s`` (s) and
+        ``peak_memory_mb`` (MiB); None where not measured (a non-finite value too)."""
+        return {"time_per_step_s": {k: _clean(v) for k, v in self.time_per_step.items()},
+                "total_time_s": _clean(self.total_time), "peak_memory_mb": _clean(self.peak_memory_mb)}
+
+
+def _clean(x) -> float | None:
+    """``x`` as a float, None for None or a non-finite value (JSON has no NaN)."""
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
 
 
 COP_MIN_LOAD = 0.05

@@ -695,7 +695,9 @@ def fork_map(fn: Callable[[Any], Any], items: list, jobs: int | str = 1) -> Iter
 
 
 def aggregate(comparisons: list[Comparison]) -> dict:
-    """Mean and spread (standard deviation, min, max) of every number over several recordings."""
+    """Mean and spread (standard deviation, min, max) of every number over several recordings: the
+    same for two runs on the same inputs (no timing or memory:
+    :func:`flexforce.compare.reports.comparison.aggregate_timings`)."""
     out: dict[str, Any] = {"recordings": [c.recording for c in comparisons], "estimators": {}}
     groups = [("estimators", lambda c: c.metrics)]
     if any(c.baselines for c in comparisons):
@@ -722,10 +724,6 @@ def _aggregate_rows(ms: list[Metrics]) -> dict:
             entry["rmse_max"][k] = float(vals.max())
         else:
             entry["rmse"][k] = entry["rmse_std"][k] = entry["rmse_min"][k] = entry["rmse_max"][k] = None
-    entry["time_per_step_s"] = {}
-    for stat, how in (("median", np.median), ("p99", np.max), ("amortized", np.median)):
-        times = [t for m in ms if (t := m.time_per_step.get(stat)) is not None]
-        entry["time_per_step_s"][stat] = float(how(times)) if times else None
     nees = [m.nees for m in ms if m.nees is not None]
     entry["nees"] = float(np.mean(nees)) if nees else None
     entry["nees_std"] = float(np.std(nees)) if nees else None

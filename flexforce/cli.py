@@ -385,7 +385,7 @@ def _compare(args) -> int:
     else:
         # one folder of reports, built aside and swapped in whole: an interrupted comparison leaves
         # the previous folder (or none), never new reports beside an old index
-        from flexforce.compare.reports.comparison import write_index
+        from flexforce.compare.reports.comparison import aggregate_timings, write_index
         from flexforce.compare.runner import run_jobs
 
         with safe_output(out, folder=True) as staging:
@@ -398,9 +398,11 @@ def _compare(args) -> int:
                 comps.append(comp)
                 print(f"{label}:")
                 _print_table(comp)
-            agg = aggregate(comps)
+            agg, times = aggregate(comps), aggregate_timings(comps)  # the same for two runs; the machine's cost
             (staging / "summary.json").write_text(json.dumps(agg, indent=2, allow_nan=False))
-            write_index(staging, [(label, comp.summary()) for (label, _, _, _), comp in zip(jobs, comps)], agg)
+            (staging / "timings.json").write_text(json.dumps(times, indent=2, allow_nan=False))
+            write_index(staging, [(label, comp.summary()) for (label, _, _, _), comp in zip(jobs, comps)], agg,
+                        times=times)
     print(f"report: {out / 'index.html'}")
     return 0
 

@@ -238,8 +238,8 @@ def stream_parts(recording, config: RunConfig, on_message: Callable | None = Non
 def stream_recording(recording, output, config: RunConfig, progress: ProgressFactory | None = None) -> RunResult:
     """The streaming fixed-lag smoother (:func:`flexforce.smoother.stream.run_stream`) on the bag
     ``recording`` into ``output`` (``.csv``, or ``.mcap`` with every input topic copied beside the
-    estimate), written aside and moved into place when complete
-    (:class:`flexforce.datasets.io.export.EstimateWriter`).
+    estimate and its uncertainty bands, the ``band/`` topics, where it has covariances), written
+    aside and moved into place when complete (:class:`flexforce.datasets.io.export.EstimateWriter`).
 
     Raises:
         ConfigError: no step within ``config.start``/``end``, a raw bag without a robot, springs
@@ -257,7 +257,7 @@ def stream_recording(recording, output, config: RunConfig, progress: ProgressFac
     if config.block is not None:
         options["block"] = config.block
     smoother = FixedLagConfig(**options)
-    with EstimateWriter(out, overwrite=config.overwrite, robot=config.robot) as writer:
+    with EstimateWriter(out, overwrite=config.overwrite, robot=config.robot, bands=True) as writer:
         parts, rec = stream_parts(recording, config, writer.copy if out.suffix == ".mcap" else None, progress)
         if rec is not None and not config.robot:
             writer.robot = rec.robot
@@ -307,10 +307,10 @@ def _estimator_options(config: RunConfig) -> dict[str, Any]:
 def write_estimate(est, output, recording=None, overwrite: bool = False, robot: Any = None) -> Path:
     """Write ``est`` to ``output`` by its suffix: ``.csv``
     (:func:`flexforce.datasets.io.export.export_csv`), ``.mcap``: the MCAP file ``output`` with
-    the estimate beside the topics of the bag ``recording`` and ``robot`` (name, ``.toml`` path or
-    RobotConfig) in its description (:func:`flexforce.datasets.io.export.export_mcap`;
-    ``overwrite`` an existing file), else ``.npz`` (:meth:`flexforce.datasets.estimate.Estimate.save`);
-    returns the path written."""
+    the estimate and its uncertainty bands (the ``band/`` topics, for the covariances it has) beside
+    the topics of the bag ``recording`` and ``robot`` (name, ``.toml`` path or RobotConfig) in its
+    description (:func:`flexforce.datasets.io.export.export_mcap`; ``overwrite`` an existing file),
+    else ``.npz`` (:meth:`flexforce.datasets.estimate.Estimate.save`); returns the path written."""
     out = Path(output)
     if out.suffix == ".csv":
         from flexforce.datasets.io.export import export_csv
@@ -319,7 +319,7 @@ def write_estimate(est, output, recording=None, overwrite: bool = False, robot: 
     if out.suffix == ".mcap":
         from flexforce.datasets.io.export import export_mcap
 
-        return export_mcap(est, recording, out, overwrite=overwrite, robot=robot)
+        return export_mcap(est, recording, out, overwrite=overwrite, robot=robot, bands=True)
     return est.save(out)
 
 

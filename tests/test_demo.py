@@ -42,8 +42,11 @@ def test_demo_writes_a_report_whose_json_holds_the_table(tmp_path, scenario, cap
         for q in ("force_N", "moment_Nm", "cop_m", "rotation_rad", "translation_m", "hand_m"):
             assert m["rmse"][q] is not None and m["rmse"][q] > 0, (key, q)
         assert m["nees"] is not None
+    timings = json.loads((out / "timings.json").read_text())  # the cost, apart from the numbers
+    assert set(timings["estimators"]) == set(summary["estimators"])
+    for m in timings["estimators"].values():
         assert m["time_per_step_s"]["median"] is None or m["time_per_step_s"]["median"] > 0
-    assert summary["estimators"]["ekf"]["time_per_step_s"]["median"] > 0
+    assert timings["estimators"]["ekf"]["time_per_step_s"]["median"] > 0
     assert summary["recording"]["hidden_effects"][0]["type"] == "external-wrench"
     assert summary["cramer_rao"]["rmse_bound"]["force_N"] > 0
     page = (out / "index.html").read_text()

@@ -102,6 +102,28 @@ def test_mcap_beside_the_input_topics(tmp_path, kind):
         export_mcap(est, out, out.resolve(), overwrite=True)
 
 
+def test_run_output_bag_holds_the_bands(tmp_path):
+    """What `flexforce run -o OUT.mcap` writes (:func:`flexforce.pipeline.write_estimate`): the
+    topics of :func:`export_mcap` and, as an intended format change, the estimate's uncertainty
+    bands (``band/<q>/low``, ``band/<q>/high``), the same messages as with ``bands=True``."""
+    import dataclasses
+
+    from flexforce.pipeline import write_estimate
+
+    t = T0 + np.arange(10, dtype=np.int64) * 10_000_000
+    est = dataclasses.replace(make_estimate(t), wrench_cov=np.tile(np.eye(6), (10, 1, 1)))
+    got = read_bag(write_estimate(est, tmp_path / "out.mcap"))
+    plain = set(read_bag(export_mcap(est, None, tmp_path / "plain.mcap")))
+    base = "/estimate/fixed_lag/band"
+    bands = {f"{base}/{q}/{side}" for q in ("tilt", "position", "total_wrench", "cop") for side in ("low", "high")}
+    assert set(got) == plain | bands
+    banded = read_bag(export_mcap(est, None, tmp_path / "banded.mcap", bands=True))
+    for topic in bands:
+        assert [m.header.stamp.nanosec for _, m in got[topic]] == [m.header.stamp.nanosec for _, m in banded[topic]]
+    high = f"{base}/total_wrench/high"
+    assert [m.wrench.force.z for _, m in got[high]] == [m.wrench.force.z for _, m in banded[high]]
+
+
 def test_mcap_from_a_recording(tmp_path):
     """Given a Recording, its sensor topics are written on its grid beside the estimate."""
     from test_bagio import make_recording

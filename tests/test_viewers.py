@@ -151,10 +151,30 @@ def test_layout_of_a_streamed_fixed_lag_run(exported, tmp_path, capsys):
     assert topics.estimator == "fixed_lag" and topics.contacts == ("left_foot", "right_foot")
     for kind in KINDS:
         text = render_layout(kind, topics)
-        assert "/estimate/fixed_lag/tilt" in check_layout(kind, text, out)
+        named = check_layout(kind, text, out)
+        assert "/estimate/fixed_lag/tilt" in named
+        assert "/estimate/fixed_lag/band/tilt/low" in named  # the streamed estimate's uncertainty bands
         # the streamed run writes the sensor topics of a flexforce bag (no /truth/...)
         if not topics.truth:
             assert text == render_layout(kind, layout_topics("romeo", "fixed-lag"))
+
+
+def test_run_into_a_bag_writes_the_bands_the_layout_draws(exported, tmp_path, capsys):
+    """`flexforce run REC -o OUT.mcap` writes the estimate's uncertainty bands (the ``band/`` topics);
+    `flexforce layout foxglove --bag OUT.mcap` draws each of them."""
+    from flexforce.datasets.io.viewers import BANDS
+
+    out, layout = tmp_path / "ekf.mcap", tmp_path / "ekf.json"
+    assert main(["run", str(exported.parent / "rec"), "--estimator", "ekf", "-o", str(out), "-q"]) == 0, \
+        capsys.readouterr().err
+    assert {f"/estimate/ekf/band/{q}/{side}" for q in BANDS for side in ("low", "high")} <= set(bag_topics(out))
+    assert main(["layout", "foxglove", "--bag", str(out), "-o", str(layout)]) == 0, capsys.readouterr().err
+    named = check_layout("foxglove", layout.read_text(), out)
+    for q in BANDS:
+        assert {f"/estimate/ekf/band/{q}/low", f"/estimate/ekf/band/{q}/high"} <= named, q
+    paths = [p["value"] for tab in json.loads(layout.read_text())["content"]["tabs"]
+             for item in tab["content"]["items"] for p in item["content"]["config"].get("paths", [])]
+    assert "/estimate/ekf/band/total_wrench/high.wrench.force.z" in paths
 
 
 @pytest.mark.parametrize("robot", ["talos", "icub"])

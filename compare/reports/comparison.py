@@ -1,4 +1,8 @@
-"""Comparison reports: a folder with index.html, summary.json and matplotlib figures.
+"""Comparison reports: a folder with index.html, summary.json, timings.json and matplotlib figures.
+
+summary.json holds what the estimates are: two runs on the same input write it byte for byte the
+same.  timings.json holds what they cost on this machine (time per step, total time, peak memory),
+which varies from run to run; the report's tables show both.
 
 Figures are drawn from result objects (:class:`~flexforce.compare.runner.Comparison`,
 :class:`~flexforce.datasets.estimate.Estimate`, the Recording); plot functions draw on a given
@@ -10,6 +14,8 @@ from __future__ import annotations
 import functools
 import json
 import math
+import os
+import platform
 from contextlib import AbstractContextManager
 from pathlib import Path
 
@@ -699,7 +705,8 @@ def _sole_skipped(summary: dict) -> list[str]:
 
 
 def summary_table_html(summary: dict) -> str:
-    """The summary table, from the very numbers of summary.json (estimators, then baselines)."""
+    """The summary table, from the very numbers of summary.json (estimators, then baselines); its
+    timing cells from timings.json when ``summary`` carries them (:func:`with_timings`), else dashes."""
     tables = environment().get_template("_tables.html.j2").module
     return str(tables.summary_table(list(_table_rows(summary)), _summary_columns(summary),
                                     _references(summary)))
@@ -715,7 +722,8 @@ def per_contact_table_html(summary: dict) -> str:
 
 
 def _peer_rows(summary: dict) -> list[dict]:
-    """The peers' rows of the report: tilt RMSE overall and per contact phase (mrad), median step (µs)."""
+    """The peers' rows of the report: tilt RMSE overall and per contact phase (mrad), median step (µs;
+    from timings.json: ``summary`` as :func:`with_timings` gives it, else a dash)."""
     def mrad(x):
         return "–" if x is None else f"{1e3 * x:.3g}"
 
@@ -786,7 +794,8 @@ def recording_name(rec, info: dict) -> str:
 
 
 def write_report(comp, rec, out_dir: str | Path, title: str | None = None) -> Path:
-    """Write index.html, summary.json and the figures of a comparison into ``out_dir``.
+    """Write index.html, summary.json, timings.json (:func:`timings`) and the figures of a
+    comparison into ``out_dir``.
 
     The folder is built aside and swapped in when complete (:func:`report_folder`): an interrupted
     report leaves the previous one whole, never a mixture of old and new files.
@@ -807,10 +816,71 @@ def report_folder(target: Path) -> AbstractContextManager[Path]:
     return safe_output(target, folder=True)
 
 
+def machine() -> dict:
+    """The machine timings are measured on: ``python`` (version), ``processor``, ``cpus`` (the
+    machine's, not those free for the run) and ``platform``."""
+    return {"python": platform.python_version(), "processor": platform.processor() or platform.machine(),
+            "cpus": os.cpu_count(), "platform": platform.platform()}
+
+
+TIMING_GROUPS = ("estimators", "baselines", "peers")
+"""The row groups of summary.json whose rows have their cost in timings.json, under the same keys."""
+
+
+def timings(comp) -> dict:
+    """timings.json of a comparison: ``machine`` (:func:`machine`), and for each row group of its
+    summary.json (``estimators``, then ``baselines`` and ``peers`` when it has them) the row key ->
+    :meth:`~flexforce.compare.metrics.Metrics.timings_dict` (``time_per_step_s``: ``median``,
+    ``p99``, ``amortized``, s; ``total_time_s``, s; ``peak_memory_mb``, MiB; None where not measured)."""
+    out: dict = {"machine": machine(), "estimators": {k: m.timings_dict() for k, m in comp.metrics.items()}}
+    if comp.baselines:
+        out["baselines"] = {k: m.timings_dict() for k, m in comp.baselines.items()}
+    if comp.peers:
+        out["peers"] = {k: m.timings_dict() for k, m in comp.peers.items()}
+    return out
+
+
+def aggregate_timings(comparisons: list) -> dict:
+    """timings.json beside the summary.json of several comparisons
+    (:func:`flexforce.compare.runner.aggregate`): ``machine``, and per row group and row key its
+    ``time_per_step_s`` over the recordings (s): ``median`` and ``amortized`` the median of the
+    recordings', ``p99`` the largest; None where no recording measured it."""
+    out: dict = {"machine": machine()}
+    for group, rows in (("estimators", lambda c: c.metrics), ("baselines", lambda c: c.baselines),
+                        ("peers", lambda c: c.peers)):
+        if group != "estimators" and not any(rows(c) for c in comparisons):
+            continue
+        out[group] = {}
+        for key in sorted({k for c in comparisons for k in rows(c)}):
+            ms = [rows(c)[key] for c in comparisons if key in rows(c)]
+            steps = {}
+            for stat, how in (("median", np.median), ("p99", np.max), ("amortized", np.median)):
+                times = [t for m in ms if (t := m.time_per_step.get(stat)) is not None]
+                steps[stat] = float(how(times)) if times else None
+            out[group][key] = {"time_per_step_s": steps}
+    return out
+
+
+def with_timings(summary: dict, times: dict | None) -> dict:
+    """A copy of ``summary`` whose rows carry their numbers of ``times`` (:func:`timings`,
+    :func:`aggregate_timings`) under the same keys: what the report's tables show.  ``times`` None:
+    ``summary`` itself (the timing cells then show a dash)."""
+    if not times:
+        return summary
+    out = dict(summary)
+    for group in TIMING_GROUPS:
+        if group in summary:
+            out[group] = {k: {**m, **((times.get(group) or {}).get(k) or {})} for k, m in summary[group].items()}
+    return out
+
+
 def _write_report(comp, rec, out: Path, title: str | None) -> None:
     out.mkdir(parents=True, exist_ok=True)
-    summary = comp.summary()
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=False))
+    numbers = comp.summary()
+    times = timings(comp)
+    (out / "summary.json").write_text(json.dumps(numbers, indent=2, allow_nan=False))
+    (out / "timings.json").write_text(json.dumps(times, indent=2, allow_nan=False))
+    summary = with_timings(numbers, times)  # the tables show both
     figures = []
     for name, make in FIGURES.items():
         fig = make(comp, rec)
@@ -861,16 +931,18 @@ INDEX_COLUMNS = (("force_N", "force RMSE [N]", 1), ("vertical_force_N", "F_z RMS
 
 
 def write_index(out: str | Path, entries: list[tuple[str, dict]], aggregate: dict,
-                title: str = "flexforce comparison") -> Path:
+                title: str = "flexforce comparison", times: dict | None = None) -> Path:
     """Write ``out``/index.html for several recordings, each compared in ``out``/<label>/.
 
     Args:
         entries: (label, summary of its comparison: :meth:`Comparison.summary`) per recording, in order.
         aggregate: :func:`flexforce.compare.runner.aggregate` of the comparisons (the mean and spread
             of every number, written as summary.json beside the index).
+        times: :func:`aggregate_timings` of the comparisons (written as timings.json beside the
+            index), for the table's time per step; None: the table shows a dash there.
     """
     out = Path(out)
-    rows = list(_table_rows(aggregate))
+    rows = list(_table_rows(with_timings(aggregate, times)))
     columns = [c for c in TABLE_COLUMNS if any(m["rmse"].get(c[0]) is not None for _, m, _ in rows)]
     keys = [(k, c) for k, _, _ in rows for c in INDEX_COLUMNS
             if any(((s.get("estimators") or {}).get(k) or (s.get("baselines") or {}).get(k) or {})
