@@ -3,6 +3,7 @@ measurements behind the defaults)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from flexforce.errors import ConfigError
@@ -82,6 +83,15 @@ class DiagnoseConfig:
     check_constancy: bool = True
     """Before a round takes a constant effect, fit it on each half of the recording
     (:func:`constancy`); halves that disagree make it implausible."""
+    noise_calibration: float | None = 3.0
+    """Sigmas: when the nominal fit's whitened IMU residuals have an RMS above this (per sensor,
+    gyrometer and accelerometer, from :attr:`skip`), the configured noise is far below what the
+    model leaves unexplained -- a real walk's vibration and unmodelled compliance, 8-25 sigma on
+    the iCub walk, where a correct noise model gives about 1 -- and every candidate would pass at
+    p = 0.  That sensor's sigma is then multiplied by its RMS (the accelerometer's carries the
+    Newton-Euler, contact and integration sigmas derived from it) and every fit of the diagnosis,
+    the nominal one included, uses the calibrated noise; the diagnosis says so
+    (:func:`calibrate_noise`).  None: the configured noise as given."""
     check_veto: bool = True
     """Before a round takes an effect, hold its fit against what the fits did not use (the truth of
     a simulated recording, the reference sensors of a real one: :attr:`Candidate.check`); an effect
@@ -94,6 +104,11 @@ class DiagnoseConfig:
         level = self.screen_level
         if level is not None and not 0.0 < level < 1.0:
             raise ConfigError(f"screen_level = {level!r}; expected a probability in (0, 1) or None (no screening)")
+        cal = self.noise_calibration
+        if cal is not None and (isinstance(cal, bool) or not isinstance(cal, (int, float)) or not cal > 1.0
+                                or not math.isfinite(cal)):
+            raise ConfigError(f"noise_calibration = {cal!r}; expected a number of sigmas above 1, or None (the "
+                              "configured noise as given)")
         best = self.refit_best
         if best is not None and (isinstance(best, bool) or not isinstance(best, int) or best < 1):
             raise ConfigError(f"refit_best = {best!r}; expected an integer >= 1 (candidates refitted per round) "

@@ -208,6 +208,13 @@ def diagnose(rec: Recording, model: ModelConfig | None = None, candidates: Itera
     s = Session(rec, model, {**cands, **add_makers}, cfg, progress)
     check_jobs(cfg.jobs)
     nominal = s.fitted(())
+    noise = calibrate_noise(rec, model, nominal, cfg)
+    if noise is not None:
+        model = noise["model"]
+        s.say("noise", noise["text"], s.t_start)
+        skipped = {**skipped, "noise": noise["text"]}
+        s = Session(rec, model, {**cands, **add_makers}, cfg, progress)
+        nominal = s.fitted(())
     s.resolve_jobs()  # "auto": decided with the nominal fit in memory (what a worker starts from)
     sel = start_selection(s, cands, table_only, nominal)
 
@@ -229,9 +236,44 @@ def diagnose(rec: Recording, model: ModelConfig | None = None, candidates: Itera
     from flexforce.compare.runner import describe
 
     return Diagnosis(describe(rec), ranking, sel.rounds, sel.selected, added, before, after, ekf_snap,
-                     _criterion_record(cfg, nominal),
+                     {**_criterion_record(cfg, nominal),
+                      "noise_calibration": (None if noise is None else
+                                            {"threshold_sigma": cfg.noise_calibration, "rms_sigma": noise["rms"],
+                                             "scale": noise["scale"], "gyro_sigma": model.gyro_sigma,
+                                             "accel_sigma": model.accel_sigma})},
                      None if truth is None else np.asarray(truth.external_wrench, dtype=float), tests_sorted,
                      sel.ident, sel.ident_error, list(skipped.values()), swaps, config=cfg)
+
+
+def calibrate_noise(rec: Recording, model: ModelConfig, nominal: Fit, cfg: DiagnoseConfig) -> dict | None:
+    """The model with its IMU noise calibrated on the nominal fit's residuals
+    (:attr:`DiagnoseConfig.noise_calibration`), or None when the configured noise holds.
+
+    Returns ``{"model", "scale": {"gyro", "accel"}, "rms": {...}, "text"}``: a sensor whose
+    whitened residuals have an RMS (over its three axes, from ``cfg.skip``) above the threshold
+    gets its sigma multiplied by that RMS, the other keeps its own (scale 1)."""
+    limit = cfg.noise_calibration
+    res = nominal.estimate.residuals.get("imu")
+    if limit is None or res is None or res.shape[1] != 6:
+        return None
+    keep = (np.asarray(rec.time) >= cfg.skip)[:, None] & np.isfinite(res)
+    rms = {}
+    for name, cols in (("gyro", slice(0, 3)), ("accel", slice(3, 6))):
+        r, k = res[:, cols], keep[:, cols]
+        rms[name] = float(np.sqrt(np.sum(np.where(k, r, 0.0) ** 2) / k.sum())) if k.any() else 0.0
+    scale = {k: (v if v > limit else 1.0) for k, v in rms.items()}
+    if all(v == 1.0 for v in scale.values()):
+        return None
+    cal = dataclasses.replace(model, gyro_sigma=model.gyro_sigma * scale["gyro"],
+                              accel_sigma=model.accel_sigma * scale["accel"])
+    parts = [f"{name} {model_sigma:.3g} -> {model_sigma * scale[name]:.3g} {unit} ({rms[name]:.1f}x)"
+             for name, model_sigma, unit in (("gyro", model.gyro_sigma, "rad/s"),
+                                             ("accel", model.accel_sigma, "m/s^2")) if scale[name] != 1.0]
+    text = (f"noise: the nominal fit's IMU residuals are {rms['gyro']:.1f} sigma (gyrometer) and "
+            f"{rms['accel']:.1f} sigma (accelerometer) RMS, above {limit:g}: the configured noise is far below "
+            f"what the model leaves unexplained, so every candidate would pass; the diagnosis uses the noise the "
+            f"residuals show (sigma per sample: {'; '.join(parts)}; noise_calibration=None keeps the configured one)")
+    return {"model": cal, "scale": scale, "rms": rms, "text": text}
 
 
 def _config(config: DiagnoseConfig | None, options: dict) -> DiagnoseConfig:
