@@ -283,13 +283,20 @@ def _compare_one(rec, args, out: Path):
             bars[name] = Progress(f"  {name}", enabled=not args.quiet and None)
         bars[name](fraction)
 
-    options = None
+    options: dict[str, dict[str, object]] | None = None
     if getattr(args, "footholds", False):
         options = {name: {"footholds": True} for name in args.estimators if name != "ekf"}
+    if getattr(args, "calibrate_noise", False) and "batch" in args.estimators:
+        options = options or {}
+        options["batch"] = {**options.get("batch", {}), "noise_calibration": CALIBRATE_NOISE_SIGMA}
     comp = compare(rec, estimators=args.estimators, model=model, progress=progress, options=options,
                    peers=True if getattr(args, "peers", False) else None)
     write_report(comp, rec, out)
     return comp
+
+
+CALIBRATE_NOISE_SIGMA = 3.0
+"""``compare --calibrate-noise``: the batch smoother's ``noise_calibration`` threshold, sigmas."""
 
 
 def _print_table(comp) -> None:
@@ -710,6 +717,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--peers", action="store_true",
                    help="add every GTSAM legged estimator as a peer row, the fixed-lag smoother too (default: "
                         "the invariant EKF only)")
+    p.add_argument("--calibrate-noise", action="store_true",
+                   help="batch smoother: when its IMU residuals are above 3 sigma RMS, scale that sensor's noise by "
+                        "their RMS and smooth again (BatchConfig.noise_calibration; for real walks)")
     p.add_argument("--jobs", "-j", type=_jobs, default=1, metavar="N",
                    help="compare N recordings at a time, in worker processes (default 1; 'auto': one per usable "
                         "core, as memory allows); the results are the same")

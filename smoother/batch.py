@@ -14,6 +14,7 @@ and ``tests/test_gtsam_graph.py`` check that both agree with gtsam's own Levenbe
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -37,7 +38,7 @@ from flexforce.smoother.linearize import (
     solve_arrow_pair,
     walk_sigma,
 )
-from flexforce.smoother.problem import NoiseRule, Problem, build_problem, configured
+from flexforce.smoother.problem import NoiseRule, Problem, build_problem, configured, imu_residual_scale
 from flexforce.smoother.result import make_estimate
 
 if TYPE_CHECKING:
@@ -471,6 +472,14 @@ class BatchConfig:
     """The outer steps of the constants (:func:`optimize`) add to the Gauss-Newton Schur complement
     a symmetric rank-one secant estimate of the curvature it misses (:func:`_secant_update`);
     False: the Gauss-Newton step alone.  Both end at the same optimum (within ``rel_tol``)."""
+    noise_calibration: float | None = None
+    """Sigmas, or None (off): after the fit, a sensor of the IMU whose whitened residuals have an
+    RMS above this (:func:`~flexforce.smoother.problem.imu_residual_scale`) gets its sigma
+    multiplied by that RMS (the accelerometer's carrying the model-error sigmas derived from it)
+    and the recording is smoothed again with the calibrated noise; ``meta["noise_calibration"]``
+    says what was found and used.  For real logs whose IMU sees what the model does not describe
+    (a walk's vibration: docs/real-logs.md, "IMU noise"); a value below 3 would recalibrate a
+    recording whose noise is right."""
 
     def __post_init__(self):
         o = "BatchConfig"
@@ -481,6 +490,11 @@ class BatchConfig:
         check_bool(o, "footholds", self.footholds)
         check_type(o, "rule", self.rule, NoiseRule)
         check_bool(o, "secant", self.secant)
+        cal = self.noise_calibration
+        if cal is not None and (isinstance(cal, bool) or not isinstance(cal, (int, float)) or not math.isfinite(cal)
+                                or not cal > 1.0):
+            raise ConfigError(f"BatchConfig.noise_calibration = {cal!r}; expected a number of sigmas above 1 (e.g. "
+                              "3.0), or None (the configured noise as given)")
 
 
 def run_batch(rec: Recording, model: ModelConfig, config: BatchConfig = BatchConfig(), rest_p=None, rest_R=None,
@@ -503,6 +517,25 @@ def run_batch(rec: Recording, model: ModelConfig, config: BatchConfig = BatchCon
     """
     config = configured(config, BatchConfig, options, "batch smoother")
     t0 = time.perf_counter()
+    est = _smooth(rec, model, config, rest_p, rest_R, progress, t0)
+    if config.noise_calibration is not None and "imu" in est.residuals:
+        from dataclasses import replace as _replace
+
+        rms, scale = imu_residual_scale(est.residuals["imu"], rec.time, 0.0, config.noise_calibration)
+        record = {"threshold_sigma": config.noise_calibration, "rms_sigma": rms, "scale": scale,
+                  "gyro_sigma": model.gyro_sigma * scale["gyro"], "accel_sigma": model.accel_sigma * scale["accel"]}
+        if any(v != 1.0 for v in scale.values()):
+            calibrated = _replace(model, gyro_sigma=record["gyro_sigma"], accel_sigma=record["accel_sigma"])
+            est = _smooth(rec, calibrated, config, rest_p, rest_R, progress, t0)
+        est.meta["noise_calibration"] = record
+    est.total_time = time.perf_counter() - t0
+    if progress is not None:
+        progress(1.0)
+    return est
+
+
+def _smooth(rec, model, config: BatchConfig, rest_p, rest_R, progress, t0: float) -> Estimate:
+    """One batch smoothing of ``rec`` with ``model`` (:func:`run_batch`'s work)."""
     prob = build_problem(rec, model, config, rest_p, rest_R)
     if progress is not None:
         progress(0.05)
@@ -510,13 +543,9 @@ def run_batch(rec: Recording, model: ModelConfig, config: BatchConfig = BatchCon
                              want_cov=config.covariance, global_constants=config.global_constants,
                              secant=config.secant)
     elapsed = time.perf_counter() - t0
-    est = make_estimate(prob, "batch", traj, P, total_time=elapsed,
-                        meta={"iterations": info["iterations"], "outer": info["outer"], "final_cost": info["cost"][-1],
-                              "use_ft": prob.use_ft})
-    est.total_time = time.perf_counter() - t0
-    if progress is not None:
-        progress(1.0)
-    return est
+    return make_estimate(prob, "batch", traj, P, total_time=elapsed,
+                         meta={"iterations": info["iterations"], "outer": info["outer"], "final_cost": info["cost"][-1],
+                               "use_ft": prob.use_ft})
 
 
 DATA_FAMILIES = ("imu", "newton_euler", "contact", "integration", "ft")

@@ -56,7 +56,7 @@ if TYPE_CHECKING:
     from flexforce.datasets.recording import Recording
 
 __all__ = ["FAMILIES", "ConstantRows", "Effect", "NoiseRule", "Problem", "ProblemView", "Sigmas", "derive_sigmas",
-           "static_equilibrium", "whitener", "with_footholds"]
+           "imu_residual_scale", "static_equilibrium", "whitener", "with_footholds"]
 
 FAMILIES = ("integration", "newton_euler", "contact", "imu", "ft")
 """Names of the factor families, the keys of :attr:`Estimate.residuals`."""
@@ -332,6 +332,25 @@ def with_footholds(rec, model, rest_p=None, rest_R=None):
                         walk_within=WALK_WITHIN_ANCHORED)
         model = replace(model, effects=tuple(model.effects) + (eff,))
     return model, rest_p, rest_R
+
+
+def imu_residual_scale(residuals, time, skip: float, threshold: float) -> tuple[dict, dict]:
+    """How far a fit's whitened IMU residuals are from their noise: ``(rms, scale)``, each
+    ``{"gyro": ..., "accel": ...}``.
+
+    ``rms``: the root mean square of the (N, 6) whitened residuals (gyrometer axes, then
+    accelerometer axes) over the samples at or after ``skip`` s (``time``, (N,) s) that are finite;
+    about 1 when the configured noise describes the data.  ``scale``: the sensor's ``rms`` where it
+    exceeds ``threshold`` sigmas, else 1 -- what its sigma is multiplied by for the residuals to
+    be at their noise level."""
+    res = np.asarray(residuals, dtype=float)
+    keep = (np.asarray(time, dtype=float) >= skip)[:, None] & np.isfinite(res)
+    rms, scale = {}, {}
+    for name, cols in (("gyro", slice(0, 3)), ("accel", slice(3, 6))):
+        r, k = res[:, cols], keep[:, cols]
+        rms[name] = float(np.sqrt(np.sum(np.where(k, r, 0.0) ** 2) / k.sum())) if k.any() else 0.0
+        scale[name] = rms[name] if rms[name] > threshold else 1.0
+    return rms, scale
 
 
 def configured(config, config_type: type, options: dict, what: str):

@@ -256,12 +256,9 @@ def calibrate_noise(rec: Recording, model: ModelConfig, nominal: Fit, cfg: Diagn
     res = nominal.estimate.residuals.get("imu")
     if limit is None or res is None or res.shape[1] != 6:
         return None
-    keep = (np.asarray(rec.time) >= cfg.skip)[:, None] & np.isfinite(res)
-    rms = {}
-    for name, cols in (("gyro", slice(0, 3)), ("accel", slice(3, 6))):
-        r, k = res[:, cols], keep[:, cols]
-        rms[name] = float(np.sqrt(np.sum(np.where(k, r, 0.0) ** 2) / k.sum())) if k.any() else 0.0
-    scale = {k: (v if v > limit else 1.0) for k, v in rms.items()}
+    from flexforce.smoother.problem import imu_residual_scale
+
+    rms, scale = imu_residual_scale(res, rec.time, cfg.skip, limit)
     if all(v == 1.0 for v in scale.values()):
         return None
     cal = dataclasses.replace(model, gyro_sigma=model.gyro_sigma * scale["gyro"],
