@@ -14,13 +14,16 @@ Vicon (references, not ground truth):
 - ``tilt_mrad``: RMSE of the base tilt against Vicon;
 - ``per_phase``: the same per contact phase (single support, double support, transitions within
   ±50 ms of a contact switch; a phase without samples is left out);
-- ``violations``: counts and fractions of negative normal forces and of forces outside the
-  friction cone, over the samples in contact;
+- ``violations``: counts and fractions of negative normal forces, of forces outside the friction
+  cone and of CoPs outside the sole (the robot config's ``sole`` of each contact), over the samples
+  in contact;
 
 GTSAM's legged estimators (``peers``: IMU and leg kinematics, no forces) keep their tilt, per
 phase too, and their time per step; and each recording's ``headline``: the sentences naming the
 best estimator per quantity against the best baseline (:func:`flexforce.compare.runner.headline`);
-and ``footholds_estimated``: the smoothers' rows again with ``--footholds``.
+``footholds_estimated``: the smoothers' rows again with ``--footholds``; and ``noise_calibrated``:
+the batch smoother's row with ``--calibrate-noise`` (its IMU noise scaled by its own residuals'
+RMS where above 3 sigma).
 Writes the JSON record to
 ``benchmarks/results/real_forces.json`` and prints it.
 """
@@ -75,9 +78,10 @@ def _row(m: dict) -> dict:
     out["violations"] = {"samples_in_contact": v.get("samples_in_contact"), "friction_mu": v.get("friction_mu"),
                          **{check: {"count": (v.get(check) or {}).get("count"),
                                     "fraction": (v.get(check) or {}).get("fraction")}
-                            for check in ("negative_normal", "friction_cone")},
-                         "cop_outside_sole": (v.get("cop_outside_sole") or {}).get("skipped")
-                         or (v.get("cop_outside_sole") or {}).get("count")}
+                            for check in ("negative_normal", "friction_cone", "cop_outside_sole")}}
+    skipped = (v.get("cop_outside_sole") or {}).get("skipped")
+    if skipped:
+        out["violations"]["cop_outside_sole"] = {"skipped": skipped}
     return out
 
 
@@ -116,6 +120,7 @@ def run(path: Path) -> dict:
     footholds estimated (``--footholds``: per episode, the first stance anchored)."""
     summary, timings, seconds = _compare(path, "--peers")
     footholds, _, _ = _compare(path, "--footholds", "--estimators", "fixed-lag,batch")
+    calibrated, _, _ = _compare(path, "--calibrate-noise", "--estimators", "batch")
     rec = summary["recording"]
     return {"recording": path.name, "samples": rec.get("samples"), "duration_s": rec.get("duration_s"),
             "headline": headline(summary), "compare_s": round(seconds, 1),
@@ -124,6 +129,7 @@ def run(path: Path) -> dict:
             "peers": {k: _peer_row(m, (timings.get("peers") or {}).get(k) or {})
                       for k, m in (summary.get("peers") or {}).items()},
             "footholds_estimated": {k: _row(m) for k, m in footholds["estimators"].items()},
+            "noise_calibrated": {k: _row(m) for k, m in calibrated["estimators"].items()},
             "failures": summary.get("failures") or {}}
 
 

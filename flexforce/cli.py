@@ -576,14 +576,21 @@ def _diagnose_job(args, job) -> dict:
 
 def _print_diagnosis(result: dict) -> None:
     s = result["summary"]
+    print(f"verdict: {s['verdict']}\n")  # the answer first, the ranking behind it
     if result["ranking_table"]:
         print(result["ranking_table"])
-    print(f"significant: {', '.join(s['selected']) or 'none'}")
+    print(f"significant: {s['selected_line']}")
     if s["flags_after"] is not None:
         print(f"added {', '.join(s['added'])}: flagged windows {s['flags_before']} -> {s['flags_after']}")
+        for line in s["added_values"]:
+            print(f"  added {line}")
+        from flexforce.compare.diagnostics.text import CHECK_LABELS
+
         for key, b, a in result["rmse"]:
-            if b is not None and a is not None:
-                print(f"  RMSE {key:14s} {b:10.4g} -> {a:10.4g}")
+            if b is not None and a is not None:  # the report's units (mm, deg)
+                label, scale, unit = CHECK_LABELS.get(key, (key, 1.0, ""))
+                print(f"  RMSE {label + ' [' + unit.strip() + ']' if unit else label:20s} {b * scale:10.4g} -> "
+                      f"{a * scale:10.4g}")
 
 
 def _cmd_layout(args) -> int:

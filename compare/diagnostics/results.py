@@ -205,7 +205,8 @@ class Diagnosis:
     def to_json(self) -> dict:
         """``diagnosis.json``."""
         worse, alpha = self.config.check_worse, self.config.alpha
-        out = {"recording": _jsonable(self.recording), "criterion": self.criterion,
+        out = {"verdict": self.verdict(), "added_values": self.added_values(),
+               "recording": _jsonable(self.recording), "criterion": self.criterion,
                "ranking": [c.to_dict(worse) for c in self.ranking],
                "rounds": [[c.to_dict(worse) for c in r] for r in self.rounds],
                "selected": list(self.selected), "added": list(self.added),
@@ -223,6 +224,22 @@ class Diagnosis:
                           "flagged_windows": [_jsonable(f.to_dict()) for f in self.ekf.flags],
                           "rmse": self.ekf.rmse}
         return out
+
+    def verdict(self) -> str:
+        """:func:`.text.verdict`: the diagnosis in plain words (the report's and the terminal's first lines)."""
+        return text.verdict(self)
+
+    def added_values(self) -> list[str]:
+        """One line per added effect: its fitted values in the report's units (``com-offset: CoM
+        offset x = 22.0 ± 2.1 mm``); empty without an after view."""
+        if self.after is None:
+            return []
+        reps = self.after.estimate.effects or {}
+        return [f"{n}: {text.effect_values(n, reps.get(n, {})) or 'no estimate reported'}" for n in self.added]
+
+    def identifiability_items(self) -> list[str]:
+        """:func:`.text.identifiability_items`: the candidates not fully seen, then the pairs not told apart."""
+        return text.identifiability_items(self)
 
     def ranking_table(self) -> str:
         """:func:`.text.ranking_table`: the plain-text ranking (what the CLI prints)."""

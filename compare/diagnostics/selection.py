@@ -172,9 +172,10 @@ def run_rounds(s: Session, sel: Selection) -> None:
     while sel.remaining:
         # a candidate whose refit came out implausible in the previous round is neither screened
         # nor refitted again (its estimate stood in for something the effect just selected
-        # explains better): listed with that refit's word
+        # explains better): listed with that refit's word.  One its check turned down stays: at
+        # the new base (the effect it was soaking up now in the model) it may be what is missing
         for c in (sel.rounds[-1] if sel.rounds else []):
-            if c.implausible and c.effect in sel.remaining:
+            if c.implausible and not c.vetoed and c.effect in sel.remaining:
                 sel.remaining.remove(c.effect)
                 sel.waited(c.effect, len(sel.rounds) + 1, f"its refit in round {c.round} was "
                            + ("turned down by its check (" if c.vetoed else "implausible (")

@@ -16,6 +16,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy import stats  # noqa: E402
 
+from flexforce.compare.diagnostics import text  # noqa: E402
 from flexforce.compare.reports.comparison import (  # noqa: E402
     LABELS,
     environment,
@@ -197,15 +198,9 @@ def _write_diagnosis(diag, out: Path, title: str) -> None:
         written.append(name)
     crit = diag.criterion
     level = crit.get("screen_level")
-    ranking = []
-    for c in diag.ranking:
-        windows = ""
-        if c.screen is not None and c.screen.kind == "windowed" and level is not None:
-            spans = [f"{w.start_s:.2f}–{w.end_s:.2f} s" for w in c.screen.passing_windows(level)]
-            windows = f" (score windows passing: {', '.join(spans) or 'none'})"
-        ranking.append({"candidate": c, "screen": getattr(c, "screen", None), "windows": windows})
+    ranking = [_ranking_row(diag, c, level) for c in diag.ranking]
     b, a = diag.before, diag.after
-    comparison = [(f"RMSE {LABELS.get(k, k)}", _fmt(b.rmse.get(k)), _fmt(a.rmse.get(k)) if a else None)
+    comparison = [(f"RMSE {_error_label(k)}", _error(b.rmse.get(k), k), _error(a.rmse.get(k), k) if a else None)
                   for k in b.rmse if b.rmse.get(k) is not None or (a is not None and a.rmse.get(k) is not None)]
     comparison.append(("flagged windows", str(len(b.flags)), str(len(a.flags)) if a else None))
     comparison.append(("data cost C", f"{b.cost_data:.1f}", f"{a.cost_data:.1f}" if a else None))
@@ -218,20 +213,105 @@ def _write_diagnosis(diag, out: Path, title: str) -> None:
         identifiability: dict = {"computed": False, "error": err, "items": []}
     else:
         identifiability = {"computed": True, "threshold": ident.threshold,
-                           "items": [f"{c.effect}: {c.text()}" for c in ident.not_seen()]
-                           + list(diag.identifiability_notes()),
-                           "detectable": [f"{c.effect}: {c.detectable_text()}" for c in ident.candidates.values()
+                           "items": diag.identifiability_items(),
+                           "detectable": [f"{c.effect}: {text.detectable_text(c)}" for c in ident.candidates.values()
                                           if c.detectable]}
     page = environment().get_template("diagnosis.html.j2").render(
         identifiability=identifiability,
         title=title, info=diag.recording, crit=crit, level=level,
         hidden=[json.dumps(h) for h in diag.recording.get("hidden_effects") or []],
         screen_sentence=_screen_sentence(crit), selected=diag.selected, ranking=ranking,
+        verdict=diag.verdict(), added_values=diag.added_values(), selected_line=selected_line(diag),
+        units=text.UNITS, glossary=GLOSSARY,
         swaps=diag.swaps, ambiguities=diag.ambiguities(), partner_checks=diag.partner_checks(),
         inconstant=diag.inconstant(),
-        flags_before=diag.before.flags + (diag.ekf.flags if diag.ekf else []),
+        flags_before=[_flag_row(f) for f in diag.before.flags + (diag.ekf.flags if diag.ekf else [])],
+        flags_after=[_flag_row(f) for f in a.flags] if a is not None else [],
         nis=nis, added=diag.added, after=a, comparison=comparison, figures=written)
     (out / "index.html").write_text(page)
+
+
+GLOSSARY = (
+    ("residual", "what a sensor read minus what the fitted model predicts, divided by the sensor's noise (σ): "
+                 "about 1 in size when the model is right, far above 1 where it misses something."),
+    ("flagged window", "a stretch of the recording (0.5 s) where a residual is too large to be noise."),
+    ("score test (T)", "a quick test at the nominal fit, before refitting anything: how much a candidate could "
+                       "lower the misfit; only candidates that pass it (small p) are refitted."),
+    ("2 ln L, 2ΔE", "twice the gain in log-likelihood (the data's fit, with the priors and the Occam factor) when "
+                    "the effect is added; larger is a better fit."),
+    ("Occam factor", "the price a model pays for unknowns the data do not pin down: an effect that explains "
+                     "little with many unknowns loses evidence."),
+    ("BIC score", "2ΔE less ln n per constant unknown (n the residuals): positive means the better fit is worth "
+                  "the extra unknowns; the ranking's score."),
+    ("p-value", "how likely a gain this large would be from noise alone, were the effect absent."),
+    ("Holm", "each round tests its m candidates at α/m, so that the chance of any false finding in the round "
+             "stays below α."),
+    ("significant", "BIC score above 0 and p below its level: the effect is found."),
+    ("check", "the errors of the fit with the effect against what the fit did not use (the truth of a simulated "
+              "recording, the F/T and motion capture of a real one); an effect that raises one is turned down."),
+    ("identifiability", "whether the recording's motion can see a candidate at all, and which pairs of candidates "
+                        "it cannot tell apart (they change the predictions alike)."),
+)
+"""The Details section's glossary: (term, its meaning in plain words)."""
+
+
+def _flag_row(f) -> dict:
+    """A flagged window as the page shows it: its size and mean in the report's units (mm, deg)."""
+    def shown(x):
+        return None if x is None else text.display(float(x), f.unit)[0]
+
+    axis, _, unit = f.axis.partition(" [")
+    unit = unit.rstrip("]")
+    return {"estimator": f.estimator, "family": f.family,
+            "axis": f"{axis} [{text.display(1.0, unit)[1]}]" if unit else f.axis, "start_s": f.start_s,
+            "end_s": f.end_s, "size": shown(f.size), "mean": shown(f.mean), "unit": text.display(1.0, f.unit)[1],
+            "rms_sigma": f.rms_sigma, "chi2": f.chi2, "bound": f.bound}
+
+
+def selected_line(diag) -> str:
+    """``com-offset`` / ``none`` / ``none; added by hand: external-wrench``: what the selection took,
+    and the effects added that it did not."""
+    by_hand = [n for n in diag.added if n not in diag.selected]
+    line = ", ".join(diag.selected) or "none"
+    if by_hand:
+        line += f"; added by hand: {', '.join(by_hand)}"
+    return line
+
+
+def _error_label(key: str) -> str:
+    """The error's name with the report's unit (:data:`text.CHECK_LABELS`)."""
+    label, _, unit = text.CHECK_LABELS.get(key, (LABELS.get(key, key), 1.0, ""))
+    return f"{label} [{unit.strip()}]" if unit.strip() else label
+
+
+def _error(value, key: str) -> str:
+    """An error in the report's unit (mm, deg: :data:`text.CHECK_LABELS`)."""
+    if value is None:
+        return "–"
+    return f"{value * text.CHECK_LABELS.get(key, ('', 1.0, ''))[1]:.3g}"
+
+
+def _ranking_row(diag, c, level) -> dict:
+    """What the page shows of one ranking row: its fitted values in the report's units, its sentence,
+    its check, its constancy, and for a row not refitted, why (with what an earlier round found)."""
+    windows = ""
+    if c.screen is not None and c.screen.kind == "windowed" and level is not None:
+        spans = [f"{w.start_s:.2f}–{w.end_s:.2f} s" for w in c.screen.passing_windows(level)]
+        windows = f" (score windows passing: {', '.join(spans) or 'none'})"
+    not_refitted = text.not_refitted_text(c, diag) if not c.refitted and not c.error else ""
+    if c.error:
+        say = f"cannot be fitted: {c.error}"
+    elif not c.refitted:
+        say = not_refitted
+    elif c.significant:
+        say = f"found (BIC score {c.score:.1f}, p = {c.p_value:.2g})"
+    else:
+        say = c.finding or c.summary
+    values = text.effect_values(c.effect, c.parameters) if c.score is not None and c.parameters else ""
+    return {"candidate": c, "screen": c.screen, "windows": windows, "not_refitted": not_refitted, "say": say,
+            "verdict": "turned down by its check" if c.vetoed else c.status,
+            "values": values, "check": c.check_text(diag.config.check_worse) if c.check else "",
+            "constancy": text.constancy_line(c, diag.config) if c.constancy and not c.implausible else ""}
 
 
 def diagnosis_summary(diag) -> dict:
@@ -239,7 +319,8 @@ def diagnosis_summary(diag) -> dict:
     windows before and after, the errors before and after, each candidate's verdict."""
     data = diag.to_json()
     after = data.get("after")
-    return {"recording": data["recording"], "selected": data["selected"], "added": data["added"],
+    return {"verdict": data["verdict"], "added_values": data["added_values"], "selected_line": selected_line(diag),
+            "recording": data["recording"], "selected": data["selected"], "added": data["added"],
             "flags_before": len(data["before"]["flagged_windows"]),
             "flags_after": len(after["flagged_windows"]) if after else None,
             "rmse_before": data["before"]["rmse"], "rmse_after": after["rmse"] if after else None,
