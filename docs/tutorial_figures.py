@@ -103,12 +103,9 @@ def numbers(data: dict[str, dict]) -> dict[str, str]:
     ``added``: the push and the CoM offset added by hand)."""
     diag, added = data["diag"], data["added"]
     deg = 180.0 / math.pi
-    com = _row(diag, "com-offset")
+    com = _row(diag, "com-offset", 2)  # the round that took it, on top of the push
     push = _row(diag, "external-wrench", 1)
     chk = push["check"]
-    again = _row(diag, "external-wrench", 2)  # refitted at the CoM offset's base, turned down again
-    chk2 = again["check"]
-    window = again["parameters"]["windows"][0]
     push_after = added["after"]["effect_estimates"]["external-wrench"]["windows"][0]
     com_after = added["after"]["effect_estimates"]["com-offset"]
     auto = diag["after"]
@@ -118,9 +115,6 @@ def numbers(data: dict[str, dict]) -> dict[str, str]:
         "com_x_mm": f"{com['parameters']['value'][0] * 1e3:.1f} ± {com['parameters']['std'][0] * 1e3:.1f}",
         "com_score": f"{com['score']:.1f}",
         "push_score": f"{push['score']:.1f}",
-        "push2_force_before": _g(chk2["before"]["force_N"]), "push2_force_after": _g(chk2["after"]["force_N"]),
-        "push2_N": f"{window['peak_force'][0]:.0f}", "push2_start": f"{window['start_s']:.2f}",
-        "push2_end": f"{window['end_s']:.2f}",
         "push_force_before": _g(chk["before"]["force_N"]), "push_force_after": _g(chk["after"]["force_N"]),
         "push_steady_N": f"{push['parameters']['steady']['equivalent_force'][0]:.1f}",
         "push_steady_mm": f"{push['parameters']['steady']['com_offset_equivalent_m'][0] * 1e3:.1f}",

@@ -8,7 +8,7 @@ from types import SimpleNamespace
 
 from flexforce.compare.diagnostics.config import DiagnoseConfig
 from flexforce.compare.diagnostics.results import Candidate
-from flexforce.compare.diagnostics.selection import _vetoed
+from flexforce.compare.diagnostics.selection import _vetoed, auto_added
 from flexforce.compare.diagnostics.text import finding
 
 
@@ -22,7 +22,7 @@ class _Session:
     def __init__(self, errors: dict[tuple[str, ...], dict | None]):
         self.config = DiagnoseConfig()
         self.errors = errors  # fitted effects -> their errors (None: nothing to check against)
-        self.cache = {k: SimpleNamespace(effects=k) for k in errors}
+        self.cache = {tuple(sorted(k)): SimpleNamespace(effects=tuple(sorted(k))) for k in errors}
 
     def fitted(self, key):
         return self.cache[tuple(sorted(key))]
@@ -82,3 +82,26 @@ def test_a_vetoed_row_says_it_was_turned_down_not_that_it_stands_for_another_eff
     text = finding(c, {}, None)
     assert text.startswith("turned down:") and "--add auto" in text
     assert c.status == "implausible" and c.to_dict()["turned_down_by_check"] is True
+
+
+def test_a_rise_outweighed_by_falls_is_taken():
+    """A push fitted before the CoM offset it also soaks up: the force error triples, the CoP, tilt
+    and hand errors fall tenfold -- taken (the sum of ln(after / before) is below 0)."""
+    s = _Session({(): {"force_N": 3.16, "cop_m": 0.0203, "rotation_rad": 0.0089, "hand_m": 0.0063},
+                  ("external-wrench",): {"force_N": 10.3, "cop_m": 0.0017, "rotation_rad": 0.0005, "hand_m": 0.0004}})
+    c = _cand("external-wrench")
+    assert _vetoed(s, c, s.fitted(())) is None and c.check is not None
+
+
+def test_auto_adds_the_longest_first_part_of_the_selection_that_raises_no_error():
+    s = _Session({(): {"force_N": 10.0, "cop_m": 0.010},
+                  ("a",): {"force_N": 5.0, "cop_m": 0.005},
+                  ("a", "b"): {"force_N": 12.0, "cop_m": 0.002}})
+    added, note = auto_added(s, ["a", "b"])
+    assert added == ["a"] and note is not None and note.startswith("auto: b not added")
+    assert "force 10 -> 12" in note
+    s.errors[("a", "b")] = {"force_N": 4.0, "cop_m": 0.002}
+    assert auto_added(s, ["a", "b"]) == (["a", "b"], None)
+    s.config = DiagnoseConfig(check_veto=False)
+    s.errors[("a", "b")] = {"force_N": 40.0, "cop_m": 0.002}
+    assert auto_added(s, ["a", "b"]) == (["a", "b"], None)

@@ -95,6 +95,7 @@ from flexforce.compare.diagnostics.screening import _refit_choice, _strength, id
 from flexforce.compare.diagnostics.selection import (
     Selection,
     _second_look,
+    auto_added,
     mark_rivals,
     run_rounds,
     second_look,
@@ -227,6 +228,12 @@ def diagnose(rec: Recording, model: ModelConfig | None = None, candidates: Itera
     swaps = second_look(s, sel, after_effects)
     ranking = _ranking(sel)
     added = after_effects()
+    if want_auto:
+        # --add auto adds no selection whose check says it raises an error (selection.auto_added)
+        auto, note = auto_added(s, list(sel.selected))
+        added = list(dict.fromkeys(auto + list(add_makers)))
+        if note:
+            skipped = {**skipped, "auto": note}
     s.watching = False
     before, after = _views(s, added)
     ekf_snap = _ekf_snapshot(s) if cfg.ekf else None

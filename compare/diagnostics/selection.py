@@ -337,12 +337,33 @@ def _best_plausible(s: Session, sel: Selection, row: list[Candidate], base: Fit)
     return None
 
 
+def check_changes(chk: dict, worse: float) -> tuple[list[tuple[str, float]], list[tuple[str, float]]]:
+    """``(rises, falls)`` of a check (:attr:`Candidate.check`): the errors that rise, and those
+    that fall, by more than ``worse`` of their value before and more than their
+    :data:`CHECK_FLOORS`, each with ``ln(after / before)``."""
+    rises, falls = [], []
+    for key, b in chk["before"].items():
+        a = chk["after"].get(key)
+        if b is None or a is None or not b > 0 or not a > 0:
+            continue
+        floor = CHECK_FLOORS.get(key, 0.0)
+        if a > (1.0 + worse) * b and a - b > floor:
+            rises.append((key, math.log(a / b)))
+        elif a < (1.0 - worse) * b and b - a > floor:
+            falls.append((key, math.log(a / b)))
+    return rises, falls
+
+
 def _vetoed(s: Session, c: Candidate, base: Fit) -> str | None:
-    """Why the check turns ``c`` down (:attr:`DiagnoseConfig.check_veto`), or None: an error against
-    the truth or the references of the fit with ``c`` above ``1 + check_worse`` times the round's
-    base's, or the nominal model's, by more than its :data:`CHECK_FLOORS`.  Sets
-    :attr:`Candidate.check` (against the base)."""
-    from flexforce.compare.diagnostics.text import _check_items, _check_keys, _check_reference
+    """Why the check turns ``c`` down (:attr:`DiagnoseConfig.check_veto`), or None.
+
+    Against the round's base, and the nominal model: the errors against the truth or the
+    references that rise (beyond ``check_worse`` and their :data:`CHECK_FLOORS`) outweigh those
+    that fall, the sum of ``ln(after / before)`` over both above 0 -- a push fitted before the CoM
+    offset it also soaks up raises the force error threefold while it cuts the CoP, tilt and hand
+    errors tenfold: taken; an effect that raises the force error and lowers nothing: turned down.
+    Sets :attr:`Candidate.check` (against the base)."""
+    from flexforce.compare.diagnostics.text import CHECK_LABELS, _check_items, _check_keys, _check_reference
 
     worse = s.config.check_worse
     fit = s.cache.get(tuple(sorted(tuple(c.base) + (c.effect,))))
@@ -355,14 +376,46 @@ def _vetoed(s: Session, c: Candidate, base: Fit) -> str | None:
     for against, chk in checks:
         if not chk:
             continue
-        rises = [(key, a - b) for key, b in chk["before"].items()
-                 if b is not None and (a := chk["after"].get(key)) is not None and a > (1.0 + worse) * b]
-        big = {key for key, rise in rises if rise > CHECK_FLOORS.get(key, 0.0)}
-        items = [text for key, (_, _, _, text) in zip(_check_keys(chk), _check_items(chk)) if key in big]
-        if items:
-            return (f"its check against {_check_reference(chk)} disagrees: {', '.join(items)} "
-                    f"(more than {worse:.0%} above {against})")
+        rises, falls = check_changes(chk, worse)
+        if not rises or sum(v for _, v in rises) + sum(v for _, v in falls) <= 0.0:
+            continue
+        up = {k for k, _ in rises}
+        items = [text for key, (_, _, _, text) in zip(_check_keys(chk), _check_items(chk)) if key in up]
+        lower = [CHECK_LABELS.get(k, (k,))[0] for k, _ in falls]
+        return (f"its check against {_check_reference(chk)} disagrees: {', '.join(items)} (more than {worse:.0%} "
+                f"above {against}" + (f", more than the {', '.join(lower)} error{'s' if len(lower) > 1 else ''} "
+                                      "fall" if lower else "") + ")")
     return None
+
+
+def auto_added(s: Session, selected: list[str]) -> tuple[list[str], str | None]:
+    """What ``add=["auto"]`` adds of the ``selected`` effects (in selection order): the longest
+    first part of them whose fit raises no error against the truth or the references beyond
+    ``check_worse`` and its :data:`CHECK_FLOORS` over the nominal model, with the sentence saying
+    what was left out and why (None when all are added, or nothing is checked)."""
+    if not (s.config.check_veto and selected):
+        return list(selected), None
+    nominal = s.fitted(())
+    for n in range(len(selected), 0, -1):
+        chk = s.check(nominal, s.fitted(tuple(selected[:n])))
+        if chk is None:
+            return list(selected), None
+        rises, _ = check_changes(chk, s.config.check_worse)
+        if not rises:
+            if n == len(selected):
+                return list(selected), None
+            break
+    else:
+        n = 0
+    from flexforce.compare.diagnostics.text import _check_after, _check_reference
+
+    left = selected[n:]
+    chk = s.check(nominal, s.fitted(tuple(selected)))
+    if chk is None:  # pragma: no cover - checked above for the whole selection
+        return list(selected), None
+    return list(selected[:n]), (f"auto: {', '.join(left)} not added: with {'them' if len(left) > 1 else 'it'} an "
+                                f"error against {_check_reference(chk)} rises by more than "
+                                f"{s.config.check_worse:.0%} over the nominal model {_check_after(chk)}")
 
 
 def _take(s: Session, sel: Selection, row: list[Candidate], best: Candidate, base: Fit,
