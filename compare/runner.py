@@ -254,6 +254,8 @@ def describe(rec) -> dict:
         "has_truth": rec.truth is not None,
         "contacts": list(rec.contact_names),
         **({"window": rec.meta["window"]} if rec.meta.get("window") else {}),
+        # the faults flexforce.datasets.sensorcheck found in its data (diagnosis.json's, too)
+        **({"sensor_faults": list(rec.meta["sensor_faults"])} if rec.meta.get("sensor_faults") else {}),
     }
 
 

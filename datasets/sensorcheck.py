@@ -156,8 +156,9 @@ def _clipped(time: np.ndarray, name: str, y: np.ndarray, topics) -> tuple[list[F
 
 
 def _stuck_channel(time: np.ndarray, dt: float, sensor: str, channel: str, x: np.ndarray, unit: str,
-                   effect: str, skip_value: float | None = None, cause: str = "") -> list[Finding]:
-    """Spans of at least :data:`STUCK_MIN_S` s where the (N,) channel ``x`` does not change."""
+                   effect: str, skip_values: tuple[float, ...] = (), cause: str = "") -> list[Finding]:
+    """Spans of at least :data:`STUCK_MIN_S` s where the (N,) channel ``x`` does not change, other
+    than at one of ``skip_values`` (the axis's flat tops, reported as clipped)."""
     if x.size < 2:
         return []
     with np.errstate(invalid="ignore"):
@@ -169,7 +170,7 @@ def _stuck_channel(time: np.ndarray, dt: float, sensor: str, channel: str, x: np
         if last - first + 1 < need:
             continue
         value = float(x[first])
-        if skip_value is not None and abs(value - skip_value) <= EQUAL_TOL:
+        if any(abs(value - v) <= EQUAL_TOL for v in skip_values):
             continue  # a flat top, reported as clipped
         out.append(Finding(sensor, "stuck", float(time[first]), float(time[last]),
                            f"{channel} is constant at {value:.6g} {unit} for {last - first + 1} samples "
@@ -293,10 +294,9 @@ def check_recording(rec, topics: Mapping[str, str] | None = None,
         for name in ("accel", "gyro"):
             effect = (f"the {name} reading is frozen there: the IMU update pulls the estimated forces and tilt "
                       "towards a stale value")
-            top = dict(tops[name])
             for a in range(3):
                 out += _stuck_channel(time, dt, _named(name, topics), f"axis {_AXES[a]}", imu[name][:, a],
-                                      _UNIT[name], effect, top.get(a),
+                                      _UNIT[name], effect, tuple(v for axis, v in tops[name] if axis == a),
                                       " (a frozen driver, or the axis saturated at its full scale throughout)")
     out += _ft_checks(rec, time, dt, topics, stuck)
     return out

@@ -107,7 +107,8 @@ def model(rec):
 
 
 @pytest.mark.parametrize(("run", "what", "known"), [
-    (run_batch, "batch smoother", "max_iterations, rel_tol, covariance, global_constants, footholds, rule, secant"),
+    (run_batch, "batch smoother", "max_iterations, rel_tol, covariance, global_constants, footholds, rule, secant, "
+                                  "noise_calibration"),
     (run_fixed_lag, "fixed-lag smoother", "lag, backend, relinearize, report_every, block, relinearize_threshold, "
                                           "relinearize_skip, covariance, footholds, rule, compiled"),
     (run_ekf, "EKF", "unmodelled_accel, unmodelled_ang_accel, p0_scale, .*, ground_height_weight, imu_gate, "

@@ -536,7 +536,8 @@ def _top(line: str):
     (lambda t: t.replace('name = "right_foot"', 'name = "left_foot"'),
      r"contacts\[1\] repeats the contact name 'left_foot' in robot configuration .*; expected distinct names"),
     (lambda t: t.replace('name = "right_foot"', 'name = 3'), r"contacts\[1\] = \{.*\} in robot configuration .*; "
-                                                             r"expected a table with exactly a name and a frame"),
+                                                             r"expected a table with a name and a frame "
+                                                             r"\(non-empty strings\) and optionally a sole"),
 ])
 def test_robot_structure_is_checked(edit, match, tmp_path):
     path = _edited(tmp_path, edit)
@@ -558,3 +559,17 @@ def test_scenario_rates_have_an_upper_bound(line, match, tmp_path):
     path.write_text(f'name = "s"\nduration = 1.0\n{line}\n')
     with pytest.raises(ConfigError, match=match):
         Scenario.load(path)
+
+
+def test_the_recordings_description_carries_its_sensor_faults():
+    """describe(rec) -- the 'recording' of summary.json and diagnosis.json -- lists the faults the
+    data showed, and nothing when there are none."""
+    from flexforce.compare.runner import describe
+    from flexforce.datasets.sensorcheck import check_recording
+
+    rec = _live()
+    assert "sensor_faults" not in describe(rec)
+    rec.accel[:, 0] = np.clip(rec.accel[:, 0], -1.5, 1.5)
+    rec.meta["sensor_faults"] = [f.to_dict() for f in check_recording(rec)]
+    faults = describe(rec)["sensor_faults"]
+    assert faults and {f["kind"] for f in faults} == {"clipped"} and all("effect" in f for f in faults)
