@@ -339,8 +339,10 @@ def imu_residual_scale(residuals, time, skip: float, threshold: float) -> tuple[
     ``{"gyro": ..., "accel": ...}``.
 
     ``rms``: the root mean square of the (N, 6) whitened residuals (gyrometer axes, then
-    accelerometer axes) over the samples at or after ``skip`` s (``time``, (N,) s) that are finite;
-    about 1 when the configured noise describes the data.  ``scale``: the sensor's ``rms`` where it
+    accelerometer axes) about each axis's own mean, over the samples at or after ``skip`` s
+    (``time``, (N,) s) that are finite; about 1 when the configured noise describes the data.  The
+    mean is taken out so that a constant the model misses (a sensor bias, a mounting), which is an
+    effect to find and not noise, does not count.  ``scale``: the sensor's ``rms`` where it
     exceeds ``threshold`` sigmas, else 1 -- what its sigma is multiplied by for the residuals to
     be at their noise level."""
     res = np.asarray(residuals, dtype=float)
@@ -348,7 +350,12 @@ def imu_residual_scale(residuals, time, skip: float, threshold: float) -> tuple[
     rms, scale = {}, {}
     for name, cols in (("gyro", slice(0, 3)), ("accel", slice(3, 6))):
         r, k = res[:, cols], keep[:, cols]
-        rms[name] = float(np.sqrt(np.sum(np.where(k, r, 0.0) ** 2) / k.sum())) if k.any() else 0.0
+        count = k.sum(axis=0)
+        if not count.all():
+            rms[name], scale[name] = 0.0, 1.0
+            continue
+        mean = np.where(k, r, 0.0).sum(axis=0) / count
+        rms[name] = float(np.sqrt(np.sum(np.where(k, r - mean, 0.0) ** 2) / count.sum()))
         scale[name] = rms[name] if rms[name] > threshold else 1.0
     return rms, scale
 
