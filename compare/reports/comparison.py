@@ -16,6 +16,7 @@ import json
 import math
 import os
 import platform
+import re
 from contextlib import AbstractContextManager
 from pathlib import Path
 
@@ -88,12 +89,17 @@ ROBUST_PERCENTILES = (0.5, 99.5)
 estimator's first step) no longer flattens every curve."""
 ROBUST_MARGIN = 0.25
 """Margin added on both sides, as a fraction of the percentile range."""
+ROBUST_LIMITS_SENTENCE = (f"Axes are cut at robust limits (the {ROBUST_PERCENTILES[0]}–{ROBUST_PERCENTILES[1]} "
+                          f"percentiles of the plotted values ± {int(100 * ROBUST_MARGIN)}% of their range); a "
+                          "panel with points beyond them says how many in its top left corner.")
+"""How the report explains the note :func:`robust_limits` leaves in a panel."""
 
 
 def robust_limits(ax, values, percentiles=ROBUST_PERCENTILES, margin=ROBUST_MARGIN, log: bool = False) -> int:
     """Set the y limits of ``ax`` from robust percentiles of ``values`` (arrays, NaN ignored).
 
-    Returns the number of points left outside, and says so in the panel when there are any.
+    Returns the number of points left outside, and says so in the panel's top left corner when there
+    are any (the limits themselves: :data:`ROBUST_LIMITS_SENTENCE`, said once in the report).
     """
     v = np.concatenate([np.ravel(np.asarray(x, dtype=float)) for x in values]) if values else np.zeros(0)
     v = v[np.isfinite(v)]
@@ -109,9 +115,9 @@ def robust_limits(ax, values, percentiles=ROBUST_PERCENTILES, margin=ROBUST_MARG
     clipped = int(np.sum((v < lo) | (v > hi)))
     if clipped:
         ax.set_ylim(10**lo, 10**hi) if log else ax.set_ylim(lo, hi)
-        ax.text(0.01, 0.97, f"{clipped} point(s) beyond the axis (limits: {percentiles[0]}–{percentiles[1]} "
-                f"percentile ± {int(100 * margin)}%)", transform=ax.transAxes, ha="left", va="top", fontsize=7,
-                color="0.3")
+        ax.text(0.01, 0.97, f"{clipped} point(s) beyond the axis", transform=ax.transAxes, ha="left", va="top",
+                fontsize=7, color="0.3", clip_on=True, zorder=5,
+                bbox={"facecolor": "white", "alpha": 0.7, "linewidth": 0, "pad": 1})
     return clipped
 
 
@@ -233,19 +239,35 @@ def _rotvec(R):
     return np.array([so3.log(r) for r in R])
 
 
+def figure_legend(fig, axes, fontsize: float = 7, ncol: int = 8) -> None:
+    """One legend for ``fig`` below its panels, outside every axes: the labelled artists of all
+    ``axes`` (a reference drawn on one panel only is listed too), each label once.  ``fig`` needs a
+    constrained layout (``layout="constrained"``) to make room for it."""
+    handles, labels = [], []
+    for ax in axes:
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            if lab not in labels:
+                handles.append(h)
+                labels.append(lab)
+    if handles:
+        fig.legend(handles, labels, loc="outside lower center", fontsize=fontsize, ncol=min(ncol, len(labels)),
+                   frameon=False)
+
+
 def _series_figure(time, estimates: dict, panels: list[tuple], title: str, rec=None):
     """A figure of one :func:`plot_series` panel per row of ``panels``, ``(value, std, truth, label,
-    keyword arguments)``, on a shared time axis (s), the legend on the first panel; the events of
-    ``rec`` (:func:`plot_events`) marked on every panel."""
-    fig, axes = plt.subplots(len(panels), 1, figsize=(10, 2.6 * len(panels) + 0.4), sharex=True, squeeze=False)
+    keyword arguments)``, on a shared time axis (s), one legend below the panels
+    (:func:`figure_legend`); the events of ``rec`` (:func:`plot_events`) marked on every panel."""
+    fig, axes = plt.subplots(len(panels), 1, figsize=(10, 2.4 * len(panels) + 1.0), sharex=True, squeeze=False,
+                             layout="constrained")
     axes = axes[:, 0]
     for k, (ax, (value, std, truth, label, options)) in enumerate(zip(axes, panels)):
         if rec is not None:
             plot_events(ax, rec, legend=k == 0)
         plot_series(ax, time, estimates, value, std, truth, label, **options)
-    axes[0].legend(loc="upper right", fontsize=7, ncol=4)
     axes[-1].set_xlabel("time [s]")
     fig.suptitle(title)
+    figure_legend(fig, axes)
     return fig
 
 
@@ -325,7 +347,8 @@ def figure_errors(comp, rec):
         keys.remove("vertical_force_N")
     if not keys:
         return None
-    fig, axes = plt.subplots(len(keys), 1, figsize=(10, 2.2 * len(keys) + 1), sharex=True, squeeze=False)
+    fig, axes = plt.subplots(len(keys), 1, figsize=(10, 2.2 * len(keys) + 1.2), sharex=True, squeeze=False,
+                             layout="constrained")
     for k, (ax, key) in enumerate(zip(axes[:, 0], keys)):
         plot_events(ax, rec, legend=k == 0)
         shown = []
@@ -340,10 +363,10 @@ def figure_errors(comp, rec):
         ax.set_ylabel(label + (f"\n{ref}" if ref and ref != "truth" else ""), fontsize=8)
         ax.grid(alpha=0.3, which="both")
         robust_limits(ax, shown, log=True)
-    axes[0, 0].legend(loc="upper right", fontsize=7, ncol=4)
     axes[-1, 0].set_xlabel("time [s]")
     fig.suptitle("Estimation errors against ground truth" if rec.truth is not None else
                  "Estimation errors against reference sensors (references, not ground truth)")
+    figure_legend(fig, axes[:, 0])
     return fig
 
 
@@ -386,23 +409,24 @@ def figure_foot_forces(comp, rec):
     names = rec.contact_names
     if not names:
         return None
-    fig, axes = plt.subplots(len(names), 3, figsize=(15, 2.6 * len(names) + 1), sharex=True, squeeze=False)
+    fig, axes = plt.subplots(len(names), 3, figsize=(15, 2.6 * len(names) + 1.2), sharex=True, squeeze=False,
+                             layout="constrained")
     rows = _rows(comp)
     local = {key: contact_frame_wrench(e.R, e.t, e.wrench, rec) for key, e in rows.items()}
     for i in range(len(names)):
         for c, axis in enumerate((2, 0, 1)):
             plot_contact_force(axes[i, c], rec, i, axis, local, ref, comp)
-    # above the panels: inside, it would cover the robust-limits note and the first samples
-    axes[0, 0].legend(loc="lower left", bbox_to_anchor=(0.0, 1.0), fontsize=6, ncol=3, frameon=False)
     for ax in axes[-1]:
         ax.set_xlabel("time [s]")
     fig.suptitle("Per-contact forces in the sole frame: normal F_z, horizontal F_x, F_y "
                  "(green: contact active, orange: hidden effects)")
+    figure_legend(fig, axes.ravel())
     return fig
 
 
 def figure_foot_wrench(comp, rec):
-    """Torque and CoP of each contact against a 6-D reference; None when no contact has one."""
+    """Torque and CoP of each contact against a 6-D reference, a 2 x 2 block of panels per contact
+    (T_x, T_y above CoP x, CoP y); None when no contact has one."""
     from flexforce.compare.metrics import COP_MIN_LOAD, contact_frame_wrench
 
     ref = _reference_contact_wrench(rec)
@@ -414,7 +438,8 @@ def figure_foot_wrench(comp, rec):
     rows = _rows(comp)
     local = {key: contact_frame_wrench(e.R, e.t, e.wrench, rec) for key, e in rows.items()}
     min_load = COP_MIN_LOAD * rec.mass * rec.gravity
-    fig, axes = plt.subplots(len(idx), 4, figsize=(14, 2.6 * len(idx) + 1), sharex=True, squeeze=False)
+    fig, axes = plt.subplots(2 * len(idx), 2, figsize=(14, 2.3 * 2 * len(idx) + 1.2), sharex=True, squeeze=False,
+                             layout="constrained")
 
     def cop(w, i):
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -427,7 +452,7 @@ def figure_foot_wrench(comp, rec):
         series = [("T_x [N m]", lambda w, i=i: w[:, i, 3]), ("T_y [N m]", lambda w, i=i: w[:, i, 4]),
                   ("CoP x [mm]", lambda w, i=i: cop(w, i)[:, 0]), ("CoP y [mm]", lambda w, i=i: cop(w, i)[:, 1])]
         for c, (label, f) in enumerate(series):
-            ax = axes[r, c]
+            ax = axes[2 * r + c // 2, c % 2]
             _shade_contact(ax, rec, i)
             plot_events(ax, rec, switches=False)
             y = f(ref)
@@ -440,11 +465,11 @@ def figure_foot_wrench(comp, rec):
             ax.set_ylabel(f"{name}\n{label}", fontsize=8)
             ax.grid(alpha=0.3)
             robust_limits(ax, shown)
-    axes[0, 0].legend(loc="upper right", fontsize=6, ncol=2)
     for ax in axes[-1]:
         ax.set_xlabel("time [s]")
     fig.suptitle(f"Sole torque and CoP (sole frame; CoP where the foot carries > {int(COP_MIN_LOAD * 100)}% "
                  f"of the weight)")
+    figure_legend(fig, axes.ravel())
     return fig
 
 
@@ -455,7 +480,7 @@ def figure_contacts(comp, rec):
         return None
     anchor = rec.meta.get("anchor") if isinstance(rec.meta.get("anchor"), dict) else {}
     switches = [s for s in anchor.get("switches", []) or [] if isinstance(s, dict) and "t" in s]
-    fig, ax = plt.subplots(1, 1, figsize=(10, 0.6 * len(names) + 1.6))
+    fig, ax = plt.subplots(1, 1, figsize=(10, 0.3 * len(names) + 0.9), layout="constrained")
     for i, _name in enumerate(names):
         spans = [(a, max(b - a, rec.dt)) for a, b in intervals(rec.contact_active[:, i], rec.time)]
         ax.broken_barh(spans, (i - 0.35, 0.7), color="tab:olive", alpha=0.8)
@@ -480,7 +505,7 @@ def figure_contacts(comp, rec):
     title = "Contacts in force (bars)"
     if switches or anchor.get("first"):
         title += f"; black: leg-odometry anchor, red lines: its {len(switches)} switch(es)"
-    ax.set_title(title, fontsize=10)
+    ax.set_title(title, fontsize=9)
     return fig
 
 
@@ -502,7 +527,54 @@ def plot_family(ax, est, family: str, flags=(), title: str = ""):
         ax.legend(loc="upper right", fontsize=6, ncol=6)
 
 
+def residual_groups(labels, width: int) -> list[tuple[str, list[int]]]:
+    """The axes of a factor family grouped by quantity: ``(name, columns)`` in order of first appearance,
+    the name the axes' label without its unit (``[...]``) and its ``_x``/``_y``/``_z`` suffix followed by
+    the suffixes (``gyro xyz``, ``left_foot F xyz``); an axis without such a label is a group of its own.
+    ``width``: the family's number of columns (labels beyond it ignored, missing ones numbered)."""
+    groups: dict[str, list[int]] = {}
+    suffixes: dict[str, str] = {}
+    for j in range(width):
+        name = str(labels[j]) if j < len(labels) else str(j)
+        name = re.sub(r"\s*\[[^\]]*\]\s*$", "", name)
+        m = re.match(r"^(.*)_([xyz])$", name)
+        base, axis = (m.group(1), m.group(2)) if m else (name, "")
+        groups.setdefault(base, []).append(j)
+        suffixes[base] = suffixes.get(base, "") + axis
+    return [(f"{base} {suffixes[base]}" if suffixes[base] else base, cols) for base, cols in groups.items()]
+
+
+RESIDUAL_BINS = 400
+"""Points per curve of the residual figure at most: each point the largest |whitened residual| of
+its group over a bin of consecutive steps."""
+
+
+def plot_family_envelope(ax, est, family: str, title: str = "", threshold: float | None = None,
+                         bins: int = RESIDUAL_BINS) -> None:
+    """The largest |whitened residual| (σ, log axis) of each quantity of ``family`` of ``est``
+    (:func:`residual_groups`) over bins of consecutive steps (at most ``bins`` per curve) against
+    time (s): a few lines, none hidden, every spike kept; 3σ dashed, ``threshold`` dotted; the legend
+    beside the panel, outside it."""
+    r = np.abs(np.asarray(est.residuals[family], dtype=float))
+    time = np.asarray(est.time, dtype=float)
+    step = max(1, -(-r.shape[0] // bins))
+    count = -(-r.shape[0] // step)
+    for name, cols in residual_groups(est.residual_labels.get(family, ()), r.shape[1]):
+        padded = np.full(count * step, np.nan)
+        padded[:r.shape[0]] = np.fmax.reduce(r[:, cols], axis=1)  # NaN only where every axis is
+        env = np.fmax.reduce(padded.reshape(count, step), axis=1)
+        ax.semilogy(time[::step], np.maximum(env, 1e-3), lw=0.8, label=name, drawstyle="steps-post")
+    ax.axhline(3, color="k", lw=0.6, ls="--")
+    if threshold is not None:
+        ax.axhline(threshold, color="k", lw=0.6, ls=":")
+    ax.set_ylabel(f"{title}{family}\n|r| [σ]", fontsize=8)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(loc="upper left", bbox_to_anchor=(1.005, 1.0), fontsize=6, frameon=False, borderaxespad=0)
+
+
 def figure_residuals(comp, rec):
+    """One panel per (estimator, factor family): :func:`plot_family_envelope`, the events of ``rec``
+    marked (:func:`plot_events`)."""
     fams = []
     for key, est in comp.estimates.items():
         for fam in est.residuals:
@@ -510,15 +582,26 @@ def figure_residuals(comp, rec):
                 fams.append((key, fam))
     if not fams:
         return None
-    fig, axes = plt.subplots(len(fams), 1, figsize=(10, 1.8 * len(fams) + 1), sharex=True, squeeze=False)
-    for ax, (key, fam) in zip(axes[:, 0], fams):
-        plot_events(ax, rec)
-        plot_family(ax, comp.estimates[key], fam, title=f"{key}\n")
-        robust_limits(ax, [comp.estimates[key].residuals[fam]])
+    fig, axes = plt.subplots(len(fams), 1, figsize=(11, 1.45 * len(fams) + 1.0), sharex=True, squeeze=False,
+                             layout="constrained")
+    for k, (ax, (key, fam)) in enumerate(zip(axes[:, 0], fams)):
+        plot_events(ax, rec, legend=k == 0)
+        plot_family_envelope(ax, comp.estimates[key], fam, title=f"{key}\n", threshold=RESIDUAL_PEAK_SIGMA)
     axes[-1, 0].set_xlabel("time [s]")
-    fig.suptitle("Whitened residuals per factor family (dashed: ±3σ; orange: hidden effects, grey: contact "
-                 "switches)")
+    fig.suptitle(f"Largest whitened residual per quantity {_bin_seconds(comp)} (log axis; dashed: 3σ, dotted: "
+                 f"{RESIDUAL_PEAK_SIGMA:g}σ; orange: hidden effects, grey: contact switches)", fontsize=10)
     return fig
+
+
+def _bin_seconds(comp, bins: int = RESIDUAL_BINS) -> str:
+    """``in bins of 0.025 s`` (the bins of :func:`plot_family_envelope`) or ``per step`` when every
+    step is drawn."""
+    est = next(iter(comp.estimates.values()))
+    n = len(est.time)
+    step = max(1, -(-n // bins))
+    if step == 1 or n < 2:
+        return "per step"
+    return f"in bins of {step * float(est.time[1] - est.time[0]):.2g} s"
 
 
 RESIDUAL_PEAK_SIGMA = 10.0
@@ -528,8 +611,9 @@ event it falls in."""
 
 def residual_peaks(comp, rec, threshold: float = RESIDUAL_PEAK_SIGMA) -> list[str]:
     """One sentence per (estimator, factor family) whose largest |whitened residual| exceeds
-    ``threshold`` σ: its size, axis, time (s) and the marked event it falls in or next to (a hidden
-    effect's span, or within two steps of a contact switch)."""
+    ``threshold`` σ: its size, axis, time (s), how many steps exceed ``threshold`` and over which time
+    span, and the marked event it falls in or next to (a hidden effect's span, or within two steps of
+    a contact switch)."""
     spans = hidden_spans(rec)
     switches = np.asarray(contact_switches(rec))
     out = []
@@ -545,14 +629,20 @@ def residual_peaks(comp, rec, threshold: float = RESIDUAL_PEAK_SIGMA) -> list[st
             t = float(est.time[k])
             labels = est.residual_labels.get(fam, ())
             axis = labels[j] if j < len(labels) else str(j)
+            above = np.flatnonzero(np.nanmax(a, axis=1) > threshold)
+            t_first, t_last = float(est.time[above[0]]), float(est.time[above[-1]])
+            count = (f"{above.size} steps above {threshold:g}σ between {t_first:.2f} and {t_last:.2f} s"
+                     if above.size > 1 else f"one step above {threshold:g}σ")
             where = [f"inside the hidden effect {what} ({a0:.2f}–{b0:.2f} s): the model lacks it, the data "
                      "carry it" for a0, b0, what in spans if a0 - 2 * rec.dt <= t <= b0 + 2 * rec.dt]
             if not where and switches.size and np.min(np.abs(switches - t)) <= 2 * rec.dt:
                 where.append("at a contact switch, where the contact model changes within one step")
             if not where:
                 where.append("at none of the marked events")
-            out.append(f"{key}: the {fam} residual peaks at {peak:.3g}σ ({axis}) at t = {t:.2f} s, "
-                       f"{where[0]}.")
+            out.append(f"{key}: the {fam} residual peaks at {peak:.3g}σ ({axis}) at t = {t:.2f} s, {where[0]}; "
+                       f"{count}. This is the {key} {'filter' if key == 'ekf' else 'smoother'}'s misfit to its "
+                       f"{fam} factors there (in units of their noise), not a force error: the force errors are in "
+                       "the errors figure.")
     return out
 
 
@@ -560,7 +650,7 @@ def figure_consistency(comp, rec):
     series = [(k, m) for k, m in comp.metrics.items() if m.nees_series is not None or m.nis_series is not None]
     if not series:
         return None
-    fig, axes = plt.subplots(2, 1, figsize=(10, 5), sharex=True)
+    fig, axes = plt.subplots(2, 1, figsize=(10, 5), sharex=True, layout="constrained")
     for k, ax in enumerate(axes):
         plot_events(ax, rec, legend=k == 0)
     for key, m in series:
@@ -572,15 +662,13 @@ def figure_consistency(comp, rec):
     axes[1].axhline(6, color="k", ls="--", lw=0.8)
     axes[0].set_ylabel("NEES (18-D)")
     axes[1].set_ylabel("NIS (6-D)")
-    for ax in axes:
-        if ax.get_legend_handles_labels()[1]:
-            ax.legend(fontsize=8)
     if not any(m.nees_series is not None for _, m in series):
         axes[0].text(0.5, 0.5, "no ground truth: no NEES", ha="center", va="center", transform=axes[0].transAxes)
     axes[-1].set_xlabel("time [s]")
     for ax in axes:
         ax.grid(alpha=0.3, which="both")
     fig.suptitle("Consistency: dashed lines are the expected values")
+    figure_legend(fig, axes)
     return fig
 
 
@@ -785,6 +873,134 @@ def _crb_columns(keys) -> list[tuple[str, str, float]]:
     return [(k, *heads.get(k, (k, 1.0))) for k in keys]
 
 
+FIGURE_HEADINGS = {
+    "contacts.png": "Contact timeline",
+    "forces.png": "Total vertical force [N] and centre of pressure [mm]",
+    "foot_forces.png": "Forces per foot [N], sole frame",
+    "foot_wrench.png": "Torque [N m] and centre of pressure [mm] per foot, sole frame",
+    "flexibility.png": "Flexibility: roll, pitch, tilt [mrad] and sinking [mm]",
+    "errors.png": "Errors over time",
+    "residuals.png": "Whitened residuals per factor family [σ]",
+    "consistency.png": "Consistency over time: NEES and NIS",
+}
+"""The report's heading of each figure (:data:`FIGURES`), with its units."""
+
+
+EFFECT_UNITS = {"force": ("N", 1.0), "torque": ("N m", 1.0), "offset": ("mm", 1e3), "position": ("mm", 1e3),
+                "rotation": ("mrad", 1e3), "delay": ("ms", 1e3), "value": ("", 1.0), "scale": ("", 1.0),
+                "stiffness": ("", 1.0), "damping": ("", 1.0), "k_fs": ("", 1.0), "k_ts": ("", 1.0),
+                "beta_f": ("1/m²", 1.0), "beta_t": ("1/rad²", 1.0), "ramp": ("s", 1.0)}
+"""Unit and scale (from the SI of :mod:`flexforce.datasets.sim.effects`) in which a hidden effect's
+parameter is listed; ``value`` (a bias) is SI as given."""
+BIAS_UNITS = {"gyro-bias": "rad/s", "accel-bias": "m/s²"}
+"""Unit of the ``value`` of the bias effects."""
+_EFFECT_KEYS = ("type", "link", "contact", "target", "start", "duration", "profile", "kind")
+
+
+def _effect_value(key: str, value, unit: str, scale: float) -> str:
+    """``force 30 N (30, 0, 0)``: a parameter's size (the norm of a vector, with its components)."""
+    u = f" {unit}" if unit else ""
+    if isinstance(value, (list, tuple)):
+        v = np.asarray(value, dtype=float) * scale
+        parts = ", ".join(f"{x:.3g}" for x in v)
+        return f"{key} {float(np.linalg.norm(v)):.3g}{u} ({parts})"
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return f"{key} {value * scale:.3g}{u}"
+    return f"{key} {value}"
+
+
+def hidden_effect_text(effect: dict, window_start_s: float = 0.0, duration_s: float | None = None) -> str:
+    """One hidden effect of a simulated recording (an entry of ``summary["recording"]["hidden_effects"]``)
+    in words: its type, where it acts (link, contact), its parameters with units (:data:`EFFECT_UNITS`;
+    vectors as norm and components, world or IMU axes as the simulator defines them) and its time span
+    in the recording's seconds (``start`` shifted by ``window_start_s``, clipped to ``duration_s``), or
+    ``throughout`` without a start."""
+    kind = str(effect.get("type", "effect"))
+    where = []
+    link = effect.get("link")
+    if link == "@base":
+        where.append("on the base")
+    elif isinstance(link, str) and link.startswith("@link:"):
+        where.append(f"on tracked link {link[6:]} (a hand)")
+    elif link:
+        where.append(f"on {link}")
+    if effect.get("contact"):
+        where.append(f"at {effect['contact']}")
+    if effect.get("target"):
+        where.append(f"of the {effect['target']}")
+    params = []
+    for key, value in effect.items():
+        if key in _EFFECT_KEYS:
+            continue
+        unit, scale = EFFECT_UNITS.get(key, ("", 1.0))
+        if key == "value":
+            unit = BIAS_UNITS.get(kind, "")
+        params.append(_effect_value(key, value, unit, scale))
+    if "start" in effect:
+        a = float(effect["start"]) - window_start_s
+        b = a + float(effect.get("duration", math.inf))
+        a = max(a, 0.0)
+        if duration_s is not None:
+            b = min(b, duration_s)
+        span = f"{a:.2f}–{b:.2f} s" if math.isfinite(b) else f"from {a:.2f} s on"
+        if effect.get("profile"):
+            span += f", {effect['profile']} profile"
+    else:
+        span = "throughout"
+    text = " ".join([kind.replace("-", " "), *where])
+    return text + (": " + ", ".join(params) if params else "") + f"; {span}"
+
+
+def relative_columns(relative: dict) -> list[tuple[str, str]]:
+    """(key, header) of the columns of the "RMSE relative to the EKF" table that have a number in
+    some row: the quantity's name of :data:`TABLE_COLUMNS` without its unit (the cells are ratios)."""
+    out = []
+    for key, head, _scale in TABLE_COLUMNS:
+        if any((row or {}).get(key) is not None for row in relative.values()):
+            out.append((key, re.sub(r"\s*RMSE\s*\[[^\]]*\]$", "", head)))
+    return out
+
+
+VIOLATION_CHECKS = (("negative_normal", "normal force below 0 N (the ground pulls)"),
+                    ("friction_cone", "force outside the friction cone"),
+                    ("cop_outside_sole", "centre of pressure outside the sole"))
+"""The checks of summary.json's ``violations``, in the words of :func:`violation_sentences`."""
+
+
+def _checked(check: dict, in_contact) -> int | None:
+    """The (step, contact) pairs a violation check judged: ``count / fraction`` (the CoP check judges
+    only the pairs with F_z > 0), else the pairs in contact."""
+    count, fraction = check.get("count"), check.get("fraction")
+    return round(count / fraction) if count and fraction else in_contact
+
+
+def violation_sentences(summary: dict) -> list[str]:
+    """One sentence per physical check (:data:`VIOLATION_CHECKS`) of summary.json's ``violations``:
+    the rows that violate it, each with its count, the (step, contact) pairs it judged
+    (:func:`_checked`) and the percentage, or that no row does; a check no row made says why.  Empty without
+    violations."""
+    rows = [(k, m.get("violations"), baseline) for k, m, baseline in _table_rows(summary) if m.get("violations")]
+    if not rows:
+        return []
+    out = []
+    for check, words in VIOLATION_CHECKS:
+        made = [(k, v[check], _checked(v[check], v.get("samples_in_contact")), b) for k, v, b in rows
+                if "count" in (v.get(check) or {})]
+        if not made:
+            continue
+        bad = [f"{k}{' (baseline)' if b else ''} {c['count']} of {n} ({_fmt(c.get('fraction'), 100)} %)"
+               for k, c, n, b in made if c["count"]]
+        clean = [k for k, c, _, _ in made if not c["count"]]
+        if not bad:
+            out.append(f"No {words} in any row ({', '.join(clean)}).")
+            continue
+        text = f"{words[0].upper()}{words[1:]}: {'; '.join(bad)}"
+        if clean:
+            text += f"; none in {', '.join(clean)}"
+        out.append(text + ".")
+    return out
+
+
 def recording_name(rec, info: dict) -> str:
     """What a report calls a recording: its scenario, else the file or folder it was read from, else
     its robot configuration."""
@@ -886,7 +1102,8 @@ def _write_report(comp, rec, out: Path, title: str | None) -> None:
         fig = make(comp, rec)
         if fig is None:
             continue
-        fig.tight_layout()
+        if fig.get_layout_engine() is None:
+            fig.tight_layout()
         fig.savefig(out / name, dpi=90)
         plt.close(fig)
         figures.append(name)
@@ -907,12 +1124,14 @@ def _write_report(comp, rec, out: Path, title: str | None) -> None:
         info=info,
         window_text=(f", the window {win['start_s']:.3f}–{win['end_s']:.3f} s of a {win['of_duration_s']:.3f} s "
                      "recording" if win else ""),
-        effects=[json.dumps(e) for e in info.get("hidden_effects") or []],
+        effects=[hidden_effect_text(e, float((win or {}).get("start_s", 0.0)), info.get("duration_s"))
+                 for e in info.get("hidden_effects") or [] if isinstance(e, dict)],
         rows=list(_table_rows(summary)), columns=_summary_columns(summary), refs=_references(summary),
         references=sorted({v for v in _references(summary).values() if v != "truth"}),
         has_baselines=bool(summary.get("baselines")), extra=extra, peers=_peer_rows(summary),
         contact_groups=_contact_groups(summary), relative=summary.get("rmse_relative_to_ekf") or {},
-        rmse_keys=RMSE_KEYS, crb=summary.get("cramer_rao"), failures=comp.failures, figures=figures,
+        relative_columns=relative_columns(summary.get("rmse_relative_to_ekf") or {}),
+        crb=summary.get("cramer_rao"), failures=comp.failures, figures=figures,
         headline=headline(summary), phases=_phases(summary), phase_quantities=_phase_quantities(summary),
         lowpass_block=lp if has_lp else None,
         lowpass_quantities=[q for q in _phase_quantities(summary) if q[0] != "rotation_rad"],
@@ -920,6 +1139,7 @@ def _write_report(comp, rec, out: Path, title: str | None) -> None:
         has_violations=any(m.get("violations") for _, m, _ in _table_rows(summary)),
         mu=next((v["friction_mu"] for _, m, _ in _table_rows(summary) if (v := m.get("violations"))), FRICTION_MU),
         sole_skipped=_sole_skipped(summary), consistency=consistency_sentences(summary),
+        violations=violation_sentences(summary), headings=FIGURE_HEADINGS, robust_limits=ROBUST_LIMITS_SENTENCE,
         units=UNITS_SENTENCE, crb_columns=_crb_columns(RMSE_KEYS), residual_peaks=residual_peaks(comp, rec),
         residual_peak_sigma=RESIDUAL_PEAK_SIGMA)
     (out / "index.html").write_text(page)
