@@ -401,8 +401,8 @@ LOWPASS_ORDER = 4
 """Order of the Butterworth low-pass (applied forward and backward: zero phase, twice the order)."""
 FRICTION_MU = 0.7
 """Friction coefficient of the friction-cone check (no robot config gives one)."""
-NO_SOLE = ("no sole dimensions: the robot configs give each contact a name and a frame only "
-           "(no foot size, no contact extent)")
+NO_SOLE = ("no sole dimensions: the robot config gives its contacts no sole (a contact's "
+           "sole = [x_min, x_max, y_min, y_max] in m, in its frame)")
 """Why the CoP-in-sole check is skipped when no sole is given."""
 
 
