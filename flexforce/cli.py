@@ -768,8 +768,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="take a constant effect without fitting it again on each half of the recording "
                         "(the constancy check: halves that disagree make it implausible)")
     p.add_argument("--no-check-veto", action="store_true",
-                   help="take an effect even when its check against the truth or the reference sensors says it raises "
-                        "an error by more than 5%% (default: turned down, and never added by --add auto)")
+                   help="take and add an effect even when its check against the truth or the reference sensors says "
+                        "its errors rise more than they fall (default: turned down; --add auto adds no rise)")
     p.add_argument("--seed", type=_whole(0, "a noise seed"), help="noise seed when simulating a scenario")
     _add_input_options(p)
     p.add_argument("--ft", action="store_true", help="fuse the recording's F/T readings as measurements")

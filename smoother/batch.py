@@ -38,7 +38,14 @@ from flexforce.smoother.linearize import (
     solve_arrow_pair,
     walk_sigma,
 )
-from flexforce.smoother.problem import NoiseRule, Problem, build_problem, configured, imu_residual_scale
+from flexforce.smoother.problem import (
+    NoiseRule,
+    Problem,
+    build_problem,
+    configured,
+    imu_residual_scale,
+    scaled_imu_noise,
+)
 from flexforce.smoother.result import make_estimate
 
 if TYPE_CHECKING:
@@ -519,15 +526,12 @@ def run_batch(rec: Recording, model: ModelConfig, config: BatchConfig = BatchCon
     t0 = time.perf_counter()
     est = _smooth(rec, model, config, rest_p, rest_R, progress, t0)
     if config.noise_calibration is not None and "imu" in est.residuals:
-        from dataclasses import replace as _replace
-
         rms, scale = imu_residual_scale(est.residuals["imu"], rec.time, 0.0, config.noise_calibration)
-        record = {"threshold_sigma": config.noise_calibration, "rms_sigma": rms, "scale": scale,
-                  "gyro_sigma": model.gyro_sigma * scale["gyro"], "accel_sigma": model.accel_sigma * scale["accel"]}
+        calibrated = scaled_imu_noise(model, scale)
         if any(v != 1.0 for v in scale.values()):
-            calibrated = _replace(model, gyro_sigma=record["gyro_sigma"], accel_sigma=record["accel_sigma"])
             est = _smooth(rec, calibrated, config, rest_p, rest_R, progress, t0)
-        est.meta["noise_calibration"] = record
+        est.meta["noise_calibration"] = {"threshold_sigma": config.noise_calibration, "rms_sigma": rms, "scale": scale,
+                                         "gyro_sigma": calibrated.gyro_sigma, "accel_sigma": calibrated.accel_sigma}
     est.total_time = time.perf_counter() - t0
     if progress is not None:
         progress(1.0)

@@ -56,7 +56,7 @@ if TYPE_CHECKING:
     from flexforce.datasets.recording import Recording
 
 __all__ = ["FAMILIES", "ConstantRows", "Effect", "NoiseRule", "Problem", "ProblemView", "Sigmas", "derive_sigmas",
-           "imu_residual_scale", "static_equilibrium", "whitener", "with_footholds"]
+           "imu_residual_scale", "scaled_imu_noise", "static_equilibrium", "whitener", "with_footholds"]
 
 FAMILIES = ("integration", "newton_euler", "contact", "imu", "ft")
 """Names of the factor families, the keys of :attr:`Estimate.residuals`."""
@@ -358,6 +358,14 @@ def imu_residual_scale(residuals, time, skip: float, threshold: float) -> tuple[
         rms[name] = float(np.sqrt(np.sum(np.where(k, r - mean, 0.0) ** 2) / count.sum()))
         scale[name] = rms[name] if rms[name] > threshold else 1.0
     return rms, scale
+
+
+def scaled_imu_noise(model, scale: dict):
+    """``model`` (a ModelConfig) with its gyrometer and accelerometer sigmas multiplied by
+    ``scale["gyro"]`` and ``scale["accel"]`` (:func:`imu_residual_scale`'s)."""
+    from dataclasses import replace
+
+    return replace(model, gyro_sigma=model.gyro_sigma * scale["gyro"], accel_sigma=model.accel_sigma * scale["accel"])
 
 
 def configured(config, config_type: type, options: dict, what: str):

@@ -95,10 +95,12 @@ class DiagnoseConfig:
     check_veto: bool = True
     """Before a round takes an effect, hold its fit against what the fits did not use (the truth of
     a simulated recording, the reference sensors of a real one: :attr:`Candidate.check`); an effect
-    that raises one of those errors by more than :attr:`check_worse` over the round's base or over
-    the nominal model is turned down like an implausible one, and the round goes on to the next.
-    Without references nothing is vetoed.  A rise below :data:`CHECK_FLOORS` (a tenth of a
-    millimetre of position, say) is no reason: at that size the references' own noise decides."""
+    whose errors rise more than they fall (each change beyond :attr:`check_worse` and its
+    :data:`CHECK_FLOORS`, weighed by ``ln(after / before)``: :func:`.selection._vetoed`) over the
+    round's base or over the nominal model is turned down, and the round goes on to the next; a
+    later round tries it again.  ``add=["auto"]`` adds the selection only as far as no error rises
+    over the nominal model (:func:`.selection.auto_added`).  Without references nothing is
+    vetoed."""
 
     def __post_init__(self) -> None:
         level = self.screen_level

@@ -185,9 +185,9 @@ def diagnose(rec: Recording, model: ModelConfig | None = None, candidates: Itera
             it implausible (the round takes the next).  Costs two fits of half the recording per
             round that takes a constant effect.
         check_veto: before a round takes an effect, hold its fit against the truth or the
-            reference sensors; one that raises an error by more than ``check_worse`` over the
-            round's base or the nominal model is turned down (the round takes the next) and never
-            added by ``add=["auto"]``.
+            reference sensors; one whose errors rise more than they fall over the round's base or
+            the nominal model is turned down (the round takes the next), and ``add=["auto"]``
+            adds the selection only as far as no error rises (:attr:`DiagnoseConfig.check_veto`).
 
     Raises:
         ConfigError: an unknown candidate, two candidates of one name, no candidate to rank, a
@@ -263,13 +263,12 @@ def calibrate_noise(rec: Recording, model: ModelConfig, nominal: Fit, cfg: Diagn
     res = nominal.estimate.residuals.get("imu")
     if limit is None or res is None or res.shape[1] != 6:
         return None
-    from flexforce.smoother.problem import imu_residual_scale
+    from flexforce.smoother.problem import imu_residual_scale, scaled_imu_noise
 
     rms, scale = imu_residual_scale(res, rec.time, cfg.skip, limit)
     if all(v == 1.0 for v in scale.values()):
         return None
-    cal = dataclasses.replace(model, gyro_sigma=model.gyro_sigma * scale["gyro"],
-                              accel_sigma=model.accel_sigma * scale["accel"])
+    cal = scaled_imu_noise(model, scale)
     parts = [f"{name} {model_sigma:.3g} -> {model_sigma * scale[name]:.3g} {unit} ({rms[name]:.1f}x)"
              for name, model_sigma, unit in (("gyro", model.gyro_sigma, "rad/s"),
                                              ("accel", model.accel_sigma, "m/s^2")) if scale[name] != 1.0]

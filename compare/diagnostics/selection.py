@@ -396,26 +396,23 @@ def auto_added(s: Session, selected: list[str]) -> tuple[list[str], str | None]:
     if not (s.config.check_veto and selected):
         return list(selected), None
     nominal = s.fitted(())
-    for n in range(len(selected), 0, -1):
+    whole = s.check(nominal, s.fitted(tuple(selected)))
+    if whole is None or not check_changes(whole, s.config.check_worse)[0]:
+        return list(selected), None
+    n = len(selected) - 1
+    while n > 0:
         chk = s.check(nominal, s.fitted(tuple(selected[:n])))
-        if chk is None:
+        if chk is None:  # nothing to check against after all
             return list(selected), None
-        rises, _ = check_changes(chk, s.config.check_worse)
-        if not rises:
-            if n == len(selected):
-                return list(selected), None
+        if not check_changes(chk, s.config.check_worse)[0]:
             break
-    else:
-        n = 0
+        n -= 1
     from flexforce.compare.diagnostics.text import _check_after, _check_reference
 
     left = selected[n:]
-    chk = s.check(nominal, s.fitted(tuple(selected)))
-    if chk is None:  # pragma: no cover - checked above for the whole selection
-        return list(selected), None
     return list(selected[:n]), (f"auto: {', '.join(left)} not added: with {'them' if len(left) > 1 else 'it'} an "
-                                f"error against {_check_reference(chk)} rises by more than "
-                                f"{s.config.check_worse:.0%} over the nominal model {_check_after(chk)}")
+                                f"error against {_check_reference(whole)} rises by more than "
+                                f"{s.config.check_worse:.0%} over the nominal model {_check_after(whole)}")
 
 
 def _take(s: Session, sel: Selection, row: list[Candidate], best: Candidate, base: Fit,
