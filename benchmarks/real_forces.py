@@ -17,6 +17,9 @@ Vicon (references, not ground truth):
 - ``violations``: counts and fractions of negative normal forces, of forces outside the friction
   cone and of CoPs outside the sole (the robot config's ``sole`` of each contact), over the samples
   in contact;
+- ``force_band``: how often each contact's normal-force band (+-2 sigma, from the estimator's
+  covariance) holds the F/T (nominal 95 %), overall and per phase, the RMS of the error over the
+  band's sigma and the median sigma (:func:`flexforce.compare.metrics.force_band`);
 
 GTSAM's legged estimators (``peers``: IMU and leg kinematics, no forces) keep their tilt, per
 phase too, and their time per step; and each recording's ``headline``: the sentences naming the
@@ -82,6 +85,12 @@ def _row(m: dict) -> dict:
     skipped = (v.get("cop_outside_sole") or {}).get("skipped")
     if skipped:
         out["violations"]["cop_outside_sole"] = {"skipped": skipped}
+    band = m.get("force_band") or {}
+    if band.get("samples"):
+        out["force_band"] = {k: band.get(k) for k in ("samples", "level", "coverage", "z_rms", "median_sigma_N")}
+        out["force_band"]["per_phase"] = {ph: {k: d.get(k) for k in ("samples", "coverage", "z_rms")}
+                                          for ph, d in (band.get("per_phase") or {}).items()
+                                          if ph != "all" and d.get("samples")}
     return out
 
 

@@ -3,9 +3,11 @@
 Usage::
 
     python benchmarks/walk.py [--robot romeo] [--scenario walk] [--estimators ekf fixed-lag batch]
-                              [--imu-scale 2] [--ambient-scale 3] [--touchdown floor|relaxed|deflected]
+                              [--imu-scale 2] [--ambient-scale 3] [--touchdown floor|relaxed|deflected] [--footholds]
                               [--out benchmarks/results/walk.json]
 
+``benchmarks/results/walk_footholds.json`` is the same walk with ``--footholds``: the smoothers
+estimate every contact episode's foothold (``footholds=True``) instead of holding the local one.
 ``benchmarks/results/walk_deflected.json`` is the same walk with ``--touchdown deflected``: the
 world lands its feet as the estimators assume (a contact's rest at its local placement), which
 separates what the noise costs from what the touch-down convention costs.
@@ -36,6 +38,7 @@ import os
 import platform
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -116,6 +119,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--scenario", default="walk")
     ap.add_argument("--estimators", nargs="+", default=["ekf", "fixed-lag", "batch"])
     ap.add_argument("--imu-scale", type=float, default=2.0)
+    ap.add_argument("--footholds", action="store_true",
+                    help="the smoothers estimate the footholds (footholds=True; the EKF unchanged)")
     ap.add_argument("--ambient-scale", type=float, default=3.0)
     ap.add_argument("--touchdown", default=None, help="the world's touch-down convention (default: the scenario's, "
                                                        "floor); 'deflected' is the estimators' own")
@@ -150,7 +155,7 @@ def main(argv=None) -> dict:
             "touch_downs": int(np.sum(active[1:] & ~active[:-1])),
             "single_support_s": float(np.sum(active.sum(axis=1) == 1) * rec.dt),
             "imu_noise_scale": args.imu_scale, "ambient_scale": args.ambient_scale,
-            "touchdown": sc.touchdown, "simulation_s": sim_time,
+            "touchdown": sc.touchdown, "simulation_s": sim_time, "smoothers_footholds": bool(args.footholds),
             "static_deflection_mm": 1e3 * static,
             "truth_flexibility": flexibility_extent(tr.R, tr.t, allk),
             "truth_spring_deflection": spring_deflection(sim, rec),
@@ -161,7 +166,8 @@ def main(argv=None) -> dict:
     }
     for name in args.estimators:
         t0 = time.perf_counter()
-        est = run_estimator(name, rec)
+        options: dict[str, Any] = {"footholds": True} if args.footholds and name != "ekf" else {}
+        est = run_estimator(name, rec, **options)
         run_time = time.perf_counter() - t0
         f, l_ = window_errors(est, rec, first), window_errors(est, rec, last)
         flex = flexibility_extent(est.R, est.t, allk)

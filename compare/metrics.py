@@ -86,6 +86,8 @@ class Metrics:
     low-pass): :func:`phase_metrics`; empty where it was not computed."""
     violations: dict = field(default_factory=dict)
     """Counts and fractions of physically impossible contact wrenches: :func:`violations`."""
+    force_band: dict = field(default_factory=dict)
+    """Coverage of the contacts' normal-force bands by the reference: :func:`force_band`."""
     extra: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
@@ -107,6 +109,7 @@ class Metrics:
                                    for k, v in d.items()} for ph, d in self.per_phase.items()}}
                if self.per_phase else {}),
             **({"violations": self.violations} if self.violations else {}),
+            **({"force_band": self.force_band} if self.force_band else {}),
         }
 
     def timings_dict(self) -> dict:
@@ -505,6 +508,56 @@ def phase_metrics(m: Metrics, est, rec, skip: float = 0.0, cutoff_hz: float = LO
             entry[lowpass_key(cutoff_hz)] = {"foot_vertical_force_N": _rms((a - b)[mask].ravel()),
                                              "total_vertical_force_N": _rms(a[mask].sum(axis=1) - b[mask].sum(axis=1))}
         m.per_phase[phase] = entry
+
+
+BAND_SIGMAS = 2.0
+"""Half-width of the force band, in standard deviations (nominal coverage of a Gaussian: 95.4 %)."""
+
+
+def force_band(est, rec, skip: float = 0.0, k: float = BAND_SIGMAS) -> dict:
+    """How honest each contact's normal-force band is: over the (step, contact) pairs in force after
+    ``skip`` s where the reference (the truth's, else the F/T's normal force) is finite, the
+    fraction within ``k`` standard deviations of the estimate (``coverage``; a consistent Gaussian
+    band covers :func:`band_level` of them) and the RMS of the normalised error (``z_rms``, 1 when
+    consistent), per contact phase (:func:`phase_masks`) and per contact, with the median
+    standard deviation (``median_sigma_N``).
+
+    The standard deviation is that of the contact-frame F_z, ``n^T Sigma_F n`` with ``n`` the
+    contact's normal and ``Sigma_F`` the force block of :attr:`Estimate.contact_wrench_cov`.
+    Empty without that covariance, contacts or a force reference.
+    """
+    ref = _reference_contact_fz(rec)
+    cov = getattr(est, "contact_wrench_cov", None)
+    if ref is None or cov is None or not rec.contact_names:
+        return {}
+    normal = np.einsum("nij,ncjk->ncik", est.R, rec.contact_R)[..., :, 2]  # (N, C, 3) world
+    fz = np.einsum("nci,nci->nc", normal, est.wrench[..., :3])
+    var = np.einsum("nci,ncij,ncj->nc", normal, cov[:, :, :3, :3], normal)
+    sigma = np.sqrt(np.maximum(var, 0.0))
+    ok = rec.contact_active & np.isfinite(ref) & np.isfinite(fz) & (sigma > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = np.where(ok, (fz - ref) / sigma, np.nan)
+
+    def stats(mask: np.ndarray) -> dict:
+        zz = z[mask & ok]
+        if not zz.size:
+            return {"samples": 0}
+        return {"samples": int(zz.size), "coverage": float(np.mean(np.abs(zz) <= k)),
+                "z_rms": float(np.sqrt(np.mean(zz * zz))), "median_sigma_N": float(np.median(sigma[mask & ok]))}
+
+    masks = phase_masks(rec, skip)
+    out: dict = {"k_sigma": k, "level": band_level(k)}
+    out["per_phase"] = {ph: stats(np.broadcast_to(mask[:, None], ok.shape)) for ph, mask in masks.items()}
+    keep = np.broadcast_to(masks["all"][:, None], ok.shape)
+    out["per_contact"] = {name: stats(keep & (np.arange(len(rec.contact_names)) == i)[None, :])
+                          for i, name in enumerate(rec.contact_names)}
+    out.update(out["per_phase"]["all"])
+    return out
+
+
+def band_level(k: float = BAND_SIGMAS) -> float:
+    """Probability that a Gaussian lies within ``k`` standard deviations of its mean."""
+    return math.erf(k / math.sqrt(2.0))
 
 
 def violations(est, rec, skip: float = 0.0, mu: float = FRICTION_MU,

@@ -23,6 +23,7 @@ from flexforce.compare.metrics import (
     TRANSITION_S,
     Metrics,
     evaluate,
+    force_band,
     lowpass_key,
     phase_metrics,
     violations,
@@ -392,6 +393,7 @@ def _contact_checks(m: Metrics, est, rec, skip: float, model=None) -> None:
     phase_metrics(m, est, rec, skip=skip)
     if rec.contact_names:
         m.violations = violations(est, rec, skip=skip, soles=tuple(getattr(model, "soles", ()) or ()))
+        m.force_band = force_band(est, rec, skip=skip)
 
 
 AUTO_JOBS = "auto"

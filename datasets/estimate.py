@@ -49,6 +49,9 @@ class Estimate:
     :data:`flexforce.datasets.layout.STATE`)."""
     wrench_cov: np.ndarray | None = None
     """(N, 6, 6) covariance of the total contact wrench."""
+    contact_wrench_cov: np.ndarray | None = None
+    """(N, C, 6, 6) covariance of each contact's wrench (world axes, about the world origin, like
+    :attr:`wrench`); zero while the contact is inactive."""
     cop_cov: np.ndarray | None = None
     """(N, 2, 2) covariance of the CoP's x and y, m^2."""
     residuals: dict[str, np.ndarray] = field(default_factory=dict)
@@ -106,8 +109,8 @@ class Estimate:
             path = path.with_suffix(path.suffix + ".npz") if path.suffix else path.with_suffix(".npz")
         path.parent.mkdir(parents=True, exist_ok=True)
         arrays = {}
-        for name in ("t_ns", "R", "t", "w", "v", "dw", "a", "wrench", "cop", "cov", "wrench_cov", "cop_cov",
-                     "innovation", "innovation_cov", "time_per_step"):
+        for name in ("t_ns", "R", "t", "w", "v", "dw", "a", "wrench", "cop", "cov", "wrench_cov", "contact_wrench_cov",
+                     "cop_cov", "innovation", "innovation_cov", "time_per_step"):
             value = getattr(self, name)
             if value is not None:
                 arrays[name] = value

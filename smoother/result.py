@@ -110,7 +110,7 @@ def make_estimate(prob, name: str, traj: Trajectory, P: np.ndarray | None = None
     cop = np.empty((n, 3))
     cop_J = np.empty((n, 3, 6))
     core.centers_of_pressure(np.ascontiguousarray(total, dtype=float), 0.0, COP_MIN_FORCE, cop, cop_J)
-    cov = wrench_cov = cop_cov = None
+    cov = wrench_cov = cop_cov = contact_wrench_cov = None
     if P is not None:
         cov = P[:, :S, :S].copy()
         A = np.zeros((6, prob.state_dim))
@@ -125,6 +125,10 @@ def make_estimate(prob, name: str, traj: Trajectory, P: np.ndarray | None = None
                 if not i_mask[i]:
                     Ak[:, S + 6 * i:S + 6 * i + 6] = 0.0
             wrench_cov[sel] = Ak @ P[sel] @ Ak.T
+        contact_wrench_cov = np.zeros((n, nc, 6, 6))
+        for i in range(nc):
+            b = slice(S + 6 * i, S + 6 * i + 6)
+            contact_wrench_cov[:, i] = np.where(prob.active[:, i, None, None], P[:, b, b], 0.0)
         Jc = cop_J[:, :2, :]
         cop_cov = Jc @ wrench_cov @ Jc.transpose(0, 2, 1)
     effects = {}
@@ -149,6 +153,6 @@ def make_estimate(prob, name: str, traj: Trajectory, P: np.ndarray | None = None
         estimator=name, t_ns=rec.t_ns.copy(), contact_names=tuple(rec.contact_names),
         R=traj.R.copy(), t=traj.q[:, 0:3].copy(), w=traj.q[:, 3:6].copy(), v=traj.q[:, 6:9].copy(),
         dw=traj.q[:, 9:12].copy(), a=traj.q[:, 12:15].copy(), wrench=W, cop=cop,
-        cov=cov, wrench_cov=wrench_cov, cop_cov=cop_cov,
+        cov=cov, wrench_cov=wrench_cov, contact_wrench_cov=contact_wrench_cov, cop_cov=cop_cov,
         residuals=residuals, residual_labels=residual_labels(prob),
         time_per_step=time_per_step, total_time=float(total_time), effects=effects, meta=meta)

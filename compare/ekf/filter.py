@@ -60,6 +60,7 @@ from flexforce.errors import ConfigError, DataError, EstimatorError, ModelError
 from flexforce.factors import so3
 from flexforce.factors.footholds import rest_placements
 from flexforce.factors.model import ModelConfig, unmodelled_acceleration
+from flexforce.factors.physics import contact_wrench
 from flexforce.options import (
     check_bool,
     check_choice,
@@ -603,6 +604,24 @@ def _handle_failure(status: int, k: int, ekf: EKF, x, P, P_reset, out: _Outputs)
         raise EstimatorError(msg + "; the reset to P0 did not recover the filter")
 
 
+def contact_wrench_cov(ekf: EKF, R: np.ndarray, x: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """(N, C, 6, 6) covariance of each contact's wrench, ``J_c P J_c^T`` with ``J_c`` the contact
+    law's Jacobian at the estimate (world-frame increments of ``(theta, t, w, v)``) and the rest
+    placements the filter used (:attr:`EKF.U`, the landings' too); zero while inactive.  The law
+    itself is exact in the filter: the spread is the state's alone."""
+    n, n_c = ekf.rec.n, len(ekf.rec.contact_names)
+    out = np.zeros((n, n_c, 6, 6))
+    U = ekf.U
+    for c, params in enumerate(ekf.model.contact_params):
+        o = K.NU0 + K.NUC * c
+        for k in np.flatnonzero(U[:, o] != 0.0):
+            _, J = contact_wrench(R[k], x[k, T], x[k, W], x[k, V], U[k, o + 1:o + 4], U[k, o + 4:o + 13].reshape(3, 3),
+                                  params, jacobian=True, world_p_rest=U[k, o + 13:o + 16],
+                                  world_R_rest=U[k, o + 16:o + 25].reshape(3, 3))
+            out[k, c] = J @ cov[k, :12, :12] @ J.T
+    return out
+
+
 class _Outputs:
     """Preallocated per-step outputs: one row per step, filled in place by the compiled step;
     the named fields are views into it."""
@@ -643,6 +662,7 @@ class _Outputs:
             estimator="ekf", t_ns=rec.t_ns.copy(), contact_names=tuple(rec.contact_names),
             R=R, t=x[:, T].copy(), w=x[:, W].copy(), v=x[:, V].copy(), dw=x[:, DW].copy(), a=x[:, A].copy(),
             wrench=c(self.wrench), cop=c(self.cop), cov=c(self.cov), wrench_cov=c(self.wrench_cov),
+            contact_wrench_cov=contact_wrench_cov(ekf, R, x, self.cov) if self.want else None,
             cop_cov=c(self.cop_cov), residuals={"imu": c(self.white)}, residual_labels={"imu": IMU_LABELS},
             innovation=c(self.innovation), innovation_cov=c(self.S), time_per_step=self.time_per_step,
             total_time=total,

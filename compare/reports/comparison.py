@@ -1001,6 +1001,34 @@ def violation_sentences(summary: dict) -> list[str]:
     return out
 
 
+def band_sentences(summary: dict) -> list[str]:
+    """One sentence on the estimators' normal-force bands (summary.json's ``force_band``,
+    :func:`flexforce.compare.metrics.force_band`): which rows cover the reference at about the
+    nominal rate, which are overconfident (coverage well below it, with the factor ``z_rms`` by
+    which the band understates the errors).  Empty when no row has a band."""
+    rows = [(k, m["force_band"]) for k, m in (summary.get("estimators") or {}).items()
+            if (m.get("force_band") or {}).get("samples")]
+    if not rows:
+        return []
+    level = rows[0][1]["level"]
+    k_sigma = rows[0][1]["k_sigma"]
+    ok = [k for k, b in rows if b["coverage"] >= level - BAND_SLACK]
+    bad = [f"{k} {100 * b['coverage']:.0f} % (errors ×{b['z_rms']:.2g} the band's σ)" for k, b in rows
+           if b["coverage"] < level - BAND_SLACK]
+    ref = "truth" if (summary.get("recording") or {}).get("has_truth") else "reference"
+    text = (f"The normal-force bands (±{k_sigma:g}σ) should hold the {ref} in {100 * level:.0f} % of the samples "
+            "in contact")
+    if ok:
+        text += f"; they do in {', '.join(ok)}"
+    if bad:
+        text += f"; they hold it less often in {'; '.join(bad)}: those bands are too narrow for the errors"
+    return [text + "."]
+
+
+BAND_SLACK = 0.05
+"""How far below the nominal coverage a band may fall and still be called honest (0.05: 90 % for ±2σ)."""
+
+
 def recording_name(rec, info: dict) -> str:
     """What a report calls a recording: its scenario, else the file or folder it was read from, else
     its robot configuration."""
@@ -1139,7 +1167,9 @@ def _write_report(comp, rec, out: Path, title: str | None) -> None:
         has_violations=any(m.get("violations") for _, m, _ in _table_rows(summary)),
         mu=next((v["friction_mu"] for _, m, _ in _table_rows(summary) if (v := m.get("violations"))), FRICTION_MU),
         sole_skipped=_sole_skipped(summary), consistency=consistency_sentences(summary),
-        violations=violation_sentences(summary), headings=FIGURE_HEADINGS, robust_limits=ROBUST_LIMITS_SENTENCE,
+        violations=violation_sentences(summary), bands=band_sentences(summary),
+        has_bands=any((m.get("force_band") or {}).get("samples") for _, m, _ in _table_rows(summary)),
+        headings=FIGURE_HEADINGS, robust_limits=ROBUST_LIMITS_SENTENCE,
         units=UNITS_SENTENCE, crb_columns=_crb_columns(RMSE_KEYS), residual_peaks=residual_peaks(comp, rec),
         residual_peak_sigma=RESIDUAL_PEAK_SIGMA)
     (out / "index.html").write_text(page)
