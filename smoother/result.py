@@ -64,6 +64,22 @@ def family_residuals(prob, traj: Trajectory) -> dict[str, np.ndarray]:
     return out
 
 
+def residual_sigmas(prob, residuals: dict) -> dict[str, np.ndarray]:
+    """The per-axis noise standard deviation behind each family's whitened residual, in the unit of
+    its labels (:attr:`Estimate.residual_sigma`).
+
+    Newton-Euler and contact residuals are whitened with a full covariance (force and moment are
+    correlated); their standard deviations make the force rows exact and the moment rows an
+    approximation (the moment left once the force is explained is smaller).
+    """
+    sig = prob.sigmas
+    per = {"imu": sig.imu, "newton_euler": sig.newton_euler,
+           "integration": np.sqrt(np.diag(sig.integration_cov)),
+           "contact": np.tile(sig.contact, prob.nc), "ft": np.tile(sig.ft, prob.nc)}
+    return {fam: np.asarray(per[fam], dtype=float).copy() for fam, r in residuals.items()
+            if fam in per and len(per[fam]) == r.shape[1]}
+
+
 def rejected_samples(prob, residuals: dict) -> list[dict]:
     """The sensor samples the smoother gave less weight (:mod:`flexforce.datasets.faults`): missing
     and saturated IMU axes (weight 0), and the IMU and F/T sensors whose whitened 3-D residual
@@ -146,13 +162,10 @@ def make_estimate(prob, name: str, traj: Trajectory, P: np.ndarray | None = None
     faults.warn_summary(name, meta["rejected"], stacklevel=4)
     meta.setdefault("noise", {k: (v.tolist() if isinstance(v, np.ndarray) else v)
                               for k, v in prob.sigmas.derivation.items()})
-    meta["sigmas"] = {"imu": prob.sigmas.imu.tolist(), "newton_euler": prob.sigmas.newton_euler.tolist(),
-                      "contact": prob.sigmas.contact.tolist(), "ft": prob.sigmas.ft.tolist(),
-                      "integration_std": np.sqrt(np.diag(prob.sigmas.integration_cov)).tolist()}
     return Estimate(
         estimator=name, t_ns=rec.t_ns.copy(), contact_names=tuple(rec.contact_names),
         R=traj.R.copy(), t=traj.q[:, 0:3].copy(), w=traj.q[:, 3:6].copy(), v=traj.q[:, 6:9].copy(),
         dw=traj.q[:, 9:12].copy(), a=traj.q[:, 12:15].copy(), wrench=W, cop=cop,
         cov=cov, wrench_cov=wrench_cov, contact_wrench_cov=contact_wrench_cov, cop_cov=cop_cov,
-        residuals=residuals, residual_labels=residual_labels(prob),
+        residuals=residuals, residual_labels=residual_labels(prob), residual_sigma=residual_sigmas(prob, residuals),
         time_per_step=time_per_step, total_time=float(total_time), effects=effects, meta=meta)

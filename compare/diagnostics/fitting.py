@@ -157,31 +157,6 @@ def score(base: Fit, fit: Fit, effect: str, alpha: float = DEFAULT.alpha,
     return bic, lr, nu, p, bool(bic > 0 and p < alpha / max(tests, 1))
 
 
-def with_residual_sigma(est: Estimate) -> Estimate:
-    """A copy of a smoother's estimate with the per-axis sigmas of its families (``meta["sigmas"]``)
-    where it lacks ``residual_sigma``, so that flagged windows have a size in physical units; the
-    estimate itself when it lacks none (the given estimate is never changed).
-
-    Newton-Euler and contact residuals are whitened with a full covariance (force and moment are
-    correlated); their standard deviations make the force rows exact and the moment rows an
-    approximation (the moment left once the force is explained is smaller).
-    """
-    sig = est.meta.get("sigmas") or {}
-    nc = len(est.contact_names)
-    known = {"imu": sig.get("imu"), "newton_euler": sig.get("newton_euler"),
-             "integration": sig.get("integration_std"),
-             "contact": None if sig.get("contact") is None else list(sig["contact"]) * nc,
-             "ft": None if sig.get("ft") is None else list(sig["ft"]) * nc}
-    added = {}
-    for fam, r in est.residuals.items():
-        s = known.get(fam)
-        if fam not in est.residual_sigma and s is not None and len(s) == r.shape[1]:
-            added[fam] = np.asarray(s, dtype=float)
-    if not added:
-        return est
-    return dataclasses.replace(est, residual_sigma={**est.residual_sigma, **added})
-
-
 def calibrated_view(rec, fit: Fit, window: float) -> tuple[dict, dict, dict] | None:
     """``(standardised, variances, correlations)`` of a fit's residuals
     (:mod:`flexforce.smoother.leverage`): each whitened residual divided by the square root of its
@@ -203,7 +178,7 @@ def snapshot(rec, fit: Fit, window: float, alpha: float, skip: float, calibrated
     """``fit`` seen through the diagnostics: its residuals (standardised by their own variance when
     ``calibrated``: :func:`calibrated_view`), the windows of ``window`` s flagged at ``alpha``, the
     consistency tests and the errors (``skip`` s left out at the start)."""
-    est = with_residual_sigma(fit.estimate)
+    est = fit.estimate
     view = calibrated_view(rec, fit, window) if calibrated else None
     if view is None:
         return Snapshot(fit.effects, est, evaluate(est, rec, skip=skip), flag_windows(est, window=window, alpha=alpha),

@@ -86,7 +86,6 @@ from flexforce.compare.diagnostics.fitting import (
     fit_model,
     score,
     snapshot,
-    with_residual_sigma,
 )
 from flexforce.compare.diagnostics.progress import _takes_two, progress_caller
 from flexforce.compare.diagnostics.residuals import consistency, flag_windows, residual_rms
@@ -120,7 +119,7 @@ __all__ = [
     "DiagnoseConfig", "Diagnosis", "Fit", "LeavingPlausible", "Snapshot", "bound", "calibrated_view", "constancy",
     "diagnose", "effect_factory", "finding", "fit_model", "headline_errors", "identifiability", "identify_candidates",
     "inapplicable", "left_out_by_default", "load_plugin", "mark_rivals", "progress_caller", "registered_effects",
-    "resolve_candidates", "score", "screen", "summarize_effect", "with_residual_sigma",
+    "resolve_candidates", "score", "screen", "summarize_effect",
     "_check", "_clean", "_constant", "_constant_effect", "_criterion", "_failure", "_is_effect", "_jsonable",
     "_plausibility", "_refit_choice", "_score_understates", "_second_look", "_snapshot", "_strength", "_takes_two",
 ]
