@@ -14,12 +14,13 @@ from pathlib import Path
 import numpy as np
 
 from flexforce.datasets.layout import STATE_LABELS as STATE_LABELS  # re-exported; defined by the layout
+from flexforce.datasets.quantities import FlexibleMotion
 from flexforce.datasets.safeio import safe_output
 from flexforce.errors import DataError
 
 
 @dataclass
-class Estimate:
+class Estimate(FlexibleMotion):
     """Per-step estimate of the flexibility state, contact wrenches and CoP, with uncertainty."""
 
     estimator: str
@@ -28,20 +29,6 @@ class Estimate:
     """(N,) int64 time stamps, ns (those of the Recording)."""
     contact_names: tuple[str, ...]
     """Names of the C contacts (those of the Recording)."""
-    R: np.ndarray
-    """(N, 3, 3) flexibility rotation, local to world."""
-    t: np.ndarray
-    """(N, 3) flexibility translation, m."""
-    w: np.ndarray
-    """(N, 3) angular velocity (world), rad/s."""
-    v: np.ndarray
-    """(N, 3) linear velocity, m/s."""
-    dw: np.ndarray
-    """(N, 3) angular acceleration, rad/s^2."""
-    a: np.ndarray
-    """(N, 3) linear acceleration, m/s^2."""
-    wrench: np.ndarray
-    """(N, C, 6) per-contact wrench (F [N], T [N m] about the world origin); zero when inactive."""
     cop: np.ndarray
     """(N, 3) centre of pressure, m (NaN without vertical force)."""
     cov: np.ndarray | None = None
@@ -84,11 +71,6 @@ class Estimate:
     def time(self) -> np.ndarray:
         """(N,) seconds from the first sample."""
         return (self.t_ns - self.t_ns[0]).astype(float) * 1e-9
-
-    @property
-    def total_wrench(self) -> np.ndarray:
-        """(N, 6) sum of the contact wrenches."""
-        return self.wrench.sum(axis=1)
 
     def state_std(self) -> np.ndarray | None:
         """(N, 18) standard deviations of the state components (:data:`STATE_LABELS`)."""

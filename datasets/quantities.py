@@ -1,10 +1,12 @@
-"""The physical quantities the data carry: plain frozen dataclasses and constants, no laws.
+"""The physical quantities the data carry: plain dataclasses and constants, no laws.
 
 The local-frame inputs of the seed paper (:class:`Inputs`), the IMU's placement in the local frame
-(:class:`ImuPlacement`), a contact's spring-damper parameters (:class:`ContactParams`), the prior of a
-landing sole (:class:`FootholdPrior`) and gravity.  A :class:`~flexforce.datasets.recording.Recording`
-and a robot's configuration hold them; the physics (:mod:`flexforce.factors.physics`) takes them as
-arguments and re-exports them under its own name.  Units SI; frames as named on each field.
+(:class:`ImuPlacement`), a contact's spring-damper parameters (:class:`ContactParams`), the prior of
+a landing sole (:class:`FootholdPrior`), the flexibility's motion and contact wrenches over a run
+(:class:`FlexibleMotion`, what an estimate and a simulation's truth share) and gravity.  A
+:class:`~flexforce.datasets.recording.Recording` and a robot's configuration hold them; the physics
+(:mod:`flexforce.factors.physics`) takes them as arguments and re-exports them under its own name.
+Units SI; frames as named on each field.
 """
 
 from __future__ import annotations
@@ -17,10 +19,37 @@ from numpy.typing import ArrayLike
 from flexforce.errors import ModelError
 from flexforce.options import check_choice, check_finite, check_positive, invalid
 
-__all__ = ["GRAVITY", "ContactParams", "FootholdPrior", "ImuPlacement", "Inputs"]
+__all__ = ["GRAVITY", "ContactParams", "FlexibleMotion", "FootholdPrior", "ImuPlacement", "Inputs"]
 
 GRAVITY = 9.81
 """Default gravity (m/s^2), along -z of the world (correction 6: a parameter)."""
+
+@dataclass
+class FlexibleMotion:
+    """The flexibility's motion and the contact wrenches over ``N`` steps (``C`` contacts): what an
+    :class:`~flexforce.datasets.estimate.Estimate` and a simulation's
+    :class:`~flexforce.datasets.recording.Truth` both hold, in the same frames and units."""
+
+    R: np.ndarray
+    """(N, 3, 3) flexibility rotation, local to world."""
+    t: np.ndarray
+    """(N, 3) flexibility translation, m."""
+    w: np.ndarray
+    """(N, 3) flexibility angular velocity (world), rad/s."""
+    v: np.ndarray
+    """(N, 3) flexibility linear velocity, m/s."""
+    dw: np.ndarray
+    """(N, 3) angular acceleration, rad/s^2."""
+    a: np.ndarray
+    """(N, 3) linear acceleration, m/s^2."""
+    wrench: np.ndarray
+    """(N, C, 6) per-contact wrench (F [N], T [N m] about the world origin); zero when inactive."""
+
+    @property
+    def total_wrench(self) -> np.ndarray:
+        """(N, 6) sum of the contact wrenches."""
+        return self.wrench.sum(axis=1)
+
 
 def _as_matrix(value: ArrayLike, name: str) -> np.ndarray:
     a = np.asarray(value, dtype=float)

@@ -22,28 +22,16 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from flexforce.datasets.faults import check_missing
-from flexforce.datasets.quantities import GRAVITY, ImuPlacement, Inputs
+from flexforce.datasets.quantities import GRAVITY, FlexibleMotion, ImuPlacement, Inputs
 from flexforce.errors import DataError
 
 
 @dataclass
-class Truth:
-    """Ground truth of a simulated recording (world frame unless stated)."""
+class Truth(FlexibleMotion):
+    """Ground truth of a simulated recording (world frame unless stated): the flexibility's motion
+    and contact wrenches (:class:`~flexforce.datasets.quantities.FlexibleMotion`), and what only a
+    simulation knows."""
 
-    R: np.ndarray
-    """(N, 3, 3) flexibility rotation, local to world."""
-    t: np.ndarray
-    """(N, 3) flexibility translation, m."""
-    w: np.ndarray
-    """(N, 3) flexibility angular velocity (world), rad/s."""
-    v: np.ndarray
-    """(N, 3) flexibility linear velocity, m/s."""
-    dw: np.ndarray
-    """(N, 3) angular acceleration, rad/s^2."""
-    a: np.ndarray
-    """(N, 3) linear acceleration, m/s^2."""
-    wrench: np.ndarray
-    """(N, C, 6) per-contact wrench (F [N], T [N m] about the world origin); zero when inactive."""
     external_wrench: np.ndarray
     """(N, 6) hidden external wrench of the scenario's effects (F, T about the world origin)."""
     cop: np.ndarray
@@ -65,10 +53,6 @@ class Truth:
             return self.external_wrench
         return self.external_wrench + self.ambient_wrench
 
-    @property
-    def total_wrench(self) -> np.ndarray:
-        """(N, 6) sum of the contact wrenches."""
-        return self.wrench.sum(axis=1)
 
 
 @dataclass
