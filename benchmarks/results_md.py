@@ -49,6 +49,8 @@ COMMANDS: dict[str, str] = {
     "time_offset": "python benchmarks/time_offset.py",
     "walk": "python benchmarks/walk.py",
     "walk_deflected": "python benchmarks/walk.py --touchdown deflected --out benchmarks/results/walk_deflected.json",
+    "walk_footholds": "python benchmarks/walk.py --estimators fixed-lag batch --footholds "
+                      "--out benchmarks/results/walk_footholds.json",
     "walk_short": "python benchmarks/walk.py --scenario walk-short --out benchmarks/results/walk_short.json",
 }
 """Record (file stem) -> the command that writes it, from the repository's root: the script with the
