@@ -24,14 +24,14 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
 from flexforce.errors import DataError
 
 __all__ = ["ACCEL_NORM_TOL", "DEG_SCALE_MIN", "EQUAL_TOL", "GYRO_MEDIAN_MAX", "MISSING_MIN_S", "STUCK_MIN_S",
-           "Finding", "SensorFaultWarning", "check_recording", "screen"]
+           "Finding", "SensorFaultWarning", "StreamScreen", "check_recording", "screen"]
 
 EQUAL_TOL = 1e-9
 """Two readings closer than this (in the sensor's unit) are equal: a flat top or a stuck value."""
@@ -98,6 +98,8 @@ class Finding:
     """What it does to the output."""
     severity: str = "warning"
     """``warning`` (reported) or ``error`` (the recording is refused)."""
+    channel: str = ""
+    """The channel of a clipped or stuck finding (``axis x``, ``F_z``); empty for a whole sensor."""
 
     def message(self) -> str:
         """One line: the fault, its span and its effect."""
@@ -150,7 +152,7 @@ def _clipped(time: np.ndarray, name: str, y: np.ndarray, topics) -> tuple[list[F
                 f"{max(j - i + 1 for i, j in runs)} samples: the sensor saturates at about {abs(value):.4g} {unit}",
                 f"the true {name} reading is beyond the flat top there, so the IMU update pulls the estimated forces "
                 f"and tilt off; set {_RANGE_KEY[name]} = {abs(value):.6g} in the robot configuration to leave these "
-                "samples out"))
+                "samples out", channel=f"axis {_AXES[a]}"))
             tops.append((a, value))
     return out, tops
 
@@ -174,7 +176,8 @@ def _stuck_channel(time: np.ndarray, dt: float, sensor: str, channel: str, x: np
             continue  # a flat top, reported as clipped
         out.append(Finding(sensor, "stuck", float(time[first]), float(time[last]),
                            f"{channel} is constant at {value:.6g} {unit} for {last - first + 1} samples "
-                           f"({time[last] - time[first]:.3f} s) while a live sensor shows noise{cause}", effect))
+                           f"({time[last] - time[first]:.3f} s) while a live sensor shows noise{cause}", effect,
+                           channel=channel))
     return out
 
 
@@ -325,3 +328,65 @@ def screen(rec, topics: Mapping[str, str] | None = None, where: str = "",
     for f in findings:
         warnings.warn(prefix + f.message(), SensorFaultWarning, stacklevel=2)
     return rec
+
+
+class StreamScreen:
+    """The checks of :func:`screen` on a recording that arrives in consecutive parts (a raw bag
+    streamed, :func:`flexforce.datasets.io.stream.stream_bag`), part by part and in constant memory.
+
+    Each part is checked with the last ``carry`` seconds of the parts before it, so that a fault
+    spanning a boundary is judged whole (a stuck channel needs :data:`STUCK_MIN_S`); a finding is
+    warned about once, when first seen (one that lasts to the end of the data read so far says
+    "to at least"): a later part that only continues it (the same sensor, kind and channel,
+    starting within ``carry`` of where it was last seen) extends its span in :attr:`findings`
+    silently, and a wrong unit is reported once per sensor.  Times are seconds from the stream's
+    first sample.  What a part-wise check sees less than a whole-recording one: a clipped axis
+    whose flat tops are fewer than the band below them within the checked span, and a unit judged
+    on the first parts' medians.
+
+    Raises (on :meth:`__call__`):
+        DataError: an unambiguous unit mistake (the accelerometer in g, mg or cm/s^2).
+    """
+
+    def __init__(self, topics: Mapping[str, str] | None = None, where: str = "", carry: float = 2 * STUCK_MIN_S):
+        self.topics = topics
+        self.where = where
+        self.carry = float(carry)
+        self.findings: list[Finding] = []
+        """Every fault found so far, spans in seconds from the stream's first sample."""
+        self._tail = None
+        self._t0_ns: int | None = None
+        self._last: dict[tuple[str, str, str], int] = {}  # key -> index in findings
+
+    def __call__(self, part):
+        """Check ``part`` (a Recording, the next of the stream) and return it unchanged."""
+        from flexforce.datasets.recording import concat_recordings
+
+        if self._t0_ns is None:
+            self._t0_ns = int(part.t_ns[0])
+        buf = part if self._tail is None else concat_recordings(self._tail, part)
+        offset = (int(buf.t_ns[0]) - self._t0_ns) * 1e-9
+        start = (int(part.t_ns[0]) - self._t0_ns) * 1e-9
+        end = (int(buf.t_ns[-1]) - self._t0_ns) * 1e-9
+        prefix = f"{self.where}: " if self.where else ""
+        for f in check_recording(buf, self.topics):
+            f = replace(f, t0=f.t0 + offset, t1=f.t1 + offset)
+            if f.t1 < start - 1e-12:
+                continue  # within the carried tail only: seen with the previous part
+            key = (f.sensor, f.kind, f.channel)
+            i = self._last.get(key)
+            if i is not None and (f.kind == "units" or f.t0 <= self.findings[i].t1 + self.carry):
+                old = self.findings[i]
+                self.findings[i] = replace(old, t0=min(old.t0, f.t0), t1=max(old.t1, f.t1))
+                continue
+            if f.severity == "error":
+                raise DataError(prefix + f.message())
+            self._last[key] = len(self.findings)
+            self.findings.append(f)
+            text = f.message()
+            if f.kind != "units" and f.t1 >= end - 0.5 * buf.dt:  # still so at the end of what was read
+                text = text.replace(f" to {f.t1:.3f} s: ", f" to at least {f.t1:.3f} s (the data read so far): ", 1)
+            warnings.warn(prefix + text, SensorFaultWarning, stacklevel=2)
+        keep = max(1, int(round(self.carry / buf.dt))) if buf.dt > 0 else buf.n
+        self._tail = buf.slice(max(0, buf.n - keep), buf.n)
+        return part

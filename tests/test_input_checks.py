@@ -389,6 +389,47 @@ def test_importer_names_the_topic_and_refuses_g(tmp_path):
         import_bag(write_bag(tmp_path / "g", "mcap", topics), model)
 
 
+def test_streamed_bag_is_checked_part_by_part(tmp_path):
+    """The same raw bags streamed (0.5 s parts): the frozen F/T topic is warned about once, over
+    the parts it spans, with the offline import's start; the accelerometer in g is refused."""
+    from test_rosimport import ROS, UPPER, Motion, robot_topics, stamps, write_bag
+
+    from flexforce.datasets.io.rosimport import import_bag
+    from flexforce.datasets.io.stream import stream_bag
+    from flexforce.datasets.robot import RobotModel
+    from flexforce.datasets.sensorcheck import SensorFaultWarning, StreamScreen
+
+    model = RobotModel(dataclasses.replace(RobotConfig.load("romeo"), ros=ROS))
+    t = stamps(n=400)
+    forces = 200.0 + np.random.default_rng(2).normal(scale=2.0, size=(len(t), 2))
+    forces[60:, 1] = forces[60, 1]
+    topics = robot_topics(model, Motion(model, UPPER), t, forces=forces)
+    bag = write_bag(tmp_path / "stuck", "mcap", topics)
+    with pytest.warns(SensorFaultWarning):
+        offline = import_bag(bag, model).meta["sensor_faults"]
+    with pytest.warns(SensorFaultWarning) as caught:
+        parts = list(stream_bag(bag, model, part_seconds=0.5))
+    assert len(parts) >= 3
+    msgs = [str(w.message) for w in caught if issubclass(w.category, SensorFaultWarning)]
+    assert [m.split(" from t")[0] for m in msgs] == [f"{bag}: ft/right_foot (/rf/wrench) stuck"]
+    (stuck,) = [f for f in offline if f["kind"] == "stuck"]
+    start = float(re.search(r"from t = ([0-9.]+) s", msgs[0]).group(1))
+    dt = parts[0].dt  # the streamed grid starts and steps as the offline one, within a period
+    assert start == pytest.approx(stuck["t0"], abs=dt)
+    # the whole span, joined over the parts, in a checker's findings
+    check = StreamScreen({"ft/right_foot": "/rf/wrench"})
+    with pytest.warns(SensorFaultWarning):
+        for part in stream_bag(bag, model, part_seconds=0.5):
+            check(part)
+    (found,) = check.findings
+    assert found.kind == "stuck" and found.channel == "F_z"  # the topic carries the normal force only
+    assert found.t0 == pytest.approx(stuck["t0"], abs=dt) and found.t1 == pytest.approx(stuck["t1"], abs=dt)
+    for _, f in topics["/imu"][1]:
+        f["accel"] = f["accel"] / 9.81
+    with pytest.raises(DataError, match=r"g: accel \(/imu\) units from t = 0.000 s .* the readings are in g"):
+        list(stream_bag(write_bag(tmp_path / "g", "mcap", topics), model))
+
+
 def test_real_icub_logs_raise_no_sensor_fault():
     """The shipped iCub recordings (irregular stamps, 0.17 s network gaps, held values) are clean."""
     from conftest import ICUB_DIR

@@ -92,6 +92,14 @@ class DiagnoseConfig:
     Newton-Euler, contact and integration sigmas derived from it) and every fit of the diagnosis,
     the nominal one included, uses the calibrated noise; the diagnosis says so
     (:func:`calibrate_noise`).  None: the configured noise as given."""
+    dominance: float | None = 2.0
+    """A round whose highest score belongs to a candidate fitted to physically implausible values
+    (its effect's ``plausible`` check, not its check against the references) takes nothing when
+    that score is more than ``dominance`` times the best plausible candidate's (and more than
+    :attr:`tie` above it): the data then point to an effect the physics refuses -- a model error
+    none of the candidates describes, or a plausibility rule wrong for this robot -- and the next
+    plausible one would only stand in for it.  The candidate's row says so
+    (:attr:`Candidate.dominant`), and so does the verdict.  None: the best plausible is taken."""
     check_veto: bool = True
     """Before a round takes an effect, hold its fit against what the fits did not use (the truth of
     a simulated recording, the reference sensors of a real one: :attr:`Candidate.check`); an effect
@@ -111,6 +119,11 @@ class DiagnoseConfig:
                                 or not math.isfinite(cal)):
             raise ConfigError(f"noise_calibration = {cal!r}; expected a number of sigmas above 1, or None (the "
                               "configured noise as given)")
+        dom = self.dominance
+        if dom is not None and (isinstance(dom, bool) or not isinstance(dom, (int, float)) or not dom >= 1.0
+                                or not math.isfinite(dom)):
+            raise ConfigError(f"dominance = {dom!r}; expected a ratio of scores of at least 1, or None (the best "
+                              "plausible candidate is taken)")
         best = self.refit_best
         if best is not None and (isinstance(best, bool) or not isinstance(best, int) or best < 1):
             raise ConfigError(f"refit_best = {best!r}; expected an integer >= 1 (candidates refitted per round) "

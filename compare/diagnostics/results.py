@@ -53,6 +53,10 @@ class Candidate:
     implausible: str | None = None
     """Why the estimate is physically implausible (the effect's ``plausible``): then it is not
     ``significant`` whatever its score -- the effect stands in for something else."""
+    dominant: bool = False
+    """Implausible, yet scored far above every plausible candidate of its round
+    (:attr:`~flexforce.compare.diagnostics.config.DiagnoseConfig.dominance`): the round took
+    nothing in its place."""
     finding: str = ""
     """The row's one sentence: for a significant effect its size, the evidence and when it acts;
     an implausible one says so; one that cannot be fitted, why in the recording's terms."""
@@ -93,6 +97,7 @@ class Candidate:
                 "indistinguishable_from": list(self.rivals), "refitted": bool(self.refitted),
                 "status": self.status, "finding": self.finding or self.summary,
                 **({"implausible": self.implausible} if self.implausible else {}),
+                **({"dominant": True} if self.dominant else {}),
                 **({"turned_down_by_check": True} if self.vetoed else {}),
                 **({"screen": self.screen.to_dict(self.screen_level)} if self.screen is not None else {}),
                 **({"not_refitted": f"not refitted: {self.deferred}" if self.deferred else

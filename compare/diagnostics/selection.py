@@ -268,7 +268,7 @@ def _refit_round(s: Session, sel: Selection, base: Fit) -> tuple[list[Candidate]
             row.append(_refit_row(s, sel, base, name, m))
         row.sort(key=lambda c: -math.inf if c.score is None else c.score, reverse=True)
         best = _best_plausible(s, sel, row, base)
-        if best is not None or not any(c.implausible for c in row):
+        if best is not None or not any(c.implausible for c in row) or any(c.dominant for c in row):
             break
     return row, best, this_round
 
@@ -309,8 +309,11 @@ def _best_plausible(s: Session, sel: Selection, row: list[Candidate], base: Fit)
     recording (:func:`~flexforce.compare.diagnostics.constancy.constancy`), else it is implausible."""
     cfg = s.config
     selected = sel.selected
+    leader = None  # the highest-scoring candidate fitted to implausible values
     for c in row:
         if c.implausible:
+            if leader is None and not c.vetoed and c.score is not None:
+                leader = c
             continue
         if cfg.check_constancy and c.significant and len(selected) < cfg.max_effects and sel.prob is not None \
                 and c.constancy is None and _constant(s.makers[c.effect](), sel.prob):
@@ -333,8 +336,23 @@ def _best_plausible(s: Session, sel: Selection, row: list[Candidate], base: Fit)
                 c.finding = finding(c, c.parameters, s.makers[c.effect]())
                 s.say(f"check of {c.effect}", f"{c.effect}: turned down, {veto}", t0)
                 continue
+        if _dominated(cfg, leader, c):
+            assert leader is not None
+            leader.dominant = True
+            leader.finding = finding(leader, leader.parameters, s.makers[leader.effect]())
+            s.say(f"dominance of {leader.effect}", f"{leader.effect}: implausible, yet scores {leader.score:.1f} "
+                  f"against {c.effect}'s {c.score:.1f}: nothing is taken in its place", time.perf_counter())
+            return None
         return c
     return None
+
+
+def _dominated(cfg, leader: Candidate | None, c: Candidate) -> bool:
+    """Whether the implausible ``leader`` outscores the plausible ``c`` by the config's
+    ``dominance`` ratio and more than its ``tie``."""
+    if cfg.dominance is None or leader is None or leader.score is None or c.score is None:
+        return False
+    return leader.score > cfg.dominance * max(c.score, 0.0) and leader.score - c.score > cfg.tie
 
 
 def check_changes(chk: dict, worse: float) -> tuple[list[tuple[str, float]], list[tuple[str, float]]]:

@@ -384,6 +384,10 @@ def finding(c: Candidate, rep: dict, effect) -> str:
     summary = c.summary
     if c.implausible and c.vetoed:
         return f"turned down: {c.implausible} (estimate {summary}); not taken, not added by --add auto"
+    if c.implausible and c.dominant:
+        return (f"implausible: {without_advice(c.implausible)} (estimate {summary}); yet the round's highest score "
+                f"by far ({c.score:.1f}): the data point to what this effect does, with values the physics refuses, "
+                "and no candidate is taken in its place")
     if c.implausible:
         return (f"implausible: {without_advice(c.implausible)} (estimate {summary}); not a finding: another "
                 "effect in disguise")
@@ -631,6 +635,10 @@ def verdict(d: Diagnosis) -> str:
                            + (f"; but it raises {rise}" if rise else "") + ".")
         out.append(f"Rerun with --add {' --add '.join(found)} (or --add auto) to fit "
                    f"{'them' if len(found) > 1 else 'it'} and compare the errors and flagged windows.")
+    for c in [c for row in d.rounds for c in row if c.dominant]:
+        out.append(f"The data point {'further ' if found else ''}to {c.effect}, fitted to physically implausible "
+                   f"values ({without_advice(str(c.implausible))}), with the highest score of its round by far "
+                   f"({c.score:.1f}): no candidate describes that misfit, and none is taken in its place.")
     down = [c for row in d.rounds for c in row if c.vetoed and c.effect not in found]
     if found and down:
         out.append("Turned down by their check against what the fits did not use: "

@@ -57,6 +57,7 @@ from flexforce.datasets.io.rosimport import (
 )
 from flexforce.datasets.recording import Recording
 from flexforce.datasets.robot import RobotConfig, RobotModel, RosConfig
+from flexforce.datasets.sensorcheck import StreamScreen
 from flexforce.errors import BagError, ConfigError, DataError
 
 __all__ = ["StreamImporter", "pipelined", "stream_bag"]
@@ -734,6 +735,8 @@ def stream_bag(path, robot_config, rate: float | None = None, contacts: str = "f
                                f"messages robot config '{name}' reads from it")
         present = tuple(ft_topics[t] for t in ft_topics if t in types and counts.get(t, 1) > 0)
         imp = StreamImporter(model, rate, contacts, part_seconds, ft_contacts=present)
+        check = StreamScreen({"accel": ros.imu_topic, "gyro": ros.imu_topic,
+                              **{f"ft/{ft_topics[t]}": t for t in ft_topics if t in types}}, where=str(path))
         read = [c for c in reader.connections if c.topic in wanted] if on_message is None else reader.connections
         cdr = _CdrDecoder() if getattr(reader, "is2", False) else None  # ROS 2 bags: CDR messages
         for conn, log_ns, raw in reader.messages(connections=read):
@@ -755,8 +758,8 @@ def stream_bag(path, robot_config, rate: float | None = None, contacts: str = "f
                 imp.add_ft(ft_topics[topic], t, values, frame)
             imp._advance(final=False)  # imp.parts(), without a generator per message
             if imp._part_due():
-                yield from imp._hand_out(final=False)
-        yield from imp.finish()
+                yield from map(check, imp._hand_out(final=False))
+        yield from map(check, imp.finish())
     except (BagError, DataError, ConfigError):
         raise
     except Exception as err:  # noqa: BLE001 -- a reader failure in the middle: truncated or corrupt

@@ -476,6 +476,35 @@ def _static_compression(problem: ProblemView) -> tuple[float, float]:
     return s0, lever
 
 
+def _recorded_deflections(problem: ProblemView) -> tuple[float, float]:
+    """``(s, Omega)``: the largest translational (m) and rotational (rad) spring deflections the
+    recording's own loads produce at the configured springs, from its inputs alone: at each sample
+    the vertical load ``m (g + c''_z)`` and the moment of the weight about the active contacts'
+    centroid, ``m g |c_xy - centroid_xy|``, shared equally by the active contacts (each contact's
+    ``K_fs`` and ``K_ts`` along their mean diagonal); the largest over the recording.  Static: the
+    springs' dynamic overshoot is not in it."""
+    m, g = float(problem.rec.mass), problem.g
+    active = np.asarray(problem.active, dtype=bool)
+    k_f = np.array([float(np.trace(K)) / 3.0 for K in problem.K_fs])
+    k_t = np.array([float(np.trace(K)) / 3.0 for K in problem.K_ts])
+    n_on = active.sum(axis=1)
+    on = n_on > 0
+    if not on.any():
+        return 0.0, 0.0
+    p = np.asarray(problem.contact_p, dtype=float)[:, :, :2]
+    centroid = (p * active[..., None]).sum(axis=1) / np.maximum(n_on, 1)[:, None]
+    com = np.asarray(problem.com, dtype=float)
+    load = m * (g + np.asarray(problem.com_acc, dtype=float)[:, 2])
+    moment = m * g * np.linalg.norm(com[:, :2] - centroid, axis=1)
+    share = np.where(on, 1.0 / np.maximum(n_on, 1), 0.0)
+    # the softest active contact carries its share: the largest deflection
+    soft_f = np.where(active, 1.0 / np.maximum(k_f, 1e-9)[None, :], 0.0).max(axis=1)
+    soft_t = np.where(active, 1.0 / np.maximum(k_t, 1e-9)[None, :], 0.0).max(axis=1) if (k_t > 0).all() else None
+    s = float(np.max(np.abs(load) * share * soft_f))
+    omega = float(np.max(moment * share * soft_t)) if soft_t is not None else 0.0
+    return s, omega
+
+
 class _Constant:
     """Shared parts of a constant-parameter effect: prior sigma, numerically constant walk, report."""
 

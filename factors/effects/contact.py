@@ -12,6 +12,7 @@ from flexforce.factors.effects.base import (
     ProblemView,
     _Constant,
     _fmt,
+    _recorded_deflections,
     _static_compression,
 )
 
@@ -139,29 +140,26 @@ class NonlinearStiffness(_ContactEffect):
     hint = "vary the load over a wide range (deep sways, stepping): a cubic term grows with the deflection"
 
     def plausible(self, report: dict, problem: ProblemView | None = None) -> str | None:
-        """The tangent stiffness at the reference deflection within ``0.2``-``5`` times the linear
-        one, as the stiffness scales: ``1 + 3 (beta + d beta) s_0^2`` (the nominal ``beta`` is left
-        out: zero in the built-in robots).  The references: the weight's static compression of
-        the translational springs, and the tilt of the rotational springs under the weight's
-        largest moment, the CoM over the edge of the contacts (``m g l / K_ts``, the springs'
-        own stiffness: on Romeo 0.042 rad, TALOS 0.029; without ``K_ts``, the tilt that
-        compresses a contact as much as the weight, ``s_0 / l``)."""
+        """Physics, at the deflections the recording's loads produce
+        (:func:`~flexforce.factors.effects.base._recorded_deflections`): a softening term
+        (``beta + d beta < 0``) must leave the spring a positive tangent stiffness
+        ``1 + 3 (beta + d beta) s^2`` there, else the contact would give way under loads the robot
+        bore (the nominal ``beta`` is left out: zero in the built-in robots).  A hardening term has
+        no physical bound (a sole or a bush stiffens without limit as it bottoms out): its evidence
+        and its check against the truth or the references judge it, as any other effect's."""
         if problem is None:
             return None
         v = np.atleast_1d(np.asarray(report.get("value", ()), dtype=float))
-        s0, lever = _static_compression(problem)
-        K_ts = getattr(problem, "K_ts", None)
-        k_t = sum(float(np.trace(K)) / 3.0 for K in K_ts) if K_ts is not None else 0.0
-        tilt = float(problem.rec.mass) * problem.g * lever / k_t if k_t > 0 else s0 / lever
-        ref = (s0, tilt)
+        ref = _recorded_deflections(problem)
         out = []
         for i, (what, unit) in enumerate((("translational", "m"), ("rotational", "rad"))):
-            if i >= len(v):
-                break
+            if i >= len(v) or v[i] >= 0.0:
+                continue
             factor = 1.0 + 3.0 * v[i] * ref[i] ** 2  # tangent stiffness of k s (1 + beta s^2)
-            if not 0.2 <= factor <= 5.0:
-                out.append(f"{what} cubic stiffening {_fmt(v[i])} makes the tangent stiffness {_fmt(factor)} times "
-                           f"the linear one at {_fmt(ref[i])} {unit} (plausible 0.2-5)")
+            if factor <= 0.0:
+                out.append(f"{what} cubic softening {_fmt(v[i])} leaves the spring a tangent stiffness of "
+                           f"{_fmt(factor)} times the linear one at {_fmt(ref[i])} {unit}, a deflection the "
+                           "recording's loads produce: the contact would give way")
         return "; ".join(out) or None
 
     def prior_sigma(self, problem: ProblemView):
