@@ -77,7 +77,7 @@ def test_dominance_rule():
     assert not _dominated(dataclasses.replace(cfg, dominance=None), leader, plausible)
     for bad in (0.5, True, float("nan"), "2"):
         with pytest.raises(ConfigError, match="dominance"):
-            DiagnoseConfig(dominance=bad)  # type: ignore[arg-type]
+            DiagnoseConfig(dominance=bad)
 
 
 def test_a_dominant_row_says_so():
