@@ -19,12 +19,14 @@ from flexforce.factors.effects import EFFECTS, make_effect
 from flexforce.smoother.screening import CandidateInformation, Identifiability, PairCorrelation
 
 
-def _problem(mass=40.0, com=(0.0, 0.0, 0.6)):
-    """What the plausibility checks read of a problem: mass, gravity, CoM, springs, contacts."""
-    return SimpleNamespace(rec=SimpleNamespace(mass=mass), g=9.81, com=np.array([com]),
+def _problem(mass=40.0, com=(0.02, 0.0, 0.6)):
+    """What the plausibility checks read of a problem: mass, gravity, CoM, springs, contacts (one
+    sample, both feet in force)."""
+    return SimpleNamespace(rec=SimpleNamespace(mass=mass), g=9.81, com=np.array([com]), com_acc=np.zeros((1, 3)),
                            K_fs=np.array([np.eye(3) * 1e5, np.eye(3) * 1e5]),
                            K_ts=np.array([np.eye(3) * 450.0, np.eye(3) * 450.0]),
-                           contact_p=np.array([[[0.0, 0.1, 0.0], [0.0, -0.1, 0.0]]]))
+                           contact_p=np.array([[[0.0, 0.1, 0.0], [0.0, -0.1, 0.0]]]),
+                           active=np.array([[True, True]]))
 
 
 @pytest.mark.parametrize("name,value,bad", [
@@ -34,9 +36,13 @@ def _problem(mass=40.0, com=(0.0, 0.0, 0.6)):
     ("accel-bias", [0.08, -0.05, 0.0], False), ("accel-bias", [0.0, 0.45, 0.0], True),
     ("gyro-bias", [0.0, 0.011, 0.0], False), ("gyro-bias", [0.2, 0.0, 0.0], True),
     ("com-offset", [0.02, 0.0], False), ("com-offset", [0.3, 0.0], True),
+    # translational: the recorded compression 40 * 9.81 / 2 / 1e5 = 1.96 mm; a softening of -1e7
+    # leaves 1 - 3e7 * 1.96e-3^2 = -114 times the linear stiffness there; hardening: no bound
     ("nonlinear-stiffness", [4000.0, 0.0], False), ("nonlinear-stiffness", [-1e7, 0.0], True),
-    # rotational: the reference tilt m g l / K_ts = 40 * 9.81 * 0.1 / 900 = 0.0436 rad
-    ("nonlinear-stiffness", [0.0, 400.0], False), ("nonlinear-stiffness", [0.0, 1000.0], True),
+    ("nonlinear-stiffness", [-5e4, 0.0], False), ("nonlinear-stiffness", [1e9, 0.0], False),
+    # rotational: the weight's moment about the feet 40 * 9.81 * 0.02 / 2 / 450 = 8.7 mrad per foot
+    ("nonlinear-stiffness", [0.0, 400.0], False), ("nonlinear-stiffness", [0.0, 1000.0], False),
+    ("nonlinear-stiffness", [0.0, -1000.0], False), ("nonlinear-stiffness", [0.0, -1e4], True),
 ])
 def test_each_effect_says_when_its_estimate_is_implausible(name, value, bad):
     eff = make_effect(name)

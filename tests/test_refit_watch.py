@@ -167,15 +167,23 @@ def test_a_secant_that_over_states_the_curvature_does_not_crawl(soft, monkeypatc
 
 def test_a_candidate_implausible_in_one_round_is_not_refitted_in_the_next(monkeypatch):
     """Round 1 selects the gyro bias and finds the (narrowed) stiffness implausible: round 2 neither
-    screens nor refits the stiffness again, and lists it with that refit's word."""
+    screens nor refits the stiffness again, and lists it with that refit's word.  The narrowed
+    stiffness is the truth and outscores the gyro bias 20 times over: with the dominance rule
+    (the default) round 1 takes nothing and says the data point to the stiffness; the mechanism
+    under test is the one without it (``dominance=None``)."""
     sc = Scenario.load("stand")
     sc.duration, sc.seed = 2.5, 3
     sc.imu_noise = {"gyro_bias_rw": 0.0, "accel_bias_rw": 0.0}
     sc.effects = [{"type": "stiffness", "stiffness": 0.5, "damping": 1.0},
                   {"type": "gyro-bias", "value": [0.0, 0.01, 0.0]}]
     rec = Simulator(sc).run()
+    dominated = diagnose(rec, candidates=[make_effect("gyro-bias"), narrow_stiffness()],
+                         config=DiagnoseConfig(watch_patience=1, ekf=False, calibrated=False))
+    assert dominated.selected == [], dominated.ranking_table()
+    assert [c.effect for c in dominated.rounds[0] if c.dominant] == ["stiffness"], dominated.ranking_table()
+    assert "The data point to stiffness, fitted to physically implausible values" in dominated.verdict()
     d = diagnose(rec, candidates=[make_effect("gyro-bias"), narrow_stiffness()],
-                 config=DiagnoseConfig(watch_patience=1, ekf=False, calibrated=False))
+                 config=DiagnoseConfig(watch_patience=1, ekf=False, calibrated=False, dominance=None))
     assert d.selected == ["gyro-bias"], d.ranking_table()
     first = {c.effect: c for c in d.rounds[0]}
     assert first["stiffness"].implausible, d.ranking_table()
