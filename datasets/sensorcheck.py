@@ -337,9 +337,10 @@ class StreamScreen:
     Each part is checked with the last ``carry`` seconds of the parts before it, so that a fault
     spanning a boundary is judged whole (a stuck channel needs :data:`STUCK_MIN_S`); a finding is
     warned about once, when first seen (one that lasts to the end of the data read so far says
-    "to at least"): a later part that only continues it (the same sensor, kind and channel,
-    starting within ``carry`` of where it was last seen) extends its span in :attr:`findings`
-    silently, and a wrong unit is reported once per sensor.  Times are seconds from the stream's
+    "to at least", and :meth:`finish` gives its whole span at the end of the stream): a later
+    part that only continues it (the same sensor, kind and channel, starting within ``carry`` of
+    where it was last seen) extends its span in :attr:`findings` silently, and a wrong unit is
+    reported once per sensor.  Times are seconds from the stream's
     first sample.  What a part-wise check sees less than a whole-recording one: a clipped axis
     whose flat tops are fewer than the band below them within the checked span, and a unit judged
     on the first parts' medians.
@@ -357,6 +358,8 @@ class StreamScreen:
         self._tail = None
         self._t0_ns: int | None = None
         self._last: dict[tuple[str, str, str], int] = {}  # key -> index in findings
+        self._open: set[int] = set()  # findings warned about while they lasted ("to at least")
+        self._read_ft: dict[str, np.ndarray] = {}  # contact -> (6,) channels read in an earlier part
 
     def __call__(self, part):
         """Check ``part`` (a Recording, the next of the stream) and return it unchanged."""
@@ -369,7 +372,7 @@ class StreamScreen:
         start = (int(part.t_ns[0]) - self._t0_ns) * 1e-9
         end = (int(buf.t_ns[-1]) - self._t0_ns) * 1e-9
         prefix = f"{self.where}: " if self.where else ""
-        for f in check_recording(buf, self.topics):
+        for f in check_recording(buf, self.topics) + self._silent(buf):
             f = replace(f, t0=f.t0 + offset, t1=f.t1 + offset)
             if f.t1 < start - 1e-12:
                 continue  # within the carried tail only: seen with the previous part
@@ -386,7 +389,42 @@ class StreamScreen:
             text = f.message()
             if f.kind != "units" and f.t1 >= end - 0.5 * buf.dt:  # still so at the end of what was read
                 text = text.replace(f" to {f.t1:.3f} s: ", f" to at least {f.t1:.3f} s (the data read so far): ", 1)
+                self._open.add(len(self.findings) - 1)
             warnings.warn(prefix + text, SensorFaultWarning, stacklevel=2)
         keep = max(1, int(round(self.carry / buf.dt))) if buf.dt > 0 else buf.n
         self._tail = buf.slice(max(0, buf.n - keep), buf.n)
         return part
+
+    def _silent(self, buf) -> list[Finding]:
+        """A ``missing`` finding over the whole of ``buf`` for each F/T sensor whose channels read
+        earlier in the stream are NaN throughout ``buf``: on its own such a span looks like a
+        sensor that is not measured (:func:`check_recording` skips it), in a stream it continues a
+        gap."""
+        out: list[Finding] = []
+        if buf.ft is None:
+            return out
+        with np.errstate(invalid="ignore"):
+            zero = np.nanmax(np.abs(buf.ft), axis=0, initial=0.0) == 0.0  # (C, 6)
+        measured = np.isfinite(buf.ft).any(axis=0) & ~zero  # (C, 6) channels with a reading in buf
+        t = buf.time
+        for c, contact in enumerate(buf.contact_names):
+            before = self._read_ft.get(contact)
+            if measured[c].any():
+                self._read_ft[contact] = measured[c] if before is None else (before | measured[c])
+            elif before is not None and not np.isfinite(buf.ft[:, c][:, before]).any():
+                out.append(Finding(_named(f"ft/{contact}", self.topics), "missing", float(t[0]), float(t[-1]),
+                                   f"no F/T reading for {buf.n} samples ({t[-1] - t[0] + buf.dt:.3f} s)",
+                                   "contact states detected from the F/T normal force hold their last value, force "
+                                   "errors against F/T skip the span and --ft fuses nothing there"))
+        return out
+
+    def finish(self) -> None:
+        """At the end of the stream: one more warning for each fault first reported while it
+        lasted ("to at least"), with its whole span."""
+        prefix = f"{self.where}: " if self.where else ""
+        for i in sorted(self._open):
+            f = self.findings[i]
+            warnings.warn(f"{prefix}{f.sensor} {f.kind}, whole span from t = {f.t0:.3f} s to {f.t1:.3f} s "
+                          f"({f.t1 - f.t0:.3f} s){' on ' + f.channel if f.channel else ''}", SensorFaultWarning,
+                          stacklevel=2)
+        self._open.clear()

@@ -411,11 +411,18 @@ def test_streamed_bag_is_checked_part_by_part(tmp_path):
         parts = list(stream_bag(bag, model, part_seconds=0.5))
     assert len(parts) >= 3
     msgs = [str(w.message) for w in caught if issubclass(w.category, SensorFaultWarning)]
-    assert [m.split(" from t")[0] for m in msgs] == [f"{bag}: ft/right_foot (/rf/wrench) stuck"]
+    # first seen while it lasts ("to at least"), then its whole span at the end of the stream
+    assert [m.split(" from t")[0].split(", whole span")[0] for m in msgs] == \
+        [f"{bag}: ft/right_foot (/rf/wrench) stuck"] * 2
+    assert "to at least" in msgs[0] and "whole span" in msgs[1]
     (stuck,) = [f for f in offline if f["kind"] == "stuck"]
     start = float(re.search(r"from t = ([0-9.]+) s", msgs[0]).group(1))
     dt = parts[0].dt  # the streamed grid starts and steps as the offline one, within a period
     assert start == pytest.approx(stuck["t0"], abs=dt)
+    span = re.search(r"from t = ([0-9.]+) s to ([0-9.]+) s", msgs[1])
+    assert span is not None
+    assert float(span.group(1)) == pytest.approx(stuck["t0"], abs=dt)
+    assert float(span.group(2)) == pytest.approx(stuck["t1"], abs=dt)
     # the whole span, joined over the parts, in a checker's findings
     check = StreamScreen({"ft/right_foot": "/rf/wrench"})
     with pytest.warns(SensorFaultWarning):
@@ -424,6 +431,20 @@ def test_streamed_bag_is_checked_part_by_part(tmp_path):
     (found,) = check.findings
     assert found.kind == "stuck" and found.channel == "F_z"  # the topic carries the normal force only
     assert found.t0 == pytest.approx(stuck["t0"], abs=dt) and found.t1 == pytest.approx(stuck["t1"], abs=dt)
+    # both F/T topics silent from 1 s to the end: a part wholly silent continues the gap (alone it
+    # would look like a sensor not measured); the whole span as the offline import finds it
+    silent = 200.0 + np.random.default_rng(3).normal(scale=2.0, size=(len(t), 2))
+    silent[100:] = np.nan
+    gap = write_bag(tmp_path / "silent", "mcap", robot_topics(model, Motion(model, UPPER), t, forces=silent))
+    with pytest.warns(SensorFaultWarning):
+        offline = import_bag(gap, model).meta["sensor_faults"]
+    check = StreamScreen({"ft/left_foot": "/lf/wrench", "ft/right_foot": "/rf/wrench"})
+    with pytest.warns(SensorFaultWarning):
+        for part in stream_bag(gap, model, part_seconds=0.5):
+            check(part)
+    assert [(f.sensor, f.kind) for f in check.findings] == [(f["sensor"], "missing") for f in offline]
+    for f, g in zip(check.findings, offline):
+        assert f.t0 == pytest.approx(g["t0"], abs=dt) and f.t1 == pytest.approx(g["t1"], abs=dt)
     for _, f in topics["/imu"][1]:
         f["accel"] = f["accel"] / 9.81
     with pytest.raises(DataError, match=r"g: accel \(/imu\) units from t = 0.000 s .* the readings are in g"):

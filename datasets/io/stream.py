@@ -760,6 +760,7 @@ def stream_bag(path, robot_config, rate: float | None = None, contacts: str = "f
             if imp._part_due():
                 yield from map(check, imp._hand_out(final=False))
         yield from map(check, imp.finish())
+        check.finish()
     except (BagError, DataError, ConfigError):
         raise
     except Exception as err:  # noqa: BLE001 -- a reader failure in the middle: truncated or corrupt
