@@ -531,7 +531,7 @@ def force_band(est, rec, skip: float = 0.0, k: float = BAND_SIGMAS) -> dict:
     if ref is None or cov is None or not rec.contact_names:
         return {}
     normal = np.einsum("nij,ncjk->ncik", est.R, rec.contact_R)[..., :, 2]  # (N, C, 3) world
-    fz = np.einsum("nci,nci->nc", normal, est.wrench[..., :3])
+    fz = contact_frame_wrench(est.R, est.t, est.wrench, rec)[:, :, 2]
     var = np.einsum("nci,ncij,ncj->nc", normal, cov[:, :, :3, :3], normal)
     sigma = np.sqrt(np.maximum(var, 0.0))
     ok = rec.contact_active & np.isfinite(ref) & np.isfinite(fz) & (sigma > 0)

@@ -69,6 +69,9 @@ STUCK_MIN_SAMPLES = 20
 MISSING_MIN_S = 0.05
 """Shortest span, s, without F/T reading reported as missing."""
 
+MISSING_EFFECT = ("contact states detected from the F/T normal force hold their last value, force errors against "
+                  "F/T skip the span and --ft fuses nothing there")
+"""What a span without F/T reading does to the output (a ``missing`` finding's effect)."""
 _AXES = ("x", "y", "z")
 _FT = ("F_x", "F_y", "F_z", "T_x", "T_y", "T_z")
 _UNIT = {"accel": "m/s^2", "gyro": "rad/s"}
@@ -257,8 +260,7 @@ def _ft_checks(rec, time: np.ndarray, dt: float, topics, stuck: bool) -> list[Fi
                 continue
             out.append(Finding(sensor, "missing", float(time[i]), float(time[j]),
                                f"no F/T reading for {j - i + 1} samples ({time[j] - time[i] + dt:.3f} s)",
-                               "contact states detected from the F/T normal force hold their last value, force "
-                               "errors against F/T skip the span and --ft fuses nothing there"))
+                               MISSING_EFFECT))
         if stuck:
             for ch in np.flatnonzero(measured):
                 out += _stuck_channel(time, dt, sensor, _FT[ch], rec.ft[:, c, ch], "N" if ch < 3 else "N m",
@@ -414,8 +416,7 @@ class StreamScreen:
             elif before is not None and not np.isfinite(buf.ft[:, c][:, before]).any():
                 out.append(Finding(_named(f"ft/{contact}", self.topics), "missing", float(t[0]), float(t[-1]),
                                    f"no F/T reading for {buf.n} samples ({t[-1] - t[0] + buf.dt:.3f} s)",
-                                   "contact states detected from the F/T normal force hold their last value, force "
-                                   "errors against F/T skip the span and --ft fuses nothing there"))
+                                   MISSING_EFFECT))
         return out
 
     def finish(self) -> None:

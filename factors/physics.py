@@ -115,6 +115,17 @@ def contact_wrench(R, t, w, v, local_p_c, local_R_c, params: ContactParams, jaco
     return r, J[:, :12].copy()
 
 
+def contact_arrays(params) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+    """The contacts' parameters as the compiled core's batched laws take them
+    (:func:`flexforce.factors.core.contact_all`): ``([K_fs, K_fd, K_ts, K_td], beta, iso)``, each
+    ``K`` (C, 3, 3), ``beta`` (C, 2) = (beta_f, beta_t), ``iso`` (C,) bool."""
+    K = [np.ascontiguousarray(np.array([getattr(p, name) for p in params], dtype=float))
+         for name in ("K_fs", "K_fd", "K_ts", "K_td")]
+    beta = np.array([[p.beta_f, p.beta_t] for p in params], dtype=float).reshape(-1, 2)
+    iso = np.array([p.isotropic for p in params], dtype=bool)
+    return K, beta, iso
+
+
 def total_contact_wrench(R, t, w, v, contacts, jacobian: bool = False):
     """Sum of :func:`contact_wrench` over ``contacts`` (eq. 10, 12).
 

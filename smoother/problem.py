@@ -49,7 +49,7 @@ from flexforce.factors import core
 from flexforce.factors.effects import Effect, EffectTraits, ProblemView, traits
 from flexforce.factors.footholds import WALK_WITHIN_ANCHORED, Footholds, held_rest, rest_placements
 from flexforce.factors.model import unmodelled_acceleration
-from flexforce.factors.physics import ContactParams
+from flexforce.factors.physics import contact_arrays
 from flexforce.options import check_positive, invalid, require_config, with_options
 
 if TYPE_CHECKING:
@@ -265,7 +265,7 @@ def static_equilibrium(mass: float, g: float, inputs: tuple, active, local_p, lo
             (local frame, see :class:`flexforce.factors.physics.Inputs`).
         active: (C,) bool; local_p, local_R (C, 3), (C, 3, 3) the contacts' placements in the local
             frame; rest_p, rest_R their rest placements in the world.
-        K, beta, iso: contact parameters as :func:`_contact_arrays` returns them.
+        K, beta, iso: contact parameters as :func:`~flexforce.factors.physics.contact_arrays` returns them.
 
     Raises:
         ModelError: when the residual wrench does not fall below 1e-9 (N, N m) within
@@ -302,7 +302,7 @@ def static_equilibrium(mass: float, g: float, inputs: tuple, active, local_p, lo
 
 def _static_state(rec, model):
     """Static equilibrium of the first sample, before a Problem exists (rest = local placement)."""
-    K, beta, iso = _contact_arrays(tuple(model.contact_params))
+    K, beta, iso = contact_arrays(tuple(model.contact_params))
     return static_equilibrium(rec.mass, model.gravity, _inputs(rec, 0), rec.contact_active[0], rec.contact_p[0],
                               rec.contact_R[0], rec.contact_p[0], rec.contact_R[0], K, beta, iso)
 
@@ -411,14 +411,6 @@ class ConstantRows:
         if hit is None or hit[0] != where:
             hit = self._rows[key] = (where, make())
         return hit[1]
-
-
-def _contact_arrays(params: tuple[ContactParams, ...]):
-    K = [np.ascontiguousarray(np.array([getattr(p, name) for p in params], dtype=float))
-         for name in ("K_fs", "K_fd", "K_ts", "K_td")]
-    beta = np.array([[p.beta_f, p.beta_t] for p in params], dtype=float).reshape(-1, 2)
-    iso = np.array([p.isotropic for p in params], dtype=bool)
-    return K, beta, iso
 
 
 @dataclass
@@ -536,7 +528,7 @@ class Problem:
         prob.rest_p, prob.rest_R = rest_placements(rec, rest_p, rest_R)
         prob.y_ft = c(rec.ft, float) if use_ft else None  # NaN: not measured (zero rows, factors.core.ft)
         prob.ft_use = c(np.isfinite(rec.ft), float) if use_ft else None
-        (prob.K_fs, prob.K_fd, prob.K_ts, prob.K_td), prob.beta, prob.iso = _contact_arrays(model.contact_params)
+        (prob.K_fs, prob.K_fd, prob.K_ts, prob.K_td), prob.beta, prob.iso = contact_arrays(model.contact_params)
         prob.effect_dims = tuple(int(e.dim) for e in prob.effects)
         prob.effect_traits = tuple(traits(e) for e in prob.effects)
         prob.prior_mean = part_of.prior_mean if part_of is not None else prob.equilibrium(0)

@@ -73,6 +73,11 @@ class Candidate:
         return text.check_text(self, check_worse)
 
     @property
+    def inconstant(self) -> bool:
+        """Its constancy check was made and found its halves apart (:attr:`constancy`)."""
+        return bool(self.constancy and self.constancy.get("made") and not self.constancy.get("constant"))
+
+    @property
     def status(self) -> str:
         """``significant``, ``implausible``, ``not significant``, ``not refitted`` or ``cannot be fitted``."""
         if self.error:

@@ -312,8 +312,7 @@ def _best_plausible(s: Session, sel: Selection, row: list[Candidate], base: Fit)
     leader = None  # the highest-scoring candidate fitted to implausible values
     for c in row:
         if c.implausible:
-            inconstant = bool(c.constancy and c.constancy.get("made") and not c.constancy.get("constant"))
-            if leader is None and not c.vetoed and not inconstant and c.score is not None:
+            if leader is None and not c.vetoed and not c.inconstant and c.score is not None:
                 leader = c
             continue
         if cfg.check_constancy and c.significant and len(selected) < cfg.max_effects and sel.prob is not None \

@@ -277,7 +277,7 @@ def inconstant(d: Diagnosis) -> list[str]:
     candidate the evidence favoured: what it means for the model."""
     out = []
     for i, row in enumerate(d.rounds):
-        bad = [c for c in row if c.constancy and c.constancy.get("made") and not c.constancy["constant"]]
+        bad = [c for c in row if c.inconstant]
         if not bad:
             continue
         took = next((c.effect for c in row if c.effect in d.selected and c.significant), None)
@@ -663,8 +663,7 @@ def _none_reason(d: Diagnosis) -> str:
     """Why nothing was selected, in plain words, from the first round's rows."""
     rows = [c for row in d.rounds for c in row]
     vetoed = [c for c in rows if c.vetoed]
-    inconstant_ = [c for c in rows if c.implausible and not c.vetoed and c.constancy and c.constancy.get("made")
-                   and not c.constancy.get("constant")]
+    inconstant_ = [c for c in rows if c.implausible and not c.vetoed and c.inconstant]
     implausible = [c for c in rows if c.implausible and c not in vetoed and c not in inconstant_]
     reasons = []
     if vetoed:

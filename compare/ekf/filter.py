@@ -57,10 +57,10 @@ from flexforce.datasets.estimate import Estimate
 from flexforce.datasets.layout import STATE, STATE_DIM
 from flexforce.datasets.recording import Recording
 from flexforce.errors import ConfigError, DataError, EstimatorError, ModelError
-from flexforce.factors import so3
+from flexforce.factors import core, so3
 from flexforce.factors.footholds import rest_placements
 from flexforce.factors.model import ModelConfig, unmodelled_acceleration
-from flexforce.factors.physics import contact_wrench
+from flexforce.factors.physics import contact_arrays
 from flexforce.options import (
     check_bool,
     check_choice,
@@ -606,20 +606,21 @@ def _handle_failure(status: int, k: int, ekf: EKF, x, P, P_reset, out: _Outputs)
 
 def contact_wrench_cov(ekf: EKF, R: np.ndarray, x: np.ndarray, cov: np.ndarray) -> np.ndarray:
     """(N, C, 6, 6) covariance of each contact's wrench, ``J_c P J_c^T`` with ``J_c`` the contact
-    law's Jacobian at the estimate (world-frame increments of ``(theta, t, w, v)``) and the rest
-    placements the filter used (:attr:`EKF.U`, the landings' too); zero while inactive.  The law
-    itself is exact in the filter: the spread is the state's alone."""
+    law's Jacobian at the estimate (world-frame increments of ``(theta, t, w, v)``, the compiled
+    :func:`flexforce.factors.core.contact_all`) and the rest placements the filter used
+    (:attr:`EKF.U`, the landings' too); zero while inactive.  The law itself is exact in the
+    filter: the spread is the state's alone."""
     n, n_c = ekf.rec.n, len(ekf.rec.contact_names)
-    out = np.zeros((n, n_c, 6, 6))
-    U = ekf.U
-    for c, params in enumerate(ekf.model.contact_params):
-        o = K.NU0 + K.NUC * c
-        for k in np.flatnonzero(U[:, o] != 0.0):
-            _, J = contact_wrench(R[k], x[k, T], x[k, W], x[k, V], U[k, o + 1:o + 4], U[k, o + 4:o + 13].reshape(3, 3),
-                                  params, jacobian=True, world_p_rest=U[k, o + 13:o + 16],
-                                  world_R_rest=U[k, o + 16:o + 25].reshape(3, 3))
-            out[k, c] = J @ cov[k, :12, :12] @ J.T
-    return out
+    u = ekf.U[:, K.NU0:K.NU0 + K.NUC * n_c].reshape(n, n_c, K.NUC)
+    q = np.ascontiguousarray(np.concatenate([x[:, T], x[:, W], x[:, V], np.zeros((n, 6))], axis=1))
+    (K_fs, K_fd, K_ts, K_td), beta, iso = contact_arrays(ekf.model.contact_params)
+    c = np.ascontiguousarray
+    J = np.empty((n, n_c, 6, STATE_DIM))
+    core.contact_all(c(R, dtype=float), q, np.zeros((n, n_c, 6)), u[:, :, 0] != 0.0, c(u[:, :, 1:4]),
+                     c(u[:, :, 4:13]).reshape(n, n_c, 3, 3), c(u[:, :, 13:16]), c(u[:, :, 16:25]).reshape(n, n_c, 3, 3),
+                     K_fs, K_fd, K_ts, K_td, beta, iso, np.empty((n, n_c, 6)), J, np.empty((0, 1, 6, 6)))
+    Jx = J[..., :12]  # (theta, t, w, v): the law does not depend on the accelerations
+    return Jx @ cov[:, None, :12, :12] @ Jx.transpose(0, 1, 3, 2)
 
 
 class _Outputs:
