@@ -85,6 +85,10 @@ def _row(m: dict) -> dict:
     skipped = (v.get("cop_outside_sole") or {}).get("skipped")
     if skipped:
         out["violations"]["cop_outside_sole"] = {"skipped": skipped}
+    law = v.get("contact_law") or {}
+    if law:  # the contact law's wrenches before the estimator limited them
+        out["violations"]["contact_law"] = {check: (law.get(check) or {}).get("count")
+                                            for check in ("negative_normal", "friction_cone", "cop_outside_sole")}
     band = m.get("force_band") or {}
     if band.get("samples"):
         out["force_band"] = {k: band.get(k) for k in ("samples", "level", "coverage", "z_rms", "median_sigma_N")}

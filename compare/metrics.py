@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats
 
-from flexforce.factors import so3
+from flexforce.factors import contact_limits, so3
 
 RMSE_KEYS = ("force_N", "moment_Nm", "cop_m", "rotation_rad", "translation_m", "hand_m")
 """The headline errors of a comparison (summary.json's ``rmse`` keys)."""
@@ -139,15 +139,9 @@ def contact_frame_wrench(R: np.ndarray, t: np.ndarray, wrench: np.ndarray, rec) 
     Args:
         R, t: (N, 3, 3), (N, 3) flexibility placing the local frame (and its contacts) in the world.
         wrench: (N, C, 6) world wrench (F, T about the world origin).
-    Inactive contacts read zero.
+    Inactive contacts read zero (:func:`flexforce.factors.contact_limits.contact_frame_wrench`).
     """
-    Rc = np.einsum("nij,ncjk->ncik", R, rec.contact_R)  # world_R_contact
-    p = np.einsum("nij,ncj->nci", R, rec.contact_p) + t[:, None, :]
-    F = wrench[..., :3]
-    T = wrench[..., 3:] - np.cross(p, F)
-    out = np.concatenate([np.einsum("ncji,ncj->nci", Rc, F), np.einsum("ncji,ncj->nci", Rc, T)], axis=2)
-    out[~rec.contact_active] = 0.0
-    return out
+    return contact_limits.contact_frame_wrench(R, t, wrench, rec.contact_p, rec.contact_R, rec.contact_active)
 
 
 def _per_contact(m: Metrics, est_local: np.ndarray, ref: np.ndarray, rec, keep: np.ndarray) -> None:
@@ -403,7 +397,7 @@ the estimate's content above the reference's band."""
 LOWPASS_ORDER = 4
 """Order of the Butterworth low-pass (applied forward and backward: zero phase, twice the order)."""
 FRICTION_MU = 0.7
-"""Friction coefficient of the friction-cone check (no robot config gives one)."""
+"""Friction coefficient of the friction-cone check when the robot config gives none (its ``friction``)."""
 NO_SOLE = ("no sole dimensions: the robot config gives its contacts no sole (a contact's "
            "sole = [x_min, x_max, y_min, y_max] in m, in its frame)")
 """Why the CoP-in-sole check is skipped when no sole is given."""
@@ -574,12 +568,23 @@ def violations(est, rec, skip: float = 0.0, mu: float = FRICTION_MU,
 
     Returns:
         ``samples_in_contact``, ``friction_mu`` and per check ``count`` and ``fraction`` (of the
-        samples in contact; None when there are none).
+        samples in contact; None when there are none).  When the estimator limited its wrenches
+        (:attr:`~flexforce.datasets.estimate.Estimate.wrench_excess`), ``contact_law`` holds the
+        same checks on the contact law's wrenches (``wrench + wrench_excess``): how often the
+        model asked a contact for what it cannot carry.
     """
+    excess = getattr(est, "wrench_excess", None)
+    out = _violations(est.R, est.t, est.wrench, rec, skip, mu, sole, soles)
+    if excess is not None:
+        out["contact_law"] = _violations(est.R, est.t, est.wrench + excess, rec, skip, mu, sole, soles)
+    return out
+
+
+def _violations(R, t, wrench, rec, skip, mu, sole, soles) -> dict:
     keep = rec.time >= skip
     on = rec.contact_active & keep[:, None]
     n = int(on.sum())
-    w = contact_frame_wrench(est.R, est.t, est.wrench, rec)[on]  # (n, 6)
+    w = contact_frame_wrench(R, t, wrench, rec)[on]  # (n, 6)
 
     def counted(bad: np.ndarray, total: int = n) -> dict:
         c = int(np.sum(bad))

@@ -165,8 +165,10 @@ DEFINITIONS = {
     lowpass_key(): f"both the estimate and the reference low-passed first: zero-phase Butterworth, order "
                    f"{LOWPASS_ORDER} forward and backward (scipy sosfiltfilt), cut-off {LOWPASS_HZ:g} Hz",
     "violations": f"over the (step, contact) pairs in force after the skipped start, contact frames: normal force "
-                  f"below 0 N; outside the friction cone |F_xy| <= mu F_z, mu = {FRICTION_MU:g} (a negative normal "
-                  "force included); CoP outside the sole",
+                  f"below 0 N; outside the friction cone |F_xy| <= mu F_z, mu the robot's friction or {FRICTION_MU:g} "
+                  "(a negative normal force included); CoP outside the sole. The estimators report wrenches limited to "
+                  "what a contact can carry; contact_law: the same checks on the contact law's wrenches before the "
+                  "limit (wrench + wrench_excess)",
 }
 """summary.json's ``definitions``: what the per-phase, low-passed and violation numbers mean."""
 
@@ -392,7 +394,8 @@ def _contact_checks(m: Metrics, est, rec, skip: float, model=None) -> None:
     recording has contacts; the CoP judged against the ``model``'s soles when it gives them)."""
     phase_metrics(m, est, rec, skip=skip)
     if rec.contact_names:
-        m.violations = violations(est, rec, skip=skip, soles=tuple(getattr(model, "soles", ()) or ()))
+        m.violations = violations(est, rec, skip=skip, mu=getattr(model, "friction", None) or FRICTION_MU,
+                                  soles=tuple(getattr(model, "soles", ()) or ()))
         m.force_band = force_band(est, rec, skip=skip)
 
 

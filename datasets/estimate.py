@@ -41,6 +41,12 @@ class Estimate(FlexibleMotion):
     :attr:`wrench`); zero while the contact is inactive."""
     cop_cov: np.ndarray | None = None
     """(N, 2, 2) covariance of the CoP's x and y, m^2."""
+    wrench_excess: np.ndarray | None = None
+    """(N, C, 6) what the contact law asked of each contact beyond what a contact can carry (a
+    pulling normal force, a tangential force outside the friction cone, a CoP off the sole), world
+    axes about the world origin like :attr:`wrench`, which holds the rest
+    (:mod:`flexforce.factors.contact_limits`); zero where nothing was limited, None: not limited.
+    ``wrench + wrench_excess`` is the contact law's wrench."""
     residuals: dict[str, np.ndarray] = field(default_factory=dict)
     """Whitened residual of each factor family: name -> (N, k), NaN where the family is absent."""
     residual_labels: dict[str, tuple[str, ...]] = field(default_factory=dict)
@@ -92,7 +98,7 @@ class Estimate(FlexibleMotion):
         path.parent.mkdir(parents=True, exist_ok=True)
         arrays = {}
         for name in ("t_ns", "R", "t", "w", "v", "dw", "a", "wrench", "cop", "cov", "wrench_cov", "contact_wrench_cov",
-                     "cop_cov", "innovation", "innovation_cov", "time_per_step"):
+                     "cop_cov", "wrench_excess", "innovation", "innovation_cov", "time_per_step"):
             value = getattr(self, name)
             if value is not None:
                 arrays[name] = value

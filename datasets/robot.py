@@ -413,6 +413,10 @@ class RobotConfig:
     gravity: float = GRAVITY
     footholds: FootholdConfig = FootholdConfig()
     """Rest placements of the contact episodes on real logs (``[footholds]`` table)."""
+    friction: float | None = None
+    """Coulomb friction coefficient between the soles and the ground (dimensionless, > 0): the
+    reported contact wrenches keep their tangential force within ``friction`` times their normal
+    force.  None: not given (no friction limit)."""
     ros: RosConfig | None = None
     """Mapping of raw ROS bags onto the robot (``[ros]`` table), for :mod:`flexforce.datasets.io.rosimport`."""
     source: str = ""
@@ -481,6 +485,9 @@ class RobotConfig:
         for key in ("footholds", "ros"):
             if key in raw and not isinstance(raw[key], dict):
                 raise ConfigError(f"{key} = {raw[key]!r}{where}; expected a [{key}] table")
+        if "friction" in raw and not (_positive_number(raw["friction"]) and raw["friction"] <= 10.0):
+            raise ConfigError(f"friction = {raw['friction']!r}{where}; expected the Coulomb friction coefficient of "
+                              "the soles on the ground, a number in (0, 10] (about 0.5-1 for rubber on a hard floor)")
         if "gravity" in raw and not _positive_number(raw["gravity"]):
             raise ConfigError(f"gravity = {raw['gravity']!r} m/s^2{where}; expected a positive, finite acceleration")
         try:

@@ -46,7 +46,18 @@ class ModelConfig:
     soles: tuple = ()
     """Per contact, its sole's rectangle ``(x_min, x_max, y_min, y_max)`` (m, contact frame) or
     None; empty: none given.  Where the CoP of a contact's wrench may lie (the comparison counts
-    the samples outside: :func:`flexforce.compare.metrics.violations`)."""
+    the samples outside: :func:`flexforce.compare.metrics.violations`) and where the reported
+    wrenches keep it (``limit_wrenches``)."""
+    friction: float | None = None
+    """Coulomb friction coefficient of the contacts with the ground (the robot's ``friction``), or
+    None: not given (no friction limit on the reported wrenches)."""
+    limit_wrenches: bool | None = None
+    """Report the contact wrenches limited to what a contact can carry: no pulling normal force, a
+    tangential force inside the friction cone, a CoP on the sole
+    (:func:`flexforce.factors.contact_limits.limit_contact_wrenches`); the part removed goes to
+    :attr:`~flexforce.datasets.estimate.Estimate.wrench_excess`.  The state is not changed.  None
+    (default): when the robot describes its contacts with the ground (``soles`` or ``friction``
+    given); the simulated robots do not, and their simulated springs pull as readily as they push."""
 
     @classmethod
     def from_recording(cls, rec, robot=None, **overrides) -> ModelConfig:
@@ -80,6 +91,7 @@ class ModelConfig:
             accel_range=float(noise["accel_range"]),
             foothold_prior=FootholdPrior.from_config(robot.footholds),
             soles=_soles(robot, rec.contact_names),
+            friction=robot.friction,
         )
         return replace(cfg, **overrides) if overrides else cfg
 

@@ -9,6 +9,7 @@ import numpy as np
 from flexforce.datasets import faults
 from flexforce.datasets.estimate import Estimate
 from flexforce.factors import core
+from flexforce.factors.contact_limits import limit_world_wrenches
 from flexforce.factors.physics import COP_MIN_FORCE
 from flexforce.smoother.linearize import Trajectory, linearize
 
@@ -122,6 +123,7 @@ def make_estimate(prob, name: str, traj: Trajectory, P: np.ndarray | None = None
     n, nc = prob.n, prob.nc
     rec = prob.rec
     W = np.where(prob.active[:, :, None], traj.W, 0.0)
+    W, excess, limits = limit_world_wrenches(traj.R, traj.q[:, 0:3], W, rec, prob.model)
     total = W.sum(axis=1)
     cop = np.empty((n, 3))
     cop_J = np.empty((n, 3, 6))
@@ -158,6 +160,8 @@ def make_estimate(prob, name: str, traj: Trajectory, P: np.ndarray | None = None
         eoff += eff.dim
     residuals = family_residuals(prob, traj)
     meta = dict(meta or {})
+    if limits is not None:
+        meta["contact_limits"] = limits
     meta["rejected"] = rejected_samples(prob, residuals)
     faults.warn_summary(name, meta["rejected"], stacklevel=4)
     meta.setdefault("noise", {k: (v.tolist() if isinstance(v, np.ndarray) else v)
@@ -165,7 +169,7 @@ def make_estimate(prob, name: str, traj: Trajectory, P: np.ndarray | None = None
     return Estimate(
         estimator=name, t_ns=rec.t_ns.copy(), contact_names=tuple(rec.contact_names),
         R=traj.R.copy(), t=traj.q[:, 0:3].copy(), w=traj.q[:, 3:6].copy(), v=traj.q[:, 6:9].copy(),
-        dw=traj.q[:, 9:12].copy(), a=traj.q[:, 12:15].copy(), wrench=W, cop=cop,
+        dw=traj.q[:, 9:12].copy(), a=traj.q[:, 12:15].copy(), wrench=W, wrench_excess=excess, cop=cop,
         cov=cov, wrench_cov=wrench_cov, contact_wrench_cov=contact_wrench_cov, cop_cov=cop_cov,
         residuals=residuals, residual_labels=residual_labels(prob), residual_sigma=residual_sigmas(prob, residuals),
         time_per_step=time_per_step, total_time=float(total_time), effects=effects, meta=meta)

@@ -58,6 +58,7 @@ from flexforce.datasets.layout import STATE, STATE_DIM
 from flexforce.datasets.recording import Recording
 from flexforce.errors import ConfigError, DataError, EstimatorError, ModelError
 from flexforce.factors import core, so3
+from flexforce.factors.contact_limits import limit_world_wrenches
 from flexforce.factors.footholds import rest_placements
 from flexforce.factors.model import ModelConfig, unmodelled_acceleration
 from flexforce.factors.physics import contact_arrays
@@ -659,10 +660,21 @@ class _Outputs:
         R = np.array([so3.exp(Om) for Om in x[:, OM]])
         nm = ekf.noise
         c = np.array
+        wrench, excess, limits = c(self.wrench), None, None
+        cop = c(self.cop)
+        if self.want:
+            wrench, excess, limits = limit_world_wrenches(R, x[:, T], wrench, rec, ekf.model)
+            if excess is not None and np.any(excess):
+                rows = np.flatnonzero(np.any(excess != 0.0, axis=(1, 2)))
+                summed = np.ascontiguousarray(wrench[rows].sum(axis=1), dtype=float)
+                part, part_J = np.empty((len(rows), 3)), np.empty((len(rows), 3, 6))
+                core.centers_of_pressure(summed, ekf.config.z0, ekf.config.min_force, part, part_J)
+                cop[rows] = part
+        meta = {"contact_limits": limits} if limits is not None else {}
         return Estimate(
             estimator="ekf", t_ns=rec.t_ns.copy(), contact_names=tuple(rec.contact_names),
             R=R, t=x[:, T].copy(), w=x[:, W].copy(), v=x[:, V].copy(), dw=x[:, DW].copy(), a=x[:, A].copy(),
-            wrench=c(self.wrench), cop=c(self.cop), cov=c(self.cov), wrench_cov=c(self.wrench_cov),
+            wrench=wrench, wrench_excess=excess, cop=cop, cov=c(self.cov), wrench_cov=c(self.wrench_cov),
             contact_wrench_cov=contact_wrench_cov(ekf, R, x, self.cov) if self.want else None,
             cop_cov=c(self.cop_cov), residuals={"imu": c(self.white)}, residual_labels={"imu": IMU_LABELS},
             innovation=c(self.innovation), innovation_cov=c(self.S), time_per_step=self.time_per_step,
@@ -671,5 +683,6 @@ class _Outputs:
                   "touchdown": ekf.config.touchdown, "ground_tilt_weight": ekf.config.ground_tilt_weight,
                   "sigma_unmodelled_accel": nm.sigma_a, "sigma_unmodelled_ang_accel": nm.sigma_dw,
                   "p0_sigma": nm.p0_sigma.tolist(), "gyro_sigma": ekf.model.gyro_sigma,
-                  "accel_sigma": ekf.model.accel_sigma, "mean_nis": float(np.mean(self.nis)), "z0": ekf.config.z0},
+                  "accel_sigma": ekf.model.accel_sigma, "mean_nis": float(np.mean(self.nis)), "z0": ekf.config.z0,
+                  **meta},
         )

@@ -998,6 +998,16 @@ def violation_sentences(summary: dict) -> list[str]:
         if clean:
             text += f"; none in {', '.join(clean)}"
         out.append(text + ".")
+    law = []
+    for k, v, _ in rows:
+        asked = [(words.split(" (")[0], (v.get("contact_law") or {}).get(check) or {})
+                 for check, words in VIOLATION_CHECKS]
+        parts = [f"{c['count']} {w}" for w, c in asked if c.get("count")]
+        if parts:
+            law.append(f"{k} ({', '.join(parts)})")
+    if law:
+        out.append("The estimators report each contact's wrench limited to what it can carry; their contact law "
+                   f"asked for more in: {'; '.join(law)} (the part removed: Estimate.wrench_excess).")
     return out
 
 
