@@ -31,6 +31,7 @@ import gtsam
 import numpy as np
 
 from flexforce.factors import core
+from flexforce.factors.physics import about_com
 
 MAX_CONTACTS = 64
 """Contacts per step addressable by :func:`W`."""
@@ -126,14 +127,14 @@ def newton_euler_factor(noise, k: int, contacts: list[int], m: float, c, dc, ddc
                         g: float, effects: EffectTerms | None = None) -> gtsam.CustomFactor:
     """Newton-Euler (eq. 16, 23) on ``X, V, A, W_i`` (active contacts) and the effects' keys:
     required wrench minus the contact wrenches, i.e. the unexplained external wrench (N, N m about
-    the world origin), plus the effects' terms."""
+    the step's CoM point, :func:`flexforce.factors.physics.about_com`), plus the effects' terms."""
     nw = len(contacts)
     keys = [X(k), V(k), A(k)] + [W(k, i) for i in contacts] + (effects.keys() if effects else [])
     c, dc, ddc, sig, dsig = (np.ascontiguousarray(x, dtype=float) for x in (c, dc, ddc, sig, dsig))
     I, dI = np.ascontiguousarray(I, dtype=float), np.ascontiguousarray(dI, dtype=float)
     r = np.empty(6)
     J = np.empty((6, 18))
-    neg = -np.eye(6)
+    neg = about_com(c, np.zeros(6), -np.eye(6))[1]  # d r / d W_i, about the CoM point
 
     def error(this, values, H):
         R, q = _state(values, keys[0], keys[1], keys[2])
@@ -145,6 +146,10 @@ def newton_euler_factor(noise, k: int, contacts: list[int], m: float, c, dc, ddc
                 effects.W[0, i] = w
         core.newton_euler(R, q, Wsum, m, c, dc, ddc, I, dI, sig, dsig, g, r, J)
         He = effects.add("newton_euler", values, R, q, r, J) if effects else []
+        # about the step's CoM point, as the smoothers' Newton-Euler factor (physics.about_com)
+        rc, Jc = about_com(c, r, J)
+        r[:], J[:] = rc, Jc
+        He = [about_com(c, np.zeros(6), Hj)[1] for Hj in He]
         if H is not None:
             H[0] = _pose_block(J, R)
             H[1] = J[:, 6:12].copy()

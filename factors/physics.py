@@ -303,3 +303,37 @@ def wrench_about(wrench, point):
     F = wrench[..., :3]
     T = wrench[..., 3:]
     return np.concatenate([F, T - np.cross(point, F)], axis=-1)
+
+
+def about_com_matrix(c: np.ndarray) -> np.ndarray:
+    """(6, 6) map of a wrench ``(F, T)`` about the origin to the same wrench about the point ``c``
+    (``T - c x F``); ``c`` (..., 3) gives (..., 6, 6)."""
+    c = np.asarray(c, dtype=float)
+    out = np.zeros(c.shape[:-1] + (6, 6))
+    out[..., 0, 0] = out[..., 1, 1] = out[..., 2, 2] = 1.0
+    out[..., 3, 3] = out[..., 4, 4] = out[..., 5, 5] = 1.0
+    x, y, z = c[..., 0], c[..., 1], c[..., 2]
+    out[..., 3, 1], out[..., 3, 2] = z, -y
+    out[..., 4, 0], out[..., 4, 2] = -z, x
+    out[..., 5, 0], out[..., 5, 1] = y, -x
+    return out
+
+
+def about_com(c: np.ndarray, r: np.ndarray, J: np.ndarray | None = None):
+    """The Newton-Euler residual ``r`` (..., 6), a wrench about the world origin, and its Jacobian
+    ``J`` (..., 6, D) taken about the point ``c`` (..., 3): the CoM's coordinates in the local frame
+    at that step, a known point within the flexibility's displacement of the CoM.
+
+    Why: the model's unexplained wrench is an unmodelled force on the robot and a moment about its
+    CoM.  Taken about the local origin, which the robot walks away from (a metre on the 12 s iCub
+    walk), a force error becomes a moment error that grows with the distance, and the residual's
+    fixed covariance (computed at the first sample) no longer describes it: the smoothers' forces
+    then depended on where the local frame's origin lies (docs/smoother.md, "Noise")."""
+    r = np.array(r, dtype=float, copy=True)
+    r[..., 3:] -= np.cross(c, r[..., :3])
+    if J is None:
+        return r
+    J = np.array(J, dtype=float, copy=True)
+    cc = np.broadcast_to(np.asarray(c, dtype=float)[..., :, None], J[..., :3, :].shape)
+    J[..., 3:, :] -= np.cross(cc, J[..., :3, :], axisa=-2, axisb=-2, axisc=-2)
+    return r, J

@@ -22,6 +22,7 @@ from flexforce.datasets.faults import robust_weights
 from flexforce.errors import EstimatorError
 from flexforce.factors import core
 from flexforce.factors.effects.base import traits
+from flexforce.factors.physics import about_com
 from flexforce.smoother import solvers
 
 S = core.STATE_DIM
@@ -229,6 +230,7 @@ def _newton_euler_rows(at: _Point, robust: bool) -> None:
     for i in range(prob.nc):
         J[:, :, at.w_cols[i]] = -eye6 * act[:, i, None, None]
     at.add_effects("newton_euler", r, J)
+    r, J = about_com(prob.com[sl], r, J)
     r, J = _whiten_matrix(r, J, prob.ne_whitener)
     if robust and sig.robust_k is not None:
         w, rho = huber_weights(r, sig.robust_k)

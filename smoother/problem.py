@@ -49,7 +49,7 @@ from flexforce.factors import core
 from flexforce.factors.effects import Effect, EffectTraits, ProblemView, traits
 from flexforce.factors.footholds import WALK_WITHIN_ANCHORED, Footholds, held_rest, rest_placements
 from flexforce.factors.model import unmodelled_acceleration
-from flexforce.factors.physics import contact_arrays
+from flexforce.factors.physics import about_com_matrix, contact_arrays
 from flexforce.options import check_positive, invalid, require_config, with_options
 
 if TYPE_CHECKING:
@@ -76,7 +76,9 @@ class NoiseRule:
     ``unmodelled_ang_accel`` (angular, rad/s^2).  Defaults (``None``) are the EKF's:
     ``accel_sigma`` and ``accel_sigma / l``, ``l`` the IMU's distance to the contacts' centroid at
     the first step.  The smoother turns that acceleration into the wrench it leaves unexplained
-    (Newton-Euler), so both estimators assume the same unmodelled-wrench level.
+    (Newton-Euler), so both estimators assume the same unmodelled-wrench level at the first step;
+    the smoother takes that wrench about each step's CoM
+    (:func:`flexforce.factors.physics.about_com`), the EKF its acceleration about the local origin.
     """
 
     unmodelled_accel: float | None = None
@@ -163,8 +165,11 @@ class Sigmas:
     """(18,) first-step prior."""
     inactive_factor: float
     newton_euler_cov: np.ndarray | None = None
-    """(6, 6) covariance of the unexplained wrench (F, T about the world origin): force and moment
-    are correlated (a force at the CoM has a moment)."""
+    """(6, 6) covariance of the unexplained wrench (F, T about the step's CoM point,
+    :func:`flexforce.factors.physics.about_com`), the Newton-Euler residual."""
+    newton_euler_cov_origin: np.ndarray | None = None
+    """(6, 6) the same wrench's covariance about the local origin at the first sample (the scale of
+    the ``external-wrench`` effect's unknowns, a wrench about the origin)."""
     contact_cov: np.ndarray | None = None
     """(6, 6) covariance of one active contact's law error."""
     robust_k: float | None = None
@@ -216,9 +221,15 @@ def derive_sigmas(rec, model, rule: NoiseRule = NoiseRule()) -> Sigmas:
                          g, r, J)
     JA = J[:, 12:18]
     Qacc = np.diag([sdw**2] * 3 + [sa**2] * 3)
-    cov_ne = JA @ Qacc @ JA.T
+    cov_origin = JA @ Qacc @ JA.T
+    cov_origin = 0.5 * (cov_origin + cov_origin.T)
+    cov_c = rule.contact_ratio**2 * cov_origin
+    # The Newton-Euler residual is the unexplained wrench about the CoM's point of each step
+    # (flexforce.factors.physics.about_com), not about the local origin the robot walks away
+    # from: its covariance is the same wrench's, moved to the first sample's CoM.
+    shift = about_com_matrix(np.asarray(rec.com[0], dtype=float))
+    cov_ne = shift @ cov_origin @ shift.T
     cov_ne = 0.5 * (cov_ne + cov_ne.T)
-    cov_c = rule.contact_ratio**2 * cov_ne
     k_total = sum(float(np.trace(p.K_fs)) / 3.0 for p in model.contact_params)
     omega_c = math.sqrt(max(k_total, 1e-9) / m)
     # White jerk within the contact springs' bandwidth, from the same unmodelled acceleration.
@@ -240,6 +251,7 @@ def derive_sigmas(rec, model, rule: NoiseRule = NoiseRule()) -> Sigmas:
         prior=np.asarray(rule.prior_sigma, dtype=float),
         inactive_factor=rule.inactive_factor,
         newton_euler_cov=cov_ne,
+        newton_euler_cov_origin=cov_origin,
         contact_cov=cov_c,
         robust_k=rule.robust_k,
         imu_robust=rule.imu_robust,
@@ -247,7 +259,8 @@ def derive_sigmas(rec, model, rule: NoiseRule = NoiseRule()) -> Sigmas:
         derivation={"imu_robust": rule.imu_robust, "imu_robust_k": rule.imu_robust_k,
                     "weight_N": weight, "imu_contact_lever_m": lever,
                     "unmodelled_accel_m_s2": sa, "unmodelled_ang_accel_rad_s2": sdw,
-                    "newton_euler_cov": cov_ne.tolist(), "contact_ratio": rule.contact_ratio,
+                    "newton_euler_cov": cov_ne.tolist(), "newton_euler_about": "the CoM of each step",
+                    "contact_ratio": rule.contact_ratio,
                     "robust_k": rule.robust_k, "omega_c_rad_s": omega_c,
                     "jerk_density_lin": q_lin, "jerk_density_ang": q_ang},
     )

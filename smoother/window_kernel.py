@@ -60,6 +60,22 @@ class WindowProblem:
 
 
 @njit
+def _about_com(c, r, J):
+    """``flexforce.factors.physics.about_com`` of one step in place: the moment rows of the
+    Newton-Euler residual ``r`` (6,) and its Jacobian ``J`` (6, D) taken about the point ``c``."""
+    cx, cy, cz = c[0], c[1], c[2]
+    f0, f1, f2 = r[0], r[1], r[2]
+    r[3] -= cy * f2 - cz * f1
+    r[4] -= cz * f0 - cx * f2
+    r[5] -= cx * f1 - cy * f0
+    for col in range(J.shape[1]):
+        f0, f1, f2 = J[0, col], J[1, col], J[2, col]
+        J[3, col] -= cy * f2 - cz * f1
+        J[4, col] -= cz * f0 - cx * f2
+        J[5, col] -= cx * f1 - cy * f0
+
+
+@njit
 def _gram_into(H, k, A, Bt, ca, cb, sym):
     """``H[k][ca, cb] += A Bt^T`` (``linearize._gram_into``: each entry summed over the rows in
     order from 0.0, the same floating-point result), four entries at a time (independent sums)."""
@@ -229,6 +245,7 @@ def window_system(Rb, qb, Wb, pos, s0, skip_first,
         for i in range(nc):
             for j in range(6):
                 J_raw[kk, j, S + 6 * i + j] = -1.0 if active[s, i] else 0.0
+        _about_com(com[s], r_raw[kk], J_raw[kk])
     _whiten_steps(L_ne, J_raw, J_fam, every, m)
     r_fam = np.dot(r_raw, L_ne.T)
     if robust_k > 0.0:

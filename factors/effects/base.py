@@ -43,7 +43,8 @@ class SigmasView(Protocol):
     @property
     def newton_euler_cov(self) -> np.ndarray | None:
         """(6, 6) covariance of the wrench the nominal model leaves unexplained (N, N m; F and T
-        about the world origin, correlated)."""
+        about each step's CoM point, :func:`flexforce.factors.physics.about_com`: the
+        Newton-Euler residual's)."""
 
 
 @runtime_checkable

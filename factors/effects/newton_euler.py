@@ -22,6 +22,13 @@ from flexforce.factors.effects.base import (
 # ----------------------------------------------------------------------------------------------
 
 
+def _origin_cov(problem) -> np.ndarray:
+    """The unexplained wrench's covariance about the local origin at the first sample (the
+    Newton-Euler residual's own is about each step's CoM)."""
+    cov = getattr(problem.sigmas, "newton_euler_cov_origin", None)
+    return problem.sigmas.newton_euler_cov if cov is None else cov
+
+
 class ExternalWrench:
     """A wrench on the robot besides the contacts' (a push, a cable), world axes, moment about the
     world origin (the simulator's ``Truth.external_wrench``).
@@ -69,7 +76,7 @@ class ExternalWrench:
         self._weight: float | None = None
 
     def _setup(self, problem: ProblemView):
-        self._L = np.linalg.cholesky(np.asarray(problem.sigmas.newton_euler_cov, dtype=float))
+        self._L = np.linalg.cholesky(np.asarray(_origin_cov(problem), dtype=float))
         self._height = max(float(problem.com[0][2]), 0.1)
         self._weight = float(problem.rec.mass) * float(problem.g)
         return self._L
@@ -90,7 +97,7 @@ class ExternalWrench:
         instead of 3.2 -> 9.7 N), while a real push keeps its size (docs/diagnostics.md)."""
         self._setup(problem)
         weight = float(problem.rec.mass) * float(problem.g)  # what _setup stores in self._weight
-        sF = float(np.sqrt(np.mean(np.diag(np.asarray(problem.sigmas.newton_euler_cov, dtype=float))[:3])))
+        sF = float(np.sqrt(np.mean(np.diag(np.asarray(_origin_cov(problem), dtype=float))[:3])))
         return np.full(6, self.prior_weight_fraction * weight / sF)
 
     def random_walk_sigma(self, problem: ProblemView):
