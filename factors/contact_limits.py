@@ -32,6 +32,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from flexforce.factors.physics import wrench_about
+
 EDGE = 1e-9
 """How far inside the set a limited wrench is put: relative on the friction cone, m on the sole."""
 
@@ -70,9 +72,9 @@ def contact_frame_wrench(R: np.ndarray, t: np.ndarray, wrench: np.ndarray, local
     """
     Rc = np.einsum("nij,ncjk->ncik", R, local_R_c)  # world_R_contact
     p = np.einsum("nij,ncj->nci", R, local_p_c) + t[:, None, :]
-    F = wrench[..., :3]
-    T = wrench[..., 3:] - np.cross(p, F)
-    out = np.concatenate([np.einsum("ncji,ncj->nci", Rc, F), np.einsum("ncji,ncj->nci", Rc, T)], axis=2)
+    about_p = wrench_about(wrench, p)
+    out = np.concatenate([np.einsum("ncji,ncj->nci", Rc, about_p[..., :3]),
+                          np.einsum("ncji,ncj->nci", Rc, about_p[..., 3:])], axis=2)
     out[~active] = 0.0
     return out
 

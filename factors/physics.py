@@ -305,20 +305,6 @@ def wrench_about(wrench, point):
     return np.concatenate([F, T - np.cross(point, F)], axis=-1)
 
 
-def about_com_matrix(c: np.ndarray) -> np.ndarray:
-    """(6, 6) map of a wrench ``(F, T)`` about the origin to the same wrench about the point ``c``
-    (``T - c x F``); ``c`` (..., 3) gives (..., 6, 6)."""
-    c = np.asarray(c, dtype=float)
-    out = np.zeros(c.shape[:-1] + (6, 6))
-    out[..., 0, 0] = out[..., 1, 1] = out[..., 2, 2] = 1.0
-    out[..., 3, 3] = out[..., 4, 4] = out[..., 5, 5] = 1.0
-    x, y, z = c[..., 0], c[..., 1], c[..., 2]
-    out[..., 3, 1], out[..., 3, 2] = z, -y
-    out[..., 4, 0], out[..., 4, 2] = -z, x
-    out[..., 5, 0], out[..., 5, 1] = y, -x
-    return out
-
-
 def about_com(c: np.ndarray, r: np.ndarray, J: np.ndarray | None = None):
     """The Newton-Euler residual ``r`` (..., 6), a wrench about the world origin, and its Jacobian
     ``J`` (..., 6, D) taken about the point ``c`` (..., 3): the CoM's coordinates in the local frame
@@ -329,8 +315,7 @@ def about_com(c: np.ndarray, r: np.ndarray, J: np.ndarray | None = None):
     walk), a force error becomes a moment error that grows with the distance, and the residual's
     fixed covariance (computed at the first sample) no longer describes it: the smoothers' forces
     then depended on where the local frame's origin lies (docs/smoother.md, "Noise")."""
-    r = np.array(r, dtype=float, copy=True)
-    r[..., 3:] -= np.cross(c, r[..., :3])
+    r = wrench_about(np.asarray(r, dtype=float), c)
     if J is None:
         return r
     J = np.array(J, dtype=float, copy=True)

@@ -49,7 +49,7 @@ from flexforce.factors import core
 from flexforce.factors.effects import Effect, EffectTraits, ProblemView, traits
 from flexforce.factors.footholds import WALK_WITHIN_ANCHORED, Footholds, held_rest, rest_placements
 from flexforce.factors.model import unmodelled_acceleration
-from flexforce.factors.physics import about_com_matrix, contact_arrays
+from flexforce.factors.physics import about_com, contact_arrays
 from flexforce.options import check_positive, invalid, require_config, with_options
 
 if TYPE_CHECKING:
@@ -227,7 +227,7 @@ def derive_sigmas(rec, model, rule: NoiseRule = NoiseRule()) -> Sigmas:
     # The Newton-Euler residual is the unexplained wrench about the CoM's point of each step
     # (flexforce.factors.physics.about_com), not about the local origin the robot walks away
     # from: its covariance is the same wrench's, moved to the first sample's CoM.
-    shift = about_com_matrix(np.asarray(rec.com[0], dtype=float))
+    shift = about_com(np.asarray(rec.com[0], dtype=float), np.zeros(6), np.eye(6))[1]
     cov_ne = shift @ cov_origin @ shift.T
     cov_ne = 0.5 * (cov_ne + cov_ne.T)
     k_total = sum(float(np.trace(p.K_fs)) / 3.0 for p in model.contact_params)
