@@ -57,6 +57,12 @@ def _phases(rec: ff.Recording) -> dict[str, np.ndarray]:
             "walking_double_support": after & walking & (n_on >= 2)}
 
 
+def _base_pose(rec: ff.Recording) -> np.ndarray:
+    if rec.base_pose is None or "root_link" not in rec.mocap:
+        raise SystemExit(f"{rec.meta.get('source')}: no kinematic base pose or no Vicon root link to compare with")
+    return rec.base_pose
+
+
 def _round(x: Any, nd: int = 2) -> Any:
     return [round(float(v), nd) for v in np.atleast_1d(x)]
 
@@ -65,7 +71,7 @@ def row(rec: ff.Recording, R_flex: np.ndarray, t_flex: np.ndarray) -> dict:
     """The tilt decomposition and the heights of one estimate (``R_flex``, ``t_flex``: its flexibility)."""
     t = (rec.t_ns - rec.t_ns[0]) * 1e-9
     keep = t >= SKIP_S
-    base = rec.base_pose
+    base = _base_pose(rec)
     root = rec.mocap["root_link"]
     R_local = Rotation.from_quat(base[:, 3:]).as_matrix()
     R_est = np.einsum("nij,njk->nik", R_flex, R_local)
@@ -92,8 +98,11 @@ def _scaled(model: ff.ModelConfig, vertical: float = 1.0, every: float = 1.0) ->
 
 def _foot_rmse(rec: ff.Recording, est: ff.Estimate) -> float:
     t = (rec.t_ns - rec.t_ns[0]) * 1e-9
-    on = rec.contact_active & (t >= SKIP_S)[:, None] & np.isfinite(rec.ft[:, :, 2])
-    return round(float(np.sqrt(np.mean((est.wrench[:, :, 2] - rec.ft[:, :, 2])[on] ** 2))), 2)
+    if rec.ft is None:
+        raise SystemExit("the recording has no F/T to compare with")
+    ft = rec.ft[:, :, 2]
+    on = rec.contact_active & (t >= SKIP_S)[:, None] & np.isfinite(ft)
+    return round(float(np.sqrt(np.mean((est.wrench[:, :, 2] - ft)[on] ** 2))), 2)
 
 
 def run(path: Path) -> dict:
@@ -103,7 +112,7 @@ def run(path: Path) -> dict:
     out: dict[str, Any] = {"recording": path.name, "samples": n}
     phases = _phases(rec)
     root = rec.mocap["root_link"]
-    vicon = root[:, 2] - rec.base_pose[:, 2]
+    vicon = root[:, 2] - _base_pose(rec)[:, 2]
     out["vicon_height_mm"] = {ph: round(float(np.nanmean(vicon[m]) * 1e3), 2) for ph, m in phases.items() if m.any()}
     rows = {"leg_odometry": row(rec, np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3)))}
     with warnings.catch_warnings():
