@@ -313,6 +313,12 @@ class FixedLagSmoother:
         self.traj = Trajectory(np.zeros((n_out, 3, 3)), np.zeros((n_out, 15)), np.zeros((n_out, nc, 6)),
                                np.zeros((n_out, E)))
         self.P = np.zeros((n_out, D, D)) if covariance else None
+        self.successors: dict[int, Trajectory] = {}
+        """Read-out boundaries: step ``j`` -> the one-step :class:`Trajectory` of step ``j + 1`` as the
+        window held it when ``j`` was read out (``j + 1`` is read out later, from a later solve).
+        The residual of the factor between ``j`` and ``j + 1`` is taken with it
+        (:func:`~flexforce.smoother.result.boundary_residuals`).  With a ``sink`` the reader takes
+        (and removes) them."""
         self.update_time = np.zeros(n_out)
         self.cov_time = np.zeros(n_out)
         self.last_update_time = 0.0
@@ -589,7 +595,14 @@ class FixedLagSmoother:
         R, q, W, e = np.empty((n, 3, 3)), np.empty((n, 15)), np.empty((n, nc, 6)), np.empty((n, E))
         window_kernel.window_states(self.Rb, self.qb, self.Wb, self.eb, self.dx, j0, j1, R, q, W, e)
         cap = self.cap
+        if j1 < self.k:  # the next step stays in the window: keep it as this solve has it
+            nxt = Trajectory(np.empty((1, 3, 3)), np.empty((1, 15)), np.empty((1, nc, 6)), np.empty((1, E)))
+            window_kernel.window_states(self.Rb, self.qb, self.Wb, self.eb, self.dx, j1, j1 + 1,
+                                        nxt.R, nxt.q, nxt.W, nxt.e)
+            self.successors[j1 - 1] = nxt
         if self.sink is not None:
+            for j in [j for j in self.successors if j < j0 - self.cap]:  # not taken by the sink's reader
+                del self.successors[j]
             for i in range(n):
                 j = j0 + i
                 self.sink(j, R[i], q[i], W[i], e[i], self.Pw[j % cap].copy() if self.covariance else None)
@@ -719,7 +732,8 @@ def run_fixed_lag(rec: Recording, model: ModelConfig, config: FixedLagConfig = F
             progress(0.95 * k / prob.n)
     fls.finish()
     cov_stat = (float(np.median(fls.cov_time)) if backend == "gtsam" else float(np.mean(fls.cov_time)))
-    est = make_estimate(prob, "fixed_lag", fls.traj, fls.P, time_per_step=fls.update_time,
+    successors = fls.successors if isinstance(fls, FixedLagSmoother) else None
+    est = make_estimate(prob, "fixed_lag", fls.traj, fls.P, time_per_step=fls.update_time, successors=successors,
                         meta={"lag_s": fls.lag_steps * prob.dt, "use_ft": prob.use_ft, "backend": backend,
                               "cov_time_median_s": cov_stat if covariance else None,
                               "covariance": ("per-key marginals (no cross-covariance between keys)"

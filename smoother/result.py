@@ -35,18 +35,23 @@ def residual_labels(prob) -> dict[str, tuple[str, ...]]:
     return labels
 
 
-def family_residuals(prob, traj: Trajectory) -> dict[str, np.ndarray]:
+def family_residuals(prob, traj: Trajectory, successors: dict[int, Trajectory] | None = None) -> dict[str, np.ndarray]:
     """Whitened residual of every family per step and axis, NaN where the family is absent.
 
-    ``integration`` at step k is the factor between k and k+1 (the last step has none);
-    ``contact`` and ``ft`` are NaN where the contact is inactive.
+    ``integration`` at step k is the factor between k and k+1 (the last step has none); where
+    ``successors`` holds step k (a fixed-lag read-out boundary: k and k+1 left the window from
+    different solves), the factor is taken with k+1 as the solve that read out k had it
+    (:func:`boundary_residuals`).  ``contact`` and ``ft`` are NaN where the contact is inactive.
     """
-    lin = linearize(prob, traj, k0=int(getattr(prob, "offset", 0)), robust=False)
+    k0 = int(getattr(prob, "offset", 0))
+    lin = linearize(prob, traj, k0=k0, robust=False)
     n, nc = prob.n, prob.nc
     out = {}
     r_int = np.full((n, 12), np.nan)
     if n > 1:
         r_int[:-1] = lin.binary["integration"][0]
+    for k, r in boundary_residuals(prob, traj, successors or {}, k0).items():
+        r_int[k] = r
     out["integration"] = r_int
     out["newton_euler"] = lin.unary["newton_euler"][0].copy()
     out["imu"] = np.where(prob.imu_use > 0, lin.unary["imu"][0], np.nan)  # NaN: missing or saturated
@@ -62,6 +67,25 @@ def family_residuals(prob, traj: Trajectory) -> dict[str, np.ndarray]:
             measured = prob.active[:, i, None] & np.isfinite(prob.y_ft[:, i])
             rf[:, 6 * i:6 * i + 6] = np.where(measured, r, np.nan)
         out["ft"] = rf
+    return out
+
+
+def boundary_residuals(prob, traj: Trajectory, successors: dict[int, Trajectory], k0: int = 0) -> dict[int, np.ndarray]:
+    """Step k -> the whitened integration residual (12,) between ``traj``'s step k and
+    ``successors[k]``, its successor as one solve had it.
+
+    A fixed-lag smoother reads its window out in blocks: the last step of a block and the first of
+    the next come from solves ``report_every`` samples apart, so the factor between them, evaluated
+    on the read-out trajectory, compares two estimates rather than the model with the data
+    (hundreds of sigmas where the flexibility moves).  Taken within one solve it is the factor the
+    smoother fitted."""
+    out = {}
+    for k, nxt in successors.items():
+        if not 0 <= k < prob.n - 1:
+            continue
+        pair = Trajectory(np.concatenate([traj.R[k:k + 1], nxt.R]), np.concatenate([traj.q[k:k + 1], nxt.q]),
+                          np.concatenate([traj.W[k:k + 1], nxt.W]), np.concatenate([traj.e[k:k + 1], nxt.e]))
+        out[k] = linearize(prob, pair, k0=k0 + k, robust=False).binary["integration"][0][0]
     return out
 
 
@@ -118,8 +142,9 @@ def call_report(eff, values, cov, t):
 
 def make_estimate(prob, name: str, traj: Trajectory, P: np.ndarray | None = None,
                   time_per_step: np.ndarray | None = None, total_time: float = 0.0,
-                  meta: dict | None = None) -> Estimate:
-    """Assemble the Estimate of ``traj``; ``P`` (N, D, D) are the per-step marginal covariances."""
+                  meta: dict | None = None, successors: dict[int, Trajectory] | None = None) -> Estimate:
+    """Assemble the Estimate of ``traj``; ``P`` (N, D, D) are the per-step marginal covariances;
+    ``successors``: a fixed-lag smoother's read-out boundaries (:func:`family_residuals`)."""
     n, nc = prob.n, prob.nc
     rec = prob.rec
     W = np.where(prob.active[:, :, None], traj.W, 0.0)
@@ -158,7 +183,7 @@ def make_estimate(prob, name: str, traj: Trajectory, P: np.ndarray | None = None
         effects[eff.name] = call_report(eff, vals, ecov, (rec.t_ns - rec.t_ns[0]) * 1e-9)
         off += eff.dim
         eoff += eff.dim
-    residuals = family_residuals(prob, traj)
+    residuals = family_residuals(prob, traj, successors)
     meta = dict(meta or {})
     if limits is not None:
         meta["contact_limits"] = limits

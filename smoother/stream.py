@@ -257,7 +257,12 @@ class FixedLagStream:
             self.update_time_offset = j1
         with warnings.catch_warnings():  # announced once for the whole stream, in finish()
             warnings.simplefilter("ignore", RuntimeWarning)
-            est = make_estimate(prob, "fixed_lag", traj, P, time_per_step=times,
+            fls = self.fls
+            succ = {j - j0: fls.successors.pop(j) for j in range(j0, j1 - 1) if fls is not None and j in fls.successors}
+            if fls is not None:  # boundaries already past (the part's last step has no factor here)
+                for j in [j for j in fls.successors if j < j1]:
+                    del fls.successors[j]
+            est = make_estimate(prob, "fixed_lag", traj, P, time_per_step=times, successors=succ,
                                 meta={"lag_s": self.lag_steps * self.first.dt, "use_ft": prob.use_ft,
                                       "backend": "window", "stream": {"first_step": j0, "steps": j1 - j0},
                                       "covariance": "per-step marginals of the window (joint within a step)"

@@ -276,6 +276,20 @@ def test_fixed_lag_memory_is_bounded(rec, model):
     assert before == after and fls.Ld.shape[0] == fls.cap < 40
 
 
+def test_fixed_lag_residuals_have_no_read_out_seams(rec, model):
+    """The window is read out in blocks of ``report_every`` steps: the integration factor between a
+    block's last step and the next is evaluated within one solve (``successors``), so it is no
+    larger than the other steps' (on the read-out trajectory it compared two solves 10 samples
+    apart).  Measured on this 3 s push: the largest seam residual 5.4 sigma, 8.4 elsewhere; on the
+    read-out trajectory the seams read 937 sigma.  The bound is the other steps' largest."""
+    est = run_fixed_lag(rec, model)
+    r = np.nanmax(np.abs(est.residuals["integration"]), axis=1)
+    late = np.arange(rec.n) >= 20
+    seam = np.zeros(rec.n, dtype=bool)
+    seam[9::10] = True
+    assert np.nanmax(r[seam & late]) <= np.nanmax(r[~seam & late])
+
+
 def test_window_fixed_lag_with_full_relinearisation_matches_batch_on_a_short_window(rec, model):
     """Lag longer than the recording and every step relinearised at each update: the window
     smoother's last update is Gauss-Newton on the whole recording, started from its own estimates;
