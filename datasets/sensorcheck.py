@@ -23,8 +23,9 @@ Times are seconds from the recording's first sample.  This module is plain numpy
 from __future__ import annotations
 
 import warnings
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -44,6 +45,9 @@ CLIP_MIN_SPREAD = 1e-6
 """Smallest spread of an axis, relative to its largest magnitude (at least 1), for it to be judged
 for a flat top: an axis that varies less is constant (a noise-free simulation at rest), not
 clipped."""
+CLIP_MIN_TOPS = 3
+"""Separate flat tops at one extreme value that mark a fine-grained signal as clipped, however
+many of its samples lie just inside the top."""
 CLIP_FLOOR = {"accel": 1.0, "gyro": 0.05}
 """Smallest magnitude of a flat top that is a clip (m/s^2, rad/s): no sensor's full scale is lower."""
 ACCEL_NORM_TOL = 0.1
@@ -137,6 +141,12 @@ def _clipped(time: np.ndarray, name: str, y: np.ndarray, topics) -> tuple[list[F
         if hi - lo <= CLIP_MIN_SPREAD * max(1.0, abs(hi), abs(lo)):
             continue
         band = 0.05 * (hi - lo)
+        # A fine-grained signal (its levels closer than a thousandth of its span) does not dwell on
+        # its extreme value in several separate runs unless something cut it there: resampled onto
+        # a grid, a cut signal also piles up just inside the top (interpolated between the flat
+        # top and its neighbours), which the count against the band would take for a turn.
+        levels = np.unique(x[finite])
+        fine = float(np.median(np.diff(levels))) <= 1e-3 * (hi - lo)
         for value, side in ((hi, 1.0), (lo, -1.0)):
             if abs(value) < CLIP_FLOOR[name]:
                 continue
@@ -144,7 +154,7 @@ def _clipped(time: np.ndarray, name: str, y: np.ndarray, topics) -> tuple[list[F
                 at = finite & (np.abs(x - value) <= EQUAL_TOL)
                 near = finite & ~at & (side * (value - x) <= band)
             runs = [(i, j) for i, j in _runs(at) if j - i + 1 >= CLIP_MIN_RUN]
-            if not runs or int(at.sum()) <= int(near.sum()):
+            if not runs or (int(at.sum()) <= int(near.sum()) and not (fine and len(runs) >= CLIP_MIN_TOPS)):
                 continue
             k = np.flatnonzero(at)
             unit = _UNIT[name]
@@ -351,10 +361,15 @@ class StreamScreen:
         DataError: an unambiguous unit mistake (the accelerometer in g, mg or cm/s^2).
     """
 
-    def __init__(self, topics: Mapping[str, str] | None = None, where: str = "", carry: float = 2 * STUCK_MIN_S):
+    def __init__(self, topics: Mapping[str, str] | None = None, where: str = "", carry: float = 2 * STUCK_MIN_S,
+                 readings: Callable[[Any], Mapping[str, np.ndarray] | None] | None = None):
+        """``readings``: called with each part, the part's IMU readings to judge instead of its own
+        (``"gyro"``/``"accel"`` -> (n, 3); None: the part's), as :func:`check_recording`'s."""
         self.topics = topics
         self.where = where
         self.carry = float(carry)
+        self.readings = readings
+        self._tail_raw: dict[str, np.ndarray] | None = None
         self.findings: list[Finding] = []
         """Every fault found so far, spans in seconds from the stream's first sample."""
         self._tail = None
@@ -370,11 +385,12 @@ class StreamScreen:
         if self._t0_ns is None:
             self._t0_ns = int(part.t_ns[0])
         buf = part if self._tail is None else concat_recordings(self._tail, part)
+        raw = self._readings(part, buf)
         offset = (int(buf.t_ns[0]) - self._t0_ns) * 1e-9
         start = (int(part.t_ns[0]) - self._t0_ns) * 1e-9
         end = (int(buf.t_ns[-1]) - self._t0_ns) * 1e-9
         prefix = f"{self.where}: " if self.where else ""
-        for f in check_recording(buf, self.topics) + self._silent(buf):
+        for f in check_recording(buf, self.topics, raw) + self._silent(buf):
             f = replace(f, t0=f.t0 + offset, t1=f.t1 + offset)
             if f.t1 < start - 1e-12:
                 continue  # within the carried tail only: seen with the previous part
@@ -395,7 +411,20 @@ class StreamScreen:
             warnings.warn(prefix + text, SensorFaultWarning, stacklevel=2)
         keep = max(1, int(round(self.carry / buf.dt))) if buf.dt > 0 else buf.n
         self._tail = buf.slice(max(0, buf.n - keep), buf.n)
+        if raw is not None:
+            self._tail_raw = {k: v[max(0, buf.n - keep):] for k, v in raw.items()}
         return part
+
+    def _readings(self, part, buf) -> dict[str, np.ndarray] | None:
+        """The readings to judge over ``buf`` (the carried tail and ``part``), or None."""
+        got = self.readings(part) if self.readings is not None else None
+        if got is None:
+            self._tail_raw = None
+            return None
+        tail = self._tail_raw
+        if tail is None or self._tail is None or buf.n - part.n != len(next(iter(tail.values()))):
+            tail = {k: np.asarray(getattr(buf, k)[:buf.n - part.n], dtype=float) for k in got}
+        return {k: np.concatenate([tail[k], np.asarray(v, dtype=float)]) for k, v in got.items()}
 
     def _silent(self, buf) -> list[Finding]:
         """A ``missing`` finding over the whole of ``buf`` for each F/T sensor whose channels read

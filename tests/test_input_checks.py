@@ -241,6 +241,30 @@ def test_clipped_imu_is_recognised_from_its_flat_tops(name, axis, limit):
     assert "clipped from t = " in top.message() and "effect: " in top.message()
 
 
+def test_a_signal_cut_while_dwelling_near_its_range_is_clipped():
+    """A walk's accelerometer axis that lives near its full scale and is resampled onto the grid:
+    the samples interpolated between a flat top and its neighbours, and the signal's own time
+    near the limit, fill the band just inside the top (as many as at it, on the iCub walk cut at
+    -8 m/s^2: 204 at the top, 270 within 1 % of the span); its many separate flat tops still make
+    it clipped.  The same signal uncut is not."""
+    from flexforce.datasets.sensorcheck import check_recording
+
+    rec = _live()
+    s = rec.time
+    rng = np.random.default_rng(4)
+    y = -7.9 - 0.12 * np.sin(7.0 * s) + rng.normal(scale=0.04, size=s.size) + 2.0 * (np.sin(0.9 * s) > 0.9)
+    rec.accel[:, 1] = y
+    assert [f for f in check_recording(rec) if f.kind == "clipped"] == []
+    cut = np.clip(y, -8.0, None)
+    rec.accel[:, 1] = np.interp(s + 0.3 * rec.dt, s, cut)  # resampled a third of a period later
+    rec.accel[-1, 1] = cut[-1]
+    at = np.abs(rec.accel[:, 1] + 8.0) <= 1e-9
+    near = ~at & (rec.accel[:, 1] + 8.0 <= 0.05 * np.ptp(rec.accel[:, 1]))
+    assert near.sum() >= at.sum()  # the band test alone would take it for a turn
+    (found,) = [f for f in check_recording(rec) if f.kind == "clipped"]
+    assert found.sensor == "accel" and found.channel == "axis y" and "at -8 m/s^2" in found.detail
+
+
 def test_an_axis_constant_to_rounding_is_not_clipping():
     """A noise-free simulation at rest: the accelerometer's z sits at its extreme throughout, varying
     by 1e-13 m/s^2 only (rounding): constant, not clipped."""
@@ -449,6 +473,43 @@ def test_streamed_bag_is_checked_part_by_part(tmp_path):
         f["accel"] = f["accel"] / 9.81
     with pytest.raises(DataError, match=r"g: accel \(/imu\) units from t = 0.000 s .* the readings are in g"):
         list(stream_bag(write_bag(tmp_path / "g", "mcap", topics), model))
+
+
+def test_streamed_clip_is_judged_before_the_imu_filter(tmp_path):
+    """``ros.imu_filter = "savgol"`` rounds a flat top off: the streamed screen judges the readings
+    as resampled, before the filter (``StreamImporter.raw_imu``), as the offline import does."""
+    from test_rosimport import ROS, UPPER, Motion, robot_topics, stamps, write_bag
+
+    from flexforce.datasets.io.rosimport import import_bag
+    from flexforce.datasets.io.stream import stream_bag
+    from flexforce.datasets.robot import RobotModel
+    from flexforce.datasets.sensorcheck import SensorFaultWarning, StreamScreen
+
+    ros = dataclasses.replace(ROS, imu_filter="savgol")
+    model = RobotModel(dataclasses.replace(RobotConfig.load("romeo"), ros=ros))
+    t = stamps(n=400)
+    forces = 200.0 + np.random.default_rng(5).normal(scale=2.0, size=(len(t), 2))
+    topics = robot_topics(model, Motion(model, UPPER), t, forces=forces)
+    for i, (_, f) in enumerate(topics["/imu"][1]):  # a 4 Hz vibration, cut at 1 m/s^2 above gravity
+        f["accel"] = np.array([f["accel"][0], f["accel"][1], f["accel"][2] + 2.0 * np.sin(0.25 * i)])
+    limit = float(np.median([f["accel"][2] for _, f in topics["/imu"][1]])) + 1.0
+    for _, f in topics["/imu"][1]:
+        f["accel"][2] = min(f["accel"][2], limit)
+    bag = write_bag(tmp_path / "clip", "mcap", topics)
+    with pytest.warns(SensorFaultWarning):
+        offline = import_bag(bag, model)
+    assert [f["kind"] for f in offline.meta["sensor_faults"]] == ["clipped"]
+    with pytest.warns(SensorFaultWarning) as caught:
+        parts = list(stream_bag(bag, model, part_seconds=0.5))
+    msgs = [str(w.message) for w in caught if issubclass(w.category, SensorFaultWarning)]
+    assert msgs and all("accel (/imu) clipped" in m for m in msgs) and f"at {limit:.6g} m/s^2" in msgs[0]
+    # the filtered parts alone do not show it: the filter rounded the flat tops off
+    alone = StreamScreen({"accel": "/imu", "gyro": "/imu"})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SensorFaultWarning)
+        for part in parts:
+            alone(part)
+    assert alone.findings == []
 
 
 def test_real_icub_logs_raise_no_sensor_fault():

@@ -195,6 +195,7 @@ class StreamImporter:
         self._k_interp = 0  # next step to interpolate
         self._k_deriv = 0  # next step to differentiate
         self._ready: list[dict] = []  # steps with every input final, not yet handed out
+        self._raw_imu: dict[int, dict[str, np.ndarray]] = {}  # first step of a part -> its readings before the filter
         self._savgol_coeffs: dict[tuple, np.ndarray] = {}  # the derivative filters, by (window, derivative, step)
         self._batch_wait = 0  # steps interpolated past the differentiated ones before a batch can be due
         win = int(round(ros.savgol_window * self.rate)) | 1 if self.rate else None
@@ -477,7 +478,8 @@ class StreamImporter:
             k = s + j
             r = k - a
             self._ready.append({"k": k, "gyro": gyro[r], "accel": accel[r], "q": seg[j],
-                                "v": vel[j, :nj], "a": acc[j, :nj], "ft": rows["ft"][r]})
+                                "v": vel[j, :nj], "a": acc[j, :nj], "ft": rows["ft"][r],
+                                "gyro_raw": rows["gyro"][r], "accel_raw": rows["accel"][r]})
         self._k_deriv = stop
         # drop the rows the filter no longer needs (it needs h before the next step to differentiate)
         keep_from = max(min(self._k_deriv - h, K - win), 0)
@@ -502,6 +504,12 @@ class StreamImporter:
         out = np.empty_like(x)
         out[lo - h:hi + h] = convolve1d(x[lo - h:hi + h], coeffs, axis=0, mode="constant")
         return out
+
+    def raw_imu(self, part: Recording) -> dict[str, np.ndarray] | None:
+        """The IMU readings of ``part`` (one this importer handed out) as resampled, before
+        ``ros.imu_filter`` smoothed them (None without a filter), and forgotten here: what the
+        sensor screen judges (a smoother rounds off a clipped flat top)."""
+        return self._raw_imu.pop(int(part.meta["stream"]["first_step"]), None)
 
     def _part_due(self) -> bool:
         """A whole part is ready (:meth:`parts` would hand one out)."""
@@ -561,6 +569,9 @@ class StreamImporter:
                                                  "order": self.ros.savgol_order},
                            "imu_filter": self.ros.imu_filter}}
         self.steps_out += n
+        if self.ros.imu_filter != "none":  # the readings before the filter, for the sensor screen
+            self._raw_imu[int(ks[0])] = {"gyro": np.array([s["gyro_raw"] for s in steps], dtype=float),
+                                         "accel": np.array([s["accel_raw"] for s in steps], dtype=float)}
         return Recording(
             t_ns=grid, robot=self.config.source or self.config.name, contact_names=self.names_c,
             mass=self.model.mass, contact_active=active, contact_p=lf.contact_p, contact_R=lf.contact_R,
@@ -736,7 +747,8 @@ def stream_bag(path, robot_config, rate: float | None = None, contacts: str = "f
         present = tuple(ft_topics[t] for t in ft_topics if t in types and counts.get(t, 1) > 0)
         imp = StreamImporter(model, rate, contacts, part_seconds, ft_contacts=present)
         check = StreamScreen({"accel": ros.imu_topic, "gyro": ros.imu_topic,
-                              **{f"ft/{ft_topics[t]}": t for t in ft_topics if t in types}}, where=str(path))
+                              **{f"ft/{ft_topics[t]}": t for t in ft_topics if t in types}}, where=str(path),
+                             readings=imp.raw_imu)
         read = [c for c in reader.connections if c.topic in wanted] if on_message is None else reader.connections
         cdr = _CdrDecoder() if getattr(reader, "is2", False) else None  # ROS 2 bags: CDR messages
         for conn, log_ns, raw in reader.messages(connections=read):
