@@ -14,13 +14,13 @@ from pathlib import Path
 import numpy as np
 
 from flexforce.datasets.layout import STATE_LABELS as STATE_LABELS  # re-exported; defined by the layout
-from flexforce.datasets.quantities import FlexibleMotion
+from flexforce.datasets.quantities import FlexibleMotion, Stamped
 from flexforce.datasets.safeio import safe_output
 from flexforce.errors import DataError
 
 
 @dataclass
-class Estimate(FlexibleMotion):
+class Estimate(FlexibleMotion, Stamped):
     """Per-step estimate of the flexibility state, contact wrenches and CoP, with uncertainty."""
 
     estimator: str
@@ -67,16 +67,6 @@ class Estimate(FlexibleMotion):
     meta: dict = field(default_factory=dict)
     """Free-form description of the run: the samples a sensor gate rejected, the noise sigmas, solver
     details (JSON-serialisable)."""
-
-    @property
-    def n(self) -> int:
-        """Number of steps."""
-        return int(self.t_ns.shape[0])
-
-    @property
-    def time(self) -> np.ndarray:
-        """(N,) seconds from the first sample."""
-        return (self.t_ns - self.t_ns[0]).astype(float) * 1e-9
 
     def state_std(self) -> np.ndarray | None:
         """(N, 18) standard deviations of the state components (:data:`STATE_LABELS`)."""

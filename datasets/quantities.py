@@ -19,10 +19,28 @@ from numpy.typing import ArrayLike
 from flexforce.errors import ModelError
 from flexforce.options import check_choice, check_finite, check_positive, invalid
 
-__all__ = ["GRAVITY", "ContactParams", "FlexibleMotion", "FootholdPrior", "ImuPlacement", "Inputs"]
+__all__ = ["GRAVITY", "ContactParams", "FlexibleMotion", "FootholdPrior", "ImuPlacement", "Inputs", "Stamped"]
 
 GRAVITY = 9.81
 """Default gravity (m/s^2), along -z of the world (correction 6: a parameter)."""
+
+class Stamped:
+    """Per-step series on the time stamps ``t_ns``: the number of steps and the time in seconds (a
+    :class:`~flexforce.datasets.recording.Recording` and an :class:`~flexforce.datasets.estimate.Estimate`)."""
+
+    t_ns: np.ndarray
+    """(N,) int64 time stamps, ns."""
+
+    @property
+    def n(self) -> int:
+        """Number of steps."""
+        return int(self.t_ns.shape[0])
+
+    @property
+    def time(self) -> np.ndarray:
+        """(N,) float seconds from the first sample."""
+        return (self.t_ns - self.t_ns[0]).astype(float) * 1e-9
+
 
 @dataclass
 class FlexibleMotion:
@@ -51,7 +69,9 @@ class FlexibleMotion:
         return self.wrench.sum(axis=1)
 
 
-def _as_matrix(value: ArrayLike, name: str) -> np.ndarray:
+def matrix3(value: ArrayLike) -> np.ndarray | None:
+    """A 3x3 stiffness from a scalar (isotropic), a 3-vector (diagonal) or a 3x3 matrix (copied);
+    None for any other shape (the caller names the value in its error)."""
     a = np.asarray(value, dtype=float)
     if a.ndim == 0:
         return float(a) * np.eye(3)
@@ -59,7 +79,15 @@ def _as_matrix(value: ArrayLike, name: str) -> np.ndarray:
         return np.diag(a)
     if a.shape == (3, 3):
         return a.copy()
-    raise ModelError(f"{name} must be a scalar, a 3-vector (diagonal) or a 3x3 matrix, got shape {a.shape}")
+    return None
+
+
+def _as_matrix(value: ArrayLike, name: str) -> np.ndarray:
+    a = matrix3(value)
+    if a is None:
+        raise ModelError(f"{name} must be a scalar, a 3-vector (diagonal) or a 3x3 matrix, "
+                         f"got shape {np.asarray(value, dtype=float).shape}")
+    return a
 
 
 @dataclass(frozen=True)

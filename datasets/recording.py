@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from flexforce.datasets.faults import check_missing
-from flexforce.datasets.quantities import GRAVITY, FlexibleMotion, ImuPlacement, Inputs
+from flexforce.datasets.quantities import GRAVITY, FlexibleMotion, ImuPlacement, Inputs, Stamped
 from flexforce.errors import DataError
 
 
@@ -56,7 +56,7 @@ class Truth(FlexibleMotion):
 
 
 @dataclass
-class Recording:
+class Recording(Stamped):
     """Inputs, measurements, references and (optionally) ground truth on a uniform time grid."""
 
     t_ns: np.ndarray
@@ -231,16 +231,6 @@ class Recording:
                                 "microseconds; expected integer nanoseconds, e.g. "
                                 "np.round(t_seconds * 1e9).astype(np.int64)")
         return t
-
-    @property
-    def n(self) -> int:
-        """Number of steps."""
-        return int(self.t_ns.shape[0])
-
-    @property
-    def time(self) -> np.ndarray:
-        """(N,) float seconds from the first sample."""
-        return (self.t_ns - self.t_ns[0]).astype(float) * 1e-9
 
     @property
     def dt(self) -> float:

@@ -17,7 +17,6 @@ import numbers
 import re
 import site
 import sys
-import tomllib
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +27,7 @@ from scipy.spatial.transform import Rotation
 
 from flexforce.datasets.quantities import GRAVITY, ContactParams, FootholdPrior, ImuPlacement, Inputs
 from flexforce.errors import ConfigError, ConfigWarning
+from flexforce.options import read_toml
 
 ROBOTS_DIR = Path(__file__).resolve().parent / "robots"
 DEFAULT_ROBOT = "romeo"
@@ -442,12 +442,7 @@ class RobotConfig:
             if not path.exists():
                 known = ", ".join(sorted(p.stem for p in ROBOTS_DIR.glob("*.toml")))
                 raise ConfigError(f"unknown robot '{name_or_path}'; built-in robots: {known}, or give a .toml path")
-        if not path.exists():
-            raise ConfigError(f"robot configuration not found: {path}")
-        try:
-            raw = tomllib.loads(path.read_text())
-        except tomllib.TOMLDecodeError as err:
-            raise ConfigError(f"robot configuration {path} is not valid TOML: {err}") from err
+        raw = read_toml(path, "robot configuration")
         return cls.from_dict(raw, base=path.parent, source=str(path))
 
     @classmethod

@@ -13,6 +13,7 @@ import numpy as np
 
 from flexforce.factors.footholds import FootholdPrior
 from flexforce.factors.physics import GRAVITY, ContactParams
+from flexforce.options import check_positive
 
 
 @dataclass(frozen=True)
@@ -119,3 +120,13 @@ def unmodelled_acceleration(accel_sigma: float, imu_p: np.ndarray, contact_centr
     """
     lever = float(np.linalg.norm(np.asarray(imu_p) - np.asarray(contact_centroid)))
     return float(accel_sigma), float(accel_sigma) / max(lever, 1e-3)
+
+
+def check_unmodelled(owner: str, accel, ang_accel, nominal: tuple[str, str]) -> None:
+    """Check an estimator's override of :func:`unmodelled_acceleration` (its config's
+    ``unmodelled_accel``, m/s^2, and ``unmodelled_ang_accel``, rad/s^2): each a positive standard
+    deviation, or None for the nominal one, which ``nominal`` names in the messages (linear, angular)."""
+    check_positive(owner, "unmodelled_accel", accel, "m/s^2",
+                   f"a positive standard deviation or None ({nominal[0]})", optional=True)
+    check_positive(owner, "unmodelled_ang_accel", ang_accel, "rad/s^2",
+                   f"a positive standard deviation or None ({nominal[1]})", optional=True)

@@ -9,7 +9,8 @@ option, its value, its unit and what is expected::
     FixedLagConfig.lag = -1.0 s; expected a positive duration
 
 :func:`with_options` builds a config from loose keyword options (the estimators' older calling
-convention, and a TOML table mapped one to one onto the fields).
+convention, and a TOML table mapped one to one onto the fields); :func:`read_toml` reads a
+configuration file (a robot's, a scenario's) into its table.
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ from __future__ import annotations
 import dataclasses
 import math
 import numbers
+import tomllib
+from pathlib import Path
 from typing import Any, TypeVar
 
 import numpy as np
@@ -109,3 +112,15 @@ def require_config(config: Any, cls: type, what: str) -> None:
         got = type(config).__name__
         raise ConfigError(f"{what}: config is {article(got)} {got} ({config!r}); expected {article(cls.__name__)} "
                           f"{cls.__name__}")
+
+
+def read_toml(path: Path, what: str, missing: str | None = None) -> dict[str, Any]:
+    """The table of the configuration file ``path``; a :class:`ConfigError` naming ``what`` (``robot
+    configuration``, ``scenario``) when it is not valid TOML, and ``missing`` (default ``what``) when
+    the file does not exist."""
+    if not path.exists():
+        raise ConfigError(f"{missing or what} not found: {path}")
+    try:
+        return tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"{what} {path} is not valid TOML: {err}") from err

@@ -48,7 +48,7 @@ from flexforce.errors import ConfigError, DataError, ModelError
 from flexforce.factors import core
 from flexforce.factors.effects import Effect, EffectTraits, ProblemView, traits
 from flexforce.factors.footholds import WALK_WITHIN_ANCHORED, Footholds, held_rest, rest_placements
-from flexforce.factors.model import unmodelled_acceleration
+from flexforce.factors.model import check_unmodelled, unmodelled_acceleration
 from flexforce.factors.physics import about_com, contact_arrays
 from flexforce.options import check_positive, invalid, require_config, with_options
 
@@ -122,10 +122,8 @@ class NoiseRule:
 
     def __post_init__(self):
         o = "NoiseRule"
-        check_positive(o, "unmodelled_accel", self.unmodelled_accel, "m/s^2",
-                       "a positive standard deviation or None (the EKF's, accel_sigma)", optional=True)
-        check_positive(o, "unmodelled_ang_accel", self.unmodelled_ang_accel, "rad/s^2",
-                       "a positive standard deviation or None (the EKF's, accel_sigma / l)", optional=True)
+        check_unmodelled(o, self.unmodelled_accel, self.unmodelled_ang_accel,
+                         ("the EKF's, accel_sigma", "the EKF's, accel_sigma / l"))
         check_positive(o, "contact_ratio", self.contact_ratio, "", "a positive ratio of standard deviations")
         check_positive(o, "robust_k", self.robust_k, "", "a positive Huber threshold (whitened norm) or None",
                        optional=True)

@@ -193,8 +193,6 @@ def diagnose(rec: Recording, model: ModelConfig | None = None, candidates: Itera
             bad ``screen_level``, ``refit_best`` or ``jobs``.
         TypeError: a keyword that is no field of DiagnoseConfig.
     """
-    from flexforce.compare.runner import check_jobs
-
     cfg = _config(config, options)
     rec.validate()
     if model is None:
@@ -205,16 +203,10 @@ def diagnose(rec: Recording, model: ModelConfig | None = None, candidates: Itera
     want_auto = AUTO in add
     add = [a for a in add if a != AUTO]
     cands, skipped, table_only, add_makers = _candidates(rec, model, candidates, extra_candidates, add, cfg.rank)
-    s = Session(rec, model, {**cands, **add_makers}, cfg, progress)
-    check_jobs(cfg.jobs)
-    nominal = s.fitted(())
-    noise = calibrate_noise(rec, model, nominal, cfg)
+    s, nominal, noise = _nominal_session(rec, model, {**cands, **add_makers}, cfg, progress)
     if noise is not None:
         model = noise["model"]
-        s.say("noise", noise["text"], s.t_start)
         skipped = {**skipped, "noise": noise["text"]}
-        s = Session(rec, model, {**cands, **add_makers}, cfg, progress)
-        nominal = s.fitted(())
     s.resolve_jobs()  # "auto": decided with the nominal fit in memory (what a worker starts from)
     sel = start_selection(s, cands, table_only, nominal)
 
@@ -249,6 +241,24 @@ def diagnose(rec: Recording, model: ModelConfig | None = None, candidates: Itera
                                              "accel_sigma": model.accel_sigma})},
                      None if truth is None else np.asarray(truth.external_wrench, dtype=float), tests_sorted,
                      sel.ident, sel.ident_error, list(skipped.values()), swaps, config=cfg)
+
+
+def _nominal_session(rec: Recording, model: ModelConfig, makers: dict, cfg: DiagnoseConfig,
+                     progress: Callable[[str, float], None] | None) -> tuple[Session, Fit, dict | None]:
+    """The diagnosis session and its nominal fit, and :func:`calibrate_noise`'s record (None when
+    the configured noise holds); with a calibrated noise, a new session on the calibrated model and
+    its nominal fit."""
+    from flexforce.compare.runner import check_jobs
+
+    s = Session(rec, model, makers, cfg, progress)
+    check_jobs(cfg.jobs)
+    nominal = s.fitted(())
+    noise = calibrate_noise(rec, model, nominal, cfg)
+    if noise is not None:
+        s.say("noise", noise["text"], s.t_start)
+        s = Session(rec, noise["model"], makers, cfg, progress)
+        nominal = s.fitted(())
+    return s, nominal, noise
 
 
 def calibrate_noise(rec: Recording, model: ModelConfig, nominal: Fit, cfg: DiagnoseConfig) -> dict | None:

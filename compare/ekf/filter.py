@@ -60,7 +60,7 @@ from flexforce.errors import ConfigError, DataError, EstimatorError, ModelError
 from flexforce.factors import core, so3
 from flexforce.factors.contact_limits import limit_world_wrenches
 from flexforce.factors.footholds import rest_placements
-from flexforce.factors.model import ModelConfig, unmodelled_acceleration
+from flexforce.factors.model import ModelConfig, check_unmodelled, unmodelled_acceleration
 from flexforce.factors.physics import contact_arrays
 from flexforce.options import (
     check_bool,
@@ -169,10 +169,8 @@ class EKFConfig:
 
     def __post_init__(self):
         o = "EKFConfig"
-        check_positive(o, "unmodelled_accel", self.unmodelled_accel, "m/s^2",
-                       "a positive standard deviation or None (the accelerometer's)", optional=True)
-        check_positive(o, "unmodelled_ang_accel", self.unmodelled_ang_accel, "rad/s^2",
-                       "a positive standard deviation or None (accel_sigma / l)", optional=True)
+        check_unmodelled(o, self.unmodelled_accel, self.unmodelled_ang_accel,
+                         ("the accelerometer's", "accel_sigma / l"))
         check_positive(o, "p0_scale", self.p0_scale, "", "a positive multiplier of the prior standard deviations")
         check_finite(o, "z0", self.z0, "m", "a finite height")
         check_positive(o, "min_force", self.min_force, "N", "a positive force")

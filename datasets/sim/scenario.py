@@ -57,13 +57,13 @@ from __future__ import annotations
 
 import math
 import numbers
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from flexforce.errors import ConfigError
+from flexforce.options import read_toml
 
 SCENARIOS_DIR = Path(__file__).resolve().parent / "scenarios"
 DEFAULT_SCENARIO = "push-pitch"
@@ -469,12 +469,7 @@ class Scenario:
             if not path.exists():
                 raise ConfigError(f"unknown scenario '{name_or_path}'; built-in scenarios: "
                                   f"{', '.join(builtin_scenarios())}, or give a .toml file")
-        if not path.exists():
-            raise ConfigError(f"scenario file not found: {path}")
-        try:
-            raw = tomllib.loads(path.read_text())
-        except tomllib.TOMLDecodeError as err:
-            raise ConfigError(f"scenario {path} is not valid TOML: {err}") from err
+        raw = read_toml(path, "scenario", missing="scenario file")
         raw.setdefault("name", path.stem)
         return cls.from_dict(raw, source=str(path))
 

@@ -79,7 +79,7 @@ import numpy as np
 import pinocchio as pin
 from scipy import signal
 
-from flexforce.datasets.quantities import ContactParams
+from flexforce.datasets.quantities import ContactParams, matrix3
 from flexforce.datasets.recording import Recording, Truth
 from flexforce.datasets.robot import ROBOTS_DIR, FtNoise, ImuNoise, RobotConfig, RobotModel
 from flexforce.datasets.sim.effects import HiddenEffect, SpringTerms, grouped, parse_effects
@@ -107,14 +107,10 @@ class Spring(ContactParams):
         """From a robot configuration's :class:`~flexforce.datasets.robot.Stiffness` (scalars are
         isotropic, 3-vectors diagonal in the contact frame, 3x3 full)."""
         def mat(x, key):
-            a = np.asarray(x, dtype=float)
-            if a.shape == ():
-                return float(a) * np.eye(3)
-            if a.shape == (3,):
-                return np.diag(a)
-            if a.shape == (3, 3):
-                return a.copy()
-            raise ConfigError(f"stiffness {key} = {x!r}: expected a scalar, 3 values or a 3x3 matrix")
+            a = matrix3(x)
+            if a is None:
+                raise ConfigError(f"stiffness {key} = {x!r}: expected a scalar, 3 values or a 3x3 matrix")
+            return a
         return cls(mat(stiffness.k_fs, "k_fs"), mat(stiffness.k_fd, "k_fd"), mat(stiffness.k_ts, "k_ts"),
                    mat(stiffness.k_td, "k_td"))
 
