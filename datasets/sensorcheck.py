@@ -10,7 +10,9 @@ Faults that the readings themselves reveal, checked before any estimator runs
   m/s^2) or far above gravity (mg, cm/s^2): refused, no robot on the ground can read that; a
   median off gravity by more than :data:`ACCEL_NORM_TOL` is a warning (scale, clipping, bias); the
   gyrometer reading :data:`DEG_SCALE_MIN` times or more the rotation rate of the joint kinematics
-  (``Recording.imu_w``), or a median rate above :data:`GYRO_MEDIAN_MAX` (deg/s instead of rad/s);
+  (``Recording.imu_w``), or a median rate above :data:`GYRO_MEDIAN_MAX` (deg/s instead of rad/s),
+  is a warning, and refused when it follows the kinematics at 180/pi times their rate
+  (:data:`DEG_REFUSE`);
 * **stuck** -- an IMU or F/T channel exactly constant for :data:`STUCK_MIN_S` s or more (a
   frozen driver repeats its last value; real sensors always show noise); an F/T channel that is
   NaN or exactly 0 throughout is not measured (a force-only sensor), not stuck;
@@ -63,6 +65,9 @@ KINEMATIC_CORRELATION = 0.5
 """Correlation of gyrometer and kinematic rate above which their ratio is trusted."""
 KINEMATIC_MIN_RATE = 0.02
 """Rms rotation rate of the kinematics, rad/s, below which the ratio is not judged."""
+DEG_REFUSE = (40.0, 80.0)
+"""A gyrometer that follows the joint kinematics (correlation above :data:`KINEMATIC_CORRELATION`)
+at this many times their rate reads deg/s (57.3): refused."""
 GYRO_MEDIAN_MAX = 3.0
 """A median rotation rate above this, rad/s, is not a standing or walking robot (deg/s?)."""
 STUCK_MIN_S = 0.5
@@ -238,10 +243,14 @@ def _gyro_units(rec, g: np.ndarray, time: np.ndarray, topics) -> list[Finding]:
         corr = gk / np.sqrt(max(float((gc * gc).sum()) * kk, 1e-300))
         scale = gk / kk
         if corr > KINEMATIC_CORRELATION and scale >= DEG_SCALE_MIN:
+            sure = DEG_REFUSE[0] <= scale <= DEG_REFUSE[1]  # 180/pi, within the kinematics' agreement
             return [Finding(name, "units", t0, t1,
                             f"the gyrometer reads {scale:.3g} times the rotation rate of the joint kinematics "
-                            f"(correlation {corr:.2f}): the readings look like deg/s (57.3); expected rad/s",
-                            effect)]
+                            f"(correlation {corr:.2f}): the readings "
+                            + ("are in deg/s (57.3); expected rad/s (multiply them by pi/180)" if sure else
+                               "look like deg/s (57.3); expected rad/s"),
+                            "every estimate would be wrong (rotation rates 57 times too large): refused" if sure
+                            else effect, "error" if sure else "warning")]
     med = float(np.median(np.linalg.norm(g[ok], axis=1)))
     if med > GYRO_MEDIAN_MAX:
         return [Finding(name, "units", t0, t1,

@@ -311,13 +311,17 @@ def test_accelerometer_off_gravity_is_a_warning():
 
 
 def test_gyrometer_in_degrees_is_recognised_against_the_kinematics():
-    from flexforce.datasets.sensorcheck import check_recording
+    """Following the joint kinematics at 57 times their rate: deg/s, refused (as an accelerometer in
+    g); without kinematics to compare with, a median rate no robot reaches: a warning."""
+    from flexforce.datasets.sensorcheck import check_recording, screen
 
     rec = _live()
     rec.gyro = np.degrees(rec.gyro)
     (found,) = check_recording(rec)
-    assert (found.sensor, found.kind) == ("gyro", "units")
-    assert re.search(r"reads 5\d.\d times the rotation rate of the joint kinematics .*deg/s", found.detail)
+    assert (found.sensor, found.kind, found.severity) == ("gyro", "units", "error")
+    assert re.search(r"reads 5\d.\d times the rotation rate of the joint kinematics .*are in deg/s", found.detail)
+    with pytest.raises(DataError, match=r"gyro units .* are in deg/s \(57.3\); expected rad/s .* refused"):
+        screen(rec)
     # without joint kinematics (a rigid IMU mount), a median rate no walking robot reaches
     rec.imu_w[:] = 0.0
     (found,) = check_recording(rec)

@@ -343,7 +343,9 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
     report(1.0)
     sensors = {"accel": ros.imu_topic, "gyro": ros.imu_topic,
                **{f"ft/{c}": t for c, t in (ros.ft_topics or {}).items() if t in topics}}
-    return screen(rec.validate(), sensors, where=str(path), readings=resampled)
+    # the sensor screen first: a unit mistake (a gyro in deg/s beyond its full scale) also leaves
+    # readings missing, and the unit is what to name
+    return screen(rec, sensors, where=str(path), readings=resampled).validate()
 
 
 def _check_ros_config(model: RobotModel, ros: RosConfig, contacts: str) -> None:
