@@ -7,6 +7,7 @@ the broken ones each give one clear error.  The real iCub recordings close the f
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from pathlib import Path
 
@@ -388,15 +389,41 @@ def test_topics_without_messages(romeo, tmp_path, good_topics):
 
 
 def test_unknown_joint(romeo, tmp_path, good_topics):
-    for _, f in good_topics["/joint_states"][1]:
-        f["name"] = list(f["name"])
-        f["name"][3] = "LKneeTwist"
-    path = write_bag(tmp_path / "j", "mcap", good_topics)
-    with pytest.raises(BagError, match="names joint 'LKneeTwist', which robot 'romeo' .* does not have"):
-        import_bag(path, romeo)
+    """A joint the robot does not have is refused, unless ignored (``ros.ignore_joints``): then the
+    URDF joint it stood for is not measured, which is allowed away from the contacts and the IMU
+    (a wrist stays at its reference) and refused where it carries a foot (a knee)."""
+    names = list(good_topics["/joint_states"][1][0][1]["name"])
+    wrist, knee = names.index("LWristYaw"), names.index("LKneePitch")
     lenient = dataclasses.replace(romeo.config, ros=dataclasses.replace(ROS, ignore_joints="Twist$"))
-    rec = import_bag(path, lenient)
-    assert rec.meta["joints_not_measured"] == [romeo.joint_names[3]]
+    for i, (which, stem) in enumerate(((wrist, "LWristTwist"), (knee, "LKneeTwist"))):
+        topics = copy.deepcopy(good_topics)
+        for _, f in topics["/joint_states"][1]:
+            f["name"] = list(f["name"])
+            f["name"][which] = stem
+        path = write_bag(tmp_path / f"j{i}", "mcap", topics)
+        with pytest.raises(BagError, match=f"names joint '{stem}', which robot 'romeo' .* does not have"):
+            import_bag(path, romeo)
+        if stem == "LWristTwist":
+            rec = import_bag(path, lenient)
+            assert rec.meta["joints_not_measured"] == ["LWristYaw"]
+        else:
+            with pytest.raises(BagError, match="never names joint 'LKneePitch', which moves contact 'left_foot'"):
+                import_bag(path, lenient)
+
+
+def test_joints_in_degrees_are_refused(romeo, tmp_path, good_topics):
+    """Joint positions beyond a turn (a humanoid's revolute joints stay within +-pi): degrees,
+    refused offline and streamed, naming the joint, its reading and its URDF range."""
+    for _, f in good_topics["/joint_states"][1]:
+        f["position"] = np.degrees(np.asarray(f["position"], dtype=float))
+    path = write_bag(tmp_path / "deg", "mcap", good_topics)
+    pattern = r"joint '\w+' reads [0-9.]+, more than a turn \(2 pi rad\); its URDF range is .* look like degrees"
+    with pytest.raises(DataError, match=pattern):
+        import_bag(path, romeo)
+    from flexforce.datasets.io.stream import stream_bag
+
+    with pytest.raises(DataError, match=pattern):
+        list(stream_bag(path, romeo))
 
 
 def test_unknown_frame(romeo, tmp_path, good_topics):

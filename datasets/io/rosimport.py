@@ -545,6 +545,45 @@ def _joint_sources(joints: _Topic, model: RobotModel, ros: RosConfig) -> tuple[n
     return q_src, v_src, has_vel
 
 
+def check_carrying_joints(model: RobotModel, measured: np.ndarray, topic: str) -> None:
+    """A BagError unless every joint between the base and a contact or the IMU is measured:
+    ``measured`` (J,) bool, the URDF's joints (:attr:`RobotModel.joint_names` order) the joint
+    topic names.  A joint elsewhere (a wrist) may stay at its reference; one that carries a contact
+    or the IMU would put a foot or the IMU where it is not."""
+    pmodel = model.model
+    index = {name: i for i, name in enumerate(model.joint_names)}
+    frames = [(f"contact '{c.name}' (frame {c.frame})", c.frame) for c in model.config.contacts]
+    frames.append((f"the IMU (frame {model.config.imu_frame})", model.config.imu_frame))
+    for what, frame in frames:
+        j = pmodel.frames[pmodel.getFrameId(frame)].parentJoint
+        chain = []
+        while j > 0:
+            chain.append(pmodel.names[j])
+            j = pmodel.parents[j]
+        missing = [name for name in reversed(chain) if name in index and not measured[index[name]]]
+        if missing:
+            raise BagError(f"topic {topic} never names joint{'s' if len(missing) > 1 else ''} "
+                           f"{', '.join(repr(m) for m in missing)}, which move{'' if len(missing) > 1 else 's'} "
+                           f"{what} of robot '{model.config.name}'; expected every joint between the base and "
+                           "the contacts and the IMU (joints elsewhere, a wrist, may be left out)")
+
+
+def check_joint_units(model: RobotModel, q: np.ndarray, topic: str) -> None:
+    """A DataError when joint positions ``q`` (M, J) (NaN: not named) read more than a turn: a
+    humanoid's revolute joints stay within +-pi, so readings beyond 2 pi rad are degrees."""
+    with np.errstate(invalid="ignore"):
+        big = np.nanmax(np.abs(q), axis=0, initial=0.0)
+    j = int(np.argmax(big))
+    if big[j] > 2.0 * np.pi:
+        pmodel = model.model
+        jid = pmodel.getJointId(model.joint_names[j])
+        iq = pmodel.idx_qs[jid]
+        lo, hi = float(pmodel.lowerPositionLimit[iq]), float(pmodel.upperPositionLimit[iq])
+        raise DataError(f"topic {topic}: joint '{model.joint_names[j]}' reads {big[j]:.4g}, more than a turn "
+                        f"(2 pi rad); its URDF range is [{lo:.3g}, {hi:.3g}] rad: the positions look like degrees; "
+                        "expected radians")
+
+
 def _joints_on_grid(joints: _Topic, model: RobotModel, ros: RosConfig, grid: np.ndarray, dt: float, t_first: int,
                     gaps: _GapCheck) -> _Joints:
     """The joint messages resampled on the grid and differentiated (module docstring, "Derivatives").
@@ -569,6 +608,8 @@ def _joints_on_grid(joints: _Topic, model: RobotModel, ros: RosConfig, grid: np.
                         [n for n, ok in zip(model_names, measured) if ok])
     if not measured.any():
         raise BagError(f"topic {joints.name} names none of the joints of robot '{model.config.name}'")
+    check_carrying_joints(model, measured, joints.name)
+    check_joint_units(model, q_src, joints.name)
     gaps(joints, fatal=True)
     n = len(grid)
     q_grid = np.tile(model.q_reference[7:], (n, 1))

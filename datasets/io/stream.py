@@ -51,6 +51,8 @@ from flexforce.datasets.io.rosimport import (
     _reader_error,
     _typestore,
     _wrench_to_contact_frame,
+    check_carrying_joints,
+    check_joint_units,
     check_touch_downs,
     imu_smoothed,
     local_inputs,
@@ -298,6 +300,7 @@ class StreamImporter:
             measured[dst] = True
             if not measured.any():
                 raise BagError(f"topic {self.joints.name} names none of the joints of robot '{self.config.name}'")
+            check_carrying_joints(self.model, measured, self.joints.name)
             self.measured = measured
             vel = None if velocity is None else np.asarray(velocity, dtype=float)
             has_vel = vel is not None and len(vel) == len(names)
@@ -308,6 +311,7 @@ class StreamImporter:
                            "offline)")
         q = np.full(len(self.joint_names), np.nan)
         q[dst] = pos[src]
+        check_joint_units(self.model, q[None], self.joints.name)
         row = q
         if self.velocity_source == "message":
             vel = np.asarray(velocity if velocity is not None else (), dtype=float)
