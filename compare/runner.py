@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import math
 import os
-import signal
-import sys
 import threading
 import time
 import warnings
@@ -15,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from flexforce import processes
 from flexforce.compare.metrics import (
     FRICTION_MU,
     LOWPASS_HZ,
@@ -490,46 +489,15 @@ def resolve_jobs(jobs, items: int | None = None, per_worker: int | None = None) 
     return max(1, n)
 
 
-_PR_SET_PDEATHSIG = 1
-"""prctl(2) option: the signal the kernel sends this process when its parent dies (Linux)."""
-
-
-def _libc_prctl() -> Callable[..., int] | None:
-    """libc's ``prctl`` (Linux); None where the platform has none or it cannot be loaded."""
-    if not sys.platform.startswith("linux"):
-        return None
-    import ctypes
-
-    try:
-        return ctypes.CDLL(None, use_errno=True).prctl
-    except (OSError, AttributeError):
-        return None
-
-
-def _watch_parent(parent_pid: int, period: float = 1.0) -> None:
-    """End this process (``os._exit``) once its parent is no longer ``parent_pid``; checks every
-    ``period`` s, forever."""
-    while os.getppid() == parent_pid:
-        time.sleep(period)
-    os._exit(1)
+_libc_prctl = processes.libc_prctl
+"""libc's ``prctl`` getter (:func:`flexforce.processes.libc_prctl`; replaced in a test to take the
+path of a platform without it)."""
 
 
 def _exit_with_parent(parent_pid: int, initializer: Callable[..., None] | None = None, initargs: tuple = ()) -> None:
-    """A worker process's initializer: the worker ends when its parent ``parent_pid`` dies, then
-    ``initializer(*initargs)`` when given.
-
-    A parent killed outright (SIGKILL, out of memory) runs no clean-up, and its pool's workers
-    would wait for work for ever, each holding its memory (issue 42).  On Linux the kernel sends the
-    worker SIGTERM when the parent dies (``prctl(PR_SET_PDEATHSIG)``; strictly, when the parent's
-    thread that started the worker ends: the pools here are started and shut down by one thread);
-    elsewhere a daemon thread checks the parent every second.  A parent that died before that was
-    set up is seen at once: the worker's parent is no longer ``parent_pid``, and it exits.
-    """
-    prctl = _libc_prctl()
-    if prctl is None or prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0) != 0:
-        threading.Thread(target=_watch_parent, args=(parent_pid,), name="flexforce-watch-parent", daemon=True).start()
-    if os.getppid() != parent_pid:
-        os._exit(1)
+    """A worker process's initializer: the worker ends when its parent ``parent_pid`` dies
+    (:func:`flexforce.processes.exit_with_parent`), then ``initializer(*initargs)`` when given."""
+    processes.exit_with_parent(parent_pid, _libc_prctl())
     if initializer is not None:
         initializer(*initargs)
 

@@ -167,7 +167,7 @@ def clean_temporaries(target: str | Path) -> list[Path]:
     paths removed."""
     target = _key(Path(target))
     pattern = re.compile(rf"^\.{re.escape(target.stem)}\.(?:{'|'.join(_TAGS)})-(\d+)-[0-9a-f]{{8}}"
-                         rf"{re.escape(target.suffix)}$")
+                         rf"{re.escape(target.suffix)}(?:\.bag)?$")  # .bag: an MCAP writer's bag folder
     removed: list[Path] = []
     try:
         siblings = list(target.parent.iterdir())

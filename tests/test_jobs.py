@@ -326,3 +326,61 @@ def test_workers_end_when_their_parent_is_killed(tmp_path, pool, watch):
             if _alive(pid):
                 os.kill(pid, signal.SIGKILL)
         proc.stdout.close()
+
+
+PIPELINE_SCRIPT = """
+import os, sys, time
+
+from flexforce.datasets.io.stream import pipelined
+
+
+def parts():
+    os.write(1, f"{os.getpid()}\\n".encode())
+    while True:  # more parts than the queue holds: the producer blocks on it
+        yield list(range(1000))
+
+
+if __name__ == "__main__":
+    for _ in pipelined(parts, depth=2):
+        time.sleep(600)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_a_streamed_imports_producer_ends_when_its_parent_is_killed(tmp_path):
+    """``pipelined`` imports in a child process that waits for room in its queue: a parent killed
+    outright takes it along (it was left sleeping for good, holding its memory)."""
+    import os
+    import select
+    import signal
+    import subprocess
+    import time
+
+    script = tmp_path / "parent.py"
+    script.write_text(PIPELINE_SCRIPT)
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE)
+    child = None
+    try:
+        deadline = time.monotonic() + 60
+        printed = b""
+        while child is None and time.monotonic() < deadline:
+            if select.select([proc.stdout], [], [], 1.0)[0]:
+                chunk = os.read(proc.stdout.fileno(), 4096)
+                assert chunk, f"the parent ended before its producer started (exit {proc.wait()})"
+                printed += chunk
+                if b"\n" in printed:
+                    child = int(printed.split(b"\n")[0])
+        assert child is not None and child != proc.pid
+        time.sleep(0.5)  # the producer fills the queue and blocks
+        assert _alive(child)
+        proc.kill()
+        proc.wait()
+        deadline = time.monotonic() + 5
+        while _alive(child) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not _alive(child)
+    finally:
+        proc.kill()
+        if child is not None and _alive(child):
+            os.kill(child, signal.SIGKILL)
+        proc.stdout.close()

@@ -22,7 +22,7 @@ FOLDERS = {"factors": "factors", "smoother": "smoother", "datasets": "datasets",
 """Top-level package -> folder (pyproject's ``[tool.setuptools.package-dir]``: ``flexforce.<name>``)."""
 
 LAYERS: dict[str, tuple[str, ...]] = {
-    "ground": ("flexforce.errors", "flexforce.options", "flexforce.jit"),
+    "ground": ("flexforce.errors", "flexforce.options", "flexforce.jit", "flexforce.processes"),
     "data": ("flexforce.datasets",),
     "io": ("flexforce.datasets.io",),
     "sim": ("flexforce.datasets.sim",),

@@ -201,6 +201,20 @@ def test_taking_over_a_dead_writers_lock_removes_its_temporaries(tmp_path):
     assert _leftovers(tmp_path) == sorted([alive.name, other_target.name])
 
 
+def test_a_dead_mcap_writers_bag_folder_is_removed(tmp_path):
+    """An MCAP export writes its bag in a folder named after the temporary plus ``.bag``
+    (``export._bag_folder``): a killed writer's folder goes with the lock, like its temporary."""
+    target = tmp_path / "est.mcap"
+    dead = _dead_pid()
+    lock_path(target).write_text(f"{dead}\n")
+    folder = tmp_path / f".est.tmp-{dead}-0123abcd.mcap.bag"
+    (folder / "est.mcap").parent.mkdir(parents=True)
+    (folder / "est.mcap").write_bytes(b"half")
+    with safe_output(target) as tmp:
+        tmp.write_bytes(b"x")
+    assert _leftovers(tmp_path) == []
+
+
 def test_a_killed_writer_leaves_nothing_after_the_next_run(tmp_path):
     target = tmp_path / "est.csv"
     code = ("import os, signal, sys\n"

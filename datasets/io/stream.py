@@ -32,6 +32,7 @@ capture (a reference, not an input; compare offline).
 
 from __future__ import annotations
 
+import os
 import re
 import struct
 from collections.abc import Callable, Iterator
@@ -61,6 +62,7 @@ from flexforce.datasets.recording import Recording
 from flexforce.datasets.robot import RobotConfig, RobotModel, RosConfig
 from flexforce.datasets.sensorcheck import StreamScreen
 from flexforce.errors import BagError, ConfigError, DataError
+from flexforce.processes import exit_with_parent, libc_prctl
 
 __all__ = ["StreamImporter", "pipelined", "stream_bag"]
 
@@ -791,7 +793,8 @@ def stream_bag(path, robot_config, rate: float | None = None, contacts: str = "f
 _END = "end"
 
 
-def _produce(queue, factory, args, kwargs) -> None:  # pragma: no cover -- runs in the child process
+def _produce(queue, factory, args, kwargs, parent_pid: int) -> None:  # pragma: no cover -- the child process
+    exit_with_parent(parent_pid, libc_prctl())  # a killed parent would leave it blocked on the queue
     try:
         for part in factory(*args, **kwargs):
             queue.put(("part", part))
@@ -822,7 +825,7 @@ def pipelined(factory: Callable[..., Iterator[Recording]], *args, depth: int = 6
     # passes in either process would otherwise write to their headers and copy every page
     # shared with the forked child (~20 MB of the two processes' PSS on the iCub)
     gc.freeze()
-    proc = ctx.Process(target=_produce, args=(queue, factory, args, kwargs), daemon=True)
+    proc = ctx.Process(target=_produce, args=(queue, factory, args, kwargs, os.getpid()), daemon=True)
     proc.start()
     if warm_up is not None:
         try:
