@@ -303,6 +303,11 @@ def check_output(path: str | Path, what: str, *, suffixes: tuple[str, ...] | Non
     return path
 
 
+_WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG, errno.EIO})
+"""Errors of writing an output (a full disk, a quota, a read-only or failing file system): raised
+inside :func:`safe_output` they name the output, whatever the writer was reading at the time."""
+
+
 @contextlib.contextmanager
 def safe_output(target: str | Path, *, folder: bool = False) -> Iterator[Path]:
     """Lock ``target``, yield a temporary path beside it to write, move it into place on success.
@@ -325,7 +330,13 @@ def safe_output(target: str | Path, *, folder: bool = False) -> Iterator[Path]:
         else:
             staging = work = _temporary_name(target, "tmp")
         try:
-            yield work
+            try:
+                yield work
+            except OSError as err:
+                if err.errno not in _WRITE_ERRNOS:
+                    raise
+                raise OutputError(f"cannot write {target}: {err.strerror or err}; nothing was changed there "
+                                  "(expected room and write access on its file system)") from err
             if not (work.exists() or work.is_symlink()):
                 raise OutputError(f"nothing was written for {target}")
             if folder:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 
@@ -228,3 +229,20 @@ def test_a_killed_writer_leaves_nothing_after_the_next_run(tmp_path):
     with safe_output(target) as tmp:
         tmp.write_text("a\n")
     assert target.read_text() == "a\n" and _leftovers(tmp_path) == []
+
+
+def test_a_full_disk_names_the_output(tmp_path):
+    """A write that fails for want of room (or on a read-only file system) names the output being
+    written, not what was being read at the time, and leaves the target as it was."""
+    import errno
+
+    target = tmp_path / "est.csv"
+    target.write_text("old")
+    with pytest.raises(OutputError, match=rf"cannot write {re.escape(str(target))}: No space left on device"):
+        with safe_output(target) as tmp:
+            tmp.write_text("half")
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    assert target.read_text() == "old" and _leftovers(tmp_path) == []
+    with pytest.raises(OSError, match="not a write error"):  # others pass through as they are
+        with safe_output(target):
+            raise OSError(errno.ENOENT, "not a write error")

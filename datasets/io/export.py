@@ -513,6 +513,14 @@ def _mcap_custom_data(path: Path) -> dict:
     return {}
 
 
+class _WriteError(Exception):
+    """An error of writing the output bag, carried past the input reader's error handling."""
+
+    def __init__(self, error: OSError):
+        super().__init__(str(error))
+        self.error = error
+
+
 def _copy_bag(writer, ts, path: Path) -> None:
     from rosbags.highlevel import AnyReader
 
@@ -538,9 +546,14 @@ def _copy_bag(writer, ts, path: Path) -> None:
                 return
             for rconn, t, raw in reader.messages(connections=[c for c in reader.connections if c.id in conns]):
                 data = raw if reader.is2 else ts.ros1_to_cdr(raw, rconn.msgtype)
-                writer.write(conns[rconn.id], t, data)
+                try:
+                    writer.write(conns[rconn.id], t, data)
+                except OSError as err:  # the output's (a full disk), not the input bag's
+                    raise _WriteError(err) from err
     except BagError:
         raise
+    except _WriteError as err:
+        raise err.error from None
     except Exception as err:  # noqa: BLE001
         raise BagError(f"cannot read input bag {path}: {' '.join(str(err).split())}") from err
 

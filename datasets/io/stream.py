@@ -759,7 +759,10 @@ def stream_bag(path, robot_config, rate: float | None = None, contacts: str = "f
         cdr = _CdrDecoder() if getattr(reader, "is2", False) else None  # ROS 2 bags: CDR messages
         for conn, log_ns, raw in reader.messages(connections=read):
             if on_message is not None:
-                on_message(reader, conn, log_ns, raw)
+                try:
+                    on_message(reader, conn, log_ns, raw)
+                except OSError as err:  # the caller's (writing an output): not the bag's
+                    raise _CallerError(err) from err
             topic = conn.topic
             if topic not in wanted:
                 continue
@@ -781,6 +784,8 @@ def stream_bag(path, robot_config, rate: float | None = None, contacts: str = "f
         check.finish()
     except (BagError, DataError, ConfigError):
         raise
+    except _CallerError as err:
+        raise err.error from None
     except Exception as err:  # noqa: BLE001 -- a reader failure in the middle: truncated or corrupt
         raise _reader_error(path, err) from err
     finally:
@@ -788,6 +793,15 @@ def stream_bag(path, robot_config, rate: float | None = None, contacts: str = "f
             reader_cm.__exit__(None, None, None)
         except Exception:  # noqa: BLE001, S110 -- closing a reader that already failed
             pass
+
+
+class _CallerError(Exception):
+    """An error of the caller's ``on_message`` (an output it writes), carried past the reader's
+    error handling (which would blame the bag)."""
+
+    def __init__(self, error: OSError):
+        super().__init__(str(error))
+        self.error = error
 
 
 _END = "end"
