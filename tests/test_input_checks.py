@@ -516,6 +516,24 @@ def test_streamed_clip_is_judged_before_the_imu_filter(tmp_path):
     assert alone.findings == []
 
 
+def test_a_stream_without_a_first_contact_names_its_ft_topics(tmp_path):
+    """Both F/T topics without a finite reading: the streamed import names them and what they
+    read (the smoother's "no contact is active at the first sample" said neither)."""
+    from test_rosimport import ROS, UPPER, Motion, robot_topics, stamps, write_bag
+
+    from flexforce.datasets.io.stream import stream_bag
+    from flexforce.datasets.robot import RobotModel
+
+    model = RobotModel(dataclasses.replace(RobotConfig.load("romeo"), ros=ROS))
+    t = stamps(n=200)
+    bag = write_bag(tmp_path / "nan", "mcap", robot_topics(model, Motion(model, UPPER), t,
+                                                           forces=np.full((len(t), 2), np.nan)))
+    pattern = (r"no contact is in force at the stream's first sample.*left_foot \(/lf/wrench\): "
+               r"no finite normal force in the first \d+ samples.*contacts='fixed'")
+    with pytest.raises(DataError, match=pattern):
+        list(stream_bag(bag, model, part_seconds=0.5))
+
+
 def test_real_icub_logs_raise_no_sensor_fault():
     """The shipped iCub recordings (irregular stamps, 0.17 s network gaps, held values) are clean."""
     from conftest import ICUB_DIR

@@ -549,6 +549,21 @@ class StreamImporter:
             self._state[i] = state
         return active
 
+    def _no_first_contact(self, ft: np.ndarray) -> None:
+        """A DataError for a stream whose first sample has no contact in force (the streamed smoother
+        starts from one), naming what the F/T topics read."""
+        ros = self.ros
+        reads = []
+        for i, name in enumerate(self.names_c):
+            topic = (ros.ft_topics or {}).get(name, "no topic")
+            f = ft[:, i, 2]
+            seen = f[np.isfinite(f)]
+            reads.append(f"{name} ({topic}): " + (f"{seen[0]:.4g} N at first" if seen.size else
+                                                   f"no finite normal force in the first {len(f)} samples"))
+        raise DataError("no contact is in force at the stream's first sample, where the streamed smoother starts: "
+                        + "; ".join(reads) + f"; a contact comes into force above {self.on:.4g} N; expected a foot "
+                        "carrying the robot from the start (check the F/T topics, or use contacts='fixed')")
+
     def _part(self, steps: list[dict]) -> Recording:
         assert self.grid0 is not None and self.period is not None
         n = len(steps)
@@ -563,6 +578,8 @@ class StreamImporter:
             if frame != contact_frame:
                 ft[:, i] = _wrench_to_contact_frame(self.model, q, frame, contact_frame, ft[:, i])
         active = self._contacts(ft)
+        if self.steps_out == 0 and self._fixed is None and not active[0].any():
+            self._no_first_contact(ft)
         self.ever_active |= active.any(axis=0)
         load = ft[:, :, 2] if self.ft else None
         lf = self.tracker.run(q, v, a, active, load)
