@@ -32,6 +32,9 @@ from flexforce.options import read_toml
 ROBOTS_DIR = Path(__file__).resolve().parent / "robots"
 DEFAULT_ROBOT = "romeo"
 
+SAVGOL_ORDERS = (2, 7)
+"""Accepted ``[ros] savgol_order`` (the Savitzky-Golay polynomial's order): from 2 (an
+acceleration needs a parabola) to 7."""
 IMU_FILTERS = ("none", "savgol")
 """The values of ``[ros] imu_filter`` (:attr:`RosConfig.imu_filter`)."""
 
@@ -296,9 +299,11 @@ class RosConfig:
         if self.imu_filter not in IMU_FILTERS:
             raise ConfigError(f"ros.imu_filter = {self.imu_filter!r}; expected 'none' (the readings as given) "
                               "or 'savgol' (the joints' Savitzky-Golay smoother)")
-        if self.savgol_window <= 0 or self.savgol_order < 2:
+        if self.savgol_window <= 0 or not SAVGOL_ORDERS[0] <= self.savgol_order <= SAVGOL_ORDERS[1]:
             raise ConfigError(f"ros.savgol_window = {self.savgol_window} s must be positive and "
-                              f"ros.savgol_order = {self.savgol_order} at least 2")
+                              f"ros.savgol_order = {self.savgol_order} from {SAVGOL_ORDERS[0]} to {SAVGOL_ORDERS[1]} "
+                              "(a polynomial of higher order fitted over a window is ill-conditioned and follows "
+                              "the noise)")
 
 
 @dataclass(frozen=True)

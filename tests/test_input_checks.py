@@ -534,6 +534,27 @@ def test_a_stream_without_a_first_contact_names_its_ft_topics(tmp_path):
         list(stream_bag(bag, model, part_seconds=0.5))
 
 
+def test_a_savgol_window_too_short_for_the_grid_is_refused(tmp_path):
+    """``savgol_window`` shorter than the polynomial needs on the bag's grid: refused, offline and
+    streamed (it was widened silently to ``order + 2`` samples)."""
+    from test_rosimport import ROS, UPPER, Motion, robot_topics, stamps, write_bag
+
+    from flexforce.datasets.io.rosimport import import_bag
+    from flexforce.datasets.io.stream import stream_bag
+    from flexforce.datasets.robot import RobotModel
+
+    ros = dataclasses.replace(ROS, savgol_window=0.001)
+    model = RobotModel(dataclasses.replace(RobotConfig.load("romeo"), ros=ros))
+    t = stamps(n=200)
+    forces = 200.0 + np.random.default_rng(6).normal(scale=2.0, size=(len(t), 2))
+    bag = write_bag(tmp_path / "b", "mcap", robot_topics(model, Motion(model, UPPER), t, forces=forces))
+    pattern = r"ros.savgol_window = 0.001 s is 1 sample\(s\) on this .* Hz grid; expected at least 5 samples"
+    with pytest.raises(ConfigError, match=pattern):
+        import_bag(bag, model)
+    with pytest.raises(ConfigError, match=pattern):
+        list(stream_bag(bag, model, part_seconds=0.5))
+
+
 def test_real_icub_logs_raise_no_sensor_fault():
     """The shipped iCub recordings (irregular stamps, 0.17 s network gaps, held values) are clean."""
     from conftest import ICUB_DIR
@@ -650,6 +671,7 @@ def test_robot_stiffness_bounds(old, new, match, tmp_path):
 @pytest.mark.parametrize("extra, match", [
     ('[ros]\nsavgol_window = "wide"', r"ros.savgol_window = 'wide' s; expected a duration, a finite number"),
     ("[ros]\nsavgol_order = 2.5", r"ros.savgol_order = 2.5; expected a whole number >= 2"),
+    ("[ros]\nsavgol_order = 50", r"ros.savgol_order = 50 from 2 to 7 \(a polynomial .* ill-conditioned"),
     ('[ros]\nmax_gap = "long"', r"ros.max_gap = 'long' s; expected a duration"),
     ("[ros]\ncontact_on = true", r"ros.contact_on = True N; expected a normal force"),
     ("[ros]\nimu_topic = 3", r"ros.imu_topic = 3; expected a topic name"),

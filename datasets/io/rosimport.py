@@ -231,10 +231,19 @@ def _require_finite(topic: _Topic, values: np.ndarray, what: str, t0: int, label
 
 
 def savgol_samples(ros: RosConfig, dt: float) -> int:
-    """The Savitzky-Golay window in grid samples: ``ros.savgol_window`` rounded to an odd number,
-    at least ``ros.savgol_order + 2``."""
+    """The Savitzky-Golay window in grid samples: ``ros.savgol_window`` rounded to an odd number.
+
+    Raises:
+        ConfigError: fewer samples than the polynomial needs (``ros.savgol_order + 2``, odd): the
+            window the configuration asks for cannot be had on this grid.
+    """
     win = int(round(ros.savgol_window / dt)) | 1
-    return max(win, ros.savgol_order + 2 + ((ros.savgol_order + 1) % 2))
+    need = ros.savgol_order + 2 + ((ros.savgol_order + 1) % 2)
+    if win < need:
+        raise ConfigError(f"ros.savgol_window = {ros.savgol_window:g} s is {win} sample(s) on this {1.0 / dt:.4g} Hz "
+                          f"grid; expected at least {need} samples ({need * dt:.3g} s) for ros.savgol_order = "
+                          f"{ros.savgol_order}")
+    return win
 
 
 def window_holds(bad: np.ndarray, win: int) -> np.ndarray:

@@ -57,6 +57,7 @@ from flexforce.datasets.io.rosimport import (
     check_touch_downs,
     imu_smoothed,
     local_inputs,
+    savgol_samples,
 )
 from flexforce.datasets.recording import Recording
 from flexforce.datasets.robot import RobotConfig, RobotModel, RosConfig
@@ -436,7 +437,7 @@ class StreamImporter:
     def _differentiate(self, final: bool) -> None:
         assert self._win is not None and self.rate is not None and self.measured is not None
         ros = self.ros
-        win = max(self._win, ros.savgol_order + 2 + ((ros.savgol_order + 1) % 2))
+        win = savgol_samples(ros, 1.0 / self.rate)  # the offline import's window (or its ConfigError)
         h = win // 2
         K = self._k_interp
         stop = K if final else K - h
