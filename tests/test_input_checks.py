@@ -555,6 +555,31 @@ def test_a_savgol_window_too_short_for_the_grid_is_refused(tmp_path):
         list(stream_bag(bag, model, part_seconds=0.5))
 
 
+def test_joint_stamps_on_another_clock_are_refused(tmp_path):
+    """Joint states stamped 10 s after the IMU (another clock; logged together): offline, their
+    short overlap is refused; streamed, their stamps against the log time (they were paired 10 s
+    apart, exit 0)."""
+    from test_rosimport import ROS, UPPER, Motion, robot_topics, stamps, write_bag
+
+    from flexforce.datasets.io.rosimport import import_bag
+    from flexforce.datasets.io.stream import stream_bag
+    from flexforce.datasets.robot import RobotModel
+
+    model = RobotModel(dataclasses.replace(RobotConfig.load("romeo"), ros=ROS))
+    t = stamps(n=400)
+    forces = 200.0 + np.random.default_rng(7).normal(scale=2.0, size=(len(t), 2))
+    topics = robot_topics(model, Motion(model, UPPER), t, forces=forces)
+    msgtype, msgs = topics["/joint_states"]
+    topics["/joint_states"] = (msgtype, [(s + 3_000_000_000, {**f, "log": s}) for s, f in msgs])
+    bag = write_bag(tmp_path / "clock", "mcap", topics)
+    with pytest.raises(DataError, match=r"topics /imu and /joint_states overlap [0-9.]+ s only .* clocks look "
+                                        r"\+3.000 s apart; expected simultaneous logs"):
+        import_bag(bag, model)
+    with pytest.raises(DataError, match=r"the header stamps of /joint_states run \+3.000 s from those of /imu .* "
+                                        r"two clocks"):
+        list(stream_bag(bag, model, part_seconds=0.5))
+
+
 def test_real_icub_logs_raise_no_sensor_fault():
     """The shipped iCub recordings (irregular stamps, 0.17 s network gaps, held values) are clean."""
     from conftest import ICUB_DIR

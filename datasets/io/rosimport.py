@@ -414,6 +414,11 @@ def _read_robot_topics(path: Path, config: RobotConfig, ros: RosConfig, contacts
     return topics, all_types, storage, wanted
 
 
+OVERLAP_MIN = 0.5
+"""The IMU and joint topics must overlap over at least this fraction of the longer one's span: less
+is two clocks apart (a joint-state stamp 10 s ahead of the IMU's), not a log cut short."""
+
+
 def _grid(imu: _Topic, joints: _Topic, rate: float) -> tuple[np.ndarray, int]:
     """``(grid, period)``: the uniform grid (ns) at ``rate`` Hz over the span of both the IMU and
     the joint topics, and its period rounded to whole ns.
@@ -426,6 +431,14 @@ def _grid(imu: _Topic, joints: _Topic, rate: float) -> tuple[np.ndarray, int]:
     stop = min(imu.t_ns[-1], joints.t_ns[-1])
     if stop <= start:
         raise DataError(f"topics {imu.name} and {joints.name} do not overlap in time; expected simultaneous logs")
+    spans = {tp.name: (int(tp.t_ns[0]), int(tp.t_ns[-1])) for tp in (imu, joints)}
+    longest = max(b - a for a, b in spans.values())
+    if stop - start < OVERLAP_MIN * longest:
+        t0 = min(a for a, _ in spans.values())
+        told = ", ".join(f"{name} {(a - t0) * 1e-9:.3f} to {(b - t0) * 1e-9:.3f} s" for name, (a, b) in spans.items())
+        offset = (joints.t_ns[0] - imu.t_ns[0]) * 1e-9
+        raise DataError(f"topics {imu.name} and {joints.name} overlap {(stop - start) * 1e-9:.3f} s only ({told}): "
+                        f"their clocks look {offset:+.3f} s apart; expected simultaneous logs (stamps from one clock)")
     n = int((stop - start) // period) + 1
     return start + period * np.arange(n, dtype=np.int64), period
 

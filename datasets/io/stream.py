@@ -774,6 +774,7 @@ def stream_bag(path, robot_config, rate: float | None = None, contacts: str = "f
                               **{f"ft/{ft_topics[t]}": t for t in ft_topics if t in types}}, where=str(path),
                              readings=imp.raw_imu)
         read = [c for c in reader.connections if c.topic in wanted] if on_message is None else reader.connections
+        skew: dict[str, int] = {}  # topic -> its first header stamp minus its log time, ns
         cdr = _CdrDecoder() if getattr(reader, "is2", False) else None  # ROS 2 bags: CDR messages
         for conn, log_ns, raw in reader.messages(connections=read):
             if on_message is not None:
@@ -789,6 +790,10 @@ def stream_bag(path, robot_config, rate: float | None = None, contacts: str = "f
                 got = _fields(reader.deserialize(raw, conn.msgtype), conn.msgtype)
             stamp, frame, values = got
             t = stamp if stamp != 0 else int(log_ns)
+            if stamp != 0 and topic not in skew and topic in (ros.imu_topic, ros.joint_states_topic):
+                skew[topic] = int(stamp) - int(log_ns)
+                if len(skew) == 2:
+                    _check_clocks(skew, ros)
             if topic == ros.imu_topic:
                 imp.add_imu(t, values[0], values[1], frame)
             elif topic == ros.joint_states_topic:
@@ -811,6 +816,20 @@ def stream_bag(path, robot_config, rate: float | None = None, contacts: str = "f
             reader_cm.__exit__(None, None, None)
         except Exception:  # noqa: BLE001, S110 -- closing a reader that already failed
             pass
+
+
+CLOCK_SKEW_MAX = 1.0
+"""Largest difference, s, between the IMU's and the joint states' header stamps (each against the
+bag's log time at their first message) of a stream: more is two clocks, which would pair
+readings taken apart (the offline import refuses the same bag for its topics' short overlap)."""
+
+
+def _check_clocks(skew: dict[str, int], ros: RosConfig) -> None:
+    d = (skew[ros.joint_states_topic] - skew[ros.imu_topic]) * 1e-9
+    if abs(d) > CLOCK_SKEW_MAX:
+        raise DataError(f"the header stamps of {ros.joint_states_topic} run {d:+.3f} s from those of {ros.imu_topic} "
+                        f"(each against the bag's log time at its first message): two clocks; expected stamps from "
+                        f"one clock (within {CLOCK_SKEW_MAX:g} s)")
 
 
 class _CallerError(Exception):
