@@ -580,6 +580,33 @@ def test_joint_stamps_on_another_clock_are_refused(tmp_path):
         list(stream_bag(bag, model, part_seconds=0.5))
 
 
+def test_a_span_without_a_contact_in_force_is_refused(tmp_path):
+    """Both feet unloaded for longer than a flight (a contact missing from the configuration, a
+    threshold too high): refused, naming the span, offline and streamed (the EKF ended in "the
+    predicted state covariance is not positive definite")."""
+    from test_rosimport import ROS, UPPER, Motion, robot_topics, stamps, write_bag
+
+    from flexforce.datasets.io.rosimport import AIRBORNE_MAX_S, import_bag
+    from flexforce.datasets.io.stream import stream_bag
+    from flexforce.datasets.robot import RobotModel
+
+    model = RobotModel(dataclasses.replace(RobotConfig.load("romeo"), ros=ROS))
+    t = stamps(n=400)
+    forces = 200.0 + np.random.default_rng(8).normal(scale=2.0, size=(len(t), 2))
+    dt = float(np.median(np.diff(t))) * 1e-9
+    off = int(np.ceil(2 * AIRBORNE_MAX_S / dt))
+    forces[150:150 + off] = 1.0
+    bag = write_bag(tmp_path / "air", "mcap", robot_topics(model, Motion(model, UPPER), t, forces=forces))
+    pattern = r"no configured contact \(left_foot, right_foot\) is in force in .* from t = 1\.[45]\d\d s"
+    with pytest.raises(DataError, match=pattern):
+        import_bag(bag, model)
+    with pytest.raises(DataError, match=pattern):
+        list(stream_bag(bag, model, part_seconds=0.5))
+    forces[150 + off // 4:150 + off] = 200.0  # a quarter of it: within a flight's length
+    short = write_bag(tmp_path / "hop", "mcap", robot_topics(model, Motion(model, UPPER), t, forces=forces))
+    assert (~import_bag(short, model).contact_active.any(axis=1)).sum() > 0
+
+
 def test_real_icub_logs_raise_no_sensor_fault():
     """The shipped iCub recordings (irregular stamps, 0.17 s network gaps, held values) are clean."""
     from conftest import ICUB_DIR

@@ -329,7 +329,7 @@ def import_bag(path, robot_config, rate: float | None = None, contacts: str = "f
     active, method = _contact_states(model, ros, contacts, ft, len(grid))
     load = ft[:, :, 2] if ft is not None else None
     anchor = _anchor(ros, config)
-    _check_in_force(path, ros, contacts, config.contact_names, active, method, ft)
+    _check_in_force(path, ros, contacts, config.contact_names, active, method, ft, dt)
     footholds = config.footholds  # terrain "none": zero weights, the touch-downs still measured
     lf = anchored_local_frame(model, joint.q, joint.v, joint.a, active, load, anchor,
                               progress=lambda f: report(0.3 + 0.3 * f), footholds=footholds)
@@ -729,9 +729,36 @@ def _anchor(ros: RosConfig, config: RobotConfig) -> int | None:
     return config.contact_names.index(ros.anchor)
 
 
+AIRBORNE_MAX_S = 0.3
+"""Longest span, s, with no configured contact in force that an import accepts: a humanoid walks
+from foot to foot (a run's flight phase lasts a tenth of a second); longer, a contact that carries
+the robot is missing from the configuration or its F/T threshold is too high."""
+
+
+def check_airborne(active: np.ndarray, dt: float, names_c: tuple[str, ...], where: str, t0: float = 0.0) -> None:
+    """A DataError for the first span of ``active`` (N, C) with no contact in force longer than
+    :data:`AIRBORNE_MAX_S` (``dt`` s per step; times from ``t0``)."""
+    free: np.ndarray = np.logical_not(np.asarray(active, dtype=bool).any(axis=1))
+    k, n = 0, len(free)
+    while k < n:
+        if not free[k]:
+            k += 1
+            continue
+        j = k
+        while j < n and free[j]:
+            j += 1
+        if (j - k) * dt > AIRBORNE_MAX_S:
+            raise DataError(f"no configured contact ({', '.join(names_c)}) is in force {where} from t = "
+                            f"{t0 + k * dt:.3f} s to {t0 + (j - 1) * dt:.3f} s ({j - k} samples): the model needs a "
+                            f"contact carrying the robot (flights up to {AIRBORNE_MAX_S:g} s); is a contact that "
+                            "carries it missing from the robot configuration, or its F/T threshold too high?")
+        k = j
+
+
 def _check_in_force(path: Path, ros: RosConfig, contacts: str, names_c: tuple[str, ...], active: np.ndarray,
-                    method: dict, ft: np.ndarray | None) -> None:
-    """Some contact is in force somewhere, and under ``contacts="ft"`` every one.
+                    method: dict, ft: np.ndarray | None, dt: float) -> None:
+    """Some contact is in force somewhere, under ``contacts="ft"`` every one, and no span without a
+    contact longer than :data:`AIRBORNE_MAX_S` (:func:`check_airborne`).
 
     Raises:
         DataError: no contact ever in force; under ``contacts="ft"`` a contact never in force
@@ -751,6 +778,7 @@ def _check_in_force(path: Path, ros: RosConfig, contacts: str, names_c: tuple[st
                         + f", on threshold {method['on_N']:.1f} N): check their F/T topics "
                         f"{[ros.ft_topics[k] for k in never]} and ros.contact_on, or use contacts='fixed' with "
                         "ros.fixed_contacts naming the feet that are down")
+    check_airborne(active, dt, names_c, f"in {path}")
 
 
 def _mocap_on_grid(topics: dict[str, _Topic], ros: RosConfig, grid: np.ndarray, gaps: _GapCheck) -> dict:

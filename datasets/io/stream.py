@@ -45,6 +45,7 @@ from scipy.signal import savgol_coeffs, savgol_filter
 
 from flexforce.datasets.io.localframe import LocalFrameTracker
 from flexforce.datasets.io.rosimport import (
+    AIRBORNE_MAX_S,
     T_IMU,
     T_JOINTS,
     T_WRENCH,
@@ -52,6 +53,7 @@ from flexforce.datasets.io.rosimport import (
     _reader_error,
     _typestore,
     _wrench_to_contact_frame,
+    check_airborne,
     check_carrying_joints,
     check_joint_units,
     check_touch_downs,
@@ -200,6 +202,7 @@ class StreamImporter:
         self._k_interp = 0  # next step to interpolate
         self._k_deriv = 0  # next step to differentiate
         self._ready: list[dict] = []  # steps with every input final, not yet handed out
+        self._free_from: int | None = None  # first step of the current span without a contact in force
         self._raw_imu: dict[int, dict[str, np.ndarray]] = {}  # first step of a part -> its readings before the filter
         self._savgol_coeffs: dict[tuple, np.ndarray] = {}  # the derivative filters, by (window, derivative, step)
         self._batch_wait = 0  # steps interpolated past the differentiated ones before a batch can be due
@@ -550,6 +553,22 @@ class StreamImporter:
             self._state[i] = state
         return active
 
+    def _check_airborne(self, active: np.ndarray, ks: np.ndarray) -> None:
+        """:func:`~flexforce.datasets.io.rosimport.check_airborne` over the stream: the span without a
+        contact may start in an earlier part (:attr:`_free_from`, its first step, or None)."""
+        assert self.period is not None
+        dt = self.period * 1e-9
+        free_at: np.ndarray = np.logical_not(active.any(axis=1))
+        for k, free in zip(ks, free_at):
+            if not free:
+                self._free_from = None
+                continue
+            if self._free_from is None:
+                self._free_from = int(k)
+            if (int(k) - self._free_from + 1) * dt > AIRBORNE_MAX_S:
+                block = np.zeros((int(k) - self._free_from + 1, len(self.names_c)), dtype=bool)
+                check_airborne(block, dt, self.names_c, "in the stream", t0=self._free_from * dt)
+
     def _no_first_contact(self, ft: np.ndarray) -> None:
         """A DataError for a stream whose first sample has no contact in force (the streamed smoother
         starts from one), naming what the F/T topics read."""
@@ -581,6 +600,7 @@ class StreamImporter:
         active = self._contacts(ft)
         if self.steps_out == 0 and self._fixed is None and not active[0].any():
             self._no_first_contact(ft)
+        self._check_airborne(active, ks)
         self.ever_active |= active.any(axis=0)
         load = ft[:, :, 2] if self.ft else None
         lf = self.tracker.run(q, v, a, active, load)
