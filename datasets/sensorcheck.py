@@ -65,6 +65,13 @@ KINEMATIC_CORRELATION = 0.5
 """Correlation of gyrometer and kinematic rate above which their ratio is trusted."""
 KINEMATIC_MIN_RATE = 0.02
 """Rms rotation rate of the kinematics, rad/s, below which the ratio is not judged."""
+AXES_ANGLE_MAX = 30.0
+"""Largest angle, deg, between the accelerometer's mean reading and the mean specific force the
+joint kinematics predict in the IMU frame (a robot standing on its feet: the IMU's tilt from the
+kinematics is a few degrees); more is another frame or swapped axes: refused."""
+AXES_CORRELATION = 0.8
+"""A gyrometer axis that follows another axis of the kinematic rotation rate this closely (and its
+own less than :data:`KINEMATIC_CORRELATION`) reads in another frame: refused."""
 DEG_REFUSE = (40.0, 80.0)
 """A gyrometer that follows the joint kinematics (correlation above :data:`KINEMATIC_CORRELATION`)
 at this many times their rate reads deg/s (57.3): refused."""
@@ -259,6 +266,59 @@ def _gyro_units(rec, g: np.ndarray, time: np.ndarray, topics) -> list[Finding]:
     return []
 
 
+def _imu_axes(rec, imu: Mapping[str, np.ndarray], time: np.ndarray, topics) -> list[Finding]:
+    """Readings whose axes are not the IMU frame's of the URDF (swapped, or the frame wrong): the
+    accelerometer's mean against the kinematics' mean specific force (gravity, mostly), the
+    gyrometer's axes against the kinematic rotation rate's, axis by axis.  Not judged where the
+    units are already wrong (those findings come first) or the kinematics do not move."""
+    out: list[Finding] = []
+    t0, t1 = float(time[0]), float(time[-1])
+    R = np.asarray(rec.imu_R, dtype=float)
+    a = imu["accel"]
+    ok = np.isfinite(a).all(axis=1)
+    if ok.sum() >= CLIP_MIN_LEVELS:
+        up = np.array([0.0, 0.0, rec.gravity])
+        pred = np.einsum("nji,nj->ni", R[ok], np.asarray(rec.imu_a, dtype=float)[ok] + up)
+        m_read, m_pred = a[ok].mean(axis=0), pred.mean(axis=0)
+        nr, npred = float(np.linalg.norm(m_read)), float(np.linalg.norm(m_pred))
+        if nr > 0.5 * npred > 0 and 0.5 * nr < npred:  # a norm like gravity's: the units are right
+            angle = float(np.degrees(np.arccos(np.clip(m_read @ m_pred / (nr * npred), -1.0, 1.0))))
+            if angle > AXES_ANGLE_MAX:
+                out.append(Finding(
+                    _named("accel", topics), "axes", t0, t1,
+                    f"the accelerometer's mean reading ({_vec(m_read)} m/s^2) is {angle:.0f} deg from the specific "
+                    f"force the joint kinematics predict in the IMU frame ({_vec(m_pred)} m/s^2): the axes are "
+                    "swapped or the IMU frame of the robot configuration is not the sensor's; expected readings in "
+                    "that frame", "every estimate would be wrong (gravity read along another axis): refused",
+                    "error"))
+    g = imu["gyro"]
+    ok = np.isfinite(g).all(axis=1)
+    if ok.sum() >= CLIP_MIN_LEVELS:
+        kin = np.einsum("nji,nj->ni", R[ok], np.asarray(rec.imu_w, dtype=float)[ok])
+        gc, kc = g[ok] - g[ok].mean(axis=0), kin - kin.mean(axis=0)
+        sg, sk = np.sqrt((gc * gc).mean(axis=0)), np.sqrt((kc * kc).mean(axis=0))
+        if np.all(sk > KINEMATIC_MIN_RATE) and np.all(sg > 0):
+            C = (gc.T @ kc) / len(gc) / np.outer(sg, sk)  # C[i, j]: gyro axis i against kinematic axis j
+            for i in range(3):
+                j = int(np.argmax(np.abs(C[i])))
+                if j != i and abs(C[i, j]) > AXES_CORRELATION and abs(C[i, i]) < KINEMATIC_CORRELATION:
+                    sign = "-" if C[i, j] < 0 else ""
+                    out.append(Finding(
+                        _named("gyro", topics), "axes", t0, t1,
+                        f"the gyrometer's {_AXES[i]} axis follows the joint kinematics' rotation rate about "
+                        f"{sign}{_AXES[j]} (correlation {C[i, j]:.2f}), not about {_AXES[i]} ({C[i, i]:.2f}): the "
+                        "axes are swapped or the IMU frame of the robot configuration is not the sensor's; "
+                        "expected readings in that frame",
+                        "every estimate would be wrong (rotation rates about other axes): refused", "error",
+                        channel=f"axis {_AXES[i]}"))
+                    break
+    return out
+
+
+def _vec(v: np.ndarray) -> str:
+    return "(" + ", ".join(f"{x:.3g}" for x in v) + ")"
+
+
 def _ft_checks(rec, time: np.ndarray, dt: float, topics, stuck: bool) -> list[Finding]:
     out: list[Finding] = []
     if rec.ft is None:
@@ -314,6 +374,7 @@ def check_recording(rec, topics: Mapping[str, str] | None = None,
         out += found
     out += _accel_units(time, imu["accel"], rec.gravity, topics)
     out += _gyro_units(rec, imu["gyro"], time, topics)
+    out += _imu_axes(rec, imu, time, topics)
     if stuck:
         for name in ("accel", "gyro"):
             effect = (f"the {name} reading is frozen there: the IMU update pulls the estimated forces and tilt "

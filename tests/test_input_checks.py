@@ -330,6 +330,27 @@ def test_gyrometer_in_degrees_is_recognised_against_the_kinematics():
     assert check_recording(rec) == []
 
 
+@pytest.mark.parametrize("name, perm, sign, match", [
+    ("accel", [2, 1, 0], 1.0, r"accel axes .* mean reading \(\(9.8\d, .*\) is 8\d deg from the specific force"),
+    ("gyro", [1, 0, 2], -1.0, r"gyro axes .* x axis follows the joint kinematics' rotation rate about -y"),
+])
+def test_swapped_imu_axes_are_refused(name, perm, sign, match):
+    """Readings in another frame than the configuration's IMU frame: the accelerometer's gravity
+    along another axis than the kinematics put it, a gyro axis following another kinematic axis
+    (a swap with a sign flip was 195 N off on the iCub walk, silently)."""
+    from flexforce.datasets.sensorcheck import check_recording, screen
+
+    rec = _live()
+    y = getattr(rec, name)
+    swapped = y[:, perm].copy()
+    swapped[:, 0] *= sign
+    setattr(rec, name, swapped)
+    found = [f for f in check_recording(rec) if f.kind == "axes"]
+    assert len(found) == 1 and found[0].sensor == name and found[0].severity == "error"
+    with pytest.raises(DataError, match=match):
+        screen(rec)
+
+
 def test_stuck_sensors_are_reported_with_their_span():
     from flexforce.datasets.sensorcheck import STUCK_MIN_S, check_recording
 
