@@ -319,7 +319,7 @@ def _vec(v: np.ndarray) -> str:
     return "(" + ", ".join(f"{x:.3g}" for x in v) + ")"
 
 
-def _ft_checks(rec, time: np.ndarray, dt: float, topics, stuck: bool) -> list[Finding]:
+def _ft_checks(rec, time: np.ndarray, dt: float, topics, stuck: bool, silent_ok: bool = False) -> list[Finding]:
     out: list[Finding] = []
     if rec.ft is None:
         return out
@@ -332,6 +332,12 @@ def _ft_checks(rec, time: np.ndarray, dt: float, topics, stuck: bool) -> list[Fi
             zero = np.nanmax(np.abs(rec.ft[:, c]), axis=0, initial=0.0) == 0.0
         measured = np.isfinite(rec.ft[:, c]).any(axis=0) & ~zero  # (6,) channels read (NaN or 0: not measured)
         if not measured.any():
+            if topics and f"ft/{contact}" in topics and not silent_ok:  # a topic the bag has, reading nothing
+                out.append(Finding(sensor, "missing", float(time[0]), float(time[-1]),
+                                   "no finite, nonzero reading in the whole recording, although the bag has the topic",
+                                   "there is no F/T reference for this contact (no force error against it) and no "
+                                   "F/T measurement for --ft; contact states cannot come from it (use "
+                                   "contacts='fixed', or fix the topic)"))
             continue
         lost = ~np.isfinite(rec.ft[:, c][:, measured]).any(axis=1)
         for i, j in _runs(lost):
@@ -348,7 +354,7 @@ def _ft_checks(rec, time: np.ndarray, dt: float, topics, stuck: bool) -> list[Fi
 
 
 def check_recording(rec, topics: Mapping[str, str] | None = None,
-                    readings: Mapping[str, np.ndarray] | None = None) -> list[Finding]:
+                    readings: Mapping[str, np.ndarray] | None = None, whole: bool = True) -> list[Finding]:
     """The sensor faults the data of ``rec`` reveal (module docstring), in the order clipped, units,
     stuck, missing.
 
@@ -359,6 +365,8 @@ def check_recording(rec, topics: Mapping[str, str] | None = None,
             named in the findings.
         readings: ``"gyro"``/``"accel"`` -> (N, 3) readings judged instead of the recording's
             (an importer's readings before a smoothing filter, which would round off flat tops).
+        whole: ``rec`` is the whole recording: an F/T topic of ``topics`` without a reading in
+            it is missing (in a part of a stream it may only not have started).
 
     Stuck channels are not judged on a noise-free simulation (``meta["noise"]`` False), whose
     readings may be exactly constant.
@@ -383,7 +391,7 @@ def check_recording(rec, topics: Mapping[str, str] | None = None,
                 out += _stuck_channel(time, dt, _named(name, topics), f"axis {_AXES[a]}", imu[name][:, a],
                                       _UNIT[name], effect, tuple(v for axis, v in tops[name] if axis == a),
                                       " (a frozen driver, or the axis saturated at its full scale throughout)")
-    out += _ft_checks(rec, time, dt, topics, stuck)
+    out += _ft_checks(rec, time, dt, topics, stuck, silent_ok=not whole)
     return out
 
 
@@ -460,7 +468,7 @@ class StreamScreen:
         start = (int(part.t_ns[0]) - self._t0_ns) * 1e-9
         end = (int(buf.t_ns[-1]) - self._t0_ns) * 1e-9
         prefix = f"{self.where}: " if self.where else ""
-        for f in check_recording(buf, self.topics, raw) + self._silent(buf):
+        for f in check_recording(buf, self.topics, raw, whole=False) + self._silent(buf):
             f = replace(f, t0=f.t0 + offset, t1=f.t1 + offset)
             if f.t1 < start - 1e-12:
                 continue  # within the carried tail only: seen with the previous part
@@ -522,6 +530,17 @@ class StreamScreen:
         """At the end of the stream: one more warning for each fault first reported while it
         lasted ("to at least"), with its whole span."""
         prefix = f"{self.where}: " if self.where else ""
+        if self._t0_ns is not None and self._tail is not None:  # F/T topics that never read anything
+            end = (int(self._tail.t_ns[-1]) - self._t0_ns) * 1e-9
+            for sensor in sorted(s for s in (self.topics or {}) if s.startswith("ft/")):
+                if sensor[3:] not in self._read_ft and sensor[3:] in self._tail.contact_names:
+                    f = Finding(_named(sensor, self.topics), "missing", 0.0, end,
+                                "no finite, nonzero reading in the whole stream, although the bag has the topic",
+                                "there is no F/T reference for this contact (no force error against it) and no F/T "
+                                "measurement for --ft; contact states cannot come from it (use contacts='fixed', "
+                                "or fix the topic)")
+                    self.findings.append(f)
+                    warnings.warn(prefix + f.message(), SensorFaultWarning, stacklevel=2)
         for i in sorted(self._open):
             f = self.findings[i]
             warnings.warn(f"{prefix}{f.sensor} {f.kind}, whole span from t = {f.t0:.3f} s to {f.t1:.3f} s "

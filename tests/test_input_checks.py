@@ -628,6 +628,28 @@ def test_a_span_without_a_contact_in_force_is_refused(tmp_path):
     assert (~import_bag(short, model).contact_active.any(axis=1)).sum() > 0
 
 
+def test_ft_topics_that_never_read_are_missing(tmp_path):
+    """With ``contacts="fixed"`` the F/T are only a reference: topics in the bag that never read a
+    number are reported missing over the whole recording, offline and at the end of a stream (they
+    were silent: no force reference, a result 118 N off on the iCub walk against the real F/T)."""
+    from test_rosimport import ROS, UPPER, Motion, robot_topics, stamps, write_bag
+
+    from flexforce.datasets.io.rosimport import import_bag
+    from flexforce.datasets.io.stream import stream_bag
+    from flexforce.datasets.robot import RobotModel
+    from flexforce.datasets.sensorcheck import SensorFaultWarning
+
+    model = RobotModel(dataclasses.replace(RobotConfig.load("romeo"), ros=ROS))
+    t = stamps(n=300)
+    bag = write_bag(tmp_path / "nanft", "mcap", robot_topics(model, Motion(model, UPPER), t,
+                                                             forces=np.full((len(t), 2), np.nan)))
+    pattern = r"ft/left_foot \(/lf/wrench\) missing from t = 0.000 s .*no finite, nonzero reading in the whole"
+    with pytest.warns(SensorFaultWarning, match=pattern):
+        import_bag(bag, model, contacts="fixed")
+    with pytest.warns(SensorFaultWarning, match=pattern):
+        list(stream_bag(bag, model, contacts="fixed", part_seconds=0.5))
+
+
 def test_real_icub_logs_raise_no_sensor_fault():
     """The shipped iCub recordings (irregular stamps, 0.17 s network gaps, held values) are clean."""
     from conftest import ICUB_DIR
