@@ -663,6 +663,13 @@ class RobotModel:
             if not (math.isfinite(link_mass) and link_mass >= 0):
                 raise ConfigError(f"the mass of the links moved by joint '{full.names[i]}' in the URDF "
                                   f"{config.urdf} is {link_mass!r} kg; expected a non-negative, finite mass")
+            inertia = np.asarray(full.inertias[i].inertia, dtype=float)
+            moments = np.linalg.eigvalsh(0.5 * (inertia + inertia.T)) if np.isfinite(inertia).all() else None
+            if moments is None or moments[0] < -1e-9 * max(1.0, float(np.abs(moments).max())):
+                shown = "not finite" if moments is None else f"principal moments {np.round(moments, 6).tolist()} kg m^2"
+                raise ConfigError(f"the rotational inertia of the links moved by joint '{full.names[i]}' in the URDF "
+                                  f"{config.urdf} is not positive semi-definite ({shown}); expected each link's "
+                                  "<inertia> to have non-negative principal moments")
         q_ref = pin.neutral(full)
         if config.srdf:
             try:

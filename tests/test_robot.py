@@ -230,6 +230,22 @@ def test_negative_and_zero_masses_in_the_urdf(tmp_path):
             RobotModel(RobotConfig.load(path))
 
 
+def test_a_negative_inertia_in_the_urdf(tmp_path):
+    """A link's rotational inertia with a negative principal moment: refused naming the joint and
+    the moments (a small one was accepted silently, a large one ended in a covariance failure)."""
+    import re
+
+    config = RobotConfig.load("romeo")
+    urdf = Path(config.urdf).read_text()
+    bad, n = re.subn(r'ixx="[^"]*"', 'ixx="-2.0"', urdf, count=1)
+    assert n == 1
+    (tmp_path / "neg.urdf").write_text(bad)
+    path = _romeo_with(tmp_path, 'urdf = "erd:romeo_description/urdf/romeo.urdf"', f'urdf = "{tmp_path / "neg.urdf"}"')
+    with pytest.raises(ConfigError, match=r"the rotational inertia of the links moved by joint '\w+' in the URDF "
+                                          r".*neg.urdf is not positive semi-definite \(principal moments \[-"):
+        RobotModel(RobotConfig.load(path))
+
+
 def test_a_recording_too_short_for_the_estimators():
     from flexforce.compare.estimators import run_estimator
 
