@@ -629,7 +629,7 @@ def residual_peaks(comp, rec, threshold: float = RESIDUAL_PEAK_SIGMA) -> list[st
             t = float(est.time[k])
             labels = est.residual_labels.get(fam, ())
             axis = labels[j] if j < len(labels) else str(j)
-            above = np.flatnonzero(np.nanmax(a, axis=1) > threshold)
+            above = np.flatnonzero(np.nanmax(np.where(np.isnan(a), -np.inf, a), axis=1) > threshold)  # NaN: absent
             t_first, t_last = float(est.time[above[0]]), float(est.time[above[-1]])
             count = (f"{above.size} steps above {threshold:g}σ between {t_first:.2f} and {t_last:.2f} s"
                      if above.size > 1 else f"one step above {threshold:g}σ")
