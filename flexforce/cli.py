@@ -547,6 +547,9 @@ def _diagnose_job(args, job) -> dict:
         # without --candidates the default catalogue, whose costly members may opt out on this
         # recording (the footholds without a touch-down), and the plugins' effects beside it
         candidates = [c.strip() for c in args.candidates.split(",") if c.strip()] if args.candidates else None
+        if candidates is not None:  # a plugin's effect named there is ranked as a plugin (always, beside them)
+            names = {eff.name for eff in plugins}
+            candidates = [c for c in candidates if c not in names]
         bars = {}
         # rounds, time elapsed and left; the default catalogue's size is read from its screening
         notes = DiagnosisProgress(args.max_effects, len(candidates) + len(plugins) if candidates else None)

@@ -470,10 +470,13 @@ def test_cli_diagnose_without_candidates_ranks_the_default_catalogue(tmp_path, m
 
     monkeypatch.setattr(dg, "diagnose", fake)
     bag = save_recording(simulate([], duration=0.5), tmp_path / "rec")
-    for extra in ([], ["--plugin", str(EXAMPLE)], ["--candidates", "foothold,gyro-bias"]):
+    for extra in ([], ["--plugin", str(EXAMPLE)], ["--candidates", "foothold,gyro-bias"],
+                  ["--plugin", str(EXAMPLE), "--candidates", "gyro-drift,gyro-bias"]):
         main(["diagnose", str(bag), "-o", str(tmp_path / "o"), "-q", *extra])  # stopped at the call
     assert seen[0] == (None, []) and seen[1] == (None, ["gyro-drift"]), seen
     assert seen[2] == (["foothold", "gyro-bias"], []), seen
+    # a plugin's effect named in --candidates is the plugin's (it was "unknown effect")
+    assert seen[3] == (["gyro-bias"], ["gyro-drift"]), seen
     # an extra candidate named like one of the catalogue's: one line naming it
     with pytest.raises(ConfigError, match="two candidate effects are named 'gyro-bias'"):
         diagnose(simulate([], duration=0.5), candidates=["gyro-bias"], extra_candidates=["gyro-bias"])
