@@ -591,6 +591,12 @@ def test_a_foot_that_never_touches_is_named(romeo, tmp_path):
     bag = write_bag(tmp_path / "none", "mcap", robot_topics(romeo, motion, t, forces=forces))
     with pytest.raises(DataError, match="no contact is ever in force"):
         import_bag(bag, romeo)
+    # the forces read, and a hint when they look like a flipped sign
+    forces[:] = -300.0
+    bag = write_bag(tmp_path / "flipped", "mcap", robot_topics(romeo, motion, t, forces=forces))
+    with pytest.raises(DataError, match=r"no contact is ever in force .*\(F/T Schmitt trigger: in force above "
+                                        r"150 N.*the F/T normal forces read -300 to -300 N; mostly negative"):
+        import_bag(bag, romeo)
 
 
 def test_a_landing_far_off_the_floor_contradicts_the_ground_prior(romeo, tmp_path):

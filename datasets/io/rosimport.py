@@ -767,7 +767,16 @@ def _check_in_force(path: Path, ros: RosConfig, contacts: str, names_c: tuple[st
     c = len(names_c)
     never = [names_c[i] for i in range(c) if not active[:, i].any()]
     if len(never) == c:
-        raise DataError(f"no contact is ever in force in {path} ({method}); a foot must carry the robot "
+        seen = ""
+        if ft is not None and np.isfinite(ft[:, :, 2]).any():
+            lo, hi = float(np.nanmin(ft[:, :, 2])), float(np.nanmax(ft[:, :, 2]))
+            weight = method.get("on_N") if isinstance(method, dict) else None
+            hint = ("; mostly negative: a flipped sign or frame?" if hi < abs(lo) and lo < 0 else
+                    "; far below the weight: another unit (kN)?" if weight and 0 < hi < 0.1 * weight else "")
+            seen = f"; the F/T normal forces read {lo:.4g} to {hi:.4g} N{hint}"
+        how = (f"F/T Schmitt trigger: in force above {method['on_N']:.4g} N, out below {method['off_N']:.4g} N"
+               if isinstance(method, dict) and "on_N" in method and "off_N" in method else str(method))
+        raise DataError(f"no contact is ever in force in {path} ({how}){seen}; a foot must carry the robot "
                         "somewhere in the log: check the F/T topics and thresholds, or use contacts='fixed'")
     if contacts == "ft" and never:
         assert ft is not None  # the F/T topics are required with contacts='ft'
