@@ -82,6 +82,8 @@ STUCK_MIN_S = 0.5
 a network gap for up to a few tenths of a second)."""
 STUCK_MIN_SAMPLES = 20
 """Fewest samples of a stuck span, whatever the rate."""
+MOCAP_MISSING_MIN_S = 0.1
+"""A motion-capture body unseen this long or longer (s) is reported: a reference gap."""
 MISSING_MIN_S = 0.05
 """Shortest span, s, without F/T reading reported as missing."""
 
@@ -315,6 +317,28 @@ def _imu_axes(rec, imu: Mapping[str, np.ndarray], time: np.ndarray, topics) -> l
     return out
 
 
+def _mocap_gaps(rec, time: np.ndarray, dt: float, topics) -> list[Finding]:
+    """Spans of :data:`MOCAP_MISSING_MIN_S` s or longer without a motion-capture pose (a body seen
+    somewhere in the recording): the references the comparison holds estimates against leave
+    them out."""
+    out: list[Finding] = []
+    need = max(1, int(np.ceil(MOCAP_MISSING_MIN_S / dt))) if dt > 0 else 1
+    for body, pose in (getattr(rec, "mocap", None) or {}).items():
+        pose = np.asarray(pose, dtype=float)
+        if pose.ndim != 2 or len(pose) != len(time):
+            continue
+        seen = np.isfinite(pose).all(axis=1)
+        if not seen.any():
+            continue
+        for i, j in _runs(~seen):
+            if j - i + 1 >= need:
+                out.append(Finding(_named(f"mocap/{body}", topics), "missing", float(time[i]), float(time[j]),
+                                   f"no pose for {j - i + 1} samples ({time[j] - time[i] + dt:.3f} s)",
+                                   "the motion-capture reference is missing there: the errors against it (tilt, "
+                                   "position) leave these samples out"))
+    return out
+
+
 def _vec(v: np.ndarray) -> str:
     return "(" + ", ".join(f"{x:.3g}" for x in v) + ")"
 
@@ -392,6 +416,7 @@ def check_recording(rec, topics: Mapping[str, str] | None = None,
                                       _UNIT[name], effect, tuple(v for axis, v in tops[name] if axis == a),
                                       " (a frozen driver, or the axis saturated at its full scale throughout)")
     out += _ft_checks(rec, time, dt, topics, stuck, silent_ok=not whole)
+    out += _mocap_gaps(rec, time, dt, topics)
     return out
 
 

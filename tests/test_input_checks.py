@@ -351,6 +351,23 @@ def test_swapped_imu_axes_are_refused(name, perm, sign, match):
         screen(rec)
 
 
+def test_a_motion_capture_gap_is_reported():
+    """A body's pose missing for 0.5 s: one finding with its span (the tilt against it left those
+    samples out silently)."""
+    from flexforce.datasets.sensorcheck import check_recording
+
+    rec = _live()
+    pose = np.tile([0.0, 0.0, 0.6, 0.0, 0.0, 0.0, 1.0], (rec.n, 1))
+    pose[100:150] = np.nan
+    rec.mocap["torso"] = pose
+    (found,) = [f for f in check_recording(rec) if f.sensor.startswith("mocap/")]
+    assert (found.sensor, found.kind) == ("mocap/torso", "missing")
+    assert found.t0 == pytest.approx(rec.time[100]) and found.t1 == pytest.approx(rec.time[149])
+    pose[100:150] = 0.0
+    pose[100:105, 2] = np.nan  # 50 ms: below the reported length
+    assert [f for f in check_recording(rec) if f.sensor.startswith("mocap/")] == []
+
+
 def test_stuck_sensors_are_reported_with_their_span():
     from flexforce.datasets.sensorcheck import STUCK_MIN_S, check_recording
 
