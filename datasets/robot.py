@@ -12,12 +12,16 @@ and the contact placements.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import numbers
+import os
 import re
 import site
 import sys
+import tempfile
 import warnings
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -641,6 +645,30 @@ class LocalKinematics:
     """(L, 3) positions of the tracked links, m."""
 
 
+@contextlib.contextmanager
+def _stderr_captured() -> Iterator[Callable[[], list[str]]]:
+    """Hold what the process writes on file descriptor 2 (C libraries' messages) during the block;
+    yields a function returning its lines (read after the block).  Python's own ``sys.stderr`` is
+    the same descriptor, so a warning raised inside goes there too."""
+    lines: list[str] = []
+    try:
+        saved = os.dup(2)
+    except OSError:  # no descriptor 2 (a detached process): nothing to hold
+        yield lambda: lines
+        return
+    with tempfile.TemporaryFile() as held:
+        try:
+            sys.stderr.flush()
+            os.dup2(held.fileno(), 2)
+            yield lambda: lines
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            held.seek(0)
+            lines.extend(x for x in held.read().decode(errors="replace").splitlines() if x.strip())
+
+
 class RobotModel:
     """Pinocchio model of a robot with a free-flyer root, built from a :class:`RobotConfig`.
 
@@ -654,10 +682,17 @@ class RobotModel:
         self.config = config
         if not Path(config.urdf).exists():
             raise ConfigError(f"URDF of robot '{config.name}' not found: {config.urdf}")
-        try:
-            full = pin.buildModelFromUrdf(config.urdf, pin.JointModelFreeFlyer())
-        except Exception as err:  # pinocchio raises plain RuntimeError/ValueError
-            raise ConfigError(f"cannot read URDF {config.urdf}: {err}") from err
+        with _stderr_captured() as said:  # urdfdom prints its parse errors on the C stderr
+            try:
+                full = pin.buildModelFromUrdf(config.urdf, pin.JointModelFreeFlyer())
+            except Exception as err:  # pinocchio raises plain RuntimeError/ValueError
+                failed: Exception | None = err
+            else:
+                failed = None
+        if failed is not None:
+            detail = " ".join(said()).strip()
+            raise ConfigError(f"cannot read URDF {config.urdf}: {failed}" + (f" ({detail})" if detail else "")) \
+                from failed
         for i in range(1, full.njoints):
             link_mass = float(full.inertias[i].mass)
             if not (math.isfinite(link_mass) and link_mass >= 0):

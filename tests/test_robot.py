@@ -285,3 +285,14 @@ def test_imu_filter_is_checked():
                                           r"or 'savgol' \(the joints' Savitzky-Golay smoother\) in robot "
                                           "configuration x.toml"):
         RobotConfig.from_dict(raw, source="x.toml")
+
+
+def test_a_file_that_is_no_urdf_is_one_error_line(tmp_path, capfd):
+    """urdfdom prints its parse errors on the C stderr: they go into the one ConfigError instead of
+    coming before it."""
+    bad = tmp_path / "robot.urdf"
+    bad.write_text('name = "not xml"\n')
+    path = _romeo_with(tmp_path, 'urdf = "erd:romeo_description/urdf/romeo.urdf"', f'urdf = "{bad}"')
+    with pytest.raises(ConfigError, match=r"cannot read URDF .*robot.urdf: .*\(Error: .*XML"):
+        RobotModel(RobotConfig.load(path))
+    assert capfd.readouterr().err == ""
