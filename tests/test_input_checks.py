@@ -723,6 +723,9 @@ class NanBias:
     ("syntax.py", "def f(:\n", r"cannot load effect plugin {path}: SyntaxError"),
     ("listed.py", "EFFECTS = [42]\n", r"effect plugin {path}: EFFECTS entry 42 does not implement the Effect protocol"),
     ("empty.py", "x = 1\n", r"effect plugin {path} defines no Effect"),
+    ("clash.py", "from flexforce.factors.effects import GyroBias\n\nclass Mine(GyroBias):\n    pass\n\n"
+                 "EFFECTS = [Mine]\n",
+     r"effect plugin {path} defines effect 'gyro-bias', the name of a built-in effect; expected another name"),
 ])
 def test_plugin_errors_name_the_file(name, text, match, tmp_path):
     from flexforce.compare.diagnostics.candidates import load_plugin

@@ -217,7 +217,7 @@ def load_plugin(path) -> list:
     declared = getattr(module, "EFFECTS", None)
     if declared is not None:
         items = list(declared.values()) if isinstance(declared, dict) else list(declared)
-        return [made(obj, "EFFECTS entry") for obj in items]
+        return _own_names([made(obj, "EFFECTS entry") for obj in items], path)
     found = []
     for obj in vars(module).values():
         if isinstance(obj, type) and obj.__module__ == module.__name__:
@@ -230,4 +230,19 @@ def load_plugin(path) -> list:
     if not found:
         raise ConfigError(f"effect plugin {path} defines no Effect (name, dim, labels, prior, random_walk_sigma, "
                           "residual_terms, report)")
-    return found
+    return _own_names(found, path)
+
+
+def _own_names(effects: list, path) -> list:
+    """``effects``, unless one takes a built-in effect's name or two share one (a ConfigError: the
+    plugin's would silently stand in for the built-in in a ranking)."""
+    builtin = registered_effects()
+    seen: set[str] = set()
+    for eff in effects:
+        if eff.name in builtin:
+            raise ConfigError(f"effect plugin {path} defines effect '{eff.name}', the name of a built-in effect; "
+                              "expected another name (the built-in's is ranked as it is)")
+        if eff.name in seen:
+            raise ConfigError(f"effect plugin {path} defines two effects named '{eff.name}'; expected one name each")
+        seen.add(eff.name)
+    return effects
