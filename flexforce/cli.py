@@ -57,11 +57,14 @@ def set_progress_origin(origin: float) -> None:
     PROGRESS_ORIGIN = origin
 
 
-def _worker_init(origin: float) -> None:
-    """Initialiser of the worker processes of --jobs: the parent's clock, progress as lines."""
+def _worker_init(origin: float, command: str = "") -> None:
+    """Initialiser of the worker processes of --jobs: the parent's clock, progress as lines, and
+    warnings as the parent prints them (``flexforce <command>: warning: ...``, one line)."""
     global PROGRESS_WORKER
     set_progress_origin(origin)
     PROGRESS_WORKER = True
+    if command:
+        warnings.showwarning = _show_warning(command)
 
 
 class Progress:
@@ -400,7 +403,7 @@ def _compare(args) -> int:
             jobs = [(label, src, seed, staging / label) for label, src, seed in _unique_labels(sources)]
             comps = []
             results = run_jobs(functools.partial(_compare_job, args), jobs, args.jobs, _worker_init,
-                               (PROGRESS_ORIGIN,))
+                               (PROGRESS_ORIGIN, args.command))
             for (label, _, _, _), comp in zip(jobs, results):
                 comps.append(comp)
                 print(f"{label}:")
@@ -518,7 +521,8 @@ def _diagnose(args) -> int:
             jobs = [(label, src, staging / label) for label, src in sources]
             results = []
             for (label, _, _), result in zip(jobs, run_jobs(functools.partial(_diagnose_job, args), jobs,
-                                                             args.jobs, _worker_init, (PROGRESS_ORIGIN,))):
+                                                             args.jobs, _worker_init,
+                                                             (PROGRESS_ORIGIN, args.command))):
                 print(f"{label}:")
                 _print_diagnosis(result)
                 results.append((label, result))

@@ -384,3 +384,19 @@ def test_a_streamed_imports_producer_ends_when_its_parent_is_killed(tmp_path):
         if child is not None and _alive(child):
             os.kill(child, signal.SIGKILL)
         proc.stdout.close()
+
+
+def test_a_workers_warnings_read_as_the_parents(capsys, monkeypatch):
+    """The --jobs workers print a warning as the command does (``flexforce compare: warning: ...``,
+    one line), not as Python's default (file, line, category and a source line)."""
+    import warnings
+
+    import flexforce.cli as cli
+
+    monkeypatch.setattr(warnings, "showwarning", warnings.showwarning)  # restored after the test
+    monkeypatch.setattr(cli, "PROGRESS_WORKER", False)
+    monkeypatch.setattr(cli, "PROGRESS_ORIGIN", cli.PROGRESS_ORIGIN)
+    cli._worker_init(0.0, "compare")
+    warnings.warn("accel (/imu) clipped\nfrom t = 0 s", UserWarning, stacklevel=1)
+    err = capsys.readouterr().err
+    assert err == "flexforce compare: warning: accel (/imu) clipped from t = 0 s\n"
