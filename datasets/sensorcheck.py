@@ -246,6 +246,23 @@ def _gyro_units(rec, g: np.ndarray, time: np.ndarray, topics) -> list[Finding]:
     kin = np.einsum("nji,nj->ni", rec.imu_R[ok], rec.imu_w[ok])  # kinematic rate in the IMU frame
     gc = g[ok] - g[ok].mean(axis=0)
     kc = kin - kin.mean(axis=0)
+    # axis by axis first: one axis in deg/s among two in rad/s
+    kka, gka, gga = (kc * kc).sum(axis=0), (gc * kc).sum(axis=0), (gc * gc).sum(axis=0)
+    moving = np.sqrt(kka / max(len(kc), 1)) > KINEMATIC_MIN_RATE
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scale_a = gka / kka
+        corr_a = gka / np.sqrt(np.maximum(gga * kka, 1e-300))
+    deg = [i for i in range(3) if moving[i] and corr_a[i] > KINEMATIC_CORRELATION
+           and DEG_REFUSE[0] <= scale_a[i] <= DEG_REFUSE[1]]
+    fine = [i for i in range(3) if moving[i] and corr_a[i] > KINEMATIC_CORRELATION and 0.5 <= scale_a[i] <= 2.0]
+    if deg and fine:
+        axes = ", ".join(f"{_AXES[i]} ({scale_a[i]:.3g} times, correlation {corr_a[i]:.2f})" for i in deg)
+        return [Finding(name, "units", t0, t1,
+                        f"the gyrometer's axis {axes} reads the joint kinematics' rotation rate in deg/s (57.3) "
+                        f"while axis {', '.join(_AXES[i] for i in fine)} reads it in rad/s; expected rad/s on every "
+                        "axis (multiply that axis by pi/180)",
+                        "every estimate would be wrong (one rotation rate 57 times too large): refused", "error",
+                        channel="axis " + "".join(_AXES[i] for i in deg))]
     kk = float((kc * kc).sum())
     if np.isfinite(kk) and np.sqrt(kk / max(len(kc), 1)) > KINEMATIC_MIN_RATE:
         gk = float((gc * kc).sum())

@@ -368,6 +368,19 @@ def test_a_motion_capture_gap_is_reported():
     assert [f for f in check_recording(rec) if f.sensor.startswith("mocap/")] == []
 
 
+def test_one_gyro_axis_in_degrees_is_refused_naming_it():
+    """One axis in deg/s, the others in rad/s: refused naming the axis (the whole gyro looked like
+    deg/s, or its samples beyond the range read as missing)."""
+    from flexforce.datasets.sensorcheck import check_recording
+
+    rec = _live()
+    rec.gyro[:, 0] = np.degrees(rec.gyro[:, 0])
+    (found,) = [f for f in check_recording(rec) if f.kind == "units"]
+    assert found.severity == "error" and found.channel == "axis x"
+    assert re.search(r"axis x \(5\d\.?\d* times, correlation [01]\.\d\d\) reads .* in deg/s .* while axis y, z",
+                     found.detail)
+
+
 def test_stuck_sensors_are_reported_with_their_span():
     from flexforce.datasets.sensorcheck import STUCK_MIN_S, check_recording
 
