@@ -433,6 +433,32 @@ def test_unknown_frame(romeo, tmp_path, good_topics):
         import_bag(write_bag(tmp_path / "f", "mcap", good_topics), romeo)
 
 
+def test_a_force_only_sensor_in_another_frame_is_refused(romeo, tmp_path, good_topics):
+    """An F/T topic in a URDF frame turned from the contact's, carrying F_z only (the others NaN):
+    its normal force cannot be moved to the sole; refused naming both frames (the normal force
+    came out NaN and the foot "never came into force")."""
+    import pinocchio as pin
+
+    from flexforce.datasets.io.stream import stream_bag
+
+    pm = romeo.model
+    data = pm.createData()
+    pin.framesForwardKinematics(pm, data, pin.neutral(pm))
+    sole = data.oMf[pm.getFrameId("l_sole")]
+    turned = next(f.name for i, f in enumerate(pm.frames)
+                  if np.linalg.norm(pin.log3(sole.rotation.T @ data.oMf[i].rotation)) > 0.3)
+    for _, f in good_topics["/lf/wrench"][1]:
+        f["frame"] = turned
+        f["w"] = np.array([np.nan, np.nan, f["w"][2], np.nan, np.nan, np.nan])
+    path = write_bag(tmp_path / "turned", "mcap", good_topics)
+    pattern = (rf"topic /lf/wrench is in frame '{turned}', not the contact frame 'l_sole', and its wrench cannot be "
+               r"moved there: F_x, F_y, T_x, T_y, T_z are not measured")
+    with pytest.raises(BagError, match=pattern):
+        import_bag(path, romeo)
+    with pytest.raises(BagError, match=pattern):
+        list(stream_bag(path, romeo))
+
+
 def test_imu_in_another_frame(romeo, tmp_path, good_topics):
     for _, f in good_topics["/imu"][1]:
         f["frame"] = "imu_link"

@@ -686,8 +686,26 @@ def _ft_on_grid(topics: dict[str, _Topic], model: RobotModel, ros: RosConfig, gr
         if frames - {contact_frame}:
             if len(frames) > 1:
                 raise BagError(f"topic {topic.name} changes frame ({sorted(frames)}); expected one frame")
-            ft[:, i] = _wrench_to_contact_frame(model, q_grid, frames.pop(), contact_frame, ft[:, i])
+            ft[:, i] = wrench_in_contact_frame(model, q_grid, frames.pop(), contact_frame, ft[:, i], topic.name)
     return ft
+
+
+def wrench_in_contact_frame(model, q, frame: str, contact_frame: str, w: np.ndarray, topic: str) -> np.ndarray:
+    """(N, 6) F/T wrenches ``w`` of ``topic``, in ``frame``, moved to ``contact_frame`` at the joint
+    positions ``q``.
+
+    Raises:
+        BagError: a normal force that the move loses (a force-only sensor: the components it needs
+            are not measured), naming the frames and what is missing.
+    """
+    moved = _wrench_to_contact_frame(model, q, frame, contact_frame, w)
+    if (np.isfinite(w[:, 2]) & ~np.isfinite(moved[:, 2])).any():
+        absent = [lab for lab, ok in zip(("F_x", "F_y", "F_z", "T_x", "T_y", "T_z"), np.isfinite(w).any(axis=0))
+                  if not ok]
+        raise BagError(f"topic {topic} is in frame '{frame}', not the contact frame '{contact_frame}', and its "
+                       f"wrench cannot be moved there: {', '.join(absent)} are not measured (NaN); expected the "
+                       f"wrench in '{contact_frame}' or all six components")
+    return moved
 
 
 def _contact_states(model: RobotModel, ros: RosConfig, contacts: str, ft: np.ndarray | None,

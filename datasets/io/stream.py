@@ -52,7 +52,6 @@ from flexforce.datasets.io.rosimport import (
     _check_path,
     _reader_error,
     _typestore,
-    _wrench_to_contact_frame,
     check_airborne,
     check_carrying_joints,
     check_joint_units,
@@ -60,6 +59,7 @@ from flexforce.datasets.io.rosimport import (
     imu_smoothed,
     local_inputs,
     savgol_samples,
+    wrench_in_contact_frame,
 )
 from flexforce.datasets.recording import Recording
 from flexforce.datasets.robot import RobotConfig, RobotModel, RosConfig
@@ -596,7 +596,8 @@ class StreamImporter:
         for i, frame in self.ft_frames.items():
             contact_frame = self.config.contacts[i].frame
             if frame != contact_frame:
-                ft[:, i] = _wrench_to_contact_frame(self.model, q, frame, contact_frame, ft[:, i])
+                topic = (self.ros.ft_topics or {}).get(self.names_c[i], "")
+                ft[:, i] = wrench_in_contact_frame(self.model, q, frame, contact_frame, ft[:, i], topic)
         active = self._contacts(ft)
         if self.steps_out == 0 and self._fixed is None and not active[0].any():
             self._no_first_contact(ft)
