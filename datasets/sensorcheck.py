@@ -84,6 +84,11 @@ STUCK_MIN_SAMPLES = 20
 """Fewest samples of a stuck span, whatever the rate."""
 MOCAP_MISSING_MIN_S = 0.1
 """A motion-capture body unseen this long or longer (s) is reported: a reference gap."""
+WHOLE_MISSING_FT_EFFECT = (
+    "there is no F/T reference for this contact (no force error against it), no F/T measurement for --ft, and "
+    "the local frame cannot pass its anchor to the most loaded foot (leg odometry, hence every estimate, differs "
+    "from a run with the F/T); contact states cannot come from it (use contacts='fixed', or fix the topic)")
+"""The effect of an F/T topic that never reads a number."""
 MISSING_MIN_S = 0.05
 """Shortest span, s, without F/T reading reported as missing."""
 
@@ -376,9 +381,7 @@ def _ft_checks(rec, time: np.ndarray, dt: float, topics, stuck: bool, silent_ok:
             if topics and f"ft/{contact}" in topics and not silent_ok:  # a topic the bag has, reading nothing
                 out.append(Finding(sensor, "missing", float(time[0]), float(time[-1]),
                                    "no finite, nonzero reading in the whole recording, although the bag has the topic",
-                                   "there is no F/T reference for this contact (no force error against it) and no "
-                                   "F/T measurement for --ft; contact states cannot come from it (use "
-                                   "contacts='fixed', or fix the topic)"))
+                                   WHOLE_MISSING_FT_EFFECT))
             continue
         lost = ~np.isfinite(rec.ft[:, c][:, measured]).any(axis=1)
         for i, j in _runs(lost):
@@ -578,9 +581,7 @@ class StreamScreen:
                 if sensor[3:] not in self._read_ft and sensor[3:] in self._tail.contact_names:
                     f = Finding(_named(sensor, self.topics), "missing", 0.0, end,
                                 "no finite, nonzero reading in the whole stream, although the bag has the topic",
-                                "there is no F/T reference for this contact (no force error against it) and no F/T "
-                                "measurement for --ft; contact states cannot come from it (use contacts='fixed', "
-                                "or fix the topic)")
+                                WHOLE_MISSING_FT_EFFECT)
                     self.findings.append(f)
                     warnings.warn(prefix + f.message(), SensorFaultWarning, stacklevel=2)
         for i in sorted(self._open):

@@ -680,6 +680,30 @@ def test_ft_topics_that_never_read_are_missing(tmp_path):
         list(stream_bag(bag, model, contacts="fixed", part_seconds=0.5))
 
 
+def test_an_imu_ending_early_is_warned_about(tmp_path):
+    """The IMU stopping 1 s before the joint states: the recording is their common span, and the
+    samples left out are named (they were cut silently)."""
+    from test_rosimport import ROS, UPPER, Motion, robot_topics, stamps, write_bag
+
+    from flexforce.datasets.io.rosimport import import_bag
+    from flexforce.datasets.io.stream import stream_bag
+    from flexforce.datasets.robot import RobotModel
+    from flexforce.datasets.sensorcheck import SensorFaultWarning
+
+    model = RobotModel(dataclasses.replace(RobotConfig.load("romeo"), ros=ROS))
+    t = stamps(n=400)
+    forces = 200.0 + np.random.default_rng(9).normal(scale=2.0, size=(len(t), 2))
+    topics = robot_topics(model, Motion(model, UPPER), t, forces=forces)
+    msgtype, msgs = topics["/imu"]
+    topics["/imu"] = (msgtype, [m for m in msgs if m[0] <= t[-1] - 1_000_000_000])
+    bag = write_bag(tmp_path / "short", "mcap", topics)
+    with pytest.warns(SensorFaultWarning, match=r"topic /joint_states runs 1.0\d\d s after topic /imu ends"):
+        rec = import_bag(bag, model)
+    assert rec.time[-1] < (t[-1] - t[0]) * 1e-9 - 0.9
+    with pytest.warns(SensorFaultWarning, match=r"topic /joint_states runs 1.0\d\d s after topic /imu ends"):
+        list(stream_bag(bag, model, part_seconds=0.5))
+
+
 def test_real_icub_logs_raise_no_sensor_fault():
     """The shipped iCub recordings (irregular stamps, 0.17 s network gaps, held values) are clean."""
     from conftest import ICUB_DIR

@@ -58,6 +58,7 @@ x y z qx qy qz qw) so that motion capture can be compared.
 from __future__ import annotations
 
 import re
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -71,7 +72,7 @@ from flexforce.datasets.faults import RANGE_TOLERANCE
 from flexforce.datasets.io.localframe import anchored_local_frame
 from flexforce.datasets.recording import Recording
 from flexforce.datasets.robot import RobotConfig, RobotModel, RosConfig
-from flexforce.datasets.sensorcheck import screen
+from flexforce.datasets.sensorcheck import SensorFaultWarning, screen
 from flexforce.errors import BagError, ConfigError, DataError
 
 __all__ = ["import_bag", "is_flexforce_bag", "read_topics"]
@@ -414,6 +415,9 @@ def _read_robot_topics(path: Path, config: RobotConfig, ros: RosConfig, contacts
     return topics, all_types, storage, wanted
 
 
+TOPIC_CUT_WARN_S = 0.5
+"""The IMU or joint topic running this much longer (s) than the other at either end is warned about:
+the recording is their common span."""
 OVERLAP_MIN = 0.5
 """The IMU and joint topics must overlap over at least this fraction of the longer one's span: less
 is two clocks apart (a joint-state stamp 10 s ahead of the IMU's), not a log cut short."""
@@ -440,6 +444,15 @@ def _grid(imu: _Topic, joints: _Topic, rate: float) -> tuple[np.ndarray, int]:
         raise DataError(f"topics {imu.name} and {joints.name} overlap {(stop - start) * 1e-9:.3f} s only ({told}): "
                         f"their clocks look {offset:+.3f} s apart; expected simultaneous logs (stamps from one clock)")
     n = int((stop - start) // period) + 1
+    t0 = min(int(imu.t_ns[0]), int(joints.t_ns[0]))
+    for first, other in ((imu, joints), (joints, imu)):
+        for side, cut in (("before", int(start) - int(first.t_ns[0])), ("after", int(first.t_ns[-1]) - int(stop))):
+            if cut * 1e-9 > TOPIC_CUT_WARN_S:
+                edge = (start if side == "before" else stop) - t0
+                warnings.warn(f"topic {first.name} runs {cut * 1e-9:.3f} s {side} topic {other.name} "
+                              f"{'starts' if side == 'before' else 'ends'} (at t = {edge * 1e-9:.3f} s): the "
+                              "recording covers only the span both are logged, and those samples are left out",
+                              SensorFaultWarning, stacklevel=3)
     return start + period * np.arange(n, dtype=np.int64), period
 
 

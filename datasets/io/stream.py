@@ -35,6 +35,7 @@ from __future__ import annotations
 import os
 import re
 import struct
+import warnings
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -49,6 +50,7 @@ from flexforce.datasets.io.rosimport import (
     T_IMU,
     T_JOINTS,
     T_WRENCH,
+    TOPIC_CUT_WARN_S,
     _check_path,
     _reader_error,
     _typestore,
@@ -63,7 +65,7 @@ from flexforce.datasets.io.rosimport import (
 )
 from flexforce.datasets.recording import Recording
 from flexforce.datasets.robot import RobotConfig, RobotModel, RosConfig
-from flexforce.datasets.sensorcheck import StreamScreen
+from flexforce.datasets.sensorcheck import SensorFaultWarning, StreamScreen
 from flexforce.errors import BagError, ConfigError, DataError
 from flexforce.processes import exit_with_parent, libc_prctl
 
@@ -380,6 +382,12 @@ class StreamImporter:
             raise DataError(f"topics {self.imu.name} ({self.imu.count} messages) and {self.joints.name} "
                             f"({self.joints.count} messages) give no common time; expected simultaneous logs")
         yield from self._hand_out(final=True)
+        cut = (self.joints.last - self.imu.last) * 1e-9
+        if abs(cut) > TOPIC_CUT_WARN_S:
+            longer, shorter = (self.joints, self.imu) if cut > 0 else (self.imu, self.joints)
+            warnings.warn(f"topic {longer.name} runs {abs(cut):.3f} s after topic {shorter.name} ends: the stream "
+                          "covers only the span both are logged, and those samples are left out",
+                          SensorFaultWarning, stacklevel=2)
         if not self.ever_active.any():
             raise DataError("no contact ever came into force in the stream; a foot must carry the robot "
                             "(check the F/T topics and thresholds, or use contacts='fixed')")
