@@ -395,3 +395,38 @@ def test_update_times_quantiles_in_constant_memory():
     for q in (0.5, 0.99):
         ref = np.sort(x)[int(np.ceil(q * x.size)) - 1]
         assert u.quantile(q) == pytest.approx(ref, rel=1e-3), q
+
+
+def test_an_importer_keeps_a_bounded_number_of_raw_imu_parts():
+    """With ``imu_filter = "savgol"`` each part's readings before the filter wait for the sensor
+    screen (``raw_imu``); an importer driven without one keeps at most ``RAW_IMU_PARTS`` of them."""
+    import dataclasses
+
+    from test_rosimport import ROS, UPPER, Motion, robot_topics, stamps
+
+    from flexforce.datasets.io.stream import RAW_IMU_PARTS
+    from flexforce.datasets.robot import RobotModel
+
+    ros = dataclasses.replace(ROS, imu_filter="savgol")
+    model = RobotModel(dataclasses.replace(RobotConfig.load("romeo"), ros=ros))
+    t = stamps(n=1500)
+    forces = 200.0 + np.random.default_rng(10).normal(scale=2.0, size=(len(t), 2))
+    topics = robot_topics(model, Motion(model, UPPER), t, forces=forces)
+    imp = StreamImporter(model, rate=100.0, contacts="ft", part_seconds=0.3)
+    events = sorted([(s, "imu", f) for s, f in topics["/imu"][1]]
+                    + [(s, "joints", f) for s, f in topics["/joint_states"][1]]
+                    + [(s, c, f) for c, tp in (("left_foot", "/lf/wrench"), ("right_foot", "/rf/wrench"))
+                       for s, f in topics[tp][1]], key=lambda e: (e[0], e[1]))
+    parts = []
+    for s, kind, f in events:
+        if kind == "imu":
+            imp.add_imu(int(s), f["gyro"], f["accel"], f["frame"])
+        elif kind == "joints":
+            imp.add_joints(int(s), f["name"], f["position"], f["velocity"])
+        else:
+            imp.add_ft(kind, int(s), f["w"], f["frame"])
+        parts += list(imp.parts())
+    assert len(parts) > 2 * RAW_IMU_PARTS
+    assert len(imp._raw_imu) <= RAW_IMU_PARTS
+    last = imp.raw_imu(parts[-1])
+    assert last is not None and last["gyro"].shape == (parts[-1].n, 3)

@@ -625,6 +625,8 @@ class StreamImporter:
         if self.ros.imu_filter != "none":  # the readings before the filter, for the sensor screen
             self._raw_imu[int(ks[0])] = {"gyro": np.array([s["gyro_raw"] for s in steps], dtype=float),
                                          "accel": np.array([s["accel_raw"] for s in steps], dtype=float)}
+            while len(self._raw_imu) > RAW_IMU_PARTS:  # not taken (no screen reads them): bounded memory
+                del self._raw_imu[min(self._raw_imu)]
         return Recording(
             t_ns=grid, robot=self.config.source or self.config.name, contact_names=self.names_c,
             mass=self.model.mass, contact_active=active, contact_p=lf.contact_p, contact_R=lf.contact_R,
@@ -847,6 +849,8 @@ def stream_bag(path, robot_config, rate: float | None = None, contacts: str = "f
             pass
 
 
+RAW_IMU_PARTS = 8
+"""Parts whose pre-filter IMU readings an importer keeps until they are taken (:meth:`StreamImporter.raw_imu`)."""
 CLOCK_SKEW_MAX = 1.0
 """Largest difference, s, between the IMU's and the joint states' header stamps (each against the
 bag's log time at their first message) of a stream: more is two clocks, which would pair
