@@ -210,3 +210,15 @@ def test_mcap_uncertainty_bands(tmp_path):
         np.testing.assert_allclose(cop[:, 2], est.cop[:, 2])
     without = read_bag(export_mcap(make_estimate(t, cov=False), None, tmp_path / "nocov.mcap", bands=True))
     assert not any("/band/" in topic for topic in without)
+
+
+def test_a_writers_error_names_the_mcap_file_not_its_hidden_folder(tmp_path):
+    """``mcap_file_output`` has the writer fill a hidden bag folder: an error naming that folder (a
+    full disk under ``simulate -o X.mcap``) names the output instead."""
+    from flexforce.datasets.io.export import mcap_file_output
+
+    target = tmp_path / "sim.mcap"
+    with pytest.raises(BagError, match=r"^cannot write bag .*sim\.mcap: \[Errno 28\] No space left on device$") as exc:
+        with mcap_file_output(target) as bag:
+            raise BagError(f"cannot write bag {bag}: [Errno 28] No space left on device")
+    assert ".tmp-" not in str(exc.value) and not target.exists()

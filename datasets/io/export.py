@@ -389,7 +389,12 @@ def mcap_file_output(path, *, overwrite: bool = False) -> Iterator[Path]:
     with safe_output(path) as tmp:
         bag = _bag_folder(tmp, True)
         try:
-            yield bag
+            try:
+                yield bag
+            except BagError as err:  # a writer's error names the output, not the hidden bag folder
+                if str(bag) not in str(err):
+                    raise
+                raise BagError(str(err).replace(str(bag), str(path))) from err
             _take_mcap(bag, tmp)
         finally:
             shutil.rmtree(bag, ignore_errors=True)
