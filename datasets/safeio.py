@@ -303,6 +303,16 @@ def check_output(path: str | Path, what: str, *, suffixes: tuple[str, ...] | Non
     return path
 
 
+class OutputOSError(Exception):
+    """An OSError of writing an output, raised inside code that reads an input (an MCAP export copying
+    the input bag, a stream copying its messages), whose reader's catch-all would blame the input:
+    raise this around it, catch it past the reader and raise :attr:`error` again."""
+
+    def __init__(self, error: OSError):
+        super().__init__(str(error))
+        self.error = error
+
+
 _WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG, errno.EIO})
 """Errors of writing an output (a full disk, a quota, a read-only or failing file system): raised
 inside :func:`safe_output` they name the output, whatever the writer was reading at the time."""

@@ -365,7 +365,7 @@ def _vec(v: np.ndarray) -> str:
     return "(" + ", ".join(f"{x:.3g}" for x in v) + ")"
 
 
-def _ft_checks(rec, time: np.ndarray, dt: float, topics, stuck: bool, silent_ok: bool = False) -> list[Finding]:
+def _ft_checks(rec, time: np.ndarray, dt: float, topics, stuck: bool, whole: bool = True) -> list[Finding]:
     out: list[Finding] = []
     if rec.ft is None:
         return out
@@ -378,7 +378,7 @@ def _ft_checks(rec, time: np.ndarray, dt: float, topics, stuck: bool, silent_ok:
             zero = np.nanmax(np.abs(rec.ft[:, c]), axis=0, initial=0.0) == 0.0
         measured = np.isfinite(rec.ft[:, c]).any(axis=0) & ~zero  # (6,) channels read (NaN or 0: not measured)
         if not measured.any():
-            if topics and f"ft/{contact}" in topics and not silent_ok:  # a topic the bag has, reading nothing
+            if topics and f"ft/{contact}" in topics and whole:  # a topic the bag has, reading nothing
                 out.append(Finding(sensor, "missing", float(time[0]), float(time[-1]),
                                    "no finite, nonzero reading in the whole recording, although the bag has the topic",
                                    WHOLE_MISSING_FT_EFFECT))
@@ -435,7 +435,7 @@ def check_recording(rec, topics: Mapping[str, str] | None = None,
                 out += _stuck_channel(time, dt, _named(name, topics), f"axis {_AXES[a]}", imu[name][:, a],
                                       _UNIT[name], effect, tuple(v for axis, v in tops[name] if axis == a),
                                       " (a frozen driver, or the axis saturated at its full scale throughout)")
-    out += _ft_checks(rec, time, dt, topics, stuck, silent_ok=not whole)
+    out += _ft_checks(rec, time, dt, topics, stuck, whole)
     out += _mocap_gaps(rec, time, dt, topics)
     return out
 

@@ -70,6 +70,9 @@ def family_residuals(prob, traj: Trajectory, successors: dict[int, Trajectory] |
     return out
 
 
+_INTEGRATION = frozenset({"integration"})
+
+
 def boundary_residuals(prob, traj: Trajectory, successors: dict[int, Trajectory], k0: int = 0) -> dict[int, np.ndarray]:
     """Step k -> the whitened integration residual (12,) between ``traj``'s step k and
     ``successors[k]``, its successor as one solve had it.
@@ -85,7 +88,7 @@ def boundary_residuals(prob, traj: Trajectory, successors: dict[int, Trajectory]
             continue
         pair = Trajectory(np.concatenate([traj.R[k:k + 1], nxt.R]), np.concatenate([traj.q[k:k + 1], nxt.q]),
                           np.concatenate([traj.W[k:k + 1], nxt.W]), np.concatenate([traj.e[k:k + 1], nxt.e]))
-        out[k] = linearize(prob, pair, k0=k0 + k, robust=False).binary["integration"][0][0]
+        out[k] = linearize(prob, pair, k0=k0 + k, robust=False, families=_INTEGRATION).binary["integration"][0][0]
     return out
 
 

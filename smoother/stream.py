@@ -257,11 +257,13 @@ class FixedLagStream:
             self.update_time_offset = j1
         with warnings.catch_warnings():  # announced once for the whole stream, in finish()
             warnings.simplefilter("ignore", RuntimeWarning)
-            fls = self.fls
-            succ = {j - j0: fls.successors.pop(j) for j in range(j0, j1 - 1) if fls is not None and j in fls.successors}
-            if fls is not None:  # boundaries already past (the part's last step has no factor here)
-                for j in [j for j in fls.successors if j < j1]:
-                    del fls.successors[j]
+            # the read-out boundaries within these rows (the last row's factor is with the next part)
+            succ = {}
+            if self.fls is not None:
+                for j in [j for j in self.fls.successors if j < j1]:
+                    nxt = self.fls.successors.pop(j)
+                    if j0 <= j < j1 - 1:
+                        succ[j - j0] = nxt
             est = make_estimate(prob, "fixed_lag", traj, P, time_per_step=times, successors=succ,
                                 meta={"lag_s": self.lag_steps * self.first.dt, "use_ft": prob.use_ft,
                                       "backend": "window", "stream": {"first_step": j0, "steps": j1 - j0},

@@ -530,21 +530,31 @@ def test_streamed_bag_is_checked_part_by_part(tmp_path):
         list(stream_bag(write_bag(tmp_path / "g", "mcap", topics), model))
 
 
+def _romeo_raw(n: int, forces=None, seed: int = 0, **ros_changes):
+    """Romeo's raw topics as ``test_rosimport`` simulates them (the upper body moving): ``n`` IMU
+    stamps, the feet's F/T reading ``forces`` ((n, 2) N; default 200 N with 2 N of noise drawn with
+    ``seed``), the test ``[ros]`` table with ``ros_changes``.  Returns ``(model, stamps, topics)``."""
+    from test_rosimport import ROS, UPPER, Motion, robot_topics, stamps
+
+    from flexforce.datasets.robot import RobotModel
+
+    model = RobotModel(dataclasses.replace(RobotConfig.load("romeo"), ros=dataclasses.replace(ROS, **ros_changes)))
+    t = stamps(n=n)
+    if forces is None:
+        forces = 200.0 + np.random.default_rng(seed).normal(scale=2.0, size=(len(t), 2))
+    return model, t, robot_topics(model, Motion(model, UPPER), t, forces=forces)
+
+
 def test_streamed_clip_is_judged_before_the_imu_filter(tmp_path):
     """``ros.imu_filter = "savgol"`` rounds a flat top off: the streamed screen judges the readings
     as resampled, before the filter (``StreamImporter.raw_imu``), as the offline import does."""
-    from test_rosimport import ROS, UPPER, Motion, robot_topics, stamps, write_bag
+    from test_rosimport import write_bag
 
     from flexforce.datasets.io.rosimport import import_bag
     from flexforce.datasets.io.stream import stream_bag
-    from flexforce.datasets.robot import RobotModel
     from flexforce.datasets.sensorcheck import SensorFaultWarning, StreamScreen
 
-    ros = dataclasses.replace(ROS, imu_filter="savgol")
-    model = RobotModel(dataclasses.replace(RobotConfig.load("romeo"), ros=ros))
-    t = stamps(n=400)
-    forces = 200.0 + np.random.default_rng(5).normal(scale=2.0, size=(len(t), 2))
-    topics = robot_topics(model, Motion(model, UPPER), t, forces=forces)
+    model, _, topics = _romeo_raw(400, seed=5, imu_filter="savgol")
     for i, (_, f) in enumerate(topics["/imu"][1]):  # a 4 Hz vibration, cut at 1 m/s^2 above gravity
         f["accel"] = np.array([f["accel"][0], f["accel"][1], f["accel"][2] + 2.0 * np.sin(0.25 * i)])
     limit = float(np.median([f["accel"][2] for _, f in topics["/imu"][1]])) + 1.0
@@ -570,15 +580,12 @@ def test_streamed_clip_is_judged_before_the_imu_filter(tmp_path):
 def test_a_stream_without_a_first_contact_names_its_ft_topics(tmp_path):
     """Both F/T topics without a finite reading: the streamed import names them and what they
     read (the smoother's "no contact is active at the first sample" said neither)."""
-    from test_rosimport import ROS, UPPER, Motion, robot_topics, stamps, write_bag
+    from test_rosimport import write_bag
 
     from flexforce.datasets.io.stream import stream_bag
-    from flexforce.datasets.robot import RobotModel
 
-    model = RobotModel(dataclasses.replace(RobotConfig.load("romeo"), ros=ROS))
-    t = stamps(n=200)
-    bag = write_bag(tmp_path / "nan", "mcap", robot_topics(model, Motion(model, UPPER), t,
-                                                           forces=np.full((len(t), 2), np.nan)))
+    model, _, topics = _romeo_raw(200, forces=np.full((200, 2), np.nan))
+    bag = write_bag(tmp_path / "nan", "mcap", topics)
     pattern = (r"no contact is in force at the stream's first sample.*left_foot \(/lf/wrench\): "
                r"no finite normal force in the first \d+ samples.*contacts='fixed'")
     with pytest.raises(DataError, match=pattern):
@@ -588,17 +595,13 @@ def test_a_stream_without_a_first_contact_names_its_ft_topics(tmp_path):
 def test_a_savgol_window_too_short_for_the_grid_is_refused(tmp_path):
     """``savgol_window`` shorter than the polynomial needs on the bag's grid: refused, offline and
     streamed (it was widened silently to ``order + 2`` samples)."""
-    from test_rosimport import ROS, UPPER, Motion, robot_topics, stamps, write_bag
+    from test_rosimport import write_bag
 
     from flexforce.datasets.io.rosimport import import_bag
     from flexforce.datasets.io.stream import stream_bag
-    from flexforce.datasets.robot import RobotModel
 
-    ros = dataclasses.replace(ROS, savgol_window=0.001)
-    model = RobotModel(dataclasses.replace(RobotConfig.load("romeo"), ros=ros))
-    t = stamps(n=200)
-    forces = 200.0 + np.random.default_rng(6).normal(scale=2.0, size=(len(t), 2))
-    bag = write_bag(tmp_path / "b", "mcap", robot_topics(model, Motion(model, UPPER), t, forces=forces))
+    model, _, topics = _romeo_raw(200, seed=6, savgol_window=0.001)
+    bag = write_bag(tmp_path / "b", "mcap", topics)
     pattern = r"ros.savgol_window = 0.001 s is 1 sample\(s\) on this .* Hz grid; expected at least 5 samples"
     with pytest.raises(ConfigError, match=pattern):
         import_bag(bag, model)
@@ -610,16 +613,12 @@ def test_joint_stamps_on_another_clock_are_refused(tmp_path):
     """Joint states stamped 10 s after the IMU (another clock; logged together): offline, their
     short overlap is refused; streamed, their stamps against the log time (they were paired 10 s
     apart, exit 0)."""
-    from test_rosimport import ROS, UPPER, Motion, robot_topics, stamps, write_bag
+    from test_rosimport import write_bag
 
     from flexforce.datasets.io.rosimport import import_bag
     from flexforce.datasets.io.stream import stream_bag
-    from flexforce.datasets.robot import RobotModel
 
-    model = RobotModel(dataclasses.replace(RobotConfig.load("romeo"), ros=ROS))
-    t = stamps(n=400)
-    forces = 200.0 + np.random.default_rng(7).normal(scale=2.0, size=(len(t), 2))
-    topics = robot_topics(model, Motion(model, UPPER), t, forces=forces)
+    model, _, topics = _romeo_raw(400, seed=7)
     msgtype, msgs = topics["/joint_states"]
     topics["/joint_states"] = (msgtype, [(s + 3_000_000_000, {**f, "log": s}) for s, f in msgs])
     bag = write_bag(tmp_path / "clock", "mcap", topics)
@@ -635,26 +634,25 @@ def test_a_span_without_a_contact_in_force_is_refused(tmp_path):
     """Both feet unloaded for longer than a flight (a contact missing from the configuration, a
     threshold too high): refused, naming the span, offline and streamed (the EKF ended in "the
     predicted state covariance is not positive definite")."""
-    from test_rosimport import ROS, UPPER, Motion, robot_topics, stamps, write_bag
+    from test_rosimport import stamps, write_bag
 
     from flexforce.datasets.io.rosimport import AIRBORNE_MAX_S, import_bag
     from flexforce.datasets.io.stream import stream_bag
-    from flexforce.datasets.robot import RobotModel
 
-    model = RobotModel(dataclasses.replace(RobotConfig.load("romeo"), ros=ROS))
     t = stamps(n=400)
     forces = 200.0 + np.random.default_rng(8).normal(scale=2.0, size=(len(t), 2))
     dt = float(np.median(np.diff(t))) * 1e-9
     off = int(np.ceil(2 * AIRBORNE_MAX_S / dt))
     forces[150:150 + off] = 1.0
-    bag = write_bag(tmp_path / "air", "mcap", robot_topics(model, Motion(model, UPPER), t, forces=forces))
+    model, _, topics = _romeo_raw(400, forces=forces)
+    bag = write_bag(tmp_path / "air", "mcap", topics)
     pattern = r"no configured contact \(left_foot, right_foot\) is in force in .* from t = 1\.[45]\d\d s"
     with pytest.raises(DataError, match=pattern):
         import_bag(bag, model)
     with pytest.raises(DataError, match=pattern):
         list(stream_bag(bag, model, part_seconds=0.5))
     forces[150 + off // 4:150 + off] = 200.0  # a quarter of it: within a flight's length
-    short = write_bag(tmp_path / "hop", "mcap", robot_topics(model, Motion(model, UPPER), t, forces=forces))
+    short = write_bag(tmp_path / "hop", "mcap", _romeo_raw(400, forces=forces)[2])
     assert (~import_bag(short, model).contact_active.any(axis=1)).sum() > 0
 
 
@@ -662,17 +660,14 @@ def test_ft_topics_that_never_read_are_missing(tmp_path):
     """With ``contacts="fixed"`` the F/T are only a reference: topics in the bag that never read a
     number are reported missing over the whole recording, offline and at the end of a stream (they
     were silent: no force reference, a result 118 N off on the iCub walk against the real F/T)."""
-    from test_rosimport import ROS, UPPER, Motion, robot_topics, stamps, write_bag
+    from test_rosimport import write_bag
 
     from flexforce.datasets.io.rosimport import import_bag
     from flexforce.datasets.io.stream import stream_bag
-    from flexforce.datasets.robot import RobotModel
     from flexforce.datasets.sensorcheck import SensorFaultWarning
 
-    model = RobotModel(dataclasses.replace(RobotConfig.load("romeo"), ros=ROS))
-    t = stamps(n=300)
-    bag = write_bag(tmp_path / "nanft", "mcap", robot_topics(model, Motion(model, UPPER), t,
-                                                             forces=np.full((len(t), 2), np.nan)))
+    model, _, topics = _romeo_raw(300, forces=np.full((300, 2), np.nan))
+    bag = write_bag(tmp_path / "nanft", "mcap", topics)
     pattern = r"ft/left_foot \(/lf/wrench\) missing from t = 0.000 s .*no finite, nonzero reading in the whole"
     with pytest.warns(SensorFaultWarning, match=pattern):
         import_bag(bag, model, contacts="fixed")
@@ -683,17 +678,13 @@ def test_ft_topics_that_never_read_are_missing(tmp_path):
 def test_an_imu_ending_early_is_warned_about(tmp_path):
     """The IMU stopping 1 s before the joint states: the recording is their common span, and the
     samples left out are named (they were cut silently)."""
-    from test_rosimport import ROS, UPPER, Motion, robot_topics, stamps, write_bag
+    from test_rosimport import write_bag
 
     from flexforce.datasets.io.rosimport import import_bag
     from flexforce.datasets.io.stream import stream_bag
-    from flexforce.datasets.robot import RobotModel
     from flexforce.datasets.sensorcheck import SensorFaultWarning
 
-    model = RobotModel(dataclasses.replace(RobotConfig.load("romeo"), ros=ROS))
-    t = stamps(n=400)
-    forces = 200.0 + np.random.default_rng(9).normal(scale=2.0, size=(len(t), 2))
-    topics = robot_topics(model, Motion(model, UPPER), t, forces=forces)
+    model, t, topics = _romeo_raw(400, seed=9)
     msgtype, msgs = topics["/imu"]
     topics["/imu"] = (msgtype, [m for m in msgs if m[0] <= t[-1] - 1_000_000_000])
     bag = write_bag(tmp_path / "short", "mcap", topics)

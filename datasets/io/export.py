@@ -74,7 +74,7 @@ from flexforce.datasets.estimate import Estimate
 from flexforce.datasets.io.csvformat import format_rows
 from flexforce.datasets.layout import STATE, STATE_LABELS
 from flexforce.datasets.recording import Recording
-from flexforce.datasets.safeio import is_bag_folder, safe_output
+from flexforce.datasets.safeio import OutputOSError, is_bag_folder, safe_output
 from flexforce.errors import BagError, DataError
 
 __all__ = ["INFO_KEY", "EstimateWriter", "csv_columns", "export_csv", "export_info", "export_mcap", "mcap_file_output"]
@@ -518,14 +518,6 @@ def _mcap_custom_data(path: Path) -> dict:
     return {}
 
 
-class _WriteError(Exception):
-    """An error of writing the output bag, carried past the input reader's error handling."""
-
-    def __init__(self, error: OSError):
-        super().__init__(str(error))
-        self.error = error
-
-
 def _copy_bag(writer, ts, path: Path) -> None:
     from rosbags.highlevel import AnyReader
 
@@ -554,10 +546,10 @@ def _copy_bag(writer, ts, path: Path) -> None:
                 try:
                     writer.write(conns[rconn.id], t, data)
                 except OSError as err:  # the output's (a full disk), not the input bag's
-                    raise _WriteError(err) from err
+                    raise OutputOSError(err) from err
     except BagError:
         raise
-    except _WriteError as err:
+    except OutputOSError as err:
         raise err.error from None
     except Exception as err:  # noqa: BLE001
         raise BagError(f"cannot read input bag {path}: {' '.join(str(err).split())}") from err

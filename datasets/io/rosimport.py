@@ -766,9 +766,17 @@ from foot to foot (a run's flight phase lasts a tenth of a second); longer, a co
 the robot is missing from the configuration or its F/T threshold is too high."""
 
 
-def check_airborne(active: np.ndarray, dt: float, names_c: tuple[str, ...], where: str, t0: float = 0.0) -> None:
-    """A DataError for the first span of ``active`` (N, C) with no contact in force longer than
-    :data:`AIRBORNE_MAX_S` (``dt`` s per step; times from ``t0``)."""
+def airborne_error(names_c: tuple[str, ...], where: str, t_first: float, t_last: float, samples: int) -> DataError:
+    """The error for ``samples`` steps from ``t_first`` to ``t_last`` (s) with no contact in force."""
+    return DataError(f"no configured contact ({', '.join(names_c)}) is in force {where} from t = {t_first:.3f} s to "
+                     f"{t_last:.3f} s ({samples} samples): the model needs a contact carrying the robot (flights up "
+                     f"to {AIRBORNE_MAX_S:g} s); is a contact that carries it missing from the robot configuration, "
+                     "or its F/T threshold too high?")
+
+
+def check_airborne(active: np.ndarray, dt: float, names_c: tuple[str, ...], where: str) -> None:
+    """A DataError (:func:`airborne_error`) for the first span of ``active`` (N, C) with no contact
+    in force longer than :data:`AIRBORNE_MAX_S` (``dt`` s per step)."""
     free: np.ndarray = np.logical_not(np.asarray(active, dtype=bool).any(axis=1))
     k, n = 0, len(free)
     while k < n:
@@ -779,10 +787,7 @@ def check_airborne(active: np.ndarray, dt: float, names_c: tuple[str, ...], wher
         while j < n and free[j]:
             j += 1
         if (j - k) * dt > AIRBORNE_MAX_S:
-            raise DataError(f"no configured contact ({', '.join(names_c)}) is in force {where} from t = "
-                            f"{t0 + k * dt:.3f} s to {t0 + (j - 1) * dt:.3f} s ({j - k} samples): the model needs a "
-                            f"contact carrying the robot (flights up to {AIRBORNE_MAX_S:g} s); is a contact that "
-                            "carries it missing from the robot configuration, or its F/T threshold too high?")
+            raise airborne_error(names_c, where, k * dt, (j - 1) * dt, j - k)
         k = j
 
 

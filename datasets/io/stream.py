@@ -54,7 +54,7 @@ from flexforce.datasets.io.rosimport import (
     _check_path,
     _reader_error,
     _typestore,
-    check_airborne,
+    airborne_error,
     check_carrying_joints,
     check_joint_units,
     check_touch_downs,
@@ -65,6 +65,7 @@ from flexforce.datasets.io.rosimport import (
 )
 from flexforce.datasets.recording import Recording
 from flexforce.datasets.robot import RobotConfig, RobotModel, RosConfig
+from flexforce.datasets.safeio import OutputOSError
 from flexforce.datasets.sensorcheck import SensorFaultWarning, StreamScreen
 from flexforce.errors import BagError, ConfigError, DataError
 from flexforce.processes import exit_with_parent, libc_prctl
@@ -573,9 +574,9 @@ class StreamImporter:
                 continue
             if self._free_from is None:
                 self._free_from = int(k)
-            if (int(k) - self._free_from + 1) * dt > AIRBORNE_MAX_S:
-                block = np.zeros((int(k) - self._free_from + 1, len(self.names_c)), dtype=bool)
-                check_airborne(block, dt, self.names_c, "in the stream", t0=self._free_from * dt)
+            samples = int(k) - self._free_from + 1
+            if samples * dt > AIRBORNE_MAX_S:
+                raise airborne_error(self.names_c, "in the stream", self._free_from * dt, int(k) * dt, samples)
 
     def _no_first_contact(self, ft: np.ndarray) -> None:
         """A DataError for a stream whose first sample has no contact in force (the streamed smoother
@@ -812,7 +813,7 @@ def stream_bag(path, robot_config, rate: float | None = None, contacts: str = "f
                 try:
                     on_message(reader, conn, log_ns, raw)
                 except OSError as err:  # the caller's (writing an output): not the bag's
-                    raise _CallerError(err) from err
+                    raise OutputOSError(err) from err
             topic = conn.topic
             if topic not in wanted:
                 continue
@@ -838,7 +839,7 @@ def stream_bag(path, robot_config, rate: float | None = None, contacts: str = "f
         check.finish()
     except (BagError, DataError, ConfigError):
         raise
-    except _CallerError as err:
+    except OutputOSError as err:
         raise err.error from None
     except Exception as err:  # noqa: BLE001 -- a reader failure in the middle: truncated or corrupt
         raise _reader_error(path, err) from err
@@ -863,15 +864,6 @@ def _check_clocks(skew: dict[str, int], ros: RosConfig) -> None:
         raise DataError(f"the header stamps of {ros.joint_states_topic} run {d:+.3f} s from those of {ros.imu_topic} "
                         f"(each against the bag's log time at its first message): two clocks; expected stamps from "
                         f"one clock (within {CLOCK_SKEW_MAX:g} s)")
-
-
-class _CallerError(Exception):
-    """An error of the caller's ``on_message`` (an output it writes), carried past the reader's
-    error handling (which would blame the bag)."""
-
-    def __init__(self, error: OSError):
-        super().__init__(str(error))
-        self.error = error
 
 
 _END = "end"
