@@ -545,6 +545,17 @@ def _romeo_raw(n: int, forces=None, seed: int = 0, **ros_changes):
     return model, t, robot_topics(model, Motion(model, UPPER), t, forces=forces)
 
 
+def _refused_both_ways(bag, model, error: type[Exception], pattern: str) -> None:
+    """``bag`` is refused with ``error`` matching ``pattern``, imported offline and streamed."""
+    from flexforce.datasets.io.rosimport import import_bag
+    from flexforce.datasets.io.stream import stream_bag
+
+    with pytest.raises(error, match=pattern):
+        import_bag(bag, model)
+    with pytest.raises(error, match=pattern):
+        list(stream_bag(bag, model, part_seconds=0.5))
+
+
 def test_streamed_clip_is_judged_before_the_imu_filter(tmp_path):
     """``ros.imu_filter = "savgol"`` rounds a flat top off: the streamed screen judges the readings
     as resampled, before the filter (``StreamImporter.raw_imu``), as the offline import does."""
@@ -597,16 +608,11 @@ def test_a_savgol_window_too_short_for_the_grid_is_refused(tmp_path):
     streamed (it was widened silently to ``order + 2`` samples)."""
     from test_rosimport import write_bag
 
-    from flexforce.datasets.io.rosimport import import_bag
-    from flexforce.datasets.io.stream import stream_bag
 
     model, _, topics = _romeo_raw(200, seed=6, savgol_window=0.001)
     bag = write_bag(tmp_path / "b", "mcap", topics)
-    pattern = r"ros.savgol_window = 0.001 s is 1 sample\(s\) on this .* Hz grid; expected at least 5 samples"
-    with pytest.raises(ConfigError, match=pattern):
-        import_bag(bag, model)
-    with pytest.raises(ConfigError, match=pattern):
-        list(stream_bag(bag, model, part_seconds=0.5))
+    _refused_both_ways(bag, model, ConfigError,
+                       r"ros.savgol_window = 0.001 s is 1 sample\(s\) on this .* Hz grid; expected at least 5 samples")
 
 
 def test_joint_stamps_on_another_clock_are_refused(tmp_path):
@@ -637,7 +643,6 @@ def test_a_span_without_a_contact_in_force_is_refused(tmp_path):
     from test_rosimport import stamps, write_bag
 
     from flexforce.datasets.io.rosimport import AIRBORNE_MAX_S, import_bag
-    from flexforce.datasets.io.stream import stream_bag
 
     t = stamps(n=400)
     forces = 200.0 + np.random.default_rng(8).normal(scale=2.0, size=(len(t), 2))
@@ -646,11 +651,8 @@ def test_a_span_without_a_contact_in_force_is_refused(tmp_path):
     forces[150:150 + off] = 1.0
     model, _, topics = _romeo_raw(400, forces=forces)
     bag = write_bag(tmp_path / "air", "mcap", topics)
-    pattern = r"no configured contact \(left_foot, right_foot\) is in force in .* from t = 1\.[45]\d\d s"
-    with pytest.raises(DataError, match=pattern):
-        import_bag(bag, model)
-    with pytest.raises(DataError, match=pattern):
-        list(stream_bag(bag, model, part_seconds=0.5))
+    _refused_both_ways(bag, model, DataError,
+                       r"no configured contact \(left_foot, right_foot\) is in force in .* from t = 1\.[45]\d\d s")
     forces[150 + off // 4:150 + off] = 200.0  # a quarter of it: within a flight's length
     short = write_bag(tmp_path / "hop", "mcap", _romeo_raw(400, forces=forces)[2])
     assert (~import_bag(short, model).contact_active.any(axis=1)).sum() > 0
