@@ -18,7 +18,23 @@ robot: no flexibility), the EKF, the fixed-lag and the batch smoother:
   weight transfer; the model's is ``m g / k_fs`` and half of it.
 - ``stiffness_scaled``: the fixed-lag smoother's per-foot F_z RMSE against the F/T (the contacts
   in force, from 0.5 s) with the identified springs as they are, with the vertical stiffness and
-  damping (``K_fs``, ``K_fd`` z, contact frame) scaled by 3, and with every spring scaled by 2.
+  damping (``K_fs``, ``K_fd`` z, contact frame) scaled by 3, and with every spring scaled by 2;
+- ``force_budget``: per estimator, where the per-foot F_z error against the F/T lies (every foot,
+  from 0.5 s): feet the Schmitt trigger calls released while their F/T still carries more than
+  20 N, released feet below that, feet in force within 50 ms of a contact switch, and feet in force
+  away from switches in double and in single support; per part the samples, its share of the
+  summed squared error, its RMS and its mean (estimate minus F/T), N;
+- ``split``: the double-support split (both feet in force, 50 ms away from switches, from 0.5 s).
+  ``normal_share``: the least-squares line of the right foot's share of the summed normal force
+  against the lever rule's share (the CoM's projection on the line joining the soles; slope 1
+  for point feet, below 1 when the soles' torques carry part of the roll moment), for the F/T and
+  each estimate; ``model_normal_share``: the springs' share ``k_fs d^2 / 2 / (k_fs d^2 / 2 + 2
+  k_ts)`` at the mean sole distance ``d``; ``standing_bias_N``: per foot, the mean estimate minus
+  F/T while standing; ``accel_tilt_sensitivity_N_per_mrad``: how much the fixed-lag smoother's
+  standing left-foot bias moves per mrad when the accelerometer readings are rotated by +-6 mrad
+  about the IMU's x and y axes; ``closure``: the left sole against the right at the first sample
+  by the leg kinematics (height mm, roll and pitch mrad);
+- ``ft_sum_minus_weight_N``: the F/T normal forces' sum minus m g, mean per phase.
 
 Writes the JSON record to ``benchmarks/results/real_error_sources.json`` and prints it.
 """
@@ -105,6 +121,94 @@ def _foot_rmse(rec: ff.Recording, est: ff.Estimate) -> float:
     return round(float(np.sqrt(np.mean((est.wrench[:, :, 2] - ft)[on] ** 2))), 2)
 
 
+BUDGET_LOADED_N = 20.0
+"""``force_budget``: a foot the trigger released that still carries more than this (F/T), N."""
+SWITCH_S = 0.05
+"""``force_budget``, ``split``: samples within this of a contact switch are the transitions, s."""
+TILT_PROBE_MRAD = 6.0
+"""``split``: the accelerometer rotation of the sensitivity probe, mrad."""
+
+
+def _near_switch(rec: ff.Recording) -> np.ndarray:
+    """(N,) bool: within SWITCH_S of a change of any contact's state."""
+    t = (rec.t_ns - rec.t_ns[0]) * 1e-9
+    changed = np.zeros(rec.n, dtype=bool)
+    changed[1:] = (rec.contact_active[1:] != rec.contact_active[:-1]).any(axis=1)
+    times = t[changed]
+    if not times.size:
+        return changed
+    idx = np.clip(np.searchsorted(times, t), 1, times.size) - 1
+    nearest = np.minimum(np.abs(t - times[idx]), np.abs(t - times[np.minimum(idx + 1, times.size - 1)]))
+    return nearest <= SWITCH_S + 1e-9
+
+
+def force_budget(rec: ff.Recording, est: ff.Estimate) -> dict:
+    """Where one estimate's per-foot F_z error lies (module docstring, ``force_budget``)."""
+    t = (rec.t_ns - rec.t_ns[0]) * 1e-9
+    assert rec.ft is not None
+    ft, act = rec.ft[:, :, 2], rec.contact_active
+    err = est.wrench[:, :, 2] - ft
+    keep = (t >= SKIP_S)[:, None] & np.isfinite(ft)
+    near = _near_switch(rec)[:, None]
+    n_on = act.sum(axis=1)[:, None]
+    parts = {"released_loaded": ~act & (ft > BUDGET_LOADED_N), "released": ~act & (ft <= BUDGET_LOADED_N),
+             "in_force_switch": act & near, "in_force_double_support": act & ~near & (n_on >= 2),
+             "in_force_single_support": act & ~near & (n_on == 1)}
+    total = float(np.sum(err[keep] ** 2))
+    out = {}
+    for name, mask in parts.items():
+        e = err[mask & keep]
+        out[name] = {"samples": int(e.size), "share": round(float(np.sum(e**2)) / total, 3) if total else None,
+                     "rms_N": round(float(np.sqrt(np.mean(e**2))), 1) if e.size else None,
+                     "mean_N": round(float(np.mean(e)), 1) if e.size else None}
+    return out
+
+
+def _share_line(rec: ff.Recording, fz: np.ndarray, mask: np.ndarray) -> list[float]:
+    """``[slope, intercept]`` of the right foot's normal-force share against the lever rule's."""
+    pl, pr = rec.contact_p[:, 0, :2], rec.contact_p[:, 1, :2]
+    d = np.linalg.norm(pr - pl, axis=1)
+    lever = np.einsum("ij,ij->i", rec.com[:, :2] - pl, (pr - pl) / d[:, None]) / d
+    share = fz[:, 1] / fz.sum(axis=1)
+    A = np.c_[lever[mask], np.ones(int(mask.sum()))]
+    coef, *_ = np.linalg.lstsq(A, share[mask], rcond=None)
+    return _round(coef, 3)
+
+
+def split(rec: ff.Recording, model: ff.ModelConfig, estimates: dict[str, ff.Estimate]) -> dict:
+    """The double-support split (module docstring, ``split``)."""
+    t = (rec.t_ns - rec.t_ns[0]) * 1e-9
+    assert rec.ft is not None
+    ft = rec.ft[:, :, 2]
+    ds = rec.contact_active.all(axis=1) & ~_near_switch(rec) & (t >= SKIP_S) & np.isfinite(ft).all(axis=1)
+    standing = _phases(rec)["standing"]
+    d = float(np.mean(np.linalg.norm(rec.contact_p[ds, 1, :2] - rec.contact_p[ds, 0, :2], axis=1)))
+    k_fs = float(model.contact_params[0].K_fs[2, 2])
+    k_ts = float(model.contact_params[0].K_ts[0, 0])
+    vertical = k_fs * d**2 / 2
+    out: dict[str, Any] = {"sole_distance_m": round(d, 3),
+                           "model_normal_share": round(vertical / (vertical + 2 * k_ts), 3),
+                           "normal_share": {"ft": _share_line(rec, ft, ds)}}
+    for name, est in estimates.items():
+        out["normal_share"][name] = _share_line(rec, est.wrench[:, :, 2], ds)
+    if standing.any():
+        out["standing_bias_N"] = {name: _round(np.mean(est.wrench[standing, :, 2] - ft[standing], axis=0), 1)
+                                  for name, est in estimates.items()}
+        sens = {}
+        for axis in "xy":
+            bias = []
+            for sign in (-1.0, 1.0):
+                R = Rotation.from_euler(axis, sign * TILT_PROBE_MRAD * 1e-3).as_matrix()
+                est = ff.run_fixed_lag(dataclasses.replace(rec, accel=rec.accel @ R.T), model)
+                bias.append(float(np.mean(est.wrench[standing, 0, 2] - ft[standing, 0])))
+            sens[axis] = round((bias[1] - bias[0]) / (2 * TILT_PROBE_MRAD), 3)
+        out["accel_tilt_sensitivity_N_per_mrad"] = sens
+    rel = rec.contact_R[0, 1].T @ rec.contact_R[0, 0]
+    out["closure"] = {"height_mm": round(float((rec.contact_p[0, 0, 2] - rec.contact_p[0, 1, 2]) * 1e3), 3),
+                      "roll_pitch_mrad": _round(Rotation.from_matrix(rel).as_euler("xyz")[:2] * 1e3, 3)}
+    return out
+
+
 def run(path: Path) -> dict:
     rec = ff.load_recording(path, ROBOT)
     model = ff.ModelConfig.from_recording(rec, robot=ff.RobotConfig.load(ROBOT))
@@ -114,13 +218,20 @@ def run(path: Path) -> dict:
     root = rec.mocap["root_link"]
     vicon = root[:, 2] - _base_pose(rec)[:, 2]
     out["vicon_height_mm"] = {ph: round(float(np.nanmean(vicon[m]) * 1e3), 2) for ph, m in phases.items() if m.any()}
+    assert rec.ft is not None
+    mg = rec.mass * rec.gravity
+    out["ft_sum_minus_weight_N"] = {ph: round(float(np.nanmean(rec.ft[m, :, 2].sum(axis=1)) - mg), 1)
+                                    for ph, m in phases.items() if m.any()}
     rows = {"leg_odometry": row(rec, np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3)))}
+    estimates: dict[str, ff.Estimate] = {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         for name, fn in (("ekf", ff.run_ekf), ("fixed_lag", ff.run_fixed_lag), ("batch", ff.run_batch)):
-            est = fn(rec, model)
+            est = estimates[name] = fn(rec, model)
             rows[name] = row(rec, est.R, est.t)
         out["rows"] = rows
+        out["force_budget"] = {name: force_budget(rec, est) for name, est in estimates.items()}
+        out["split"] = split(rec, model, estimates)
         out["stiffness_scaled"] = {
             key: _foot_rmse(rec, ff.run_fixed_lag(rec, _scaled(model, **kw)))
             for key, kw in (("identified", {}), ("vertical_x3", {"vertical": 3.0}), ("every_x2", {"every": 2.0}))}
