@@ -20,19 +20,33 @@ from flexforce.smoother.screening import CandidateInformation, Identifiability, 
 
 
 def _problem(mass=40.0, com=(0.02, 0.0, 0.6)):
-    """What the plausibility checks read of a problem: mass, gravity, CoM, springs, contacts (one
-    sample, both feet in force)."""
-    return SimpleNamespace(rec=SimpleNamespace(mass=mass), g=9.81, com=np.array([com]), com_acc=np.zeros((1, 3)),
+    """What the plausibility checks read of a problem: mass, gravity, CoM, inertia, springs,
+    contacts (one sample, both feet in force, 0.2 m apart across x)."""
+    return SimpleNamespace(rec=SimpleNamespace(mass=mass), g=9.81, dt=0.01, com=np.array([com]),
+                           com_acc=np.zeros((1, 3)), inertia=np.array([np.eye(3) * 20.0]),
                            K_fs=np.array([np.eye(3) * 1e5, np.eye(3) * 1e5]),
+                           K_fd=np.array([np.eye(3) * 283.0, np.eye(3) * 283.0]),
                            K_ts=np.array([np.eye(3) * 450.0, np.eye(3) * 450.0]),
+                           K_td=np.array([np.eye(3) * 5.0, np.eye(3) * 5.0]),
+                           iso=np.array([False, False]),
                            contact_p=np.array([[[0.0, 0.1, 0.0], [0.0, -0.1, 0.0]]]),
+                           contact_R=np.array([[np.eye(3), np.eye(3)]]),
                            active=np.array([[True, True]]))
 
 
+# The springs of _problem against gravity: m g h = 40 * 9.81 * 0.6 = 235 N m/rad; about x (roll)
+# 2 * 450 + 2 * 1e5 * 0.1^2 = 2900 N m/rad (a scale below 235 / 2900 = 0.081 topples it), about y
+# (pitch) 900 N m/rad (below 0.26).  Vertical damping ratio 2 * 283 / (2 sqrt(2e5 * 40)) = 0.100
+# (a damping scale above 10 is beyond critical).
 @pytest.mark.parametrize("name,value,bad", [
-    ("stiffness", [0.05, 1.0], True), ("stiffness", [0.7, 1.3], False), ("stiffness", [1.0, 6.0], True),
+    ("stiffness", [0.05, 1.0], True), ("stiffness", [0.7, 1.3], False), ("stiffness", [1.0, 6.0], False),
+    ("stiffness", [1.0, 12.0], True), ("stiffness", [0.3, 1.0], False), ("stiffness", [0.2, 1.0], True),
+    ("stiffness", [20.0, 1.0], False),
     ("anisotropic-stiffness", [1.0, 1.0, 0.7, 0.7, 1.3, 1.0], False),
-    ("anisotropic-stiffness", [1.0, 1.0, 0.1, 1.0, 1.0, 1.0], True),
+    ("anisotropic-stiffness", [1.0, 1.0, 0.1, 1.0, 1.0, 1.0], False),
+    ("anisotropic-stiffness", [1.0, 1.0, 0.05, 0.05, 1.0, 1.0], True),
+    ("anisotropic-stiffness", [1.0, 1.0, 1.0, 1.0, 0.2, 1.0], True),
+    ("anisotropic-stiffness", [1.0, 1.0, 1.0, 1.0, 1.0, 0.01], False),
     ("accel-bias", [0.08, -0.05, 0.0], False), ("accel-bias", [0.0, 0.45, 0.0], True),
     ("gyro-bias", [0.0, 0.011, 0.0], False), ("gyro-bias", [0.2, 0.0, 0.0], True),
     ("com-offset", [0.02, 0.0], False), ("com-offset", [0.3, 0.0], True),
@@ -50,6 +64,33 @@ def test_each_effect_says_when_its_estimate_is_implausible(name, value, bad):
     assert (reason is not None) == bad, reason
     if bad:
         assert name.split("-")[0] in reason or eff.what in reason or "stiff" in reason, reason
+
+
+@pytest.mark.filterwarnings("ignore:stiffness.k_ts = .* is not above the gravity toppling stiffness")
+def test_contact_scales_are_judged_by_toppling_and_damping_not_by_a_multiplier():
+    from flexforce.datasets.robot import Stiffness as RobotStiffness
+    from flexforce.datasets.robot import check_toppling
+    from flexforce.errors import ConfigError
+    from flexforce.factors.effects.base import contact_physics
+
+    prob = _problem()
+    phys = contact_physics(prob)
+    assert phys.tilt_margin == pytest.approx(900.0 / (40 * 9.81 * 0.6)) and phys.axis == "y (pitch)"
+    assert phys.damping_ratio == pytest.approx(2 * 283.0 / (2 * np.sqrt(2e5 * 40.0)), rel=1e-9)
+    # the independent path: the configuration's toppling check on the same stance, springs scaled
+    # just above and just below the margin's reciprocal
+    for factor, topples in ((1.02, False), (0.98, True)):
+        scale = factor / phys.tilt_margin
+        springs = RobotStiffness(k_fs=1e5 * scale, k_fd=283.0, k_ts=450.0 * scale, k_td=5.0)
+        if topples:
+            with pytest.raises(ConfigError, match="falls over its springs"):
+                check_toppling(springs, 40.0, np.array([0.02, 0.0, 0.6]), prob.contact_p[0], prob.contact_R[0])
+        else:
+            check_toppling(springs, 40.0, np.array([0.02, 0.0, 0.6]), prob.contact_p[0], prob.contact_R[0])
+        verdict = make_effect("stiffness").plausible({"value": [scale, 1.0]}, prob)
+        assert (verdict is not None) == topples, verdict
+    verdict = make_effect("stiffness").plausible({"value": [1.0, 12.0]}, prob)
+    assert "damping ratio" in verdict and "beyond critical" in verdict
 
 
 def test_sensor_specification_and_weight_bounds():

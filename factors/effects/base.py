@@ -506,6 +506,77 @@ def _recorded_deflections(problem: ProblemView) -> tuple[float, float]:
     return s, omega
 
 
+@dataclass(frozen=True)
+class ContactPhysics:
+    """What the recorded stances ask of the contact springs (:func:`contact_physics`).
+
+    ``tilt_margin``: the smallest ratio, over the recording's samples with a contact in force and
+    the two horizontal axes, of the springs' tilt stiffness (``sum k_ts`` about the axis plus
+    ``k_fs d^2`` for each contact at a distance ``d`` from the active contacts' centroid across it)
+    to the gravity toppling stiffness ``m g h`` (``h`` the CoM's height above that centroid): at 1
+    or below the robot falls over its springs there.  ``damping_ratio``: the largest damping ratio
+    of the flexibility's vertical mode (``c / (2 sqrt(k m))``, summed over the contacts in force)
+    and of its rocking modes (tilt damping over ``2 sqrt((k_tilt - m g h) I)``, ``I`` the
+    robot's inertia about the axis through the centroid).  ``t`` and ``axis`` locate the tilt
+    margin's minimum (seconds from the first sample; ``"x (roll)"`` or ``"y (pitch)"``)."""
+
+    tilt_margin: float
+    t: float
+    axis: str
+    damping_ratio: float
+
+
+def contact_physics(problem: ProblemView, fs=(1.0, 1.0, 1.0), fd=(1.0, 1.0, 1.0), ts=(1.0, 1.0, 1.0),
+                    td=(1.0, 1.0, 1.0), every: int = 1) -> ContactPhysics:
+    """:class:`ContactPhysics` of the problem's springs with ``K_fs``, ``K_fd``, ``K_ts``,
+    ``K_td`` scaled per contact-frame axis by ``fs``, ``fd``, ``ts``, ``td`` (``K <- diag(f) K``,
+    as the contact effects scale them), from every ``every``-th sample."""
+    m, g = float(problem.rec.mass), problem.g
+    active = np.asarray(problem.active, dtype=bool)[::every]
+    P = np.asarray(problem.contact_p, dtype=float)[::every]
+    Rc = np.asarray(problem.contact_R, dtype=float)[::every]
+    com = np.asarray(problem.com, dtype=float)[::every]
+    inertia = np.asarray(problem.inertia, dtype=float)[::every]
+    scaled = [np.diag(np.asarray(f, dtype=float)) @ np.asarray(K, dtype=float)
+              for f, K in ((fs, problem.K_fs), (fd, problem.K_fd), (ts, problem.K_ts), (td, problem.K_td))]
+    iso = np.asarray(problem.iso, dtype=bool)
+    Rc = np.where(iso[None, :, None, None], np.eye(3), Rc)  # an isotropic contact's springs do not turn
+    # world-axis stiffness u^T (R K R^T) u for u = x, y, z: (N, C, 3)
+    world = [np.einsum("ncia,cab,ncib->nci", Rc, K, Rc) for K in scaled]
+    k_fz, c_fz, k_t = world[0][..., 2], world[1][..., 2], world[2]
+    on = active.any(axis=1)
+    n_on = np.maximum(active.sum(axis=1), 1)
+    centroid = (P * active[..., None]).sum(axis=1) / n_on[:, None]
+    h = com[:, 2] - centroid[:, 2]
+    mgh = m * g * h
+    cc = com - centroid
+    # inertia about the centroid: I_o - m ([c]^2 terms about the origin) + m (about the centroid)
+    def parallel(v):
+        return (np.einsum("ni,ni->n", v, v)[:, None, None] * np.eye(3) - np.einsum("ni,nj->nij", v, v))
+    I_cent = inertia - m * parallel(com) + m * parallel(cc)
+    worst_margin, worst_t, worst_axis = np.inf, 0.0, "x (roll)"
+    dt = problem.dt * every
+    k_vert = np.maximum((k_fz * active).sum(axis=1), 1e-12)
+    zeta_v = np.where(on, (c_fz * active).sum(axis=1) / (2.0 * np.sqrt(k_vert * m)), 0.0)
+    zeta = float(np.max(zeta_v)) if on.any() else 0.0
+    for axis, name, across in ((0, "x (roll)", 1), (1, "y (pitch)", 0)):
+        d2 = (P[..., across] - centroid[:, None, across]) ** 2
+        k_tilt = ((k_t[..., axis] + k_fz * d2) * active).sum(axis=1)
+        c_tilt = ((world[3][..., axis] + c_fz * d2) * active).sum(axis=1)
+        up = on & (mgh > 0)
+        if up.any():
+            margin = np.where(up, k_tilt / np.where(up, mgh, 1.0), np.inf)
+            k = int(np.argmin(margin))
+            if margin[k] < worst_margin:
+                worst_margin, worst_t, worst_axis = float(margin[k]), k * dt, name
+        net = k_tilt - np.maximum(mgh, 0.0)
+        ok = on & (net > 0)
+        if ok.any():
+            zr = c_tilt[ok] / (2.0 * np.sqrt(net[ok] * np.maximum(I_cent[ok, axis, axis], 1e-12)))
+            zeta = max(zeta, float(np.max(zr)))
+    return ContactPhysics(tilt_margin=worst_margin, t=worst_t, axis=worst_axis, damping_ratio=zeta)
+
+
 class _Constant:
     """Shared parts of a constant-parameter effect: prior sigma, numerically constant walk, report."""
 

@@ -14,7 +14,33 @@ from flexforce.factors.effects.base import (
     _fmt,
     _recorded_deflections,
     _static_compression,
+    contact_physics,
 )
+
+MAX_DAMPING_RATIO = 1.0
+"""The largest damping ratio of the flexibility's modes that a contact scale may give
+(:func:`~flexforce.factors.effects.base.contact_physics`): a passive contact (a rubber bush, a
+sole, foam) is underdamped, its material's loss factor below 1 (a damping ratio below 0.5);
+critically damped or beyond, the contact would not ring at all after a touch-down."""
+
+PHYSICS_EVERY = 5
+"""The plausibility checks read every this many samples of the recording (the stances change
+slowly against the sampling rate)."""
+
+
+def _springs_verdict(problem: ProblemView, what: str, fs, fd, ts, td) -> str | None:
+    """The springs scaled so (contact-frame axes, :func:`contact_physics`) against the recorded
+    stances: None when the robot stands on them and their damping is underdamped, else the reason."""
+    phys = contact_physics(problem, fs=fs, fd=fd, ts=ts, td=td, every=PHYSICS_EVERY)
+    out = []
+    if phys.tilt_margin <= 1.0:
+        out.append(f"{what} leaves the springs a tilt stiffness of {_fmt(phys.tilt_margin)} times the gravity "
+                   f"toppling stiffness m g h about {phys.axis} at t = {phys.t:.2f} s: the robot would fall over its "
+                   "springs in a stance it held")
+    if phys.damping_ratio > MAX_DAMPING_RATIO:
+        out.append(f"{what} gives the flexibility a damping ratio of {_fmt(phys.damping_ratio)}, beyond critical "
+                   f"({_fmt(MAX_DAMPING_RATIO)}): a passive contact is underdamped")
+    return "; ".join(out) or None
 
 # ----------------------------------------------------------------------------------------------
 # Contact family
@@ -62,15 +88,28 @@ class Stiffness(_ContactEffect):
     what = "contact"
     offset = 1.0
     null = 1.0
-    plausible_range = (0.2, 5.0)
-    """A stiffness or damping five times off the configured one is a wrong configuration or another
-    effect in disguise, not a worn bush."""
     excites = ("load changes on the contacts (sway, shifting weight, pushes): the springs' deflection",
                "fast load changes (quick sway, impacts): the springs' deflection rate")
     hint = "vary the load on the contacts: sway, shift the weight from foot to foot, push"
 
     def prior_sigma(self, problem: ProblemView):
         return np.array([0.5, 0.5])
+
+    def plausible(self, report: dict, problem: ProblemView | None = None) -> str | None:
+        """Physics, at the recording's own stances (:func:`_springs_verdict`): the scaled springs
+        must hold the robot up wherever it stood (tilt stiffness above ``m g h``) and the scaled
+        damping leave the flexibility underdamped (:data:`MAX_DAMPING_RATIO`).  No upper bound on
+        the stiffness: a stiffer contact is a more rigid robot, which physics allows.  A
+        ``plausible_range`` set on the effect (none by default) bounds the scales as well."""
+        if problem is None:
+            return None
+        v = np.atleast_1d(np.asarray(report.get("value", ()), dtype=float))
+        if len(v) < 2:
+            return None
+        s, d = float(v[0]), float(v[1])
+        physics = _springs_verdict(problem, f"stiffness scale {_fmt(s)} with damping scale {_fmt(d)}",
+                                   (s,) * 3, (d,) * 3, (s,) * 3, (d,) * 3)
+        return "; ".join(r for r in (super().plausible(report, problem), physics) if r) or None
 
     def feasible(self, values) -> bool:
         """A positive stiffness, a damping that does not inject energy."""
@@ -96,8 +135,6 @@ class AnisotropicStiffness(_ContactEffect):
     what = "stiffness factor"
     offset = 1.0
     null = 1.0
-    plausible_range = (0.2, 5.0)
-    """As :attr:`Stiffness.plausible_range`, per axis."""
     excites = ("shear along the contact's x: a fore-aft force", "shear along the contact's y: a sideways force",
                "vertical load changes: no change of the vertical force", "a torque about x (roll)",
                "a torque about y (pitch)", "a torque about z (yaw)")
@@ -106,6 +143,18 @@ class AnisotropicStiffness(_ContactEffect):
 
     def prior_sigma(self, problem: ProblemView):
         return np.full(6, 0.5)
+
+    def plausible(self, report: dict, problem: ProblemView | None = None) -> str | None:
+        """As :meth:`Stiffness.plausible`, per axis: the factors must hold the robot up wherever it
+        stood; the damping is the configured one."""
+        if problem is None:
+            return None
+        v = np.atleast_1d(np.asarray(report.get("value", ()), dtype=float))
+        if len(v) < 6:
+            return None
+        label = "stiffness factors " + ", ".join(f"{n} {_fmt(x)}" for n, x in zip(self.component_names(), v))
+        physics = _springs_verdict(problem, label, tuple(v[:3]), (1.0,) * 3, tuple(v[3:6]), (1.0,) * 3)
+        return "; ".join(r for r in (super().plausible(report, problem), physics) if r) or None
 
     def feasible(self, values) -> bool:
         """Positive stiffness along every axis."""
