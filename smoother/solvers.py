@@ -19,18 +19,33 @@ from flexforce.factors.core import njit, so3_exp, trsv_lower_inplace, trsv_upper
 
 
 @njit
-def _forward_rows(L, X, m):
-    """``X[:, :m] <- L^-1 X[:, :m]`` for lower-triangular ``L`` (d, d), by rows of ``X`` (memory
-    order: each entry the same operations as a column's forward substitution,
-    ``trsv_lower_inplace``)."""
-    for i in range(L.shape[0]):
-        for k in range(i):
-            lik = L[i, k]
+def _substitute_rows(L, X, m, transposed):
+    """``X[:, :m] <- L^-1 X[:, :m]`` (forward substitution, top row first) or, ``transposed``,
+    ``L^-T X[:, :m]`` (back substitution, bottom row first) for lower-triangular ``L`` (d, d), by
+    rows of ``X`` (memory order: each entry the same operations as a column's substitution,
+    ``trsv_lower_inplace`` / ``trsv_upper_t_inplace``)."""
+    d = L.shape[0]
+    for s in range(d):
+        i = d - 1 - s if transposed else s
+        for t in range(s):  # the rows already solved, in increasing order
+            if transposed:
+                k = i + 1 + t
+                lik = L[k, i]
+            else:
+                k = t
+                lik = L[i, k]
             for j in range(m):
                 X[i, j] -= lik * X[k, j]
         inv = L[i, i]
         for j in range(m):
             X[i, j] = X[i, j] / inv
+
+
+@njit
+def _forward_rows(L, X, m):
+    """``X[:, :m] <- L^-1 X[:, :m]`` for lower-triangular ``L`` (d, d), by rows of ``X``
+    (:func:`_substitute_rows`)."""
+    _substitute_rows(L, X, m, False)
 
 
 @njit
@@ -58,18 +73,9 @@ def _trsv_upper_t(L, b):
 
 @njit
 def _trsm_upper_t(L, B):
-    """L^-T B for lower-triangular L (d, d) and B (d, m), by rows of ``X`` (each entry the same
-    operations as a column's back substitution, ``trsv_upper_t_inplace``)."""
+    """L^-T B for lower-triangular L (d, d) and B (d, m) (:func:`_substitute_rows`)."""
     X = B.copy()
-    d, m = X.shape[0], X.shape[1]
-    for i in range(d - 1, -1, -1):
-        for k in range(i + 1, d):
-            lki = L[k, i]
-            for j in range(m):
-                X[i, j] -= lki * X[k, j]
-        inv = L[i, i]
-        for j in range(m):
-            X[i, j] = X[i, j] / inv
+    _substitute_rows(L, X, X.shape[1], True)
     return X
 
 

@@ -26,11 +26,19 @@ class _ImuBias(_Constant):
     """The residual families its values enter (see :meth:`Effect.report`)."""
     additive = True
     """Its term is its value on fixed rows (see :meth:`Effect.report`)."""
-    rows = slice(0, 3)
+    dim = 3
     sensor = 0
+    """The reading it biases: 0 the gyro, 1 the accelerometer (its rows of the IMU residual,
+    :attr:`rows`, and its labels, one an axis in :attr:`unit`, follow)."""
+    rows = slice(0, 3)
 
     max_bias = 0.0
     """Largest plausible bias (the sensor's specification), in the effect's unit."""
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        cls.rows = slice(3 * cls.sensor, 3 * cls.sensor + 3)
+        cls.labels = tuple(f"{a} [{cls.unit}]" for a in _AX)
 
     def __init__(self, rw_density: float = 0.0, max_bias: float | None = None):
         self.rw_density = float(rw_density)
@@ -83,11 +91,8 @@ class GyroBias(_ImuBias):
     ``gyro = true + bias``).  Constant unless ``rw_density`` (rad/s/sqrt(s)) is given."""
 
     name = "gyro-bias"
-    dim = 3
-    labels = tuple(f"{a} [rad/s]" for a in _AX)
     unit = "rad/s"
     what = "gyro bias"
-    rows = slice(0, 3)
     max_bias = 0.05
     """0.05 rad/s (3 deg/s): an uncalibrated MEMS gyro's turn-on bias (``max_bias=`` for another part)."""
     excites = ("the gyro's x reading", "the gyro's y reading", "the gyro's z reading")
@@ -100,11 +105,9 @@ class AccelBias(_ImuBias):
     unless ``rw_density`` (m/s^2/sqrt(s)) is given."""
 
     name = "accel-bias"
-    dim = 3
-    labels = tuple(f"{a} [m/s^2]" for a in _AX)
+    sensor = 1
     unit = "m/s^2"
     what = "accel bias"
-    rows = slice(3, 6)
     max_bias = 0.3
     """0.3 m/s^2: an uncalibrated MEMS accelerometer's offset (``max_bias=`` for another part)."""
     excites = ("tilting the IMU about y (gravity along x) or accelerating along x",
