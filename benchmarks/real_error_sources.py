@@ -34,7 +34,13 @@ robot: no flexibility), the EKF, the fixed-lag and the batch smoother:
   standing left-foot bias moves per mrad when the accelerometer readings are rotated by +-6 mrad
   about the IMU's x and y axes; ``closure``: the left sole against the right at the first sample
   by the leg kinematics (height mm, roll and pitch mrad);
-- ``ft_sum_minus_weight_N``: the F/T normal forces' sum minus m g, mean per phase.
+- ``ft_sum_minus_weight_N``: the F/T normal forces' sum minus m g, mean per phase;
+- ``touch_down``: per estimator, around every touch-down (a contact coming into force): the mean
+  of the summed normal force minus the F/T sum over the TOUCH_DOWN_S before it and after it
+  (``total_before_N``, ``total_after_N``; most negative and most positive per touch-down, averaged:
+  ``dip_N``, ``peak_N``), and the root link's mean rise by the flexibility (as ``height_mm``) from
+  TOUCH_DOWN_S before to TOUCH_DOWN_S after (``rise_mm``); Vicon's root-link rise against the
+  kinematic base over the same spans (``vicon_rise_mm``).
 
 Writes the JSON record to ``benchmarks/results/real_error_sources.json`` and prints it.
 """
@@ -209,6 +215,38 @@ def split(rec: ff.Recording, model: ff.ModelConfig, estimates: dict[str, ff.Esti
     return out
 
 
+TOUCH_DOWN_S = 0.1
+"""``touch_down``: the span before and after a touch-down, s."""
+
+
+def _touch_downs(rec: ff.Recording) -> np.ndarray:
+    """Steps at which a contact comes into force (after SKIP_S, with TOUCH_DOWN_S on both sides)."""
+    t = (rec.t_ns - rec.t_ns[0]) * 1e-9
+    act = rec.contact_active
+    on = np.flatnonzero((act[1:] & ~act[:-1]).any(axis=1)) + 1
+    return on[(t[on] - TOUCH_DOWN_S >= SKIP_S) & (t[on] + TOUCH_DOWN_S <= t[-1])]
+
+
+def touch_down(rec: ff.Recording, est: ff.Estimate) -> dict | None:
+    """The total force and vertical motion around the touch-downs (module docstring)."""
+    ks = _touch_downs(rec)
+    if not ks.size:
+        return None
+    assert rec.ft is not None
+    w = int(round(TOUCH_DOWN_S / float(np.median(np.diff(rec.t_ns)) * 1e-9)))
+    err = est.wrench[:, :, 2].sum(axis=1) - np.nansum(rec.ft[:, :, 2], axis=1)
+    before = [err[k - w:k] for k in ks]
+    after = [err[k:k + w] for k in ks]
+    base = _base_pose(rec)[:, :3]
+    height = (np.einsum("nij,nj->ni", est.R, base) + est.t)[:, 2] - base[:, 2]  # the root link's, as in row()
+    rise = [height[k + w] - height[k - w] for k in ks]
+    return {"touch_downs": int(ks.size), "total_before_N": round(float(np.mean(np.concatenate(before))), 1),
+            "total_after_N": round(float(np.mean(np.concatenate(after))), 1),
+            "dip_N": round(float(np.mean([min(b.min(), a.min()) for b, a in zip(before, after)])), 1),
+            "peak_N": round(float(np.mean([max(b.max(), a.max()) for b, a in zip(before, after)])), 1),
+            "rise_mm": round(float(np.mean(rise)) * 1e3, 2)}
+
+
 def run(path: Path) -> dict:
     rec = ff.load_recording(path, ROBOT)
     model = ff.ModelConfig.from_recording(rec, robot=ff.RobotConfig.load(ROBOT))
@@ -232,6 +270,12 @@ def run(path: Path) -> dict:
         out["rows"] = rows
         out["force_budget"] = {name: force_budget(rec, est) for name, est in estimates.items()}
         out["split"] = split(rec, model, estimates)
+        downs = {name: touch_down(rec, est) for name, est in estimates.items()}
+        if any(downs.values()):
+            ks = _touch_downs(rec)
+            w = int(round(TOUCH_DOWN_S / float(np.median(np.diff(rec.t_ns)) * 1e-9)))
+            vicon_rise = [vicon[k + w] - vicon[k - w] for k in ks]
+            out["touch_down"] = {"vicon_rise_mm": round(float(np.nanmean(vicon_rise)) * 1e3, 2), **downs}
         out["stiffness_scaled"] = {
             key: _foot_rmse(rec, ff.run_fixed_lag(rec, _scaled(model, **kw)))
             for key, kw in (("identified", {}), ("vertical_x3", {"vertical": 3.0}), ("every_x2", {"every": 2.0}))}

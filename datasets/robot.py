@@ -150,6 +150,13 @@ class ImuNoise:
     set it from the IMU's data sheet (``inf``: no saturation check)."""
     gyro_range: float = math.radians(2000.0)
     """Gyrometer full scale, rad/s (per axis), as ``accel_range``.  Default +-2000 deg/s (34.9 rad/s)."""
+    gyro_bias_max: float = 0.05
+    """Largest gyrometer bias the data sheet allows, rad/s (per axis): a diagnosis that fits a
+    larger one calls it implausible.  Default 0.05 rad/s (3 deg/s), an uncalibrated MEMS gyro's
+    turn-on bias."""
+    accel_bias_max: float = 0.3
+    """Largest accelerometer bias the data sheet allows, m/s^2 (per axis), as ``gyro_bias_max``.
+    Default 0.3 m/s^2, an uncalibrated MEMS accelerometer's offset."""
 
     def __post_init__(self):
         for key, unit in (("gyro_density", "rad/s/sqrt(Hz)"), ("accel_density", "m/s^2/sqrt(Hz)")):
@@ -158,6 +165,9 @@ class ImuNoise:
             value = getattr(self, key)  # 0: biases that do not drift
             if not (value == 0 or _positive_number(value)) or isinstance(value, bool):
                 raise ConfigError(f"imu_noise.{key} = {value!r} {unit}; expected a finite random walk >= 0")
+        for key, unit in (("gyro_bias_max", "rad/s"), ("accel_bias_max", "m/s^2")):
+            _check_positive("imu_noise", key, getattr(self, key), unit,
+                            "the largest bias of the sensor's data sheet, a positive finite number")
         for key, unit in (("accel_range", "m/s^2"), ("gyro_range", "rad/s")):
             value = getattr(self, key)
             if not (isinstance(value, numbers.Real) and not isinstance(value, bool) and value > 0
@@ -426,6 +436,11 @@ class RobotConfig:
     """Coulomb friction coefficient between the soles and the ground (dimensionless, > 0): the
     reported contact wrenches keep their tangential force within ``friction`` times their normal
     force.  None: not given (no friction limit)."""
+    mass_factor: float = 2.0
+    """How well the URDF's mass is known (dimensionless, > 1): the robot weighs between
+    ``m / mass_factor`` and ``m * mass_factor``, and a diagnosis that fits a mass scale outside it
+    calls it implausible.  Default 2 (a model nobody weighed: batteries, covers or a wrong URDF may
+    be missing); about 1.05 for a robot on the scales with its URDF checked."""
     ros: RosConfig | None = None
     """Mapping of raw ROS bags onto the robot (``[ros]`` table), for :mod:`flexforce.datasets.io.rosimport`."""
     source: str = ""
@@ -492,6 +507,9 @@ class RobotConfig:
         if "friction" in raw and not (_positive_number(raw["friction"]) and raw["friction"] <= 10.0):
             raise ConfigError(f"friction = {raw['friction']!r}{where}; expected the Coulomb friction coefficient of "
                               "the soles on the ground, a number in (0, 10] (about 0.5-1 for rubber on a hard floor)")
+        if "mass_factor" in raw and not (_positive_number(raw["mass_factor"]) and raw["mass_factor"] > 1.0):
+            raise ConfigError(f"mass_factor = {raw['mass_factor']!r}{where}; expected how well the URDF's mass is "
+                              "known, a factor above 1 (e.g. 1.05 for a weighed robot, 2 for an unchecked model)")
         if "gravity" in raw and not _positive_number(raw["gravity"]):
             raise ConfigError(f"gravity = {raw['gravity']!r} m/s^2{where}; expected a positive, finite acceleration")
         try:

@@ -37,6 +37,13 @@ class ModelConfig:
     ``inf``: no check.  :meth:`from_recording` takes the robot's ``imu_noise.gyro_range``."""
     accel_range: float = math.inf
     """Accelerometer full scale, m/s^2, as ``gyro_range``."""
+    gyro_bias_max: float = 0.05
+    """Largest plausible gyrometer bias, rad/s (the robot's ``imu_noise.gyro_bias_max``)."""
+    accel_bias_max: float = 0.3
+    """Largest plausible accelerometer bias, m/s^2 (the robot's ``imu_noise.accel_bias_max``)."""
+    mass_factor: float = 2.0
+    """How well the mass is known (the robot's ``mass_factor``): a plausible mass scale lies
+    within ``1 / mass_factor`` and ``mass_factor``."""
     use_ft: bool = False
     """Fuse the recording's F/T readings as measurements."""
     effects: tuple = field(default_factory=tuple)
@@ -90,6 +97,9 @@ class ModelConfig:
             ft_torque_sigma=float(ft["torque"]),
             gyro_range=float(noise["gyro_range"]),
             accel_range=float(noise["accel_range"]),
+            gyro_bias_max=float(noise["gyro_bias_max"]),
+            accel_bias_max=float(noise["accel_bias_max"]),
+            mass_factor=float(robot.mass_factor),
             foothold_prior=FootholdPrior.from_config(robot.footholds),
             soles=_soles(robot, rec.contact_names),
             friction=robot.friction,

@@ -19,28 +19,30 @@ from flexforce.factors.effects import EFFECTS, make_effect
 from flexforce.smoother.screening import CandidateInformation, Identifiability, PairCorrelation
 
 
-def _problem(mass=40.0, com=(0.02, 0.0, 0.6)):
+def _problem(mass=40.0, com=(0.02, 0.0, 0.6), n=300):
     """What the plausibility checks read of a problem: mass, gravity, CoM, inertia, springs,
-    contacts (one sample, both feet in force, 0.2 m apart across x)."""
-    return SimpleNamespace(rec=SimpleNamespace(mass=mass), g=9.81, dt=0.01, com=np.array([com]),
-                           com_acc=np.zeros((1, 3)), inertia=np.array([np.eye(3) * 20.0]),
+    contacts (``n`` samples of 10 ms, both feet in force, 0.2 m apart across x)."""
+    return SimpleNamespace(rec=SimpleNamespace(mass=mass), g=9.81, dt=0.01, com=np.tile(com, (n, 1)),
+                           com_acc=np.zeros((n, 3)), inertia=np.tile(np.eye(3) * 20.0, (n, 1, 1)),
                            K_fs=np.array([np.eye(3) * 1e5, np.eye(3) * 1e5]),
                            K_fd=np.array([np.eye(3) * 283.0, np.eye(3) * 283.0]),
                            K_ts=np.array([np.eye(3) * 450.0, np.eye(3) * 450.0]),
                            K_td=np.array([np.eye(3) * 5.0, np.eye(3) * 5.0]),
                            iso=np.array([False, False]),
-                           contact_p=np.array([[[0.0, 0.1, 0.0], [0.0, -0.1, 0.0]]]),
-                           contact_R=np.array([[np.eye(3), np.eye(3)]]),
-                           active=np.array([[True, True]]))
+                           contact_p=np.tile([[0.0, 0.1, 0.0], [0.0, -0.1, 0.0]], (n, 1, 1)),
+                           contact_R=np.tile(np.eye(3), (n, 2, 1, 1)),
+                           active=np.ones((n, 2), dtype=bool))
 
 
 # The springs of _problem against gravity: m g h = 40 * 9.81 * 0.6 = 235 N m/rad; about x (roll)
-# 2 * 450 + 2 * 1e5 * 0.1^2 = 2900 N m/rad (a scale below 235 / 2900 = 0.081 topples it), about y
-# (pitch) 900 N m/rad (below 0.26).  Vertical damping ratio 2 * 283 / (2 sqrt(2e5 * 40)) = 0.100
-# (a damping scale above 10 is beyond critical).
+# 2 * 450 + 2 * 1e5 * 0.1^2 = 2900 N m/rad, about y (pitch) 900 N m/rad: a scale s below 0.26
+# leaves the pitch below m g h, and a tilt then grows at lambda = -0.25 + sqrt(0.0625 + (235 -
+# 900 s) / 20) per second (I = 20 kg m^2, tilt damping 10 N m s/rad) over the 3 s: s = 0.2 grows it
+# e^4.2 times (beyond e^3), s = 0.25 e^1.4 times.  Vertical damping ratio 2 * 283 / (2 sqrt(2e5 *
+# 40)) = 0.100 (a damping scale above 10 is beyond critical).
 @pytest.mark.parametrize("name,value,bad", [
     ("stiffness", [0.05, 1.0], True), ("stiffness", [0.7, 1.3], False), ("stiffness", [1.0, 6.0], False),
-    ("stiffness", [1.0, 12.0], True), ("stiffness", [0.3, 1.0], False), ("stiffness", [0.2, 1.0], True),
+    ("stiffness", [1.0, 12.0], True), ("stiffness", [0.25, 1.0], False), ("stiffness", [0.2, 1.0], True),
     ("stiffness", [20.0, 1.0], False),
     ("anisotropic-stiffness", [1.0, 1.0, 0.7, 0.7, 1.3, 1.0], False),
     ("anisotropic-stiffness", [1.0, 1.0, 0.1, 1.0, 1.0, 1.0], False),
@@ -87,8 +89,15 @@ def test_contact_scales_are_judged_by_toppling_and_damping_not_by_a_multiplier()
                 check_toppling(springs, 40.0, np.array([0.02, 0.0, 0.6]), prob.contact_p[0], prob.contact_R[0])
         else:
             check_toppling(springs, 40.0, np.array([0.02, 0.0, 0.6]), prob.contact_p[0], prob.contact_R[0])
-        verdict = make_effect("stiffness").plausible({"value": [scale, 1.0]}, prob)
-        assert (verdict is not None) == topples, verdict
+        below = contact_physics(prob, fs=(scale,) * 3, ts=(scale,) * 3)
+        assert (below.tilt_margin < 1.0) == topples
+        # just below: a tilt grows e^0.4 times over the 3 s (rate 0.13 /s), which a stance survives
+        assert (below.fall_growth > 0.0) == topples and below.fall_growth < 1.0
+        assert make_effect("stiffness").plausible({"value": [scale, 1.0]}, prob) is None
+    # the growth against its closed form: s = 0.2, lambda = -0.25 + sqrt(0.0625 + (235.4 - 180) / 20)
+    rate = -0.25 + np.sqrt(0.0625 + (40 * 9.81 * 0.6 - 900.0 * 0.2) / 20.0)
+    assert contact_physics(prob, fs=(0.2,) * 3, ts=(0.2,) * 3).fall_growth == pytest.approx(rate * 3.0, rel=1e-6)
+    assert "fall over its springs" in make_effect("stiffness").plausible({"value": [0.2, 1.0]}, prob)
     verdict = make_effect("stiffness").plausible({"value": [1.0, 12.0]}, prob)
     assert "damping ratio" in verdict and "beyond critical" in verdict
 
@@ -267,3 +276,36 @@ def test_identifiability_on_the_benchmark_sway_matches_the_rankings_confusions()
     # (a sideways sway barely shears them fore-aft): partly seen; the biases are seen (> 1e4)
     assert ident.candidates["anisotropic-stiffness"].status == "partly seen"
     assert ident.candidates["gyro-bias"].seen and ident.candidates["accel-bias"].seen
+
+
+def test_the_robot_configuration_bounds_the_imu_biases_and_the_mass():
+    import dataclasses
+
+    from flexforce.compare.diagnostics.candidates import bound
+    from flexforce.datasets.robot import RobotConfig
+    from flexforce.errors import ConfigError
+    from flexforce.factors.model import ModelConfig
+
+    robot = RobotConfig.load("romeo")
+    assert (robot.imu_noise.gyro_bias_max, robot.imu_noise.accel_bias_max, robot.mass_factor) == (0.05, 0.3, 2.0)
+    weighed = dataclasses.replace(robot, mass_factor=1.1,
+                                  imu_noise=dataclasses.replace(robot.imu_noise, accel_bias_max=0.5))
+    rec = SimpleNamespace(dt=0.005, gravity=9.81, contact_names=("left_foot", "right_foot"), robot="romeo")
+    model = ModelConfig.from_recording(rec, robot=weighed)
+    assert (model.accel_bias_max, model.gyro_bias_max, model.mass_factor) == (0.5, 0.05, 1.1)
+    accel = bound(lambda: make_effect("accel-bias"), rec, model)()
+    assert accel.plausible({"value": [0.4, 0.0, 0.0]}) is None  # within the data sheet's 0.5
+    assert "0.5" in accel.plausible({"value": [0.6, 0.0, 0.0]})
+    # a bound given to the effect itself wins over the configuration's
+    assert bound(lambda: make_effect("accel-bias", max_bias=0.2), rec, model)().plausible(
+        {"value": [0.3, 0.0, 0.0]}) is not None
+    mass = bound(lambda: make_effect("mass-scale"), rec, model)()
+    assert mass.plausible({"value": [1.08]}) is None and "outside the plausible" in mass.plausible({"value": [1.15]})
+    assert make_effect("mass-scale").plausible({"value": [1.15]}) is None  # unbound: the default factor 2
+    for bad in ({"mass_factor": 0.9}, {"mass_factor": "2"}):
+        raw = {"name": "x", "urdf": "u.urdf", "imu_frame": "imu", "contacts": [{"name": "a", "frame": "f"}],
+               "stiffness": {"k_fs": 1.0, "k_fd": 1.0, "k_ts": 1.0, "k_td": 1.0}, **bad}
+        with pytest.raises(ConfigError, match="mass_factor"):
+            RobotConfig.from_dict(raw)
+    with pytest.raises(ConfigError, match="accel_bias_max"):
+        dataclasses.replace(robot.imu_noise, accel_bias_max=-1.0)

@@ -514,16 +514,24 @@ class ContactPhysics:
     the two horizontal axes, of the springs' tilt stiffness (``sum k_ts`` about the axis plus
     ``k_fs d^2`` for each contact at a distance ``d`` from the active contacts' centroid across it)
     to the gravity toppling stiffness ``m g h`` (``h`` the CoM's height above that centroid): at 1
-    or below the robot falls over its springs there.  ``damping_ratio``: the largest damping ratio
-    of the flexibility's vertical mode (``c / (2 sqrt(k m))``, summed over the contacts in force)
-    and of its rocking modes (tilt damping over ``2 sqrt((k_tilt - m g h) I)``, ``I`` the
-    robot's inertia about the axis through the centroid).  ``t`` and ``axis`` locate the tilt
-    margin's minimum (seconds from the first sample; ``"x (roll)"`` or ``"y (pitch)"``)."""
+    or below the springs alone do not hold the robot up there.  ``t`` and ``axis`` locate it
+    (seconds from the first sample; ``"x (roll)"`` or ``"y (pitch)"``).  ``fall_growth``: where
+    the margin is below 1 the tilt diverges at the rate ``lambda = -c / (2 I) + sqrt((c / (2 I))^2
+    + (m g h - k_tilt) / I)`` (``c`` the tilt damping, ``I`` the robot's inertia about the axis
+    through the centroid); the largest ``sum lambda dt`` over a run of such samples, the natural
+    log of how many times a tilt would grow while the robot stood so (0 when the margin stays
+    above 1), from ``fall_start`` to ``fall_end`` (s).  ``damping_ratio``: the largest damping
+    ratio of the flexibility's vertical mode (``c / (2 sqrt(k m))``, summed over the contacts in
+    force) and of its rocking modes (tilt damping over ``2 sqrt((k_tilt - m g h) I)``) where they
+    are stable."""
 
     tilt_margin: float
     t: float
     axis: str
     damping_ratio: float
+    fall_growth: float = 0.0
+    fall_start: float = 0.0
+    fall_end: float = 0.0
 
 
 def contact_physics(problem: ProblemView, fs=(1.0, 1.0, 1.0), fd=(1.0, 1.0, 1.0), ts=(1.0, 1.0, 1.0),
@@ -555,6 +563,7 @@ def contact_physics(problem: ProblemView, fs=(1.0, 1.0, 1.0), fd=(1.0, 1.0, 1.0)
         return (np.einsum("ni,ni->n", v, v)[:, None, None] * np.eye(3) - np.einsum("ni,nj->nij", v, v))
     I_cent = inertia - m * parallel(com) + m * parallel(cc)
     worst_margin, worst_t, worst_axis = np.inf, 0.0, "x (roll)"
+    growth, g_start, g_end = 0.0, 0.0, 0.0
     dt = problem.dt * every
     k_vert = np.maximum((k_fz * active).sum(axis=1), 1e-12)
     zeta_v = np.where(on, (c_fz * active).sum(axis=1) / (2.0 * np.sqrt(k_vert * m)), 0.0)
@@ -569,12 +578,27 @@ def contact_physics(problem: ProblemView, fs=(1.0, 1.0, 1.0), fd=(1.0, 1.0, 1.0)
             k = int(np.argmin(margin))
             if margin[k] < worst_margin:
                 worst_margin, worst_t, worst_axis = float(margin[k]), k * dt, name
+            inertia_u = np.maximum(I_cent[:, axis, axis], 1e-12)
+            half = c_tilt / (2.0 * inertia_u)
+            rate = np.where(up & (margin < 1.0),
+                            -half + np.sqrt(half**2 + np.maximum(mgh - k_tilt, 0.0) / inertia_u), 0.0)
+            run, start = 0.0, 0
+            for j, r in enumerate(rate):  # the largest growth over a run of unstable samples
+                if r <= 0.0:
+                    run = 0.0
+                    continue
+                if run == 0.0:
+                    start = j
+                run += r * dt
+                if run > growth:
+                    growth, g_start, g_end = run, start * dt, (j + 1) * dt
         net = k_tilt - np.maximum(mgh, 0.0)
         ok = on & (net > 0)
         if ok.any():
             zr = c_tilt[ok] / (2.0 * np.sqrt(net[ok] * np.maximum(I_cent[ok, axis, axis], 1e-12)))
             zeta = max(zeta, float(np.max(zr)))
-    return ContactPhysics(tilt_margin=worst_margin, t=worst_t, axis=worst_axis, damping_ratio=zeta)
+    return ContactPhysics(tilt_margin=worst_margin, t=worst_t, axis=worst_axis, damping_ratio=zeta,
+                          fall_growth=float(growth), fall_start=float(g_start), fall_end=float(g_end))
 
 
 class _Constant:

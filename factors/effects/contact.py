@@ -23,6 +23,13 @@ MAX_DAMPING_RATIO = 1.0
 sole, foam) is underdamped, its material's loss factor below 1 (a damping ratio below 0.5);
 critically damped or beyond, the contact would not ring at all after a touch-down."""
 
+MAX_FALL_GROWTH = 3.0
+"""The largest natural log of a tilt's growth (:attr:`ContactPhysics.fall_growth`) that a contact
+scale may imply over a stance the recording held: e^3, twenty times.  Springs a little below the
+gravity toppling stiffness hold a robot through a short stance (the tilt diverges over a time
+``1 / lambda`` that may be longer than a step), and a balance controller may hold it longer; a
+twenty-fold growth over a stance it held without falling is not the robot's."""
+
 PHYSICS_EVERY = 5
 """The plausibility checks read every this many samples of the recording (the stances change
 slowly against the sampling rate)."""
@@ -30,13 +37,15 @@ slowly against the sampling rate)."""
 
 def _springs_verdict(problem: ProblemView, what: str, fs, fd, ts, td) -> str | None:
     """The springs scaled so (contact-frame axes, :func:`contact_physics`) against the recorded
-    stances: None when the robot stands on them and their damping is underdamped, else the reason."""
+    stances: None when the robot stands on them (a tilt grows at most :data:`MAX_FALL_GROWTH`
+    over a stance) and their damping is underdamped, else the reason."""
     phys = contact_physics(problem, fs=fs, fd=fd, ts=ts, td=td, every=PHYSICS_EVERY)
     out = []
-    if phys.tilt_margin <= 1.0:
+    if phys.fall_growth > MAX_FALL_GROWTH:
         out.append(f"{what} leaves the springs a tilt stiffness of {_fmt(phys.tilt_margin)} times the gravity "
-                   f"toppling stiffness m g h about {phys.axis} at t = {phys.t:.2f} s: the robot would fall over its "
-                   "springs in a stance it held")
+                   f"toppling stiffness m g h about {phys.axis} at t = {phys.t:.2f} s: a tilt would grow "
+                   f"{_fmt(float(np.exp(phys.fall_growth)))} times from {phys.fall_start:.2f} to "
+                   f"{phys.fall_end:.2f} s, a stance the robot held: it would fall over its springs")
     if phys.damping_ratio > MAX_DAMPING_RATIO:
         out.append(f"{what} gives the flexibility a damping ratio of {_fmt(phys.damping_ratio)}, beyond critical "
                    f"({_fmt(MAX_DAMPING_RATIO)}): a passive contact is underdamped")

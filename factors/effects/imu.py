@@ -45,10 +45,20 @@ class _ImuBias(_Constant):
         if self.rw_density < 0:
             raise ConfigError(f"{self.name}: rw_density must be >= 0, got {rw_density}")
         self.constant = self.rw_density == 0.0
+        self.max_bias_given = max_bias is not None
+        """Whether ``max_bias`` was given (then :meth:`bind` keeps it)."""
         if max_bias is not None:
             if not max_bias > 0:
                 raise ConfigError(f"{self.name}: max_bias must be positive ({self.unit}), got {max_bias}")
             self.max_bias = float(max_bias)
+
+    def bind(self, rec, model):
+        """This effect with the robot's data-sheet bound (``model.gyro_bias_max`` or
+        ``accel_bias_max``, from the configuration's ``[imu_noise]``) unless ``max_bias`` was given."""
+        spec = getattr(model, "accel_bias_max" if self.sensor == 1 else "gyro_bias_max", None)
+        if self.max_bias_given or spec is None:
+            return self
+        return type(self)(rw_density=self.rw_density, max_bias=float(spec))
 
     def plausible(self, report: dict, problem: ProblemView | None = None) -> str | None:
         """A bias beyond the sensor's specification (``max_bias``, per axis) is implausible."""

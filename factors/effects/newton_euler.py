@@ -357,8 +357,18 @@ class MassScale(_Constant):
     offset = 1.0
     null = 1.0
     plausible_range = (0.5, 2.0)
-    """A robot half or twice as heavy as its model is a wrong model (a missing battery, the wrong
-    URDF), not a mass-model error: weigh it."""
+    """Within ``1 / mass_factor`` and ``mass_factor`` of the robot's configuration (:meth:`bind`;
+    default 2: a robot half or twice as heavy as its model is a wrong model, a missing battery or
+    the wrong URDF, not a mass-model error: weigh it)."""
+
+    def bind(self, rec, model):
+        """This effect with the plausible range of the robot's ``mass_factor`` (``model.mass_factor``)."""
+        factor = getattr(model, "mass_factor", None)
+        if factor is None:
+            return self
+        bound_ = type(self)()
+        bound_.plausible_range = (1.0 / float(factor), float(factor))
+        return bound_
     excites = ("the contact forces measured (F/T sensors); without them it is a stiffness and damping scale",)
     hint = ("fuse the F/T sensors (--ft): the forces scale with the mass and not with the stiffness; from the "
             "motion alone a heavier robot and softer contacts are the same")
