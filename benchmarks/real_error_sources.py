@@ -40,7 +40,13 @@ robot: no flexibility), the EKF, the fixed-lag and the batch smoother:
   (``total_before_N``, ``total_after_N``; most negative and most positive per touch-down, averaged:
   ``dip_N``, ``peak_N``), and the root link's mean rise by the flexibility (as ``height_mm``) from
   TOUCH_DOWN_S before to TOUCH_DOWN_S after (``rise_mm``); Vicon's root-link rise against the
-  kinematic base over the same spans (``vicon_rise_mm``).
+  kinematic base over the same spans (``vicon_rise_mm``);
+- ``com_offset``: the batch smoother fitted with an accelerometer bias and a CoM offset (x, y,
+  local frame; :class:`flexforce.factors.effects.newton_euler.ComOffset`) on each recording
+  (``fitted``: value and std, mm and m/s^2), and each estimator's per-foot and total F_z RMSE and
+  tilt RMSE with the recording's inputs moved by the CoM offset fitted on the *other* recording
+  (``from_other``: identified on one log, tested on the other), beside the same without it
+  (``nominal``).
 
 Writes the JSON record to ``benchmarks/results/real_error_sources.json`` and prints it.
 """
@@ -215,6 +221,8 @@ def split(rec: ff.Recording, model: ff.ModelConfig, estimates: dict[str, ff.Esti
     return out
 
 
+ESTIMATORS = (("ekf", ff.run_ekf), ("fixed_lag", ff.run_fixed_lag), ("batch", ff.run_batch))
+
 TOUCH_DOWN_S = 0.1
 """``touch_down``: the span before and after a touch-down, s."""
 
@@ -247,6 +255,40 @@ def touch_down(rec: ff.Recording, est: ff.Estimate) -> dict | None:
             "rise_mm": round(float(np.mean(rise)) * 1e3, 2)}
 
 
+def _errors(rec: ff.Recording, est: ff.Estimate) -> dict:
+    """Per-foot and total F_z RMSE against the F/T (contacts in force, from SKIP_S) and tilt RMSE, mrad."""
+    t = (rec.t_ns - rec.t_ns[0]) * 1e-9
+    keep = t >= SKIP_S
+    assert rec.ft is not None
+    total = est.wrench[keep, :, 2].sum(axis=1) - np.nansum(rec.ft[keep, :, 2], axis=1)
+    tilt = row(rec, est.R, est.t)["tilt"]["rmse_mrad"]
+    return {"foot_N": _foot_rmse(rec, est), "total_N": round(float(np.sqrt(np.mean(total**2))), 2), "tilt_mrad": tilt}
+
+
+def fit_com_offset(rec: ff.Recording, model: ff.ModelConfig) -> dict:
+    """The batch fit with ``accel-bias`` and ``com-offset``: their values and stds."""
+    from flexforce.factors.effects import make_effect
+    from flexforce.smoother import fit
+
+    est, _ = fit(rec, dataclasses.replace(model, effects=(make_effect("accel-bias"), make_effect("com-offset"))))
+    com, bias = est.effects["com-offset"], est.effects["accel-bias"]
+    return {"com_offset_mm": _round(np.asarray(com["value"]) * 1e3, 1),
+            "com_std_mm": _round(np.asarray(com["std"]) * 1e3, 1),
+            "accel_bias": _round(bias["value"], 3), "accel_bias_std": _round(bias["std"], 3)}
+
+
+def with_com_offset(rec: ff.Recording, model: ff.ModelConfig, offset_xy) -> ff.Recording:
+    """``rec`` with its inputs moved as :meth:`ComOffset.inputs` moves them for the local-frame offset."""
+    from flexforce.factors.effects import make_effect
+    from flexforce.smoother.batch import BatchConfig
+    from flexforce.smoother.problem import build_problem
+
+    prob = build_problem(rec, model, BatchConfig())
+    d = np.tile([offset_xy[0], offset_xy[1], 0.0], (rec.n, 1))
+    c, _, _, inertia, inertia_dot, sigma, sigma_dot = make_effect("com-offset").inputs(prob, np.arange(rec.n), d)
+    return dataclasses.replace(rec, com=c, inertia=inertia, inertia_dot=inertia_dot, sigma=sigma, sigma_dot=sigma_dot)
+
+
 def run(path: Path) -> dict:
     rec = ff.load_recording(path, ROBOT)
     model = ff.ModelConfig.from_recording(rec, robot=ff.RobotConfig.load(ROBOT))
@@ -264,7 +306,7 @@ def run(path: Path) -> dict:
     estimates: dict[str, ff.Estimate] = {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        for name, fn in (("ekf", ff.run_ekf), ("fixed_lag", ff.run_fixed_lag), ("batch", ff.run_batch)):
+        for name, fn in ESTIMATORS:
             est = estimates[name] = fn(rec, model)
             rows[name] = row(rec, est.R, est.t)
         out["rows"] = rows
@@ -294,6 +336,18 @@ def main() -> None:
                     "numpy": np.__version__}}
     for key, name in RECORDINGS.items():
         record[key] = run(args.data / name)
+    recs = {key: ff.load_recording(args.data / name, ROBOT) for key, name in RECORDINGS.items()}
+    models = {key: ff.ModelConfig.from_recording(r, robot=ff.RobotConfig.load(ROBOT)) for key, r in recs.items()}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        fitted = {key: fit_com_offset(recs[key], models[key]) for key in recs}
+        for key, rec in recs.items():
+            other = next(k for k in recs if k != key)
+            moved = with_com_offset(rec, models[key], np.asarray(fitted[other]["com_offset_mm"]) * 1e-3)
+            record[key]["com_offset"] = {
+                "fitted": fitted[key], "from": other,
+                "nominal": {n: _errors(rec, fn(rec, models[key])) for n, fn in ESTIMATORS},
+                "from_other": {n: _errors(moved, fn(moved, models[key])) for n, fn in ESTIMATORS}}
     text = json.dumps(record, indent=2)
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(text + "\n", encoding="utf-8")
