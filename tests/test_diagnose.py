@@ -716,6 +716,15 @@ def test_the_check_of_a_selected_effect_says_when_the_references_disagree():
     c.check = {"against": "truth", "before": {"cop_m": 0.0065}, "after": {"cop_m": 0.0020}}
     assert c.check_text() == ("against the truth (not fitted): CoP 6.5 -> 2 mm; "
                               "the check agrees (no error rose by more than 5%)")
+    # the iCub walk's time offset after the CoM offset: tilt 0.662 -> 0.716 deg, 8 % but 0.94 mrad,
+    # below the 1 mrad the veto counts (CHECK_FLOORS): the sentence follows the veto's rule
+    c.check = {"against": "sensors", "sensors": ["F/T", "Vicon"],
+               "before": {"vertical_force_N": 23.5, "rotation_rad": 0.01155},
+               "after": {"vertical_force_N": 23.6, "rotation_rad": 0.01250}}
+    assert c.check_text().endswith("the check agrees: the tilt error rose by more than 5% but by less than the "
+                                   "check's smallest step (0.5 N, 1 mm, 1 mrad)")
+    c.check["after"]["rotation_rad"] = 0.01300  # 1.45 mrad: beyond the floor
+    assert c.check_text().endswith("the check disagrees: the tilt error rose by more than 5%")
 
 
 def test_the_check_names_the_force_error_once_when_the_sensors_measure_only_the_vertical_force():

@@ -11,12 +11,12 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from flexforce.compare.diagnostics.candidates import _constant, _plausibility, _score_understates
-from flexforce.compare.diagnostics.config import CHECK_FLOORS, DEFAULT
+from flexforce.compare.diagnostics.config import DEFAULT
 from flexforce.compare.diagnostics.constancy import constancy
 from flexforce.compare.diagnostics.fitting import Fit, _criterion, score
 from flexforce.compare.diagnostics.results import Candidate
 from flexforce.compare.diagnostics.screening import _refit_choice, _strength, identify_candidates, screen
-from flexforce.compare.diagnostics.text import _failure, finding, summarize_effect
+from flexforce.compare.diagnostics.text import _failure, check_changes, finding, summarize_effect
 
 if TYPE_CHECKING:
     from flexforce.compare.diagnostics.session import Session
@@ -353,23 +353,6 @@ def _dominated(cfg, leader: Candidate | None, c: Candidate) -> bool:
     if cfg.dominance is None or leader is None or leader.score is None or c.score is None:
         return False
     return leader.score > cfg.dominance * max(c.score, 0.0) and leader.score - c.score > cfg.tie
-
-
-def check_changes(chk: dict, worse: float) -> tuple[list[tuple[str, float]], list[tuple[str, float]]]:
-    """``(rises, falls)`` of a check (:attr:`Candidate.check`): the errors that rise, and those
-    that fall, by more than ``worse`` of their value before and more than their
-    :data:`CHECK_FLOORS`, each with ``ln(after / before)``."""
-    rises, falls = [], []
-    for key, b in chk["before"].items():
-        a = chk["after"].get(key)
-        if b is None or a is None or not b > 0 or not a > 0:
-            continue
-        floor = CHECK_FLOORS.get(key, 0.0)
-        if a > (1.0 + worse) * b and a - b > floor:
-            rises.append((key, math.log(a / b)))
-        elif a < (1.0 - worse) * b and b - a > floor:
-            falls.append((key, math.log(a / b)))
-    return rises, falls
 
 
 def _vetoed(s: Session, c: Candidate, base: Fit) -> str | None:

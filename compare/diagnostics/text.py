@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from flexforce.compare.diagnostics.config import DEFAULT, DiagnoseConfig
+from flexforce.compare.diagnostics.config import CHECK_FLOORS, DEFAULT, DiagnoseConfig
 from flexforce.errors import FlexforceError
 from flexforce.factors.effects import EFFECTS
 from flexforce.factors.effects.base import traits
@@ -116,6 +116,23 @@ def _lean(chosen: dict, partner: dict, check_worse: float = DEFAULT.check_worse)
     return None
 
 
+def check_changes(chk: dict, worse: float) -> tuple[list[tuple[str, float]], list[tuple[str, float]]]:
+    """``(rises, falls)`` of a check (:attr:`Candidate.check`): the errors that rise, and those
+    that fall, by more than ``worse`` of their value before and more than their
+    :data:`CHECK_FLOORS`, each with ``ln(after / before)``."""
+    rises, falls = [], []
+    for key, b in chk["before"].items():
+        a = chk["after"].get(key)
+        if b is None or a is None or not b > 0 or not a > 0:
+            continue
+        floor = CHECK_FLOORS.get(key, 0.0)
+        if a > (1.0 + worse) * b and a - b > floor:
+            rises.append((key, math.log(a / b)))
+        elif a < (1.0 - worse) * b and b - a > floor:
+            falls.append((key, math.log(a / b)))
+    return rises, falls
+
+
 def check_text(c: Candidate, check_worse: float = DEFAULT.check_worse) -> str:
     """``against the F/T and motion capture (not fitted): vertical force 36.3 -> 31.9 N, ...``,
     ending with what the check says of the effect ("" without a check); ``check_worse``:
@@ -124,12 +141,21 @@ def check_text(c: Candidate, check_worse: float = DEFAULT.check_worse) -> str:
     if not c.check or not items:
         return ""
     parts = [text for _, _, _, text in items]
-    worse = [label for label, b, a, _ in items if a > (1.0 + check_worse) * b]
+    # the veto's own rule (:func:`check_changes`): a rise beyond check_worse and beyond its floor
+    rose = {key for key, _ in check_changes(c.check, check_worse)[0]}
+    keys = _check_keys(c.check)
+    worse = [label for key, (label, _, _, _) in zip(keys, items) if key in rose]
+    slight = [label for key, (label, b, a, _) in zip(keys, items) if key not in rose and a > (1.0 + check_worse) * b]
     what = _check_reference(c.check)
     names = ", ".join(worse[:-1]) + " and " + worse[-1] if len(worse) > 1 else "".join(worse)
-    verdict = (f"the check disagrees: the {names} error{'s' if len(worse) > 1 else ''} "
-               f"rose by more than {check_worse:.0%}" if worse else
-               f"the check agrees (no error rose by more than {check_worse:.0%})")
+    if worse:
+        verdict = (f"the check disagrees: the {names} error{'s' if len(worse) > 1 else ''} "
+                   f"rose by more than {check_worse:.0%}")
+    elif slight:
+        verdict = (f"the check agrees: the {' and '.join(slight)} error{'s' if len(slight) > 1 else ''} rose by more "
+                   f"than {check_worse:.0%} but by less than the check's smallest step (0.5 N, 1 mm, 1 mrad)")
+    else:
+        verdict = f"the check agrees (no error rose by more than {check_worse:.0%})"
     return f"against {what} (not fitted): {', '.join(parts)}; {verdict}"
 
 
