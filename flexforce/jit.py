@@ -22,29 +22,53 @@ cache; the first one writable is used.  Other numba code in the process keeps nu
 set, still overrides the list.  When no location is writable the kernels are compiled in every
 process, uncached.
 
+Each signature's compiled code is a data file named after its index key (not numbered as numba
+does), written before its index entry: processes caching kernels at once cannot overwrite each
+other's code or be pointed at a missing file (at worst an index entry is lost and compiled again).
+
+How long the first compilation takes
+------------------------------------
+A kernel called from another kernel is compiled for the *types* of its arguments: numba would
+compile it once per literal value of a constant argument (``ld3(x, 0)``, ``ld3(x, 3)``, ... and
+every caller again with them), about a third of the first run's compile time.  LLVM inlines the
+callee and folds the constant all the same, so the code run is unchanged.
+
+:func:`compile_elsewhere` compiles kernels in helper processes, whose results this process awaits
+and loads from the cache instead of compiling them itself (``flexforce demo`` on a first run:
+two helpers while it simulates; :func:`cached` tells whether there is anything to compile).
+
 The first compilation is announced: when a kernel is about to be compiled because the cache holds
-no entry for it (first run, an upgrade, an edited source), one line goes to stderr, once per
-process (:data:`COMPILE_NOTICE`; :func:`set_compile_notice` turns it on, off or back to "on a
-terminal only").
+no entry for it (first run, an upgrade, an edited source), or helpers are started, one line goes
+to stderr, once per process (:data:`COMPILE_NOTICE`; :func:`set_compile_notice` turns it on, off
+or back to "on a terminal only").
 """
 
 from __future__ import annotations
 
+import atexit
+import hashlib
 import os
+import subprocess
 import sys
 import threading
+import time
+from collections.abc import Sequence
 from pathlib import Path
 
-__all__ = ["COMPILE_NOTICE", "HAVE_NUMBA", "kernel_cache_dir", "njit", "set_compile_notice"]
+__all__ = ["COMPILE_NOTICE", "HAVE_NUMBA", "cached", "compile_elsewhere", "kernel_cache_dir", "njit",
+           "set_compile_notice"]
 
-COMPILE_NOTICE = ("flexforce: compiling the numerical kernels (first run after an install or upgrade only, "
-                  "about a minute on 2 cores; cached in {cache})...")
+COMPILE_NOTICE = ("flexforce: compiling the numerical kernels (first run after an install or upgrade only; "
+                  "cached in {cache})...")
 """The line written to stderr before the first kernel of a process is compiled (``{cache}``: the
 cache directory, :func:`kernel_cache_dir`)."""
 
 _notice_mode: bool | None = None  # None: announce when stderr is a terminal
 _announced = False
 _notice_lock = threading.Lock()
+_helpers: list[subprocess.Popen] = []  # processes of compile_elsewhere still to be waited for
+HELPER_WAIT = 900.0
+"""Seconds a kernel missing from the cache is awaited from the helper processes at most."""
 
 
 def kernel_cache_dir() -> Path:
@@ -80,6 +104,66 @@ def _announce(cache_path: str | None) -> None:
     where = str(kernel_cache_dir()) if cache_path is None else cache_path
     stream.write(COMPILE_NOTICE.format(cache=where) + "\n")
     stream.flush()
+
+
+def _helpers_running() -> bool:
+    """Whether a process of :func:`compile_elsewhere` is still compiling (those done are forgotten)."""
+    _helpers[:] = [p for p in _helpers if p.poll() is None]
+    return bool(_helpers)
+
+
+def _stop_helpers() -> None:
+    """End the helper processes still running (at exit: what they compile is not awaited any more)."""
+    for proc in _helpers:
+        if proc.poll() is None:
+            proc.terminate()
+    for proc in _helpers:
+        try:
+            proc.wait(timeout=5)
+        except subprocess.TimeoutExpired:  # pragma: no cover
+            proc.kill()
+    _helpers.clear()
+
+
+def compile_elsewhere(calls: Sequence[tuple[str, str]]) -> None:
+    """Compile kernels in helper processes, one per ``(module, function)`` of ``calls``: each
+    process imports ``module`` and calls ``function()``, whose compilations fill the kernel cache.
+
+    Meanwhile this process goes on; when it needs a kernel the cache does not hold yet, it waits
+    for the helpers to put it there (at most :data:`HELPER_WAIT` s) rather than compiling it
+    itself, and compiles it only when no helper is left running.  On two cores the kernels of a
+    first run are so compiled while this process simulates, and in two processes at once.  The
+    compile notice is written now (:func:`set_compile_notice`).  Helpers still running when this
+    process exits are ended.  Nothing is started without numba."""
+    if not HAVE_NUMBA or _KernelCache is None or not calls:
+        return
+    _announce(None)
+    code = "import importlib, sys; getattr(importlib.import_module(sys.argv[1]), sys.argv[2])()"
+    if not _helpers:
+        atexit.register(_stop_helpers)
+    for module, function in calls:
+        _helpers.append(subprocess.Popen([sys.executable, "-c", code, module, function], stdin=subprocess.DEVNULL,
+                                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+
+
+def cached(*kernels) -> bool:
+    """Whether the kernel cache holds each of ``kernels`` (dispatchers of :func:`njit`) compiled
+    from its current source on this machine, for some argument types.  True without numba, for a
+    kernel not cached by :func:`njit`, and when the cache cannot be read (nothing to prepare)."""
+    if not HAVE_NUMBA or _KernelCache is None:
+        return True
+    try:
+        for disp in kernels:
+            cache = getattr(disp, "_cache", None)
+            if not isinstance(cache, _KernelCache):
+                continue
+            codegen = disp.targetctx.codegen()
+            wanted = cache._index_key((), codegen)[1:]  # (machine, source hashes) of any signature
+            if not any(key[1:] == wanted for key in cache._cache_file._load_index()):
+                return False
+    except Exception:  # noqa: BLE001 -- numba internals changed: assume cached, prepare nothing  # pragma: no cover
+        return True
+    return True
 
 
 try:  # pragma: no cover - exercised by whichever branch the machine has
@@ -118,22 +202,68 @@ def _kernel_cache_class():
         _locator_classes = [caching.UserProvidedCacheLocator, UserCacheLocator, caching.InTreeCacheLocator,
                             caching.UserWideCacheLocator]
 
+    class KeyedIndexDataCacheFile(caching.IndexDataCacheFile):
+        """numba's index and data files, a data file named after its index key (not numbered):
+        two processes caching two signatures of one kernel at once cannot write the same file and
+        leave the index pointing at the other signature's code.  The data is written before the
+        index entry, so that a reader never finds the entry without its data."""
+
+        def save(self, key, data):
+            digest = hashlib.sha256(repr(key).encode()).hexdigest()[:24]
+            name = f"{self._index_name[:-len('.nbi')]}.{digest}.nbc"
+            self._save_data(name, data)
+            overloads = self._load_index()
+            overloads[key] = name
+            self._save_index(overloads)
+
     class KernelCache(caching.FunctionCache):
-        """numba's ``FunctionCache`` with the locators above, announcing a compilation."""
+        """numba's ``FunctionCache`` with the locators and data files above, announcing a
+        compilation, awaiting a kernel from the helper processes of :func:`compile_elsewhere`."""
 
         _impl_class = KernelCacheImpl
+
+        def __init__(self, py_func):
+            super().__init__(py_func)
+            self._cache_file = KeyedIndexDataCacheFile(self._cache_path, self._impl.filename_base,
+                                                       self._impl.locator.get_source_stamp())
 
         def load_overload(self, sig, target_context):
             cres = super().load_overload(sig, target_context)
             if cres is None:  # not in the cache: the dispatcher compiles next
                 _announce(self.cache_path)
+                deadline = time.monotonic() + HELPER_WAIT
+                while cres is None and _helpers_running() and time.monotonic() < deadline:
+                    time.sleep(0.05)
+                    cres = super().load_overload(sig, target_context)
             return cres
 
     return KernelCache
 
 
+def _kernel_dispatcher_class():
+    """numba's CPU dispatcher, compiling a kernel called from another kernel for the types of its
+    arguments without their literal values (module docstring), or ``None`` when this numba lacks
+    the hook it builds on."""
+    try:
+        from numba.core import types
+        from numba.core.registry import CPUDispatcher
+    except ImportError:  # pragma: no cover
+        return None
+    if not hasattr(CPUDispatcher, "get_call_template"):  # pragma: no cover
+        return None
+
+    class KernelDispatcher(CPUDispatcher):
+        def get_call_template(self, args, kws):
+            args = tuple(types.unliteral(a) for a in args)
+            kws = {k: types.unliteral(v) for k, v in kws.items()}
+            return super().get_call_template(args, kws)
+
+    return KernelDispatcher
+
+
 if HAVE_NUMBA:
     _KernelCache = _kernel_cache_class()
+    _KernelDispatcher = _kernel_dispatcher_class()
 
     def njit(fn):
         """``numba.njit(nogil=True)(fn)``, cached on disk where the module docstring says.
@@ -142,7 +272,11 @@ if HAVE_NUMBA:
         machinery, and to no disk cache if no location is writable."""
         if _KernelCache is None:  # pragma: no cover
             return numba.njit(cache=True, nogil=True)(fn)
-        disp = numba.njit(nogil=True)(fn)
+        if _KernelDispatcher is not None and not numba.config.DISABLE_JIT:
+            disp = _KernelDispatcher(py_func=fn, locals={},
+                                     targetoptions={"nopython": True, "nogil": True, "boundscheck": None})
+        else:
+            disp = numba.njit(nogil=True)(fn)
         if not hasattr(disp, "_cache"):  # NUMBA_DISABLE_JIT: the plain function  # pragma: no cover
             return disp
         try:
@@ -151,6 +285,8 @@ if HAVE_NUMBA:
             pass
         return disp
 else:  # pragma: no cover
+    _KernelCache = None
+
     # Same code, interpreted: correct but ~100x slower (the speed targets need numba).
     def njit(fn):
         """``fn`` itself (numba is not installed)."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -135,6 +136,46 @@ def test_the_compile_notice_follows_its_setting(kernel_source, monkeypatch, caps
     jit.set_compile_notice(None)  # stderr captured by pytest: no terminal, no notice
     assert _tiny_kernel(kernel_source, "tiny_b")(1.0, 1.0) == 2.0
     assert capsys.readouterr().err == ""
+
+
+def test_a_kernel_called_with_constants_is_compiled_once_per_type(kernel_source, tmp_path):
+    """A kernel called from a kernel with literal arguments (offsets, flags) is compiled for their
+    types, not once per value; each signature's cache entry has a data file of its own."""
+    (tmp_path / "lit").mkdir()
+    (tmp_path / "lit" / "tiny_kernel.py").write_text(
+        "from flexforce.jit import njit\n\n\n@njit\ndef at(a, o):\n    return a[o] + a[o + 1]\n\n\n"
+        "@njit\ndef add(a, b):\n    return at(a, 0) + at(a, 2) + at(a, 4) + b\n")
+    add = _tiny_kernel(tmp_path / "lit")
+    assert add(np.arange(6.0), 1.0) == 16.0 and add(np.arange(6.0), 1) == 16.0
+    at = add.py_func.__globals__["at"]
+    assert len(at.signatures) == 1, at.signatures  # (array, int64): not one per literal offset
+    assert len(add.signatures) == 2
+    data = [name for name in _cached(tmp_path / "xdg") if name.startswith("tiny_kernel.add-")
+            and name.endswith(".nbc")]
+    assert len(data) == 2 and not any(name.split(".")[-2].isdigit() for name in data)  # keyed, not numbered
+
+
+def test_kernels_compiled_by_a_helper_process_are_awaited_and_loaded(kernel_source, tmp_path, monkeypatch, capsys):
+    """compile_elsewhere: a helper process compiles and caches the kernel; this process, needing
+    it meanwhile, waits and loads it from the cache instead of compiling it too."""
+    from flexforce import jit
+
+    (kernel_source.parent / "helper_mod.py").write_text(
+        "import importlib.util, sys\n\n\ndef warm():\n"
+        f"    spec = importlib.util.spec_from_file_location('tiny_kernel', {str(kernel_source / 'tiny_kernel.py')!r})\n"
+        "    module = importlib.util.module_from_spec(spec)\n    spec.loader.exec_module(module)\n"
+        "    module.add(1, 2)\n")
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(kernel_source.parent), os.environ.get("PYTHONPATH", "")]))
+    add = _tiny_kernel(kernel_source)
+    assert not jit.cached(add)
+    jit.compile_elsewhere([("helper_mod", "warm")])
+    assert "compiling the numerical kernels" in capsys.readouterr().err
+    assert add(2, 3) == 5
+    assert add.stats.cache_hits and not add.stats.cache_misses
+    assert jit.cached(add)
+    for proc in jit._helpers:
+        assert proc.wait(timeout=60) == 0
+    assert not jit._helpers_running()
 
 
 def test_relative_xdg_cache_home_is_ignored(monkeypatch):
