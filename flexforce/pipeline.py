@@ -28,8 +28,8 @@ import numpy as np
 from flexforce.errors import ConfigError
 
 __all__ = ["STREAM_PART_SECONDS", "RunConfig", "RunResult", "load_or_simulate", "open_recording", "run_offline",
-           "run_recording", "stream_parts", "stream_recording", "streams", "warm_up", "window", "window_parts",
-           "write_estimate"]
+           "prepare_demo_kernels", "run_recording", "stream_parts", "stream_recording", "streams", "warm_up",
+           "window", "window_parts", "write_estimate"]
 
 ProgressFactory = Callable[[str], Callable[[float], None]]
 """A stage's label -> the callable given its fraction done (module docstring)."""
@@ -378,3 +378,47 @@ def warm_up() -> None:
             stream.push(rec)
             stream.finish()
     format_rows(np.zeros((1, 2)), np.zeros(1, dtype=np.int64), int_col=1)
+
+
+DEMO_KERNEL_SECONDS = 1.0
+"""Length, s, of the short simulation whose comparison compiles the demo's kernels in
+:func:`prepare_demo_kernels`' helpers."""
+
+
+def prepare_demo_kernels() -> None:
+    """On a first run (the kernel cache without the demo's kernels), start compiling them in two
+    helper processes (:func:`flexforce.jit.compile_elsewhere`): one compares the EKF and the batch
+    smoother on a short simulation of the demo's scenario (:data:`DEMO_KERNEL_SECONDS`), the other
+    the fixed-lag smoother, while ``flexforce demo`` simulates the whole scenario; the demo then
+    loads the kernels from the cache as they arrive.  Nothing is started when the cache holds them."""
+    from flexforce import jit
+    from flexforce.compare.ekf import kernel
+    from flexforce.smoother import solvers, window_kernel
+
+    if jit.cached(kernel.step, window_kernel.window_update, solvers.block_tridiag_factor):
+        return
+    jit.compile_elsewhere([(__name__, "compile_demo_filter_kernels"), (__name__, "compile_demo_smoother_kernels")])
+
+
+def _compare_short_demo(estimators: list[str], baseline: bool, crb: bool) -> None:
+    from flexforce.compare.runner import compare
+    from flexforce.datasets.sim.scenario import DEFAULT_SCENARIO, Scenario
+    from flexforce.datasets.sim.simulator import Simulator
+
+    scenario = Scenario.load(DEFAULT_SCENARIO)
+    scenario.duration = DEMO_KERNEL_SECONDS
+    rec = Simulator(scenario).run()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        compare(rec, estimators=estimators, baseline=baseline, peers=False, crb=crb)
+
+
+def compile_demo_filter_kernels() -> None:
+    """A helper of :func:`prepare_demo_kernels`: the EKF's and the batch smoother's kernels, the
+    metrics' and the Cramer-Rao bound's, in the order the demo needs them."""
+    _compare_short_demo(["ekf", "batch"], baseline=True, crb=True)
+
+
+def compile_demo_smoother_kernels() -> None:
+    """A helper of :func:`prepare_demo_kernels`: the fixed-lag smoother's kernels."""
+    _compare_short_demo(["fixed-lag"], baseline=False, crb=False)
