@@ -33,9 +33,10 @@ compile it once per literal value of a constant argument (``ld3(x, 0)``, ``ld3(x
 every caller again with them), about a third of the first run's compile time.  LLVM inlines the
 callee and folds the constant all the same, so the code run is unchanged.
 
-:func:`compile_elsewhere` compiles kernels in helper processes, whose results this process awaits
-and loads from the cache instead of compiling them itself (``flexforce demo`` on a first run:
-two helpers while it simulates; :func:`cached` tells whether there is anything to compile).
+:func:`compile_elsewhere` shares the compilation of a listing of kernels with a helper process,
+whose results this process awaits and loads from the cache instead of compiling them itself
+(``flexforce demo`` on a first run: a helper compiles the smoothers' kernels while the demo
+simulates and compiles the EKF's; :func:`cached` tells whether there is anything to compile).
 
 The first compilation is announced: when a kernel is about to be compiled because the cache holds
 no entry for it (first run, an upgrade, an edited source), or helpers are started, one line goes
@@ -46,17 +47,21 @@ or back to "on a terminal only").
 from __future__ import annotations
 
 import atexit
+import contextlib
 import hashlib
+import json
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 __all__ = ["COMPILE_NOTICE", "HAVE_NUMBA", "cached", "compile_elsewhere", "kernel_cache_dir", "njit",
-           "set_compile_notice"]
+           "recording_compiles", "set_compile_notice"]
 
 COMPILE_NOTICE = ("flexforce: compiling the numerical kernels (first run after an install or upgrade only; "
                   "cached in {cache})...")
@@ -67,6 +72,8 @@ _notice_mode: bool | None = None  # None: announce when stderr is a terminal
 _announced = False
 _notice_lock = threading.Lock()
 _helpers: list[subprocess.Popen] = []  # processes of compile_elsewhere still to be waited for
+_work: list[str] = []  # their work folders
+_listed: dict[tuple[str, str, str], tuple[str, int]] = {}  # kernel -> (work folder, index) of compile_elsewhere
 HELPER_WAIT = 900.0
 """Seconds a kernel missing from the cache is awaited from the helper processes at most."""
 
@@ -113,7 +120,8 @@ def _helpers_running() -> bool:
 
 
 def _stop_helpers() -> None:
-    """End the helper processes still running (at exit: what they compile is not awaited any more)."""
+    """End the helper processes still running (at exit: what they compile is not awaited any more)
+    and remove their work folders."""
     for proc in _helpers:
         if proc.poll() is None:
             proc.terminate()
@@ -123,27 +131,115 @@ def _stop_helpers() -> None:
         except subprocess.TimeoutExpired:  # pragma: no cover
             proc.kill()
     _helpers.clear()
+    for folder in _work:
+        shutil.rmtree(folder, ignore_errors=True)
+    _work.clear()
+    _listed.clear()
 
 
-def compile_elsewhere(calls: Sequence[tuple[str, str]]) -> None:
-    """Compile kernels in helper processes, one per ``(module, function)`` of ``calls``: each
-    process imports ``module`` and calls ``function()``, whose compilations fill the kernel cache.
+def _take(work: str, index: int) -> bool:
+    """Take kernel ``index`` of ``work``'s listing (its file created exclusively): False when
+    another process has taken it (or the folder is gone)."""
+    try:
+        os.close(os.open(os.path.join(work, f"{index}.taken"), os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+    except OSError:  # FileExistsError: taken; any other: the work folder is gone
+        return False
+    return True
 
-    Meanwhile this process goes on; when it needs a kernel the cache does not hold yet, it waits
-    for the helpers to put it there (at most :data:`HELPER_WAIT` s) rather than compiling it
-    itself, and compiles it only when no helper is left running.  On two cores the kernels of a
-    first run are so compiled while this process simulates, and in two processes at once.  The
-    compile notice is written now (:func:`set_compile_notice`).  Helpers still running when this
-    process exits are ended.  Nothing is started without numba."""
-    if not HAVE_NUMBA or _KernelCache is None or not calls:
+
+def _taken_elsewhere(py_func, sig) -> bool:
+    """Whether the kernel ``py_func`` for ``sig``, missing from the cache, is being compiled by a
+    helper of :func:`compile_elsewhere` (then it is awaited); False when it is not listed, or
+    when this process takes it now (then it compiles it)."""
+    if not _listed or not _helpers_running():
+        return False
+    listed = _listed.get((py_func.__module__, py_func.__qualname__, repr(tuple(sig))))
+    return listed is not None and not _take(*listed)
+
+
+def compile_elsewhere(kernels: Sequence[tuple[str, str, str]], processes: int = 1) -> None:
+    """Share the compilation of ``kernels`` between this process and ``processes`` helper
+    processes, through the kernel cache.
+
+    ``kernels``: ``(module, function, signature)`` in the order this process needs them,
+    ``signature`` the ``repr`` of the tuple of numba argument types (:func:`recording_compiles`
+    lists them).  Each kernel is compiled once, by the first process that takes it (a file created
+    exclusively in a shared work folder): this process as it goes, from the front of the listing,
+    the helpers from the end, where the kernels needed last are (which share fewer callees with
+    the first: two processes compiling kernels with common callees at once compile the callees
+    twice; once one has cached a callee, the other loads it).
+
+    When this process needs a listed kernel a helper has taken, it waits for it in the cache (at
+    most :data:`HELPER_WAIT` s, or until no helper is left running) rather than compiling it too.
+    The compile notice is written now (:func:`set_compile_notice`).  Helpers still running when
+    this process exits are ended.  Nothing is started without numba."""
+    if not HAVE_NUMBA or _KernelCache is None or not kernels:
         return
     _announce(None)
-    code = "import importlib, sys; getattr(importlib.import_module(sys.argv[1]), sys.argv[2])()"
-    if not _helpers:
+    work = tempfile.mkdtemp(prefix="flexforce-kernels-")
+    if not _helpers and not _work:
         atexit.register(_stop_helpers)
-    for module, function in calls:
-        _helpers.append(subprocess.Popen([sys.executable, "-c", code, module, function], stdin=subprocess.DEVNULL,
+    _work.append(work)
+    with open(os.path.join(work, "kernels.json"), "w", encoding="utf-8") as f:
+        json.dump([list(k) for k in kernels], f)
+    for i, (module, function, signature) in enumerate(kernels):
+        _listed[(module, function, signature)] = (work, i)
+    code = "import sys; from flexforce.jit import _compile_taken; _compile_taken(sys.argv[1])"
+    for _ in range(max(1, processes)):
+        _helpers.append(subprocess.Popen([sys.executable, "-c", code, work], stdin=subprocess.DEVNULL,
                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+
+
+def _signature(text: str):
+    """The tuple of numba types whose ``repr`` is ``text`` (as :func:`recording_compiles` wrote it)."""
+    from numba.core import types
+
+    names = {name: getattr(types, name) for name in dir(types) if not name.startswith("_")}
+    names.update(bool=types.boolean, omitted=lambda default: types.Omitted(default))
+    sig = eval(text, {"__builtins__": {}}, names)  # noqa: S307 -- our own listing of numba type reprs
+    return tuple(sig)
+
+
+def _compile_taken(work: str) -> None:
+    """A helper of :func:`compile_elsewhere`: compile each kernel of ``work``'s listing no other
+    process has taken, from the end; a kernel that fails (a stale listing) is left to the caller."""
+    import importlib
+
+    with open(os.path.join(work, "kernels.json"), encoding="utf-8") as f:
+        kernels = json.load(f)
+    for i in reversed(range(len(kernels))):
+        if not os.path.isdir(work):  # the caller has finished
+            return
+        if not _take(work, i):
+            continue
+        module, function, signature = kernels[i]
+        try:
+            getattr(importlib.import_module(module), function).compile(_signature(signature))
+        except Exception:  # noqa: BLE001, S112 -- the caller compiles what is missing
+            continue
+
+
+@contextlib.contextmanager
+def recording_compiles() -> Iterator[list[tuple[str, str, str]]]:
+    """Within the block, the kernels this process compiles when called from Python (not those
+    compiled as callees of others), as ``(module, function, signature)`` for :func:`compile_elsewhere`."""
+    from numba.core import event
+
+    compiled: list[tuple[str, str, str]] = []
+    depth = [0]
+
+    class Listener(event.Listener):
+        def on_start(self, ev):
+            if depth[0] == 0:
+                fn = ev.data["dispatcher"].py_func
+                compiled.append((fn.__module__, fn.__qualname__, repr(tuple(ev.data["args"]))))
+            depth[0] += 1
+
+        def on_end(self, ev):
+            depth[0] -= 1
+
+    with event.install_listener("numba:compile", Listener()):
+        yield compiled
 
 
 def cached(*kernels) -> bool:
@@ -231,10 +327,11 @@ def _kernel_cache_class():
             cres = super().load_overload(sig, target_context)
             if cres is None:  # not in the cache: the dispatcher compiles next
                 _announce(self.cache_path)
-                deadline = time.monotonic() + HELPER_WAIT
-                while cres is None and _helpers_running() and time.monotonic() < deadline:
-                    time.sleep(0.05)
-                    cres = super().load_overload(sig, target_context)
+                if _taken_elsewhere(self._py_func, sig):
+                    deadline = time.monotonic() + HELPER_WAIT
+                    while cres is None and _helpers_running() and time.monotonic() < deadline:
+                        time.sleep(0.05)
+                        cres = super().load_overload(sig, target_context)
             return cres
 
     return KernelCache

@@ -380,45 +380,33 @@ def warm_up() -> None:
     format_rows(np.zeros((1, 2)), np.zeros(1, dtype=np.int64), int_col=1)
 
 
-DEMO_KERNEL_SECONDS = 1.0
-"""Length, s, of the short simulation whose comparison compiles the demo's kernels in
-:func:`prepare_demo_kernels`' helpers."""
-
 
 def prepare_demo_kernels() -> None:
-    """On a first run (the kernel cache without the demo's kernels), start compiling them in two
-    helper processes (:func:`flexforce.jit.compile_elsewhere`): one compares the EKF and the batch
-    smoother on a short simulation of the demo's scenario (:data:`DEMO_KERNEL_SECONDS`), the other
-    the fixed-lag smoother, while ``flexforce demo`` simulates the whole scenario; the demo then
-    loads the kernels from the cache as they arrive.  Nothing is started when the cache holds them."""
+    """On a first run (the kernel cache without the demo's kernels), share their compilation with
+    a helper process (:func:`flexforce.jit.compile_elsewhere`, the listing of
+    :mod:`flexforce.demo_kernels`): the helper starts with the kernels the demo needs last while
+    the demo simulates its scenario, the demo compiles those it needs first and loads the others
+    from the cache as they arrive.  Nothing is started when the cache holds them, or when no core
+    is idle (:func:`idle_core`: on a busy machine the helper's compilations, a sixth more in all
+    as both processes compile some callees, would slow the demo down rather than speed it up)."""
     from flexforce import jit
     from flexforce.compare.ekf import kernel
+    from flexforce.compare.runner import usable_cores
+    from flexforce.demo_kernels import DEMO_KERNELS
     from flexforce.smoother import solvers, window_kernel
 
     if jit.cached(kernel.step, window_kernel.window_update, solvers.block_tridiag_factor):
         return
-    jit.compile_elsewhere([(__name__, "compile_demo_filter_kernels"), (__name__, "compile_demo_smoother_kernels")])
+    if not idle_core(usable_cores()):
+        return  # the helper's share would be taken from this process, with its overhead on top
+    jit.compile_elsewhere(DEMO_KERNELS, processes=1)
 
 
-def _compare_short_demo(estimators: list[str], baseline: bool, crb: bool) -> None:
-    from flexforce.compare.runner import compare
-    from flexforce.datasets.sim.scenario import DEFAULT_SCENARIO, Scenario
-    from flexforce.datasets.sim.simulator import Simulator
-
-    scenario = Scenario.load(DEFAULT_SCENARIO)
-    scenario.duration = DEMO_KERNEL_SECONDS
-    rec = Simulator(scenario).run()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        compare(rec, estimators=estimators, baseline=baseline, peers=False, crb=crb)
-
-
-def compile_demo_filter_kernels() -> None:
-    """A helper of :func:`prepare_demo_kernels`: the EKF's and the batch smoother's kernels, the
-    metrics' and the Cramer-Rao bound's, in the order the demo needs them."""
-    _compare_short_demo(["ekf", "batch"], baseline=True, crb=True)
-
-
-def compile_demo_smoother_kernels() -> None:
-    """A helper of :func:`prepare_demo_kernels`: the fixed-lag smoother's kernels."""
-    _compare_short_demo(["fixed-lag"], baseline=False, crb=False)
+def idle_core(cores: int) -> bool:
+    """Whether a core is left idle by the machine's other work: the load average of the last
+    minute at least one below ``cores`` (True where the platform has no load average)."""
+    try:
+        load = os.getloadavg()[0]
+    except (AttributeError, OSError):  # pragma: no cover
+        return True
+    return cores - load >= 1.0

@@ -155,27 +155,59 @@ def test_a_kernel_called_with_constants_is_compiled_once_per_type(kernel_source,
     assert len(data) == 2 and not any(name.split(".")[-2].isdigit() for name in data)  # keyed, not numbered
 
 
-def test_kernels_compiled_by_a_helper_process_are_awaited_and_loaded(kernel_source, tmp_path, monkeypatch, capsys):
-    """compile_elsewhere: a helper process compiles and caches the kernel; this process, needing
-    it meanwhile, waits and loads it from the cache instead of compiling it too."""
+def test_kernels_compiled_by_a_helper_process_are_awaited_and_loaded(kernel_source, monkeypatch, capsys):
+    """compile_elsewhere: the helper compiles and caches the listed kernels from the end of the
+    listing (a stale entry skipped); this process, needing one the helper has taken, waits and
+    loads it from the cache instead of compiling it too; one nobody has taken it compiles itself."""
+    import time
+
     from flexforce import jit
 
-    (kernel_source.parent / "helper_mod.py").write_text(
-        "import importlib.util, sys\n\n\ndef warm():\n"
-        f"    spec = importlib.util.spec_from_file_location('tiny_kernel', {str(kernel_source / 'tiny_kernel.py')!r})\n"
-        "    module = importlib.util.module_from_spec(spec)\n    spec.loader.exec_module(module)\n"
-        "    module.add(1, 2)\n")
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(kernel_source.parent), os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(kernel_source), os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.syspath_prepend(str(kernel_source))  # the module named in the listing, here as in the helper
     add = _tiny_kernel(kernel_source)
     assert not jit.cached(add)
-    jit.compile_elsewhere([("helper_mod", "warm")])
+    listing = [("tiny_kernel", "add", "(int64, int64)"), ("tiny_kernel", "add", "(float64, float64)"),
+               ("tiny_kernel", "gone", "(int64,)")]
+    jit.compile_elsewhere(listing)
     assert "compiling the numerical kernels" in capsys.readouterr().err
-    assert add(2, 3) == 5
-    assert add.stats.cache_hits and not add.stats.cache_misses
+    work = jit._work[0]
+    for _ in range(600):  # the helper takes the last entries first: the stale one, then float64's
+        if os.path.exists(os.path.join(work, "1.taken")):
+            break
+        time.sleep(0.05)
+    assert add(0.5, 1.0) == 1.5
+    assert add.stats.cache_hits and not add.stats.cache_misses  # awaited, loaded
+    assert add(2, 3) == 5  # compiled here or by the helper, whichever took it first
     assert jit.cached(add)
     for proc in jit._helpers:
         assert proc.wait(timeout=60) == 0
-    assert not jit._helpers_running()
+    assert sorted(os.listdir(work)) == ["0.taken", "1.taken", "2.taken", "kernels.json"]
+    jit._stop_helpers()
+    assert not jit._work and not jit._listed and not os.path.exists(work)
+
+
+def test_the_demo_starts_a_helper_only_with_a_core_idle(monkeypatch):
+    from flexforce import pipeline
+
+    monkeypatch.setattr(os, "getloadavg", lambda: (1.2, 1.0, 1.0))
+    assert not pipeline.idle_core(2) and pipeline.idle_core(4)
+    monkeypatch.setattr(os, "getloadavg", lambda: (0.3, 1.0, 1.0))
+    assert pipeline.idle_core(2) and not pipeline.idle_core(1)
+
+
+def test_recorded_signatures_read_back():
+    """The demo's listing: each kernel exists, each signature reads back as the numba types it names."""
+    import importlib
+
+    pytest.importorskip("numba")
+    from flexforce.demo_kernels import DEMO_KERNELS
+    from flexforce.jit import _signature
+
+    assert DEMO_KERNELS
+    for module, function, signature in DEMO_KERNELS:
+        assert hasattr(importlib.import_module(module), function), (module, function)
+        assert repr(_signature(signature)) == signature
 
 
 def test_relative_xdg_cache_home_is_ignored(monkeypatch):
