@@ -386,9 +386,10 @@ def prepare_demo_kernels() -> None:
     a helper process (:func:`flexforce.jit.compile_elsewhere`, the listing of
     :mod:`flexforce.demo_kernels`): the helper starts with the kernels the demo needs last while
     the demo simulates its scenario, the demo compiles those it needs first and loads the others
-    from the cache as they arrive.  Nothing is started when the cache holds them, or when no core
-    is idle (:func:`idle_core`: on a busy machine the helper's compilations, a sixth more in all
-    as both processes compile some callees, would slow the demo down rather than speed it up)."""
+    from the cache as they arrive.  Nothing is started when the cache holds them, nor when no core
+    is idle (:func:`idle_core`: on a busy machine the helper's share, with a sixth more compile
+    work in all as both processes compile some callees, would slow the demo down); then the
+    compile notice is written at once and the demo compiles the kernels as it needs them."""
     from flexforce import jit
     from flexforce.compare.ekf import kernel
     from flexforce.compare.runner import usable_cores
@@ -398,7 +399,8 @@ def prepare_demo_kernels() -> None:
     if jit.cached(kernel.step, window_kernel.window_update, solvers.block_tridiag_factor):
         return
     if not idle_core(usable_cores()):
-        return  # the helper's share would be taken from this process, with its overhead on top
+        jit.announce_compilation()
+        return
     jit.compile_elsewhere(DEMO_KERNELS, processes=1)
 
 

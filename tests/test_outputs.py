@@ -187,13 +187,21 @@ def test_kernels_compiled_by_a_helper_process_are_awaited_and_loaded(kernel_sour
     assert not jit._work and not jit._listed and not os.path.exists(work)
 
 
-def test_the_demo_starts_a_helper_only_with_a_core_idle(monkeypatch):
-    from flexforce import pipeline
+def test_the_demo_starts_a_helper_only_with_a_core_idle(tmp_path, monkeypatch, capsys):
+    """A first demo (an empty cache) on a busy machine: no helper, the compile notice at once."""
+    from flexforce import jit, pipeline
 
     monkeypatch.setattr(os, "getloadavg", lambda: (1.2, 1.0, 1.0))
     assert not pipeline.idle_core(2) and pipeline.idle_core(4)
     monkeypatch.setattr(os, "getloadavg", lambda: (0.3, 1.0, 1.0))
     assert pipeline.idle_core(2) and not pipeline.idle_core(1)
+    monkeypatch.setattr(pipeline, "idle_core", lambda cores: False)
+    monkeypatch.setattr(jit, "cached", lambda *kernels: False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.setattr(jit, "_announced", False)
+    monkeypatch.setattr(jit, "_notice_mode", True)
+    pipeline.prepare_demo_kernels()
+    assert not jit._helpers and str(tmp_path) in capsys.readouterr().err
 
 
 def test_recorded_signatures_read_back():
