@@ -27,9 +27,9 @@ import numpy as np
 
 from flexforce.errors import ConfigError
 
-__all__ = ["STREAM_PART_SECONDS", "RunConfig", "RunResult", "load_or_simulate", "open_recording", "run_offline",
-           "prepare_demo_kernels", "run_recording", "stream_parts", "stream_recording", "streams", "warm_up",
-           "window", "window_parts", "write_estimate"]
+__all__ = ["STREAM_PART_SECONDS", "RunConfig", "RunResult", "idle_core", "load_or_simulate", "open_recording",
+           "prepare_demo_kernels", "run_offline", "run_recording", "stream_parts", "stream_recording", "streams",
+           "warm_up", "window", "window_parts", "write_estimate"]
 
 ProgressFactory = Callable[[str], Callable[[float], None]]
 """A stage's label -> the callable given its fraction done (module docstring)."""
@@ -378,7 +378,6 @@ def warm_up() -> None:
             stream.push(rec)
             stream.finish()
     format_rows(np.zeros((1, 2)), np.zeros(1, dtype=np.int64), int_col=1)
-
 
 
 def prepare_demo_kernels() -> None:
