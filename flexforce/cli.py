@@ -484,8 +484,14 @@ def _cmd_demo(args) -> int:
     args.start = args.end = None
     args.estimators = "ekf,fixed-lag,batch"
     args.jobs = 1
+    from flexforce.jit import set_compile_notice
+    from flexforce.pipeline import prepare_demo_kernels
+
+    if not args.quiet:
+        set_compile_notice(True)  # the demo is a first run's first command: its wait explained, on a terminal or not
     print(f"flexforce demo: simulate '{args.recordings[0]}' (Romeo, pushed on the torso then the hand), "
-          f"run the EKF, the fixed-lag and the batch smoothers, compare them against ground truth")
+          f"run the EKF, the fixed-lag and the batch smoothers, compare them against ground truth", flush=True)
+    prepare_demo_kernels()
     return _cmd_compare(args)
 
 

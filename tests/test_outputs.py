@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -135,6 +136,83 @@ def test_the_compile_notice_follows_its_setting(kernel_source, monkeypatch, caps
     jit.set_compile_notice(None)  # stderr captured by pytest: no terminal, no notice
     assert _tiny_kernel(kernel_source, "tiny_b")(1.0, 1.0) == 2.0
     assert capsys.readouterr().err == ""
+
+
+def test_a_kernel_called_with_constants_is_compiled_once_per_type(kernel_source, tmp_path):
+    """A kernel called from a kernel with literal arguments (offsets, flags) is compiled for their
+    types, not once per value; each signature's cache entry has a data file of its own."""
+    (tmp_path / "lit").mkdir()
+    (tmp_path / "lit" / "tiny_kernel.py").write_text(
+        "from flexforce.jit import njit\n\n\n@njit\ndef at(a, o):\n    return a[o] + a[o + 1]\n\n\n"
+        "@njit\ndef add(a, b):\n    return at(a, 0) + at(a, 2) + at(a, 4) + b\n")
+    add = _tiny_kernel(tmp_path / "lit")
+    assert add(np.arange(6.0), 1.0) == 16.0 and add(np.arange(6.0), 1) == 16.0
+    at = add.py_func.__globals__["at"]
+    assert len(at.signatures) == 1, at.signatures  # (array, int64): not one per literal offset
+    assert len(add.signatures) == 2
+    data = [name for name in _cached(tmp_path / "xdg") if name.startswith("tiny_kernel.add-")
+            and name.endswith(".nbc")]
+    assert len(data) == 2 and not any(name.split(".")[-2].isdigit() for name in data)  # keyed, not numbered
+
+
+def test_kernels_compiled_by_a_helper_process_are_awaited_and_loaded(kernel_source, monkeypatch, capsys):
+    """compile_elsewhere: the helper compiles and caches the listed kernels from the end of the
+    listing (a stale entry skipped); this process, needing one the helper has taken, waits and
+    loads it from the cache instead of compiling it too; one nobody has taken it compiles itself."""
+    import time
+
+    from flexforce import jit
+
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(kernel_source), os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.syspath_prepend(str(kernel_source))  # the module named in the listing, here as in the helper
+    add = _tiny_kernel(kernel_source)
+    assert not jit.cached(add)
+    listing = [("tiny_kernel", "add", "(int64, int64)"), ("tiny_kernel", "add", "(float64, float64)"),
+               ("tiny_kernel", "gone", "(int64,)")]
+    jit.compile_elsewhere(listing)
+    assert "compiling the numerical kernels" in capsys.readouterr().err
+    work = jit._work[0]
+    for _ in range(600):  # the helper takes the last entries first: the stale one, then float64's
+        if os.path.exists(os.path.join(work, "1.taken")):
+            break
+        time.sleep(0.05)
+    assert add(0.5, 1.0) == 1.5
+    assert add.stats.cache_hits and not add.stats.cache_misses  # awaited, loaded
+    assert add(2, 3) == 5  # compiled here or by the helper, whichever took it first
+    assert jit.cached(add)
+    for proc in jit._helpers:
+        assert proc.wait(timeout=60) == 0
+    assert sorted(os.listdir(work)) == ["0.taken", "1.taken", "2.taken", "kernels.json"]
+    jit._stop_helpers()
+    assert not jit._work and not jit._listed and not os.path.exists(work)
+
+
+def test_the_demo_starts_no_helper_on_one_core(tmp_path, monkeypatch, capsys):
+    """A first demo (an empty cache) with one usable core: no helper, the compile notice at once."""
+    from flexforce import jit, pipeline
+    from flexforce.compare import runner
+
+    monkeypatch.setattr(runner, "usable_cores", lambda: 1)
+    monkeypatch.setattr(jit, "cached", lambda *kernels: False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.setattr(jit, "_announced", False)
+    monkeypatch.setattr(jit, "_notice_mode", True)
+    pipeline.prepare_demo_kernels()
+    assert not jit._helpers and str(tmp_path) in capsys.readouterr().err
+
+
+def test_recorded_signatures_read_back():
+    """The demo's listing: each kernel exists, each signature reads back as the numba types it names."""
+    import importlib
+
+    pytest.importorskip("numba")
+    from flexforce.demo_kernels import DEMO_KERNELS
+    from flexforce.jit import _signature
+
+    assert DEMO_KERNELS
+    for module, function, signature in DEMO_KERNELS:
+        assert hasattr(importlib.import_module(module), function), (module, function)
+        assert repr(_signature(signature)) == signature
 
 
 def test_relative_xdg_cache_home_is_ignored(monkeypatch):
