@@ -289,11 +289,10 @@ def with_com_offset(rec: ff.Recording, model: ff.ModelConfig, offset_xy) -> ff.R
     return dataclasses.replace(rec, com=c, inertia=inertia, inertia_dot=inertia_dot, sigma=sigma, sigma_dot=sigma_dot)
 
 
-def run(path: Path) -> dict:
-    rec = ff.load_recording(path, ROBOT)
-    model = ff.ModelConfig.from_recording(rec, robot=ff.RobotConfig.load(ROBOT))
+def run(name: str, rec: ff.Recording, model: ff.ModelConfig) -> tuple[dict, dict[str, ff.Estimate]]:
+    """The record of one recording (``name``: its file), and its estimates by estimator."""
     n = rec.n
-    out: dict[str, Any] = {"recording": path.name, "samples": n}
+    out: dict[str, Any] = {"recording": name, "samples": n}
     phases = _phases(rec)
     root = rec.mocap["root_link"]
     vicon = root[:, 2] - _base_pose(rec)[:, 2]
@@ -321,7 +320,7 @@ def run(path: Path) -> dict:
         out["stiffness_scaled"] = {
             key: _foot_rmse(rec, ff.run_fixed_lag(rec, _scaled(model, **kw)))
             for key, kw in (("identified", {}), ("vertical_x3", {"vertical": 3.0}), ("every_x2", {"every": 2.0}))}
-    return out
+    return out, estimates
 
 
 def main() -> None:
@@ -334,10 +333,11 @@ def main() -> None:
         "reference": "Vicon root link (a reference, not ground truth)", "skip_s": SKIP_S,
         "machine": {"python": platform.python_version(), "processor": platform.machine() or platform.processor(),
                     "numpy": np.__version__}}
-    for key, name in RECORDINGS.items():
-        record[key] = run(args.data / name)
     recs = {key: ff.load_recording(args.data / name, ROBOT) for key, name in RECORDINGS.items()}
     models = {key: ff.ModelConfig.from_recording(r, robot=ff.RobotConfig.load(ROBOT)) for key, r in recs.items()}
+    estimates = {}
+    for key, name in RECORDINGS.items():
+        record[key], estimates[key] = run(name, recs[key], models[key])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         fitted = {key: fit_com_offset(recs[key], models[key]) for key in recs}
@@ -346,7 +346,7 @@ def main() -> None:
             moved = with_com_offset(rec, models[key], np.asarray(fitted[other]["com_offset_mm"]) * 1e-3)
             record[key]["com_offset"] = {
                 "fitted": fitted[key], "from": other,
-                "nominal": {n: _errors(rec, fn(rec, models[key])) for n, fn in ESTIMATORS},
+                "nominal": {n: _errors(rec, est) for n, est in estimates[key].items()},
                 "from_other": {n: _errors(moved, fn(moved, models[key])) for n, fn in ESTIMATORS}}
     text = json.dumps(record, indent=2)
     args.output.parent.mkdir(parents=True, exist_ok=True)
