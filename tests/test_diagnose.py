@@ -722,7 +722,7 @@ def test_the_check_of_a_selected_effect_says_when_the_references_disagree():
                "before": {"vertical_force_N": 23.5, "rotation_rad": 0.01155},
                "after": {"vertical_force_N": 23.6, "rotation_rad": 0.01250}}
     assert c.check_text().endswith("the check agrees: the tilt error rose by more than 5% but by less than the "
-                                   "check's smallest step (0.5 N, 1 mm, 1 mrad)")
+                                   "check's smallest step (1 mrad)")
     c.check["after"]["rotation_rad"] = 0.01300  # 1.45 mrad: beyond the floor
     assert c.check_text().endswith("the check disagrees: the tilt error rose by more than 5%")
 

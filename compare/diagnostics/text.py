@@ -133,6 +133,16 @@ def check_changes(chk: dict, worse: float) -> tuple[list[tuple[str, float]], lis
     return rises, falls
 
 
+def _floor_text(key: str) -> str:
+    """:data:`CHECK_FLOORS`' step of the error ``key`` in its display unit: ``1 mrad``, ``1 mm``, ``0.5 N``."""
+    floor = CHECK_FLOORS.get(key, 0.0)
+    if key.endswith("_rad"):
+        return f"{floor * 1e3:g} mrad"
+    if key.endswith("_m"):
+        return f"{floor * 1e3:g} mm"
+    return f"{floor:g} {'N m' if key.endswith('_Nm') else 'N'}"
+
+
 def check_text(c: Candidate, check_worse: float = DEFAULT.check_worse) -> str:
     """``against the F/T and motion capture (not fitted): vertical force 36.3 -> 31.9 N, ...``,
     ending with what the check says of the effect ("" without a check); ``check_worse``:
@@ -145,15 +155,18 @@ def check_text(c: Candidate, check_worse: float = DEFAULT.check_worse) -> str:
     rose = {key for key, _ in check_changes(c.check, check_worse)[0]}
     keys = _check_keys(c.check)
     worse = [label for key, (label, _, _, _) in zip(keys, items) if key in rose]
-    slight = [label for key, (label, b, a, _) in zip(keys, items) if key not in rose and a > (1.0 + check_worse) * b]
+    slight = [(label, key) for key, (label, b, a, _) in zip(keys, items)
+              if key not in rose and a > (1.0 + check_worse) * b]
     what = _check_reference(c.check)
     names = ", ".join(worse[:-1]) + " and " + worse[-1] if len(worse) > 1 else "".join(worse)
     if worse:
         verdict = (f"the check disagrees: the {names} error{'s' if len(worse) > 1 else ''} "
                    f"rose by more than {check_worse:.0%}")
     elif slight:
-        verdict = (f"the check agrees: the {' and '.join(slight)} error{'s' if len(slight) > 1 else ''} rose by more "
-                   f"than {check_worse:.0%} but by less than the check's smallest step (0.5 N, 1 mm, 1 mrad)")
+        steps = ", ".join(_floor_text(key) for _, key in slight)
+        verdict = (f"the check agrees: the {' and '.join(label for label, _ in slight)} error"
+                   f"{'s' if len(slight) > 1 else ''} rose by more than {check_worse:.0%} but by less than the "
+                   f"check's smallest step ({steps})")
     else:
         verdict = f"the check agrees (no error rose by more than {check_worse:.0%})"
     return f"against {what} (not fitted): {', '.join(parts)}; {verdict}"

@@ -551,7 +551,7 @@ def contact_physics(problem: ProblemView, fs=(1.0, 1.0, 1.0), fd=(1.0, 1.0, 1.0)
     Rc = np.where(iso[None, :, None, None], np.eye(3), Rc)  # an isotropic contact's springs do not turn
     # world-axis stiffness u^T (R K R^T) u for u = x, y, z: (N, C, 3)
     world = [np.einsum("ncia,cab,ncib->nci", Rc, K, Rc) for K in scaled]
-    k_fz, c_fz, k_t = world[0][..., 2], world[1][..., 2], world[2]
+    k_fz, c_fz, k_t, c_t = world[0][..., 2], world[1][..., 2], world[2], world[3]
     on = active.any(axis=1)
     n_on = np.maximum(active.sum(axis=1), 1)
     centroid = (P * active[..., None]).sum(axis=1) / n_on[:, None]
@@ -571,14 +571,14 @@ def contact_physics(problem: ProblemView, fs=(1.0, 1.0, 1.0), fd=(1.0, 1.0, 1.0)
     for axis, name, across in ((0, "x (roll)", 1), (1, "y (pitch)", 0)):
         d2 = (P[..., across] - centroid[:, None, across]) ** 2
         k_tilt = ((k_t[..., axis] + k_fz * d2) * active).sum(axis=1)
-        c_tilt = ((world[3][..., axis] + c_fz * d2) * active).sum(axis=1)
+        c_tilt = ((c_t[..., axis] + c_fz * d2) * active).sum(axis=1)
+        inertia_u = np.maximum(I_cent[:, axis, axis], 1e-12)
         up = on & (mgh > 0)
         if up.any():
             margin = np.where(up, k_tilt / np.where(up, mgh, 1.0), np.inf)
             k = int(np.argmin(margin))
             if margin[k] < worst_margin:
                 worst_margin, worst_t, worst_axis = float(margin[k]), k * dt, name
-            inertia_u = np.maximum(I_cent[:, axis, axis], 1e-12)
             half = c_tilt / (2.0 * inertia_u)
             rate = np.where(up & (margin < 1.0),
                             -half + np.sqrt(half**2 + np.maximum(mgh - k_tilt, 0.0) / inertia_u), 0.0)
@@ -595,7 +595,7 @@ def contact_physics(problem: ProblemView, fs=(1.0, 1.0, 1.0), fd=(1.0, 1.0, 1.0)
         net = k_tilt - np.maximum(mgh, 0.0)
         ok = on & (net > 0)
         if ok.any():
-            zr = c_tilt[ok] / (2.0 * np.sqrt(net[ok] * np.maximum(I_cent[ok, axis, axis], 1e-12)))
+            zr = c_tilt[ok] / (2.0 * np.sqrt(net[ok] * inertia_u[ok]))
             zeta = max(zeta, float(np.max(zr)))
     return ContactPhysics(tilt_margin=worst_margin, t=worst_t, axis=worst_axis, damping_ratio=zeta,
                           fall_growth=float(growth), fall_start=float(g_start), fall_end=float(g_end))

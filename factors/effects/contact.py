@@ -106,8 +106,9 @@ class Stiffness(_ContactEffect):
 
     def plausible(self, report: dict, problem: ProblemView | None = None) -> str | None:
         """Physics, at the recording's own stances (:func:`_springs_verdict`): the scaled springs
-        must hold the robot up wherever it stood (tilt stiffness above ``m g h``) and the scaled
-        damping leave the flexibility underdamped (:data:`MAX_DAMPING_RATIO`).  No upper bound on
+        must hold the robot up wherever it stood (where they fall short of ``m g h``, a tilt grows
+        at most :data:`MAX_FALL_GROWTH` over the stance) and the scaled damping leave the
+        flexibility underdamped (:data:`MAX_DAMPING_RATIO`).  No upper bound on
         the stiffness: a stiffer contact is a more rigid robot, which physics allows.  A
         ``plausible_range`` set on the effect (none by default) bounds the scales as well."""
         if problem is None:

@@ -360,6 +360,13 @@ class MassScale(_Constant):
     """Within ``1 / mass_factor`` and ``mass_factor`` of the robot's configuration (:meth:`bind`;
     default 2: a robot half or twice as heavy as its model is a wrong model, a missing battery or
     the wrong URDF, not a mass-model error: weigh it)."""
+    excites = ("the contact forces measured (F/T sensors); without them it is a stiffness and damping scale",)
+    hint = ("fuse the F/T sensors (--ft): the forces scale with the mass and not with the stiffness; from the "
+            "motion alone a heavier robot and softer contacts are the same")
+
+    def prior_sigma(self, problem: ProblemView):
+        """0.2: a model's mass off by a fifth (cables, batteries, covers left out of the URDF)."""
+        return np.array([0.2])
 
     def bind(self, rec, model):
         """This effect with the plausible range of the robot's ``mass_factor`` (``model.mass_factor``)."""
@@ -369,13 +376,6 @@ class MassScale(_Constant):
         bound_ = type(self)()
         bound_.plausible_range = (1.0 / float(factor), float(factor))
         return bound_
-    excites = ("the contact forces measured (F/T sensors); without them it is a stiffness and damping scale",)
-    hint = ("fuse the F/T sensors (--ft): the forces scale with the mass and not with the stiffness; from the "
-            "motion alone a heavier robot and softer contacts are the same")
-
-    def prior_sigma(self, problem: ProblemView):
-        """0.2: a model's mass off by a fifth (cables, batteries, covers left out of the URDF)."""
-        return np.array([0.2])
 
     def feasible(self, values) -> bool:
         """A positive mass."""
