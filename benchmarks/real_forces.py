@@ -19,7 +19,9 @@ Vicon (references, not ground truth):
   in contact;
 - ``force_band``: how often each contact's normal-force band (+-2 sigma, from the estimator's
   covariance) holds the F/T (nominal 95 %), overall and per phase, the RMS of the error over the
-  band's sigma and the median sigma (:func:`flexforce.compare.metrics.force_band`);
+  band's sigma and the median sigma (:func:`flexforce.compare.metrics.force_band`); and ``model``:
+  the same with the model band (:func:`flexforce.compare.band.model_band`, the robot's
+  ``[model_uncertainty]``), with its variance factor and the force change per parameter;
 
 GTSAM's legged estimators (``peers``: IMU and leg kinematics, no forces) keep their tilt, per
 phase too, and their time per step; and each recording's ``headline``: the sentences naming the
@@ -95,6 +97,12 @@ def _row(m: dict) -> dict:
         out["force_band"]["per_phase"] = {ph: {k: d.get(k) for k in ("samples", "coverage", "z_rms")}
                                           for ph, d in (band.get("per_phase") or {}).items()
                                           if ph != "all" and d.get("samples")}
+        model = band.get("model") or {}
+        if model.get("samples"):
+            out["force_band"]["model"] = {
+                **{k: model.get(k) for k in ("coverage", "z_rms", "median_sigma_N", "variance_factor", "components_N")},
+                "per_phase": {ph: {k: d.get(k) for k in ("samples", "coverage", "z_rms")}
+                              for ph, d in (model.get("per_phase") or {}).items() if ph != "all" and d.get("samples")}}
     return out
 
 

@@ -508,7 +508,7 @@ BAND_SIGMAS = 2.0
 """Half-width of the force band, in standard deviations (nominal coverage of a Gaussian: 95.4 %)."""
 
 
-def force_band(est, rec, skip: float = 0.0, k: float = BAND_SIGMAS) -> dict:
+def force_band(est, rec, skip: float = 0.0, k: float = BAND_SIGMAS, sigma: np.ndarray | None = None) -> dict:
     """How honest each contact's normal-force band is: over the (step, contact) pairs in force after
     ``skip`` s where the reference (the truth's, else the F/T's normal force) is finite, the
     fraction within ``k`` standard deviations of the estimate (``coverage``; a consistent Gaussian
@@ -517,17 +517,19 @@ def force_band(est, rec, skip: float = 0.0, k: float = BAND_SIGMAS) -> dict:
     standard deviation (``median_sigma_N``).
 
     The standard deviation is that of the contact-frame F_z, ``n^T Sigma_F n`` with ``n`` the
-    contact's normal and ``Sigma_F`` the force block of :attr:`Estimate.contact_wrench_cov`.
-    Empty without that covariance, contacts or a force reference.
+    contact's normal and ``Sigma_F`` the force block of :attr:`Estimate.contact_wrench_cov`, or
+    ``sigma`` (N, C) when given (the model band, :func:`flexforce.compare.band.model_band`).
+    Empty without either, contacts or a force reference.
     """
+    from flexforce.compare.band import normal_sigma
+
     ref = _reference_contact_fz(rec)
     cov = getattr(est, "contact_wrench_cov", None)
-    if ref is None or cov is None or not rec.contact_names:
+    if ref is None or (cov is None and sigma is None) or not rec.contact_names:
         return {}
-    normal = np.einsum("nij,ncjk->ncik", est.R, rec.contact_R)[..., :, 2]  # (N, C, 3) world
     fz = contact_frame_wrench(est.R, est.t, est.wrench, rec)[:, :, 2]
-    var = np.einsum("nci,ncij,ncj->nc", normal, cov[:, :, :3, :3], normal)
-    sigma = np.sqrt(np.maximum(var, 0.0))
+    if sigma is None:
+        sigma = normal_sigma(est, rec)
     ok = rec.contact_active & np.isfinite(ref) & np.isfinite(fz) & (sigma > 0)
     with np.errstate(divide="ignore", invalid="ignore"):
         z = np.where(ok, (fz - ref) / sigma, np.nan)

@@ -263,7 +263,8 @@ def describe(rec) -> dict:
 
 def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
             progress: Callable[[str, float], None] | None = None, options: dict | None = None,
-            crb: bool = True, baseline: bool = True, peers: bool | None = None) -> Comparison:
+            crb: bool = True, baseline: bool = True, peers: bool | None = None,
+            model_band: bool = True) -> Comparison:
     """Run each estimator on ``rec`` and evaluate it.
 
     Args:
@@ -281,6 +282,10 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
             :data:`~flexforce.compare.peers.PEERS`; False, none.  Each runs on the same ``model``, timed
             like the estimators, with its per-phase tilt; options under ``options[peer name]``.  A peer
             that fails is a ``failures`` entry.
+        model_band: when the model states its parameters' uncertainty (the robot's
+            ``[model_uncertainty]``) and the recording has a force reference, each estimator's
+            ``force_band["model"]``: the same coverage with the model band
+            (:func:`flexforce.compare.band.model_band`; one run of the estimator per parameter).
 
     Every row also gets its per-phase and low-passed errors
     (:func:`flexforce.compare.metrics.phase_metrics`) and its physical violations
@@ -307,6 +312,8 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
         result.estimates[key] = est
         result.metrics[key] = evaluate(est, rec, skip=skip, peak_memory_mb=mem.peak_mb)
         _contact_checks(result.metrics[key], est, rec, skip, model)
+        if model_band:
+            _model_band(result, key, name, rec, model, est, skip, (options or {}).get(name))
         chosen = (options or {}).get(name)
         if chosen:
             result.metrics[key].extra["options"] = {k: (v if isinstance(v, bool | int | float | str) else repr(v))
@@ -343,6 +350,26 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
         except FlexforceError as err:
             result.failures["cramer_rao"] = f"{type(err).__name__}: {err}"
     return result
+
+
+def _model_band(result: Comparison, key: str, name: str, rec, model, est, skip: float, options) -> None:
+    """``force_band["model"]`` of row ``key`` (:func:`compare`'s ``model_band``)."""
+    from flexforce.compare.band import model_band
+
+    m = result.metrics[key]
+    if not m.force_band or getattr(model, "model_uncertainty", None) is None:
+        return
+    try:
+        band = model_band(name, rec, model, est, options)
+    except FlexforceError as err:
+        result.failures[f"{key}_model_band"] = f"{type(err).__name__}: {err}"
+        return
+    if band is None:
+        return
+    entry = force_band(est, rec, skip=skip, sigma=band.sigma)
+    entry.pop("per_contact", None)
+    entry.update(variance_factor=round(band.variance_factor, 3), components_N=band.components, stds=band.stds)
+    m.force_band["model"] = entry
 
 
 def _add_peers(result: Comparison, rec, model, skip: float, all_peers: bool, options: dict | None) -> None:

@@ -186,6 +186,37 @@ class ImuNoise:
 
 
 @dataclass(frozen=True)
+class ModelUncertainty:
+    """How well the model's own parameters are known (``[model_uncertainty]`` table): one standard
+    deviation each.  The comparison turns them into a model band on every contact force
+    (:func:`flexforce.compare.band.model_band`): each estimator run again with one parameter moved
+    by its standard deviation.  0 leaves a parameter out."""
+
+    com_x: float = 0.02
+    """The URDF's centre of mass along the local x axis (forward), m."""
+    com_y: float = 0.02
+    """The centre of mass along the local y axis (sideways), m."""
+    stiffness: float = 0.3
+    """Every contact spring and damper, relative (0.3: 30 %)."""
+    vertical_stiffness: float = 0.3
+    """The contacts' normal stiffness and damping alone, relative."""
+    contact_timing: float = 0.02
+    """The time of every contact switch (the trigger on the F/T or the gait schedule), s."""
+
+    def __post_init__(self):
+        units = {"com_x": "m", "com_y": "m", "stiffness": "", "vertical_stiffness": "", "contact_timing": "s"}
+        for key, unit in units.items():
+            value = getattr(self, key)
+            if isinstance(value, bool) or not (value == 0 or _positive_number(value)):
+                raise ConfigError(f"model_uncertainty.{key} = {value!r} {unit}".rstrip()
+                                  + "; expected a finite standard deviation >= 0 (0: left out)")
+
+    def perturbations(self) -> dict[str, float]:
+        """The parameters with a standard deviation above zero: name -> standard deviation."""
+        return {k: float(v) for k, v in self.__dict__.items() if v > 0}
+
+
+@dataclass(frozen=True)
 class FtNoise:
     """Force/torque sensor noise, per-sample standard deviations."""
 
@@ -436,6 +467,9 @@ class RobotConfig:
     """Coulomb friction coefficient between the soles and the ground (dimensionless, > 0): the
     reported contact wrenches keep their tangential force within ``friction`` times their normal
     force.  None: not given (no friction limit)."""
+    model_uncertainty: ModelUncertainty | None = None
+    """The standard deviations of the model's parameters (``[model_uncertainty]`` table), from which
+    the comparison draws a model band on each contact force; None (no table): no model band."""
     mass_factor: float = 2.0
     """How well the URDF's mass is known (dimensionless, > 1): the robot weighs between
     ``m / mass_factor`` and ``m * mass_factor``, and a diagnosis that fits a mass scale outside it
@@ -518,6 +552,14 @@ class RobotConfig:
                                      for k, v in raw.pop("stiffness").items()})
             imu_noise = ImuNoise(**raw.pop("imu_noise", {}))
             ft_noise = FtNoise(**raw.pop("ft_noise", {}))
+            mu = raw.pop("model_uncertainty", None)
+            if mu is not None:
+                if not isinstance(mu, dict):
+                    raise ConfigError(f"model_uncertainty = {mu!r}{where}; expected a [model_uncertainty] table")
+                if extra := sorted(set(mu) - set(ModelUncertainty.__dataclass_fields__)):
+                    raise ConfigError(f"unknown key(s) {extra} in [model_uncertainty]{where}; known keys: "
+                                      f"{sorted(ModelUncertainty.__dataclass_fields__)}")
+                mu = ModelUncertainty(**mu)
             fh = dict(raw.pop("footholds", {}))
             if "plane_normal" in fh:
                 fh["plane_normal"] = tuple(fh["plane_normal"])
@@ -548,7 +590,7 @@ class RobotConfig:
         raw["links"] = tuple(raw.get("links", ()))
         raw.pop("source", None)
         return cls(contacts=contacts, stiffness=stiffness, imu_noise=imu_noise, ft_noise=ft_noise,
-                   footholds=footholds, ros=ros, source=source, **raw)
+                   footholds=footholds, ros=ros, model_uncertainty=mu, source=source, **raw)
 
     @property
     def contact_names(self) -> tuple[str, ...]:

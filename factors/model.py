@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
@@ -44,6 +45,11 @@ class ModelConfig:
     mass_factor: float = 2.0
     """How well the mass is known (the robot's ``mass_factor``): a plausible mass scale lies
     within ``1 / mass_factor`` and ``mass_factor``."""
+    model_uncertainty: Any = None
+    """The standard deviations of the model's parameters
+    (:class:`~flexforce.datasets.robot.ModelUncertainty`, the robot's ``[model_uncertainty]``
+    table), or None: the comparison's model band on the contact forces
+    (:func:`flexforce.compare.band.model_band`) needs them."""
     use_ft: bool = False
     """Fuse the recording's F/T readings as measurements."""
     effects: tuple = field(default_factory=tuple)
@@ -100,6 +106,7 @@ class ModelConfig:
             gyro_bias_max=float(noise["gyro_bias_max"]),
             accel_bias_max=float(noise["accel_bias_max"]),
             mass_factor=float(robot.mass_factor),
+            model_uncertainty=robot.model_uncertainty,
             foothold_prior=FootholdPrior.from_config(robot.footholds),
             soles=_soles(robot, rec.contact_names),
             friction=robot.friction,

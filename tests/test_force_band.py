@@ -103,3 +103,72 @@ def test_estimate_keeps_the_contact_covariance(sway, tmp_path):
     est = truth_with_band(sway, 1.5)
     back = Estimate.load(est.save(tmp_path / "e.npz"))
     np.testing.assert_array_equal(back.contact_wrench_cov, est.contact_wrench_cov)
+
+
+# ---- the model band (flexforce.compare.band) ---------------------------------------------------------
+
+
+def test_model_band_covers_a_wrong_centre_of_mass(sway):
+    """The estimator's inputs moved by a CoM error of one stated standard deviation sideways (3 cm,
+    the world unchanged): the sensor band no longer holds the truth, the model band does, with the
+    errors at one of its standard deviations.  Measured (EKF / fixed-lag): sensor band 0 % / 0 %
+    (errors x30 / x35 its sigma), model band 100 % / 100 %, errors x1.00 / x1.00; the thresholds
+    are the nominal 95 % coverage and 1 +- 0.2."""
+    import dataclasses
+
+    from flexforce.compare.band import moved_com
+    from flexforce.compare.runner import compare
+    from flexforce.datasets.robot import ModelUncertainty
+    from flexforce.factors.model import ModelConfig
+
+    mu = ModelUncertainty(com_x=0.03, com_y=0.03, stiffness=0.0, vertical_stiffness=0.0, contact_timing=0.0)
+    model = dataclasses.replace(ModelConfig.from_recording(sway), model_uncertainty=mu)
+    wrong = moved_com(sway, model, (0.0, 0.03))
+    comp = compare(wrong, ("ekf", "fixed-lag"), model, crb=False, baseline=False, peers=False)
+    for key, m in comp.metrics.items():
+        sensor, band = m.force_band, m.force_band["model"]
+        assert sensor["coverage"] < 0.5, (key, sensor)
+        assert band["coverage"] >= band_level(), (key, band)
+        assert 0.8 <= band["z_rms"] <= 1.2, (key, band)
+        assert set(band["components_N"]) == {"com_x", "com_y"}
+        assert band["components_N"]["com_y"] > 10 * band["components_N"]["com_x"]  # sideways moves the split
+
+
+def test_model_band_needs_a_stated_uncertainty(sway):
+    """No [model_uncertainty]: no model band and no extra run."""
+    from flexforce.compare.band import model_band
+    from flexforce.factors.model import ModelConfig
+
+    model = ModelConfig.from_recording(sway)
+    assert model.model_uncertainty is None
+    est = run_estimator("ekf", sway, model)
+    assert model_band("ekf", sway, model, est) is None
+
+
+def test_shifted_switches():
+    from flexforce.compare.band import shifted_switches
+
+    a = np.array([[1, 0], [1, 0], [1, 1], [1, 1], [0, 1], [0, 1]], dtype=bool)
+    later = shifted_switches(a, 1)
+    earlier = shifted_switches(a, -1)
+    assert later[:, 1].tolist() == [0, 0, 0, 1, 1, 1] and later[:, 0].tolist() == [1, 1, 1, 1, 1, 0]
+    assert earlier[:, 1].tolist() == [0, 1, 1, 1, 1, 1] and earlier[:, 0].tolist() == [1, 1, 1, 0, 0, 0]
+
+
+def test_model_uncertainty_table_is_checked():
+    from flexforce.datasets.robot import ModelUncertainty, RobotConfig
+    from flexforce.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"model_uncertainty.com_y = -0.01 m; expected a finite standard deviation"):
+        ModelUncertainty(com_y=-0.01)
+    raw = RobotConfig.load("icub-identified")
+    assert raw.model_uncertainty is not None and raw.model_uncertainty.com_y == 0.02
+    from pathlib import Path
+
+    from flexforce.options import read_toml
+
+    table = read_toml(Path(raw.source), "robot configuration")
+    table["model_uncertainty"] = {"com_z": 0.01}
+    with pytest.raises(ConfigError, match=r"unknown key\(s\) \['com_z'\] in \[model_uncertainty\]"):
+        RobotConfig.from_dict(table, base=Path(raw.source).parent, source=raw.source)
+    assert RobotConfig.load("romeo").model_uncertainty is None

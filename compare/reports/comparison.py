@@ -1032,7 +1032,14 @@ def band_sentences(summary: dict) -> list[str]:
         text += f"; they do in {', '.join(ok)}"
     if bad:
         text += f"; they hold it less often in {'; '.join(bad)}: those bands are too narrow for the errors"
-    return [text + "."]
+    out = [text + "."]
+    model = [(k, b["model"]) for k, b in rows if (b.get("model") or {}).get("samples")]
+    if model:
+        parts = [f"{k} {100 * b['coverage']:.0f} % (median σ {b['median_sigma_N']:.3g} N)" for k, b in model]
+        top = max(model[0][1].get("components_N") or {"": 0.0}, key=lambda c: model[0][1]["components_N"][c])
+        out.append(f"With the model's own uncertainty (the robot's [model_uncertainty]) the bands hold it in "
+                   f"{'; '.join(parts)}" + (f"; the largest part is {top.replace('_', ' ')}" if top else "") + ".")
+    return out
 
 
 BAND_SLACK = 0.05
