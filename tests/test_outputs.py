@@ -276,6 +276,88 @@ def test_the_demo_report_renders_in_a_browser(tmp_path):
     assert pixels[:300].std() > 20, "no text at the top of the page"
 
 
+def _rendered(browser: str, page: Path, png: Path) -> np.ndarray:
+    """The page's screenshot as grey levels, checked to be drawn (not blank, text at the top)."""
+    from PIL import Image
+
+    screenshot(browser, page, png)
+    pixels = np.asarray(Image.open(png).convert("L"), dtype=float)
+    inked = (pixels < 200).mean()
+    assert 0.01 < inked < 0.6, f"{100 * inked:.2f} % of the screenshot of {page} is drawn: a blank or broken page"
+    assert pixels[:300].std() > 20, f"no text at the top of {page}"
+    return pixels
+
+
+def _figures_load(html: str, out: Path) -> list[str]:
+    import re
+
+    srcs = re.findall(r'<img[^>]+src="([^"]+)"', html)
+    for src in srcs:
+        assert src.startswith("data:") or (out / src).is_file(), f"figure {src} is missing"
+    return srcs
+
+
+@pytest.mark.slow
+def test_the_comparison_report_of_a_real_walk_renders_in_a_browser(tmp_path):
+    """``flexforce compare`` of the iCub walk: the verdict per quantity before the first section,
+    every figure there, the F/T and Vicon references named on the plots that have them, the model
+    band's row in the force bands, drawn by a headless Chromium."""
+    import html as html_lib
+    import re
+    import subprocess
+    import sys
+
+    from conftest import ICUB_DIR
+
+    browser = _browser()
+    if browser is None:
+        pytest.skip(f"no headless browser: none of {', '.join(BROWSERS)} is on PATH (e.g. apt-get install chromium)")
+    walk = ICUB_DIR / "icub-walk-12s"
+    if not walk.exists():
+        pytest.skip(f"the iCub recordings are not beside the checkout ({ICUB_DIR})")
+    out = tmp_path / "walk"
+    proc = subprocess.run([sys.executable, "-m", "flexforce.cli", "compare", str(walk), "--robot", "icub-identified",
+                           "-o", str(out), "-q"], capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    page = (out / "index.html").read_text(encoding="utf-8")
+    text = html_lib.unescape(page)
+    first = text.index("<h2")
+    for quantity in ("Per-foot vertical force", "Total vertical force", "Tilt"):
+        found = re.search(quantity + r": [^<]*best \([\d.]+ (N|mrad)\)", text)
+        assert found and found.start() < first, f"no verdict on {quantity} before the first section"
+    assert "<title>" in page and "icub-walk-12s" in text[:first], "the title does not name the recording"
+    srcs = _figures_load(page, out)
+    assert {"forces.png", "foot_forces.png", "flexibility.png", "errors.png"} <= set(srcs), srcs
+    assert "(model band)" in text and "With the model's own uncertainty" in text
+    _rendered(browser, out / "index.html", tmp_path / "walk.png")
+
+
+@pytest.mark.slow
+def test_the_diagnosis_report_renders_in_a_browser(tmp_path):
+    """``flexforce diagnose --add auto`` of a simulated push: the verdict box first, naming the
+    effect found, its fitted value with units after the addition, drawn by a headless Chromium."""
+    import html as html_lib
+    import subprocess
+    import sys
+
+    browser = _browser()
+    if browser is None:
+        pytest.skip(f"no headless browser: none of {', '.join(BROWSERS)} is on PATH (e.g. apt-get install chromium)")
+    out = tmp_path / "diag"
+    proc = subprocess.run([sys.executable, "-m", "flexforce.cli", "diagnose", "push-pitch", "--end", "3",
+                           "--add", "auto", "-o", str(out), "-q"], capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    page = (out / "index.html").read_text(encoding="utf-8")
+    text = html_lib.unescape(page)
+    verdict = text.index('id="verdict"')
+    assert verdict < text.index("<h2"), "the verdict does not come first"
+    box = text[verdict:text.index("</div>", verdict)]
+    assert "external" in box.lower() or "push" in box.lower(), box
+    assert 'id="added-values"' in text and " N" in text[text.index('id="added-values"'):][:2000]
+    _figures_load(page, out)
+    _rendered(browser, out / "index.html", tmp_path / "diag.png")
+
+
 def test_the_browser_test_skips_with_a_reason_without_a_browser(monkeypatch):
     import shutil
 
