@@ -37,7 +37,8 @@ from flexforce.factors.physics import wrench_about
 EDGE = 1e-9
 """How far inside the set a limited wrench is put: relative on the friction cone, m on the sole."""
 
-__all__ = ["ContactLimits", "contact_frame_wrench", "limit_contact_wrenches", "world_wrench"]
+__all__ = ["ContactLimits", "balance_near_switches", "contact_frame_wrench", "limit_contact_wrenches", "near_switches",
+           "required_force", "world_wrench"]
 
 
 @dataclass(frozen=True)
@@ -178,3 +179,86 @@ def limit_world_wrenches(R: np.ndarray, t: np.ndarray, wrench: np.ndarray, rec, 
     excess = wrench - limited
     excess[~changed] = 0.0
     return limited, excess, counts.as_dict()
+
+
+# ---- the force the motion requires, near contact switches ---------------------------------------------
+
+
+def near_switches(active: np.ndarray, time: np.ndarray, window: float) -> np.ndarray:
+    """(N,) bool: within ``window`` s of a change of any contact's state."""
+    act = np.asarray(active, dtype=bool)
+    near = np.zeros(act.shape[0], dtype=bool)
+    if window <= 0 or act.shape[0] < 2:
+        return near
+    switches = np.flatnonzero(np.any(act[1:] != act[:-1], axis=1)) + 1
+    for k in switches:
+        near |= np.abs(time - time[k]) <= window
+    return near
+
+
+def required_force(R: np.ndarray, w: np.ndarray, dw: np.ndarray, a: np.ndarray, rec, mass: float | None = None
+                   ) -> np.ndarray:
+    """(N, 3) world force the contacts must give for the estimated motion: ``m (c'' + g e_z)``, with
+    the CoM's world acceleration from the flexibility ``(R, t)``, its world velocities ``(w, v)`` and
+    accelerations ``(dw, a)`` and the local-frame CoM ``c_l`` and its derivatives (the recording's):
+    ``c'' = R c_l'' + 2 w x R c_l' + dw x R c_l + w x (w x R c_l) + a``."""
+    m = float(rec.mass if mass is None else mass)
+    c = np.einsum("nij,nj->ni", R, rec.com)
+    cv = np.einsum("nij,nj->ni", R, rec.com_vel)
+    ca = np.einsum("nij,nj->ni", R, rec.com_acc)
+    acc = ca + 2.0 * np.cross(w, cv) + np.cross(dw, c) + np.cross(w, np.cross(w, c)) + a
+    acc[:, 2] += float(rec.gravity)
+    return m * acc
+
+
+def balance_near_switches(R: np.ndarray, t: np.ndarray, wrench: np.ndarray, unexplained: np.ndarray, rec,
+                          window: float, near: np.ndarray | None = None) -> tuple[np.ndarray, dict | None]:
+    """World contact wrenches that carry the ``unexplained`` force (N, 3, world: what the motion
+    requires beyond the contact law's wrenches) within ``window`` s of a contact switch.
+
+    At a touch-down the contact law's rest placement is least certain (the landing foot's spring
+    starts preloaded by the flexibility's deflection, while a real foot lands unloaded), and the
+    law's forces there disagree with the motion (the Newton-Euler residual): the total force is
+    then taken from the motion.  The force is shared over the contacts in force in proportion to
+    their normal forces (equally when none pushes), each part applied at its contact's CoP so that
+    the CoPs stay where the law put them.  Elsewhere the wrenches are returned as they are.
+
+    ``near`` (N,) bool replaces :func:`near_switches` of the recording's own contact states (a
+    streamed part, whose switches may lie in the parts before or after it).
+
+    Returns:
+        ``(balanced, info)``: (N, C, 6) world wrenches and ``{"window_s", "samples", "rms_N",
+        "max_N"}`` (the force moved), or ``(wrench, None)`` when nothing is moved (``window`` 0,
+        no switch).
+    """
+    active = np.asarray(rec.contact_active, dtype=bool)
+    if window <= 0:
+        return wrench, None
+    if near is None:
+        near = near_switches(active, rec.time, window)
+    near = near & active.any(axis=1) & np.all(np.isfinite(unexplained), axis=1)
+    if not near.any():
+        return wrench, None
+    sel = np.flatnonzero(near)
+    Rs, ts, act = R[sel], t[sel], active[sel]
+    p_c, R_c = rec.contact_p[sel], rec.contact_R[sel]
+    local = contact_frame_wrench(Rs, ts, wrench[sel], p_c, R_c, act)
+    fz = np.where(act, np.maximum(local[..., 2], 0.0), 0.0)
+    total = fz.sum(axis=1, keepdims=True)
+    count = act.sum(axis=1, keepdims=True)
+    share = np.where(total > 0, fz / np.where(total > 0, total, 1.0), act / np.maximum(count, 1))
+    Rc = np.einsum("nij,ncjk->ncik", Rs, R_c)
+    dF = np.einsum("ncji,nj->nci", Rc, unexplained[sel]) * share[..., None]  # contact frames
+    cop = np.zeros_like(dF)
+    loaded = local[..., 2] > 1e-6
+    cop[..., 0] = np.where(loaded, -local[..., 4] / np.where(loaded, local[..., 2], 1.0), 0.0)
+    cop[..., 1] = np.where(loaded, local[..., 3] / np.where(loaded, local[..., 2], 1.0), 0.0)
+    moved = local.copy()
+    moved[..., :3] += dF
+    moved[..., 3:] += np.cross(cop, dF)
+    moved[~act] = 0.0
+    out = np.array(wrench, dtype=float, copy=True)
+    out[sel] = np.where(act[..., None], world_wrench(Rs, ts, moved, p_c, R_c), wrench[sel])
+    size = np.linalg.norm(unexplained[sel], axis=1)
+    return out, {"window_s": float(window), "samples": int(sel.size), "rms_N": float(np.sqrt(np.mean(size ** 2))),
+                 "max_N": float(size.max())}

@@ -65,6 +65,14 @@ class ModelConfig:
     friction: float | None = None
     """Coulomb friction coefficient of the contacts with the ground (the robot's ``friction``), or
     None: not given (no friction limit on the reported wrenches)."""
+    switch_window: float = 0.1
+    """Within this of a contact switch (s), the reported contact wrenches carry the force the
+    estimated motion requires (the Newton-Euler residual's force, shared over the contacts in force
+    by their normal forces: :func:`flexforce.factors.contact_limits.balance_near_switches`), where
+    the contact law's rest placement is least certain (a landing foot).  0: the contact law's
+    wrenches throughout, as with the footholds estimated (``footholds=True``) or the EKF's
+    ``touchdown="zero-deflection"``, which settle a landing's rest placement themselves.  The
+    state and the covariances are not changed."""
     limit_wrenches: bool | None = None
     """Report the contact wrenches limited to what a contact can carry: no pulling normal force, a
     tangential force inside the friction cone, a CoP on the sole
@@ -72,6 +80,13 @@ class ModelConfig:
     :attr:`~flexforce.datasets.estimate.Estimate.wrench_excess`.  The state is not changed.  None
     (default): when the robot describes its contacts with the ground (``soles`` or ``friction``
     given); the simulated robots do not, and their simulated springs pull as readily as they push."""
+
+    def __post_init__(self):
+        w = self.switch_window
+        if isinstance(w, bool) or not isinstance(w, int | float) or not (math.isfinite(w) and w >= 0):
+            from flexforce.errors import ConfigError
+
+            raise ConfigError(f"ModelConfig.switch_window = {w!r} s; expected a finite duration >= 0 (0: off)")
 
     @classmethod
     def from_recording(cls, rec, robot=None, **overrides) -> ModelConfig:

@@ -9,7 +9,7 @@ import numpy as np
 from flexforce.datasets import faults
 from flexforce.datasets.estimate import Estimate
 from flexforce.factors import core
-from flexforce.factors.contact_limits import limit_world_wrenches
+from flexforce.factors.contact_limits import balance_near_switches, limit_world_wrenches
 from flexforce.factors.physics import COP_MIN_FORCE
 from flexforce.smoother.linearize import Trajectory, linearize
 
@@ -143,14 +143,33 @@ def call_report(eff, values, cov, t):
     return eff.report(values, cov)
 
 
+def unexplained_force(prob, residuals: dict) -> np.ndarray:
+    """(N, 3) world force the Newton-Euler factor leaves unexplained (required by the motion, beyond
+    the contact wrenches and the effects): the force rows of its whitened residual, unwhitened."""
+    r = residuals["newton_euler"]
+    L = np.linalg.inv(prob.ne_whitener)  # the covariance's Cholesky factor
+    return r @ L.T[:, :3]
+
+
 def make_estimate(prob, name: str, traj: Trajectory, P: np.ndarray | None = None,
                   time_per_step: np.ndarray | None = None, total_time: float = 0.0,
-                  meta: dict | None = None, successors: dict[int, Trajectory] | None = None) -> Estimate:
+                  meta: dict | None = None, successors: dict[int, Trajectory] | None = None,
+                  switch_near: np.ndarray | None = None) -> Estimate:
     """Assemble the Estimate of ``traj``; ``P`` (N, D, D) are the per-step marginal covariances;
-    ``successors``: a fixed-lag smoother's read-out boundaries (:func:`family_residuals`)."""
+    ``successors``: a fixed-lag smoother's read-out boundaries (:func:`family_residuals`);
+    ``switch_near``: (N,) the steps near a contact switch, when the recording is a part of a longer
+    one (:func:`~flexforce.factors.contact_limits.balance_near_switches`)."""
     n, nc = prob.n, prob.nc
     rec = prob.rec
     W = np.where(prob.active[:, :, None], traj.W, 0.0)
+    residuals = family_residuals(prob, traj, successors)
+    # With the footholds estimated a landing's rest placement is an unknown of its own: the law's
+    # forces are then kept at the switches too.
+    window = float(getattr(prob.model, "switch_window", 0.0))
+    if any(e.name == "foothold" for e in prob.effects):
+        window = 0.0
+    W, balanced = balance_near_switches(traj.R, traj.q[:, 0:3], W, unexplained_force(prob, residuals), rec, window,
+                                        near=switch_near)
     W, excess, limits = limit_world_wrenches(traj.R, traj.q[:, 0:3], W, rec, prob.model)
     total = W.sum(axis=1)
     cop = np.empty((n, 3))
@@ -186,8 +205,9 @@ def make_estimate(prob, name: str, traj: Trajectory, P: np.ndarray | None = None
         effects[eff.name] = call_report(eff, vals, ecov, (rec.t_ns - rec.t_ns[0]) * 1e-9)
         off += eff.dim
         eoff += eff.dim
-    residuals = family_residuals(prob, traj, successors)
     meta = dict(meta or {})
+    if balanced is not None:
+        meta["switch_balance"] = balanced
     if limits is not None:
         meta["contact_limits"] = limits
     meta["rejected"] = rejected_samples(prob, residuals)

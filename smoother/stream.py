@@ -113,6 +113,7 @@ class FixedLagStream:
         self.n = 0
         """Steps pushed so far."""
         self.t0_ns: int | None = None
+        self._switch_ns: set[int] = set()  # contact switches seen (ns), for the rows still to report
         self.update_time = array("d")
         """Wall-clock time of the update of each step not yet reported, s, from step
         :attr:`update_time_offset` on (with ``config.block`` > 1 each update's time shared among
@@ -176,6 +177,7 @@ class FixedLagStream:
             assert self.fls is not None
             self.fls.set_problem(prob)
         self.segment = segment
+        self._note_switches(segment)
         self.n = self.segment_offset + segment.n
         self._run(start, self.n)
         est = self._collect()
@@ -236,6 +238,30 @@ class FixedLagStream:
         self.cov_time += fls.last_cov_time
         fls.last_cov_time = 0.0
 
+    def _note_switches(self, segment: Recording) -> None:
+        """Remember the times (ns) of the contact switches in ``segment``: the reported rows near one
+        carry the force the motion requires (``ModelConfig.switch_window``), whether the switch lies
+        in their part or in one before or after it (within the lag)."""
+        act = np.asarray(segment.contact_active, dtype=bool)
+        if act.shape[0] > 1:
+            ks = np.flatnonzero(np.any(act[1:] != act[:-1], axis=1)) + 1
+            self._switch_ns.update(int(x) for x in segment.t_ns[ks])
+
+    def _switch_near(self, part: Recording) -> np.ndarray:
+        """(n,) the rows of ``part`` within the model's switch window of a switch seen so far, on the
+        stream's time axis (as the whole recording's would be), the switches too old to matter dropped."""
+        window = float(getattr(self.model, "switch_window", 0.0))
+        t0 = int(self.t0_ns or part.t_ns[0])
+        time = (part.t_ns - t0) * 1e-9
+        near = np.zeros(part.n, dtype=bool)
+        for ns in sorted(self._switch_ns):
+            ts = (ns - t0) * 1e-9
+            if ts < time[0] - 2.0 * window:
+                self._switch_ns.discard(ns)
+                continue
+            near |= np.abs(time - ts) <= window
+        return near
+
     def _collect(self) -> Estimate | None:
         """The Estimate of the rows reported since the last call (consecutive steps)."""
         rows, self._rows = self._rows, []
@@ -265,6 +291,7 @@ class FixedLagStream:
                     if j0 <= j < j1 - 1:
                         succ[j - j0] = nxt
             est = make_estimate(prob, "fixed_lag", traj, P, time_per_step=times, successors=succ,
+                                switch_near=self._switch_near(part),
                                 meta={"lag_s": self.lag_steps * self.first.dt, "use_ft": prob.use_ft,
                                       "backend": "window", "stream": {"first_step": j0, "steps": j1 - j0},
                                       "covariance": "per-step marginals of the window (joint within a step)"

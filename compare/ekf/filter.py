@@ -58,7 +58,7 @@ from flexforce.datasets.layout import STATE, STATE_DIM
 from flexforce.datasets.recording import Recording
 from flexforce.errors import ConfigError, DataError, EstimatorError, ModelError
 from flexforce.factors import core, so3
-from flexforce.factors.contact_limits import limit_world_wrenches
+from flexforce.factors.contact_limits import balance_near_switches, limit_world_wrenches, required_force
 from flexforce.factors.footholds import rest_placements
 from flexforce.factors.model import ModelConfig, check_unmodelled, unmodelled_acceleration
 from flexforce.factors.physics import contact_arrays
@@ -660,15 +660,26 @@ class _Outputs:
         c = np.array
         wrench, excess, limits = c(self.wrench), None, None
         cop = c(self.cop)
+        balanced = None
         if self.want:
+            law = wrench
+            unexplained = required_force(R, x[:, W], x[:, DW], x[:, A], rec) - wrench[:, :, :3].sum(axis=1)
+            # a zero-deflection touch-down lands the spring unloaded: the law's forces are kept
+            window = float(getattr(ekf.model, "switch_window", 0.0))
+            if ekf.config.touchdown == "zero-deflection":
+                window = 0.0
+            wrench, balanced = balance_near_switches(R, x[:, T], wrench, unexplained, rec, window)
             wrench, excess, limits = limit_world_wrenches(R, x[:, T], wrench, rec, ekf.model)
-            if excess is not None and np.any(excess):
-                rows = np.flatnonzero(np.any(excess != 0.0, axis=(1, 2)))
+            changed = np.any(wrench != law, axis=(1, 2))
+            if changed.any():
+                rows = np.flatnonzero(changed)
                 summed = np.ascontiguousarray(wrench[rows].sum(axis=1), dtype=float)
                 part, part_J = np.empty((len(rows), 3)), np.empty((len(rows), 3, 6))
                 core.centers_of_pressure(summed, ekf.config.z0, ekf.config.min_force, part, part_J)
                 cop[rows] = part
         meta = {"contact_limits": limits} if limits is not None else {}
+        if balanced is not None:
+            meta["switch_balance"] = balanced
         return Estimate(
             estimator="ekf", t_ns=rec.t_ns.copy(), contact_names=tuple(rec.contact_names),
             R=R, t=x[:, T].copy(), w=x[:, W].copy(), v=x[:, V].copy(), dw=x[:, DW].copy(), a=x[:, A].copy(),
