@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import re
 import shutil
 import sys
@@ -89,9 +88,9 @@ def _ranking_block(data: dict) -> str:
 
 
 def _errors_block(data: dict) -> str:
-    """The errors against the truth before and after (mm, deg: the report's units)."""
+    """The errors against the truth before and after (mm, mrad: the report's units)."""
     cols = [("force_N", "force [N]", 1.0), ("moment_Nm", "moment [N m]", 1.0), ("cop_m", "CoP [mm]", 1e3),
-            ("rotation_rad", "tilt [deg]", 180.0 / math.pi), ("hand_m", "hands [mm]", 1e3)]
+            ("rotation_rad", "tilt [mrad]", 1e3), ("hand_m", "hands [mm]", 1e3)]
     lines = ["| | " + " | ".join(c[1] for c in cols) + " |", "|---" * (len(cols) + 1) + "|"]
     for label, view in (("nominal model", data["before"]), (" + ".join(["", *data["added"]]).strip(), data["after"])):
         lines.append(f"| {label} | " + " | ".join(_g(view["rmse"][k] * s) for k, _, s in cols) + " |")
@@ -102,7 +101,7 @@ def numbers(data: dict[str, dict]) -> dict[str, str]:
     """Every mark of the tutorial, from the run's diagnosis.json (``diag``: ranked, ``--add auto``;
     ``added``: the push and the CoM offset added by hand)."""
     diag, added = data["diag"], data["added"]
-    deg = 180.0 / math.pi
+    mrad = 1e3
     com = _row(diag, "com-offset", 2)  # the round that took it, on top of the push
     push = _row(diag, "external-wrench", 1)
     chk = push["check"]
@@ -120,10 +119,10 @@ def numbers(data: dict[str, dict]) -> dict[str, str]:
         "push_steady_mm": f"{push['parameters']['steady']['com_offset_equivalent_m'][0] * 1e3:.1f}",
         "auto_flags": str(len(auto["flagged_windows"])),
         "auto_force": _g(auto["rmse"]["force_N"]), "auto_cop_mm": _g(auto["rmse"]["cop_m"] * 1e3),
-        "auto_tilt_deg": _g(auto["rmse"]["rotation_rad"] * deg),
+        "auto_tilt_mrad": _g(auto["rmse"]["rotation_rad"] * mrad),
         "added_flags": str(len(added["after"]["flagged_windows"])),
         "added_force": _g(added["after"]["rmse"]["force_N"]),
-        "added_tilt_deg": _g(added["after"]["rmse"]["rotation_rad"] * deg),
+        "added_tilt_mrad": _g(added["after"]["rmse"]["rotation_rad"] * mrad),
         "push_start": f"{push_after['start_s']:.2f}", "push_end": f"{push_after['end_s']:.2f}",
         "push_peak_N": f"{push_after['peak_force'][0]:.0f}", "push_peak_s": f"{push_after['peak_s']:.2f}",
         "com_after_mm": f"{com_after['value'][0] * 1e3:.1f} ± {com_after['std'][0] * 1e3:.1f}",

@@ -246,8 +246,8 @@ class Footholds:
             return (f"a foothold {1e3 * p:.0f} mm off the kinematics' (beyond {1e3 * self.plausible_position:.0f} mm: "
                     "the leg kinematics are not that wrong)")
         if r > self.plausible_rotation:
-            return (f"a foothold turned {math.degrees(r):.1f} deg from the kinematics' (beyond "
-                    f"{math.degrees(self.plausible_rotation):.0f} deg)")
+            return (f"a foothold turned {1e3 * r:.0f} mrad from the kinematics' (beyond "
+                    f"{1e3 * self.plausible_rotation:.0f} mrad)")
         return None
 
     # -- set-up ---------------------------------------------------------------------------------
@@ -429,7 +429,7 @@ class Footholds:
                              "dp_m": e[:3].tolist(), "dr_rad": e[3:].tolist(), "std": std})
             worst = [max(worst[0], float(np.linalg.norm(e[:3]))), max(worst[1], float(np.linalg.norm(e[3:])))]
         summary = (f"{len(episodes)} footholds estimated; largest correction {1e3 * worst[0]:.1f} mm, "
-                   f"{math.degrees(worst[1]):.2f} deg")
+                   f"{1e3 * worst[1]:.1f} mrad")
         if episodes:  # the episode moved most, its height and tilt (what the forces and the tilt feel)
             cfg = self.prior_config  # in kinematic sigmas: millimetres and degrees weighed alike
             big = max(episodes, key=lambda ep: float(np.linalg.norm(ep["dp_m"])) / cfg.kinematics_sigma_position
@@ -437,7 +437,7 @@ class Footholds:
             sd = big["std"] or [math.nan] * 6
             when = f" at {big['t']:.2f} s" if big["t"] is not None else ""
             summary += (f" (contact {big['contact']}{when}: height {1e3 * big['dp_m'][2]:+.1f} ± {1e3 * sd[2]:.1f} mm, "
-                        f"roll {math.degrees(big['dr_rad'][0]):+.2f} ± {math.degrees(sd[3]):.2f} deg, "
-                        f"pitch {math.degrees(big['dr_rad'][1]):+.2f} ± {math.degrees(sd[4]):.2f} deg)")
+                        f"roll {1e3 * big['dr_rad'][0]:+.1f} ± {1e3 * sd[3]:.1f} mrad, "
+                        f"pitch {1e3 * big['dr_rad'][1]:+.1f} ± {1e3 * sd[4]:.1f} mrad)")
         return {"value": v[-1].tolist(), "unit": self.unit, "labels": list(self.labels), "episodes": episodes,
                 "max_position_m": worst[0], "max_rotation_rad": worst[1], "summary": summary}

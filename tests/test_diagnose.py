@@ -666,7 +666,7 @@ def test_partner_checks_say_which_inseparable_candidate_the_references_favour():
         return out[0]
 
     favoured = sentence(0.006, 30.5)  # tilt 40 % lower, force within 5 %
-    assert "accel-bias (tilt 0.573 -> 0.344 deg, vertical force 36 -> 30.5 N)" in favoured, favoured
+    assert "accel-bias (tilt 10 -> 6 mrad, vertical force 36 -> 30.5 N)" in favoured, favoured
     assert favoured.endswith("the F/T and motion capture favour accel-bias over the choice (a motion that separates "
                              "them, or knowledge of the robot, settles it)"), favoured
     assert sentence(0.02, 30.0).endswith("the F/T and motion capture agree with the choice over accel-bias")
@@ -706,7 +706,7 @@ def test_the_check_of_a_selected_effect_says_when_the_references_disagree():
                "before": {"vertical_force_N": 31.9, "rotation_rad": 0.0141},
                "after": {"vertical_force_N": 39.8, "rotation_rad": 0.0141 * (1.0 + 0.5 * DEFAULT.check_worse)}}
     text = c.check_text()
-    assert text.startswith("against the F/T and Vicon (not fitted): vertical force 31.9 -> 39.8 N, tilt 0.808 -> ")
+    assert text.startswith("against the F/T and Vicon (not fitted): vertical force 31.9 -> 39.8 N, tilt 14.1 -> ")
     assert text.endswith("the check disagrees: the vertical force error rose by more than 5%")
     c.check = {"against": "truth", "before": {"cop_m": 0.0065, "rotation_rad": 0.0028},
                "after": {"cop_m": 0.026, "rotation_rad": 0.0098}}

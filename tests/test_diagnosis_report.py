@@ -1,5 +1,5 @@
 """The diagnosis report's words: the verdict first, the fitted values after --add, one unit system
-(mm, deg), and sentences that agree with the numbers they quote (compare/diagnostics/text.py,
+(mm, mrad), and sentences that agree with the numbers they quote (compare/diagnostics/text.py,
 compare/reports/diagnosis.py, the CLI's printing)."""
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ def test_verdict_names_the_effect_its_values_and_what_adding_it_does():
     after = snap({**ERRORS, "force_N": 1.12, "rotation_rad": 0.0005}, flags=3, effects={"com-offset": COM})
     v = diagnosis([[com]], ["com-offset"], ["com-offset"], after=after).verdict()
     assert v.startswith("The model misses com-offset (CoM offset x = 21.2 ± 0.4 mm)"), v
-    assert "lowers the force error from 3.16 to 1.12 N" in v and "the tilt error from 0.509 to 0.0286 deg" in v, v
+    assert "lowers the force error from 3.16 to 1.12 N" in v and "the tilt error from 8.88 to 0.5 mrad" in v, v
     assert "the flagged windows from 24 to 3" in v, v
     assert "correct the mass model" in v, v  # what to do, said of a found effect
 
@@ -199,14 +199,14 @@ def test_identifiability_does_not_contradict_a_found_effect():
     assert "found all the same" not in items[0]
 
 
-def test_one_unit_system_mm_and_deg():
+def test_one_unit_system_mm_and_mrad():
     c = row("com-offset")
     c.check = {"against": "truth", "before": {"rotation_rad": 0.00888, "cop_m": 0.0203},
                "after": {"rotation_rad": 0.0005, "cop_m": 0.0015}}
     words = c.check_text()
-    assert "tilt 0.509 -> 0.0286 deg" in words and "CoP 20.3 -> 1.5 mm" in words and "mrad" not in words, words
+    assert "tilt 8.88 -> 0.5 mrad" in words and "CoP 20.3 -> 1.5 mm" in words and "deg" not in words, words
     assert text.effect_values("imu-mounting", {"value": [0.01], "std": [0.001], "labels": ["x [rad]"]}) \
-        == "IMU mounting rotation x = 0.57 ± 0.06 deg"
+        == "IMU mounting rotation x = 10.0 ± 1.0 mrad"
     assert text.effect_values("com-offset", COM) == "CoM offset x = 21.2 ± 0.4 mm"
 
 
@@ -279,7 +279,7 @@ def test_the_page_opens_with_the_verdict_and_ends_with_the_details(gyro_sway, tm
     assert "added gyro-bias: gyro bias y = 0.0" in page and "Selected: <b>gyro-bias</b>" in page
     for term in ("score test (T)", "Holm", "Occam factor", "2 ln L", "BIC score"):
         assert f"<b>{term}" in page, term
-    assert "[mrad]" not in page and "tilt [deg]" in page  # one unit system: mm and deg
+    assert "[deg]" not in page and "tilt [mrad]" in page  # one unit system: mm and mrad, as the comparison
     data = json.loads((tmp_path / "d" / "diagnosis.json").read_text())
     assert data["verdict"] == d.verdict() and data["added_values"] == d.added_values()
 

@@ -19,17 +19,18 @@ if TYPE_CHECKING:
 
 
 CHECK_LABELS = {"force_N": ("force", 1.0, " N"), "moment_Nm": ("moment", 1.0, " N m"), "cop_m": ("CoP", 1e3, " mm"),
-                "rotation_rad": ("tilt", 180.0 / math.pi, " deg"), "translation_m": ("position", 1e3, " mm"),
+                "rotation_rad": ("tilt", 1e3, " mrad"), "translation_m": ("position", 1e3, " mm"),
                 "hand_m": ("hand", 1e3, " mm"), "vertical_force_N": ("vertical force", 1.0, " N"),
                 "contact_force_N": ("contact force", 1.0, " N"), "contact_moment_Nm": ("contact moment", 1.0, " N m"),
                 "contact_cop_m": ("sole CoP", 1e3, " mm")}
 """How :meth:`Candidate.check_text` names and scales each error: the diagnosis's units (:data:`UNITS`)."""
 
-DISPLAY_UNITS = {"m": ("mm", 1e3), "rad": ("deg", 180.0 / math.pi)}
+DISPLAY_UNITS = {"m": ("mm", 1e3), "rad": ("mrad", 1e3)}
 """SI unit of an effect's value -> the unit the diagnosis's sentences show it in, and the factor:
 one system with :data:`CHECK_LABELS` (:data:`UNITS`)."""
 
-UNITS = "Units: forces N, moments N m, lengths mm (CoP, positions, hands, offsets), rotations and tilt deg, time s."
+UNITS = ("Units: forces N, moments N m, lengths mm (CoP, positions, hands, offsets), rotations and tilt mrad, "
+         "time s (those of the comparison's report).")
 """The diagnosis report's units, stated on its page."""
 
 ADVICE = ("resynchronise", "check the", "recalibrate", "re-measure")
@@ -43,7 +44,7 @@ def _scored(c: Candidate) -> str:
 
 
 def _check_items(check: dict) -> list[tuple[str, float, float, str]]:
-    """``(label, before, after, "tilt 0.61 -> 0.3 deg")`` of each error a :attr:`Candidate.check`
+    """``(label, before, after, "tilt 10.6 -> 5.2 mrad")`` of each error a :attr:`Candidate.check`
     holds both numbers of, in its order (:data:`CHECK_LABELS`)."""
     out = []
     for key, b in check["before"].items():
@@ -68,7 +69,7 @@ def _check_reference(check: dict) -> str:
 
 
 def _check_after(check: dict) -> str:
-    """``(tilt 0.61 -> 0.3 deg, vertical force 36.3 -> 35 N)`` of a :attr:`Candidate.check`."""
+    """``(tilt 10.6 -> 5.2 mrad, vertical force 36.3 -> 35 N)`` of a :attr:`Candidate.check`."""
     return "(" + ", ".join(text for _, _, _, text in _check_items(check)) + ")"
 
 
@@ -598,7 +599,7 @@ def _window_text(w: dict) -> str:
 
 
 def _errors_change(before: dict, after: dict, check_worse: float, limit: int = 3) -> tuple[str, str]:
-    """``("the force error from 3.16 to 1.12 N, the tilt error from 0.509 to 0.0286 deg", "")``: the
+    """``("the force error from 3.16 to 1.12 N, the tilt error from 8.88 to 0.499 mrad", "")``: the
     errors that fall (the force first, then the largest falls, at most ``limit``), and the ones
     that rise by more than ``check_worse`` (second, "" when none)."""
     rows = []
@@ -799,7 +800,7 @@ def identifiability_items(d: Diagnosis) -> list[str]:
 
 
 def detectable_text(info) -> str:
-    """``x ≥ 0.11 deg, ...``: a candidate's detectable sizes (:attr:`CandidateInformation.detectable`)
+    """``x ≥ 1.9 mrad, ...``: a candidate's detectable sizes (:attr:`CandidateInformation.detectable`)
     in the report's units, one per unknown."""
     out = []
     for i, size in enumerate(info.detectable):

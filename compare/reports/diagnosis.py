@@ -256,7 +256,7 @@ GLOSSARY = (
 
 
 def _flag_row(f) -> dict:
-    """A flagged window as the page shows it: its size and mean in the report's units (mm, deg)."""
+    """A flagged window as the page shows it: its size and mean in the report's units (mm, mrad)."""
     def shown(x):
         return None if x is None else text.display(float(x), f.unit)[0]
 
@@ -285,7 +285,7 @@ def _error_label(key: str) -> str:
 
 
 def _error(value, key: str) -> str:
-    """An error in the report's unit (mm, deg: :data:`text.CHECK_LABELS`)."""
+    """An error in the report's unit (mm, mrad: :data:`text.CHECK_LABELS`)."""
     if value is None:
         return "–"
     return f"{value * text.CHECK_LABELS.get(key, ('', 1.0, ''))[1]:.3g}"

@@ -200,8 +200,8 @@ class ImuMounting(_Constant):
         angle = float(np.linalg.norm(v))
         if angle <= self.max_angle:
             return None
-        return (f"IMU mounting rotation of {_fmt(angle)} rad ({np.degrees(angle):.1f} deg) is beyond "
-                f"{_fmt(self.max_angle)} rad: an IMU frame that far off is a wrong model (axes swapped), "
+        return (f"IMU mounting rotation of {1e3 * angle:.0f} mrad ({np.degrees(angle):.1f} deg) is beyond "
+                f"{1e3 * self.max_angle:.0f} mrad: an IMU frame that far off is a wrong model (axes swapped), "
                 f"not a mounting error")
 
     def residual_terms(self, family, problem: ProblemView, steps, R, q, W, e):
