@@ -241,7 +241,7 @@ def test_diagnosis_of_a_clean_recording_finds_none_of_them(ft):
 
 
 @pytest.mark.parametrize("name, good, bad, words", [
-    ("imu-mounting", [0.02, -0.01, 0.05], [0.08, 0.0, 0.08], "beyond 0.1 rad"),
+    ("imu-mounting", [0.02, -0.01, 0.05], [0.08, 0.0, 0.08], "beyond 100 mrad"),
     ("time-offset", [-0.03], [0.08], "beyond 0.05 s"),
     ("mass-scale", [1.3], [2.4], "outside the plausible 0.5-2"),
 ])
