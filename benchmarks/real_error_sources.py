@@ -65,6 +65,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 import flexforce as ff
+from flexforce.compare.band import moved_com
 
 HERE = Path(__file__).resolve().parent
 DATA = HERE.parents[1] / "shared" / "data" / "icub"
@@ -277,18 +278,6 @@ def fit_com_offset(rec: ff.Recording, model: ff.ModelConfig) -> dict:
             "accel_bias": _round(bias["value"], 3), "accel_bias_std": _round(bias["std"], 3)}
 
 
-def with_com_offset(rec: ff.Recording, model: ff.ModelConfig, offset_xy) -> ff.Recording:
-    """``rec`` with its inputs moved as :meth:`ComOffset.inputs` moves them for the local-frame offset."""
-    from flexforce.factors.effects import make_effect
-    from flexforce.smoother.batch import BatchConfig
-    from flexforce.smoother.problem import build_problem
-
-    prob = build_problem(rec, model, BatchConfig())
-    d = np.tile([offset_xy[0], offset_xy[1], 0.0], (rec.n, 1))
-    c, _, _, inertia, inertia_dot, sigma, sigma_dot = make_effect("com-offset").inputs(prob, np.arange(rec.n), d)
-    return dataclasses.replace(rec, com=c, inertia=inertia, inertia_dot=inertia_dot, sigma=sigma, sigma_dot=sigma_dot)
-
-
 def run(name: str, rec: ff.Recording, model: ff.ModelConfig) -> tuple[dict, dict[str, ff.Estimate]]:
     """The record of one recording (``name``: its file), and its estimates by estimator."""
     n = rec.n
@@ -343,7 +332,7 @@ def main() -> None:
         fitted = {key: fit_com_offset(recs[key], models[key]) for key in recs}
         for key, rec in recs.items():
             other = next(k for k in recs if k != key)
-            moved = with_com_offset(rec, models[key], np.asarray(fitted[other]["com_offset_mm"]) * 1e-3)
+            moved = moved_com(rec, models[key], np.asarray(fitted[other]["com_offset_mm"]) * 1e-3)
             record[key]["com_offset"] = {
                 "fitted": fitted[key], "from": other,
                 "nominal": {n: _errors(rec, est) for n, est in estimates[key].items()},

@@ -30,8 +30,12 @@ from __future__ import annotations
 import dataclasses
 import warnings
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from flexforce.datasets.recording import Recording
 
 __all__ = ["ModelBand", "model_band", "moved_com", "shifted_switches", "variance_factor"]
 
@@ -64,7 +68,7 @@ def variance_factor(est) -> float:
     return max(1.0, float(np.mean(r * r))) if r.size else 1.0
 
 
-def moved_com(rec, model, offset_xy) -> object:
+def moved_com(rec: Recording, model, offset_xy) -> Recording:
     """``rec`` with its inputs moved as a CoM offset ``offset_xy`` (m, local x and y) moves them
     (:meth:`flexforce.factors.effects.newton_euler.ComOffset.inputs`: the CoM, the inertia about it
     and the momentum)."""

@@ -444,13 +444,12 @@ def phase_masks(rec, skip: float = 0.0, window: float = TRANSITION_S) -> dict[st
     """(N,) bool masks of the samples after ``skip`` s: ``all``, ``single_support`` (one contact in
     force), ``double_support`` (two or more), ``transition`` (within ``window`` s of a contact
     switch); the support phases leave the transitions out; samples with no contact are in ``all`` only."""
+    from flexforce.factors.contact_limits import near_switches
+
     t = rec.time
     keep = t >= skip
     act = rec.contact_active
-    near = np.zeros(rec.n, dtype=bool)
-    switches = np.flatnonzero(np.any(act[1:] != act[:-1], axis=1)) + 1
-    for k in switches:
-        near |= np.abs(t - t[k]) <= window
+    near = near_switches(act, t, window)
     count = act.sum(axis=1)
     return {"all": keep, "single_support": keep & (count == 1) & ~near,
             "double_support": keep & (count >= 2) & ~near, "transition": keep & near}

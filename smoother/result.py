@@ -166,10 +166,10 @@ def make_estimate(prob, name: str, traj: Trajectory, P: np.ndarray | None = None
     # With the footholds estimated a landing's rest placement is an unknown of its own: the law's
     # forces are then kept at the switches too.
     window = float(getattr(prob.model, "switch_window", 0.0))
-    if any(e.name == "foothold" for e in prob.effects):
-        window = 0.0
-    W, balanced = balance_near_switches(traj.R, traj.q[:, 0:3], W, unexplained_force(prob, residuals), rec, window,
-                                        near=switch_near)
+    balanced = None
+    if window > 0 and not any(e.name == "foothold" for e in prob.effects):
+        W, balanced = balance_near_switches(traj.R, traj.q[:, 0:3], W, unexplained_force(prob, residuals), rec,
+                                            window, near=switch_near)
     W, excess, limits = limit_world_wrenches(traj.R, traj.q[:, 0:3], W, rec, prob.model)
     total = W.sum(axis=1)
     cop = np.empty((n, 3))

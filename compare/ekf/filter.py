@@ -663,12 +663,11 @@ class _Outputs:
         balanced = None
         if self.want:
             law = wrench
-            unexplained = required_force(R, x[:, W], x[:, DW], x[:, A], rec) - wrench[:, :, :3].sum(axis=1)
             # a zero-deflection touch-down lands the spring unloaded: the law's forces are kept
             window = float(getattr(ekf.model, "switch_window", 0.0))
-            if ekf.config.touchdown == "zero-deflection":
-                window = 0.0
-            wrench, balanced = balance_near_switches(R, x[:, T], wrench, unexplained, rec, window)
+            if window > 0 and ekf.config.touchdown != "zero-deflection":
+                unexplained = required_force(R, x[:, W], x[:, DW], x[:, A], rec) - wrench[:, :, :3].sum(axis=1)
+                wrench, balanced = balance_near_switches(R, x[:, T], wrench, unexplained, rec, window)
             wrench, excess, limits = limit_world_wrenches(R, x[:, T], wrench, rec, ekf.model)
             changed = np.any(wrench != law, axis=(1, 2))
             if changed.any():
