@@ -28,7 +28,9 @@ phase too, and their time per step; and each recording's ``headline``: the sente
 best estimator per quantity against the best baseline (:func:`flexforce.compare.runner.headline`);
 ``footholds_estimated``: the smoothers' rows again with ``--footholds``; and ``noise_calibrated``:
 the batch smoother's row with ``--calibrate-noise`` (its IMU noise scaled by its own residuals'
-RMS where above 3 sigma).
+RMS where above 3 sigma); ``reference_checks``: the F/T held against the rigid robot's dynamics,
+no estimate involved (:func:`flexforce.compare.metrics.reference_checks`: the unloaded feet's
+readings, the F/T sum against ``m (g + c_z'')``).
 Writes the JSON record to
 ``benchmarks/results/real_forces.json`` and prints it.
 """
@@ -145,6 +147,7 @@ def run(path: Path) -> dict:
     rec = summary["recording"]
     return {"recording": path.name, "samples": rec.get("samples"), "duration_s": rec.get("duration_s"),
             "headline": headline(summary), "compare_s": round(seconds, 1),
+            "reference_checks": summary.get("reference_checks"),
             "estimators": {k: _row(m) for k, m in summary["estimators"].items()},
             "baselines": {k: _row(m) for k, m in (summary.get("baselines") or {}).items()},
             "peers": {k: _peer_row(m, (timings.get("peers") or {}).get(k) or {})

@@ -29,6 +29,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy import stats
@@ -610,4 +611,54 @@ def _violations(R, t, wrench, rec, skip, mu, sole, soles) -> dict:
     bad = judged & ((cx < box[:, 0]) | (cx > box[:, 1]) | (cy < box[:, 2]) | (cy > box[:, 3]))
     shown = list(sole) if sole is not None else [None if r is None else list(r) for r in per]
     out["cop_outside_sole"] = {**counted(bad, int(judged.sum())), "sole_m": shown}
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# The F/T reference held against the rigid robot's dynamics (no estimate involved)
+# ----------------------------------------------------------------------------------------------
+
+MIN_CHECK_SAMPLES = 10
+"""Samples below which a check of :func:`reference_checks` is left out (too few to average)."""
+
+
+def reference_checks(rec, skip: float = 0.0) -> dict | None:
+    """How far the F/T normal forces are from what the robot's rigid dynamics require, from the
+    recording alone (no estimate): the reference's own error, which every row's force error
+    against the F/T contains.  None without F/T normal forces, or with ground truth (then the
+    reference is the truth).
+
+    - ``unloaded``: per contact, the F/T normal force where the contact is not in force (the
+      swing foot, whose true contact force is 0): ``samples``, ``mean_N``, ``rms_N``.  A mean away
+      from 0 is the sensor's offset (or the unmodelled weight under it).
+    - ``total``: per phase (``all``, ``single_support``, ``double_support``; :func:`phase_masks`)
+      the F/T sum minus ``m (g + c_z'')`` (the CoM's vertical acceleration from the encoders, the
+      flexibility's left out): ``samples``, ``mean_N``, ``rms_N``.  A mean away from 0 in double
+      support, where the feet stand still, is an offset of the F/T sum.
+    """
+    if rec.truth is not None or rec.ft is None:
+        return None
+    fz = np.asarray(rec.ft[:, :, 2], dtype=float)
+    act = np.asarray(rec.contact_active, dtype=bool)
+    if not np.isfinite(fz[act]).any():
+        return None
+    g = float(rec.gravity)
+    keep = rec.time >= skip
+    out: dict[str, Any] = {"unloaded": {}, "total": {}}
+    for i, name in enumerate(rec.contact_names):
+        sel = keep & ~act[:, i] & np.isfinite(fz[:, i])
+        if sel.sum() >= MIN_CHECK_SAMPLES:
+            x = fz[sel, i]
+            out["unloaded"][name] = {"samples": int(sel.sum()), "mean_N": float(x.mean()),
+                                     "rms_N": float(np.sqrt(np.mean(x * x)))}
+    total = np.where(act, fz, 0.0).sum(axis=1)
+    resid = total - rec.mass * (rec.com_acc[:, 2] + g)
+    finite = np.isfinite(np.where(act, fz, 0.0)).all(axis=1)
+    masks = phase_masks(rec, skip)
+    for phase in ("all", "single_support", "double_support"):
+        sel = masks[phase] & act.any(axis=1) & finite
+        if sel.sum() >= MIN_CHECK_SAMPLES:
+            x = resid[sel]
+            out["total"][phase] = {"samples": int(sel.sum()), "mean_N": float(x.mean()),
+                                   "rms_N": float(np.sqrt(np.mean(x * x)))}
     return out

@@ -25,6 +25,7 @@ from flexforce.compare.metrics import (
     force_band,
     lowpass_key,
     phase_metrics,
+    reference_checks,
     violations,
 )
 from flexforce.errors import ConfigError, FlexforceError
@@ -113,6 +114,10 @@ class Comparison:
     flexforce's own."""
     peer_estimates: dict = field(default_factory=dict)
     """summary key -> the peer's Estimate."""
+    reference: dict | None = None
+    """The F/T reference held against the rigid robot's dynamics, from the recording alone
+    (:func:`flexforce.compare.metrics.reference_checks`): summary.json's ``reference_checks``; None
+    with ground truth or without F/T."""
     warnings: list[dict] = field(default_factory=list)
     """The sensor faults recognised in the recording's data (``Recording.meta['sensor_faults']``,
     :mod:`flexforce.datasets.sensorcheck`): summary.json's ``warnings`` when there are any."""
@@ -129,6 +134,8 @@ class Comparison:
             out["failures"] = self.failures
         if self.warnings:
             out["warnings"] = self.warnings
+        if self.reference:
+            out["reference_checks"] = self.reference
         rows = [*self.metrics.values(), *self.baselines.values()]
         if any(m.per_phase or m.violations for m in rows):
             out["definitions"] = DEFINITIONS
@@ -296,7 +303,8 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
     rec.validate()
     if model is None:
         model = nominal_model(rec)
-    result = Comparison(recording=describe(rec), warnings=list(rec.meta.get("sensor_faults") or []))
+    result = Comparison(recording=describe(rec), warnings=list(rec.meta.get("sensor_faults") or []),
+                        reference=reference_checks(rec, skip))
     for name in estimators:
         key = summary_key(name)
         cb = (lambda f, _n=name: progress(_n, f)) if progress else None

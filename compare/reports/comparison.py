@@ -1042,6 +1042,30 @@ def band_sentences(summary: dict) -> list[str]:
     return out
 
 
+def reference_sentences(summary: dict) -> list[str]:
+    """What the F/T reference's own checks say (summary.json's ``reference_checks``,
+    :func:`flexforce.compare.metrics.reference_checks`): the unloaded feet's readings, the F/T sum
+    against the weight and the CoM's acceleration.  Empty without them."""
+    ref = summary.get("reference_checks") or {}
+    out = []
+    unloaded = ref.get("unloaded") or {}
+    if unloaded:
+        parts = [f"{v['mean_N']:.1f} N ({k}, RMS {v['rms_N']:.1f} N)" for k, v in unloaded.items()]
+        out.append("Where a foot is not in contact its true contact force is 0; its F/T reads on average "
+                   + ", ".join(parts) + ".")
+    total = ref.get("total") or {}
+    phases = [(p, total[p]) for p in ("double_support", "single_support") if p in total] or \
+        [(p, total[p]) for p in ("all",) if p in total]
+    if phases:
+        parts = [f"{abs(v['mean_N']):.1f} N {'above' if v['mean_N'] >= 0 else 'below'} it in "
+                 f"{p.replace('_', ' ')} (RMS {v['rms_N']:.1f} N)" for p, v in phases]
+        out.append("The F/T sum against m (g + c̈_z), the weight and the CoM's vertical acceleration from the "
+                   "encoders: " + "; ".join(parts) + ".")
+    if out:
+        out.append("Force errors of these sizes against the F/T are within the reference's own.")
+    return out
+
+
 BAND_SLACK = 0.05
 """How far below the nominal coverage a band may fall and still be called honest (0.05: 90 % for ±2σ)."""
 
@@ -1185,6 +1209,7 @@ def _write_report(comp, rec, out: Path, title: str | None) -> None:
         mu=next((v["friction_mu"] for _, m, _ in _table_rows(summary) if (v := m.get("violations"))), FRICTION_MU),
         sole_skipped=_sole_skipped(summary), consistency=consistency_sentences(summary),
         violations=violation_sentences(summary), bands=band_sentences(summary),
+        reference_checks=reference_sentences(summary),
         has_bands=any((m.get("force_band") or {}).get("samples") for _, m, _ in _table_rows(summary)),
         headings=FIGURE_HEADINGS, robust_limits=ROBUST_LIMITS_SENTENCE,
         units=UNITS_SENTENCE, crb_columns=_crb_columns(RMSE_KEYS), residual_peaks=residual_peaks(comp, rec),
