@@ -11,7 +11,10 @@ Vicon (references, not ground truth):
 - ``foot_vertical_force_N``, ``total_vertical_force_N``: RMSE of each foot's normal force and of
   their sum, raw and low-passed (``lowpass_5Hz``: zero-phase Butterworth of both the estimate and
   the reference, summary.json's ``definitions``);
-- ``tilt_mrad``: RMSE of the base tilt against Vicon;
+- ``tilt_mrad``: RMSE of the base tilt against Vicon; ``tilt_aligned_mrad``, the same once the
+  row's constant tilt offset (``tilt_offset_mrad``, the mean of the estimated minus the Vicon
+  vertical in the base frame: the markers' frame, the floor's slope) is taken out
+  (:func:`flexforce.compare.metrics.aligned_tilt`);
 - ``per_phase``: the same per contact phase (single support, double support, transitions within
   ±50 ms of a contact switch; a phase without samples is left out);
 - ``violations``: counts and fractions of negative normal forces, of forces outside the friction
@@ -61,6 +64,14 @@ RECORDINGS = {"walk": "icub-walk-12s", "sway": "icub-com-sinusoid-20s.bag"}
 ROBOT = "icub-identified"
 
 
+def _aligned(m: dict) -> dict:
+    """A row's tilt with its constant taken out (summary.json's ``extra``, mrad)."""
+    extra = m.get("extra") or {}
+    aligned, offset = extra.get("tilt_aligned_rad"), extra.get("tilt_offset_rad")
+    return {"tilt_aligned_mrad": None if aligned is None else aligned * 1e3,
+            "tilt_offset_mrad": None if offset is None else [x * 1e3 for x in offset]}
+
+
 def _row(m: dict) -> dict:
     """The figures of one summary row (summary.json's estimator or baseline entry)."""
     lp = lowpass_key()
@@ -74,7 +85,7 @@ def _row(m: dict) -> dict:
     whole = phases.get("all") or {}
     tilt = (m.get("rmse") or {}).get("rotation_rad")
     out: dict[str, Any] = {"kind": m.get("kind"), **forces(whole.get("rmse") or {}), short: forces(whole.get(lp) or {}),
-           "tilt_mrad": None if tilt is None else tilt * 1e3, "per_phase": {}}
+           "tilt_mrad": None if tilt is None else tilt * 1e3, **_aligned(m), "per_phase": {}}
     for phase, d in phases.items():
         if phase == "all" or not d.get("samples"):
             continue
@@ -113,7 +124,8 @@ def _peer_row(m: dict, timing: dict) -> dict:
     (``timing``: the row's entry of timings.json)."""
     tilt = (m.get("rmse") or {}).get("rotation_rad")
     steps = timing.get("time_per_step_s") or {}
-    out: dict[str, Any] = {"kind": m.get("kind"), "tilt_mrad": None if tilt is None else tilt * 1e3, "per_phase": {},
+    out: dict[str, Any] = {"kind": m.get("kind"), "tilt_mrad": None if tilt is None else tilt * 1e3, **_aligned(m),
+                           "per_phase": {},
            "time_per_step_us": {k: None if v is None else v * 1e6 for k, v in steps.items()},
            "total_time_s": timing.get("total_time_s")}
     for phase, d in (m.get("per_phase") or {}).items():

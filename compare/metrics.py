@@ -327,6 +327,33 @@ def base_tilt_error(est, rec, link: str) -> np.ndarray:
     return out
 
 
+def aligned_tilt(est, rec, link: str, keep: np.ndarray) -> dict:
+    """The tilt error against motion capture split into its constant and the rest: what a constant
+    rotation between the two verticals (the markers' frame against the base's, the floor's slope
+    against gravity: neither is the estimator's) leaves.  Over the samples of ``keep`` with motion
+    capture, in the base frame (:func:`base_tilt_error`'s verticals):
+
+    - ``tilt_offset_rad``: [x, y], the mean of the estimated minus the motion-capture vertical
+      (small angles: the base's roll and pitch offset, as rotations about -y and x);
+    - ``tilt_aligned_rad``: the RMS angle between the verticals once that mean is taken out (as
+      evo's trajectory alignment does for a whole pose).
+
+    Empty without motion capture in ``keep``."""
+    from scipy.spatial.transform import Rotation
+
+    pose = rec.mocap[link]
+    ok = np.all(np.isfinite(pose), axis=1) & keep
+    if not ok.any() or rec.base_pose is None:
+        return {}
+    R_est = np.einsum("nij,njk->nik", est.R[ok], Rotation.from_quat(rec.base_pose[ok, 3:]).as_matrix())
+    d = R_est[:, 2, :] - Rotation.from_quat(pose[ok, 3:]).as_matrix()[:, 2, :]
+    offset = d.mean(axis=0)
+    chord = np.linalg.norm(d - offset, axis=1)
+    angle = 2.0 * np.arcsin(np.clip(chord / 2.0, 0.0, 1.0))
+    return {"tilt_offset_rad": [float(offset[0]), float(offset[1])],
+            "tilt_aligned_rad": float(np.sqrt(np.mean(angle * angle)))}
+
+
 def mocap_label(rec) -> str:
     """The motion-capture system's name: ``meta["mocap_system"]`` when the importer sets it, ``Vicon``
     when a topic name says so, else ``motion capture``."""
@@ -351,6 +378,7 @@ def _against_sensors(m: Metrics, est, rec, keep):
         s[~keep] = np.nan
         m.rmse["rotation_rad"], m.max["rotation_rad"] = _summ(s)
         m.extra["rotation_reference"] = f"tilt of {base} against motion capture"
+        m.extra.update(aligned_tilt(est, rec, base, keep))
         m.references["rotation_rad"] = f"reference: {mocap_label(rec)}"
     if rec.ft is not None:
         local = contact_frame_wrench(est.R, est.t, est.wrench, rec)

@@ -128,3 +128,47 @@ def test_six_axis_ft_give_the_contacts_moment_and_sole_cop_errors(rec):
     only_z = dataclasses.replace(real, ft=np.where(np.arange(6) == 2, rec.ft, np.nan))
     m = evaluate(est, only_z, skip=0.0)
     assert "contact_moment_Nm" not in m.rmse and "contact_cop_m" not in m.rmse
+
+
+def test_aligned_tilt_takes_out_a_constant_marker_rotation(rec):
+    """Motion capture whose markers sit 10 mrad off the base frame: the raw tilt error of a perfect
+    estimate is that constant, the aligned one nothing; a 5 mrad sinusoidal pitch error on top is
+    what the alignment leaves (its RMS, 5 / sqrt 2 mrad)."""
+    import dataclasses
+
+    from scipy.spatial.transform import Rotation
+
+    from flexforce.compare.metrics import aligned_tilt, base_tilt_error
+
+    R_local = Rotation.from_quat(rec.base_pose[:, 3:]).as_matrix()
+    R_base = np.einsum("nij,njk->nik", rec.truth.R, R_local)  # the base in the world
+    markers = Rotation.from_rotvec([0.01, 0.0, 0.0]).as_matrix()
+    pose = np.zeros((rec.n, 7))
+    pose[:, 3:] = Rotation.from_matrix(R_base @ markers).as_quat()
+    mocap_rec = dataclasses.replace(rec, mocap={"base": pose})
+    keep = np.ones(rec.n, dtype=bool)
+    est = truth_estimate(rec)
+    raw = base_tilt_error(est, mocap_rec, "base")
+    assert np.sqrt(np.mean(raw**2)) == pytest.approx(0.01, rel=0.02)
+    out = aligned_tilt(est, mocap_rec, "base", keep)
+    assert np.hypot(*out["tilt_offset_rad"]) == pytest.approx(0.01, rel=0.02)
+    # measured 1.3e-6 rad (second order: the base's own tilt times the markers' 10 mrad); margin x10
+    assert out["tilt_aligned_rad"] < 1.5e-5
+    # a pitch error varying about zero stays
+    wobble = 0.005 * np.sin(2 * np.pi * 2.0 * rec.time)
+    est.R = np.einsum("nij,njk->nik", est.R, Rotation.from_rotvec(np.c_[0 * wobble, wobble, 0 * wobble]).as_matrix())
+    out = aligned_tilt(est, mocap_rec, "base", keep)
+    assert out["tilt_aligned_rad"] == pytest.approx(0.005 / np.sqrt(2), rel=0.05)
+
+
+def test_aligned_tilt_sentence_lowest_first():
+    from flexforce.compare.reports.comparison import aligned_tilt_sentences
+
+    summary = {"estimators": {"batch": {"extra": {"tilt_aligned_rad": 0.011, "tilt_offset_rad": [0.0077, 0.0007]}},
+                              "ekf": {"extra": {}}},
+               "peers": {"gtsam_fixed_lag": {"extra": {"tilt_aligned_rad": 0.0134,
+                                                       "tilt_offset_rad": [-0.003, -0.003]}}}}
+    (text,) = aligned_tilt_sentences(summary)
+    assert text.index("batch 11.0 mrad (constant 7.7, 0.7)") < text.index("gtsam_fixed_lag 13.4 mrad")
+    assert "ekf" not in text
+    assert aligned_tilt_sentences({"estimators": {"ekf": {}}}) == []

@@ -1042,6 +1042,26 @@ def band_sentences(summary: dict) -> list[str]:
     return out
 
 
+def aligned_tilt_sentences(summary: dict) -> list[str]:
+    """The tilt against motion capture with each row's constant taken out (summary.json's
+    ``extra.tilt_aligned_rad``, :func:`flexforce.compare.metrics.aligned_tilt`): one sentence naming
+    every row's figure, lowest first.  Empty when no row has it."""
+    rows = []
+    for group in ("estimators", "baselines", "peers"):
+        for key, m in (summary.get(group) or {}).items():
+            extra = m.get("extra") or {}
+            if extra.get("tilt_aligned_rad") is not None:
+                rows.append((extra["tilt_aligned_rad"], key, extra.get("tilt_offset_rad") or [0.0, 0.0]))
+    if not rows:
+        return []
+    rows.sort()
+    parts = [f"{k} {1e3 * a:.1f} mrad (constant {1e3 * o[0]:.1f}, {1e3 * o[1]:.1f})" for a, k, o in rows]
+    return ["Each row's tilt error against motion capture holds a constant that is not the estimator's alone "
+            "(the markers' frame against the base's, the floor's slope against gravity). With each row's constant "
+            "taken out (the mean of the estimated minus the motion-capture vertical in the base frame, x and y, "
+            "in brackets), the tilt RMSE is: " + "; ".join(parts) + "."]
+
+
 def reference_sentences(summary: dict) -> list[str]:
     """What the F/T reference's own checks say (summary.json's ``reference_checks``,
     :func:`flexforce.compare.metrics.reference_checks`): the unloaded feet's readings, the F/T sum
@@ -1209,7 +1229,7 @@ def _write_report(comp, rec, out: Path, title: str | None) -> None:
         mu=next((v["friction_mu"] for _, m, _ in _table_rows(summary) if (v := m.get("violations"))), FRICTION_MU),
         sole_skipped=_sole_skipped(summary), consistency=consistency_sentences(summary),
         violations=violation_sentences(summary), bands=band_sentences(summary),
-        reference_checks=reference_sentences(summary),
+        reference_checks=reference_sentences(summary), aligned_tilt=aligned_tilt_sentences(summary),
         has_bands=any((m.get("force_band") or {}).get("samples") for _, m, _ in _table_rows(summary)),
         headings=FIGURE_HEADINGS, robust_limits=ROBUST_LIMITS_SENTENCE,
         units=UNITS_SENTENCE, crb_columns=_crb_columns(RMSE_KEYS), residual_peaks=residual_peaks(comp, rec),
