@@ -13,7 +13,7 @@ Vicon (references, not ground truth):
   the reference, summary.json's ``definitions``);
 - ``tilt_mrad``: RMSE of the base tilt against Vicon; ``tilt_aligned_mrad``, the same once the
   row's constant tilt offset (``tilt_offset_mrad``, the mean of the estimated minus the Vicon
-  vertical in the base frame: the markers' frame, the floor's slope) is taken out
+  vertical in the base frame: the markers' frame, the Vicon world's vertical) is taken out
   (:func:`flexforce.compare.metrics.aligned_tilt`);
 - ``per_phase``: the same per contact phase (single support, double support, transitions within
   ±50 ms of a contact switch; a phase without samples is left out);

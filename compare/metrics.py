@@ -329,8 +329,8 @@ def base_tilt_error(est, rec, link: str) -> np.ndarray:
 
 def aligned_tilt(est, rec, link: str, keep: np.ndarray) -> dict:
     """The tilt error against motion capture split into its constant and the rest: what a constant
-    rotation between the two verticals (the markers' frame against the base's, the floor's slope
-    against gravity: neither is the estimator's) leaves.  Over the samples of ``keep`` with motion
+    rotation between the two verticals (the markers' frame against the base's, the motion-capture
+    world's vertical against gravity: neither is the estimator's) leaves.  Over the samples of ``keep`` with motion
     capture, in the base frame (:func:`base_tilt_error`'s verticals):
 
     - ``tilt_offset_rad``: [x, y], the mean of the estimated minus the motion-capture vertical

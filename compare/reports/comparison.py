@@ -1057,9 +1057,9 @@ def aligned_tilt_sentences(summary: dict) -> list[str]:
     rows.sort()
     parts = [f"{k} {1e3 * a:.1f} mrad (constant {1e3 * o[0]:.1f}, {1e3 * o[1]:.1f})" for a, k, o in rows]
     return ["Each row's tilt error against motion capture holds a constant that is not the estimator's alone "
-            "(the markers' frame against the base's, the floor's slope against gravity). With each row's constant "
-            "taken out (the mean of the estimated minus the motion-capture vertical in the base frame, x and y, "
-            "in brackets), the tilt RMSE is: " + "; ".join(parts) + "."]
+            "(the markers' frame against the base's, the motion-capture world's vertical against gravity). With "
+            "each row's constant taken out (the mean of the estimated minus the motion-capture vertical in the base "
+            "frame, x and y, in brackets), the tilt RMSE is: " + "; ".join(parts) + "."]
 
 
 def reference_sentences(summary: dict) -> list[str]:
