@@ -347,6 +347,9 @@ def aligned_tilt(est, rec, link: str, keep: np.ndarray) -> dict:
         return {}
     R_est = np.einsum("nij,njk->nik", est.R[ok], Rotation.from_quat(rec.base_pose[ok, 3:]).as_matrix())
     d = R_est[:, 2, :] - Rotation.from_quat(pose[ok, 3:]).as_matrix()[:, 2, :]
+    d = d[np.all(np.isfinite(d), axis=1)]  # an estimate with gaps (NaN rows) is judged where it has values
+    if not len(d):
+        return {}
     offset = d.mean(axis=0)
     chord = np.linalg.norm(d - offset, axis=1)
     angle = 2.0 * np.arcsin(np.clip(chord / 2.0, 0.0, 1.0))

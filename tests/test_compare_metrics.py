@@ -159,6 +159,13 @@ def test_aligned_tilt_takes_out_a_constant_marker_rotation(rec):
     est.R = np.einsum("nij,njk->nik", est.R, Rotation.from_rotvec(np.c_[0 * wobble, wobble, 0 * wobble]).as_matrix())
     out = aligned_tilt(est, mocap_rec, "base", keep)
     assert out["tilt_aligned_rad"] == pytest.approx(0.005 / np.sqrt(2), rel=0.05)
+    # an estimate with a gap (NaN rows) is judged where it has values; one without any gives nothing
+    est.R = est.R.copy()
+    est.R[: rec.n // 3] = np.nan
+    gap = aligned_tilt(est, mocap_rec, "base", keep)
+    assert np.isfinite(gap["tilt_aligned_rad"]) and np.all(np.isfinite(gap["tilt_offset_rad"]))
+    est.R[:] = np.nan
+    assert aligned_tilt(est, mocap_rec, "base", keep) == {}
 
 
 def test_aligned_tilt_sentence_lowest_first():
