@@ -95,3 +95,14 @@ def test_bad_inputs_raise(rec):
     contact_p[k, 0] = np.nan
     with pytest.raises(DataError, match=f"'contact_p' is not finite .* at sample {k}"):
         run_gtsam_legged(dataclasses.replace(rec, contact_p=contact_p))
+
+
+def test_peer_rows_show_the_aligned_tilt():
+    from flexforce.compare.reports.comparison import _peer_rows
+
+    summary = {"peers": {"gtsam_fixed_lag": {"rmse": {"rotation_rad": 0.0143}, "extra": {"tilt_aligned_rad": 0.0135},
+                                             "per_phase": {}},
+                         "gtsam_invariant_ekf": {"rmse": {"rotation_rad": 0.0143}, "per_phase": {}}}}
+    rows = {r["key"]: r for r in _peer_rows(summary)}
+    assert rows["gtsam_fixed_lag"]["tilt"] == "14.3" and rows["gtsam_fixed_lag"]["aligned"] == "13.5"
+    assert rows["gtsam_invariant_ekf"]["aligned"] == "–"  # no motion capture, no aligned tilt

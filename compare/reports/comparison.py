@@ -810,7 +810,8 @@ def per_contact_table_html(summary: dict) -> str:
 
 
 def _peer_rows(summary: dict) -> list[dict]:
-    """The peers' rows of the report: tilt RMSE overall and per contact phase (mrad), median step (µs;
+    """The peers' rows of the report: tilt RMSE overall, with its constant taken out
+    (:func:`flexforce.compare.metrics.aligned_tilt`) and per contact phase (mrad), median step (µs;
     from timings.json: ``summary`` as :func:`with_timings` gives it, else a dash)."""
     def mrad(x):
         return "–" if x is None else f"{1e3 * x:.3g}"
@@ -822,6 +823,7 @@ def _peer_rows(summary: dict) -> list[dict]:
                 ("single_support", "double_support", "transition")}
         step = (m.get("time_per_step_s") or {}).get("median")
         out.append({"key": key, "tilt": mrad((m.get("rmse") or {}).get("rotation_rad")),
+                    "aligned": mrad((m.get("extra") or {}).get("tilt_aligned_rad")),
                     "single": mrad(tilt["single_support"]), "double": mrad(tilt["double_support"]),
                     "transition": mrad(tilt["transition"]), "step": "–" if step is None else f"{1e6 * step:.3g}"})
     return out
