@@ -301,53 +301,55 @@ def _against_truth(m: Metrics, est, rec, keep):
             m.nees_bounds = chi2_mean_bounds(18, int(ok.sum()))
 
 
-def base_tilt_error(est, rec, link: str) -> np.ndarray:
-    """(N,) angle (rad) between the estimated and the motion-capture vertical, in the base frame.
+def base_verticals(est, rec, link: str) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) and (N, 3): the estimated and the motion-capture vertical in the base frame (rows of
+    ``R^T e_z``), NaN rows where motion capture (or ``Recording.base_pose``) is missing.
 
     The estimated base orientation is the flexibility composed with the base's local orientation
-    (``Recording.base_pose``); motion capture gives it directly.  Comparing the direction of the
-    vertical seen from the base leaves out yaw, which neither leg odometry nor the IMU observe
-    against the motion-capture frame.
-    """
+    (``Recording.base_pose``); motion capture gives it directly."""
     from scipy.spatial.transform import Rotation
 
     pose = rec.mocap[link]
     ok = np.all(np.isfinite(pose), axis=1)
-    out = np.full(rec.n, np.nan)
+    g_est = np.full((rec.n, 3), np.nan)
+    g_moc = np.full((rec.n, 3), np.nan)
     if not ok.any() or rec.base_pose is None:
-        return out
-    R_local = Rotation.from_quat(rec.base_pose[:, 3:]).as_matrix()
-    R_est = np.einsum("nij,njk->nik", est.R, R_local)
-    R_mocap = np.tile(np.eye(3), (rec.n, 1, 1))
-    R_mocap[ok] = Rotation.from_quat(pose[ok, 3:]).as_matrix()
-    g_est = R_est[:, 2, :]  # rows: R^T e_z
-    g_moc = R_mocap[:, 2, :]
+        return g_est, g_moc
+    R_local = Rotation.from_quat(rec.base_pose[ok, 3:]).as_matrix()
+    g_est[ok] = np.einsum("nij,njk->nik", est.R[ok], R_local)[:, 2, :]
+    g_moc[ok] = Rotation.from_quat(pose[ok, 3:]).as_matrix()[:, 2, :]
+    return g_est, g_moc
+
+
+def base_tilt_error(est, rec, link: str, verticals: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """(N,) angle (rad) between the estimated and the motion-capture vertical, in the base frame
+    (:func:`base_verticals`, or ``verticals`` already computed); NaN without motion capture.
+
+    Comparing the direction of the vertical seen from the base leaves out yaw, which neither leg
+    odometry nor the IMU observe against the motion-capture frame.
+    """
+    g_est, g_moc = base_verticals(est, rec, link) if verticals is None else verticals
     cos = np.clip(np.sum(g_est * g_moc, axis=1), -1.0, 1.0)
-    out[ok] = np.arccos(cos[ok])
-    return out
+    return np.arccos(cos)
 
 
-def aligned_tilt(est, rec, link: str, keep: np.ndarray) -> dict:
+def aligned_tilt(est, rec, link: str, keep: np.ndarray,
+                 verticals: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
     """The tilt error against motion capture split into its constant and the rest: what a constant
     rotation between the two verticals (the markers' frame against the base's, the motion-capture
-    world's vertical against gravity: neither is the estimator's) leaves.  Over the samples of ``keep`` with motion
-    capture, in the base frame (:func:`base_tilt_error`'s verticals):
+    world's vertical against gravity: neither is the estimator's) leaves.  Over the samples of
+    ``keep`` where both verticals are known (:func:`base_verticals`, or ``verticals`` already
+    computed), in the base frame:
 
     - ``tilt_offset_rad``: [x, y], the mean of the estimated minus the motion-capture vertical
       (small angles: the base's roll and pitch offset, as rotations about -y and x);
     - ``tilt_aligned_rad``: the RMS angle between the verticals once that mean is taken out (as
       evo's trajectory alignment does for a whole pose).
 
-    Empty without motion capture in ``keep``."""
-    from scipy.spatial.transform import Rotation
-
-    pose = rec.mocap[link]
-    ok = np.all(np.isfinite(pose), axis=1) & keep
-    if not ok.any() or rec.base_pose is None:
-        return {}
-    R_est = np.einsum("nij,njk->nik", est.R[ok], Rotation.from_quat(rec.base_pose[ok, 3:]).as_matrix())
-    d = R_est[:, 2, :] - Rotation.from_quat(pose[ok, 3:]).as_matrix()[:, 2, :]
-    d = d[np.all(np.isfinite(d), axis=1)]  # an estimate with gaps (NaN rows) is judged where it has values
+    Empty when no sample of ``keep`` has both (no motion capture, an estimate of NaN)."""
+    g_est, g_moc = base_verticals(est, rec, link) if verticals is None else verticals
+    d = (g_est - g_moc)[keep]
+    d = d[np.all(np.isfinite(d), axis=1)]
     if not len(d):
         return {}
     offset = d.mean(axis=0)
@@ -375,13 +377,14 @@ def _against_sensors(m: Metrics, est, rec, keep):
         m.max.setdefault(key, None)
     base = rec.meta.get("base_frame")
     if base in rec.mocap and rec.base_pose is not None:
-        tilt = base_tilt_error(est, rec, base)
+        verticals = base_verticals(est, rec, base)
+        tilt = base_tilt_error(est, rec, base, verticals)
         m.errors["rotation_rad"] = tilt
         s = tilt.copy()
         s[~keep] = np.nan
         m.rmse["rotation_rad"], m.max["rotation_rad"] = _summ(s)
         m.extra["rotation_reference"] = f"tilt of {base} against motion capture"
-        m.extra.update(aligned_tilt(est, rec, base, keep))
+        m.extra.update(aligned_tilt(est, rec, base, keep, verticals))
         m.references["rotation_rad"] = f"reference: {mocap_label(rec)}"
     if rec.ft is not None:
         local = contact_frame_wrench(est.R, est.t, est.wrench, rec)
@@ -682,9 +685,9 @@ def reference_checks(rec, skip: float = 0.0) -> dict | None:
             x = fz[sel, i]
             out["unloaded"][name] = {"samples": int(sel.sum()), "mean_N": float(x.mean()),
                                      "rms_N": float(np.sqrt(np.mean(x * x)))}
-    total = np.where(act, fz, 0.0).sum(axis=1)
-    resid = total - rec.mass * (rec.com_acc[:, 2] + g)
-    finite = np.isfinite(np.where(act, fz, 0.0)).all(axis=1)
+    loaded = np.where(act, fz, 0.0)
+    resid = loaded.sum(axis=1) - rec.mass * (rec.com_acc[:, 2] + g)
+    finite = np.isfinite(loaded).all(axis=1)
     masks = phase_masks(rec, skip)
     for phase in ("all", "single_support", "double_support"):
         sel = masks[phase] & act.any(axis=1) & finite
