@@ -27,7 +27,7 @@ import numpy as np
 
 from flexforce.errors import ConfigError
 
-__all__ = ["STREAM_PART_SECONDS", "RunConfig", "RunResult", "load_or_simulate", "open_recording",
+__all__ = ["STREAM_PART_SECONDS", "RunConfig", "RunResult", "demo_options", "load_or_simulate", "open_recording",
            "prepare_demo_kernels", "run_offline", "run_recording", "stream_parts", "stream_recording", "streams",
            "warm_up", "window", "window_parts", "write_estimate"]
 
@@ -380,6 +380,23 @@ def warm_up() -> None:
     format_rows(np.zeros((1, 2)), np.zeros(1, dtype=np.int64), int_col=1)
 
 
+def demo_options() -> dict[str, dict[str, object]]:
+    """The demo's estimator options: ``{"fixed-lag": {"compiled": False}}`` when the kernel cache
+    lacks the fixed-lag smoother's compiled window update
+    (:func:`flexforce.smoother.window_kernel.window_update`), else none.
+
+    The general window path gives the same estimates (``tests/test_demo.py``) and needs no kernel of
+    its own beyond the batch smoother's, where the compiled update costs about 38 s of compilation
+    on a first run (its window kernels, of the demo's 72 s compiled one after another); the demo then
+    runs it in about 1.8 s instead of 0.6 s.  Once a fixed-lag run has compiled the update (``flexforce
+    run``, ``compare``), the demo uses it.  The choice is in summary.json (the estimator's
+    ``extra.options``) and in the demo's table footnote."""
+    from flexforce import jit
+    from flexforce.smoother import window_kernel
+
+    return {} if jit.cached(window_kernel.window_update) else {"fixed-lag": {"compiled": False}}
+
+
 def prepare_demo_kernels() -> None:
     """On a first run (the kernel cache without the demo's kernels), share their compilation with
     a helper process (:func:`flexforce.jit.compile_elsewhere`, the listing of
@@ -387,16 +404,17 @@ def prepare_demo_kernels() -> None:
     the demo simulates its scenario, the demo compiles those it needs first and loads the others
     from the cache as they arrive.  Nothing is started when the cache holds them, nor on a single
     core; then the compile notice is written at once and the demo compiles the kernels as it needs
-    them.  Measured on the 2-core machine, cold cache: 64 s with the helper against 107-122 s
-    without (106 and 113 s of CPU); on a machine busy with other work the helper does not slow
-    the demo (123 s against 122 s)."""
+    them.  The fixed-lag smoother's compiled window update is not in the listing: on a first run the
+    demo runs its general path (:func:`demo_options`).  Measured on the 2-core machine, cold cache:
+    56 s (93 s of CPU; the warm demo 28 s), where compiling the window update too took 73 s (120 s
+    of CPU); without the helper the demo took 107-122 s."""
     from flexforce import jit
     from flexforce.compare.ekf import kernel
     from flexforce.compare.runner import usable_cores
     from flexforce.demo_kernels import DEMO_KERNELS
-    from flexforce.smoother import solvers, window_kernel
+    from flexforce.smoother import solvers
 
-    if jit.cached(kernel.step, window_kernel.window_update, solvers.block_tridiag_factor):
+    if jit.cached(kernel.step, solvers.block_tridiag_factor):
         return
     if usable_cores() < 2:
         jit.announce_compilation()

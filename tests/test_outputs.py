@@ -363,3 +363,23 @@ def test_the_browser_test_skips_with_a_reason_without_a_browser(monkeypatch):
 
     monkeypatch.setattr(shutil, "which", lambda name: None)
     assert _browser() is None
+
+
+def test_the_demo_runs_the_general_window_path_until_the_compiled_one_is_cached(monkeypatch):
+    """``demo_options``: the fixed-lag smoother's general window path (the same estimates,
+    ``tests/test_window_update.py``) while the cache lacks the compiled window update, none after."""
+    from flexforce import jit, pipeline
+    from flexforce.smoother import window_kernel
+
+    asked = []
+
+    def cached(*kernels):
+        asked.extend(kernels)
+        return state["cached"]
+
+    state = {"cached": False}
+    monkeypatch.setattr(jit, "cached", cached)
+    assert pipeline.demo_options() == {"fixed-lag": {"compiled": False}}
+    assert asked == [window_kernel.window_update]
+    state["cached"] = True
+    assert pipeline.demo_options() == {}
