@@ -279,6 +279,8 @@ def _compare_one(rec, args, out: Path):
     from flexforce.compare.runner import compare
 
     model = _model(rec, args)
+    if getattr(args, "after_load", None):  # the demo's (pipeline.demo_while_awaiting)
+        args.after_load()
     bars = {}
 
     def progress(name, fraction):
@@ -490,7 +492,7 @@ def _cmd_demo(args) -> int:
     args.estimators = "ekf,fixed-lag,batch"
     args.jobs = 1
     from flexforce.jit import set_compile_notice
-    from flexforce.pipeline import demo_options, prepare_demo_kernels
+    from flexforce.pipeline import demo_options, demo_while_awaiting, prepare_demo_kernels
 
     print(f"flexforce demo: simulate '{args.recordings[0]}' (Romeo, pushed on the torso then the hand), "
           f"run the EKF, the fixed-lag and the batch smoothers, compare them against ground truth", flush=True)
@@ -503,6 +505,7 @@ def _cmd_demo(args) -> int:
     if not args.quiet:
         set_compile_notice(True)  # the demo is a first run's first command: its wait explained, on a terminal or not
     prepare_demo_kernels()
+    args.after_load = demo_while_awaiting
     return _cmd_compare(args)
 
 

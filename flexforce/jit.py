@@ -61,8 +61,8 @@ import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
-__all__ = ["COMPILE_NOTICE", "HAVE_NUMBA", "announce_compilation", "cached", "compile_elsewhere", "kernel_cache_dir",
-           "njit", "recording_compiles", "set_compile_notice"]
+__all__ = ["COMPILE_NOTICE", "HAVE_NUMBA", "announce_compilation", "cached", "compile_elsewhere",
+           "compile_while_awaiting", "kernel_cache_dir", "njit", "recording_compiles", "set_compile_notice"]
 
 COMPILE_NOTICE = ("flexforce: compiling the numerical kernels (first run after an install or upgrade only; "
                   "cached in {cache})...")
@@ -75,6 +75,7 @@ _notice_lock = threading.Lock()
 _helpers: list[subprocess.Popen] = []  # processes of compile_elsewhere still to be waited for
 _work: list[str] = []  # their work folders
 _listed: dict[tuple[str, str, str], tuple[str, int]] = {}  # kernel -> (work folder, index) of compile_elsewhere
+_mine: set[tuple[str, int]] = set()  # (work folder, index) taken by compile_while_awaiting in this process
 HELPER_WAIT = 900.0
 """Seconds a kernel missing from the cache is awaited from the helper processes at most."""
 
@@ -142,6 +143,7 @@ def _stop_helpers() -> None:
         shutil.rmtree(folder, ignore_errors=True)
     _work.clear()
     _listed.clear()
+    _mine.clear()
 
 
 def _take(work: str, index: int) -> bool:
@@ -161,7 +163,7 @@ def _taken_elsewhere(py_func, sig) -> bool:
     if not _listed or not _helpers_running():
         return False
     listed = _listed.get((py_func.__module__, py_func.__qualname__, repr(tuple(sig))))
-    return listed is not None and not _take(*listed)
+    return listed is not None and listed not in _mine and not _take(*listed)
 
 
 def compile_elsewhere(kernels: Sequence[tuple[str, str, str]], processes: int = 1) -> None:
@@ -195,6 +197,31 @@ def compile_elsewhere(kernels: Sequence[tuple[str, str, str]], processes: int = 
     for _ in range(max(1, processes)):
         _helpers.append(subprocess.Popen([sys.executable, "-c", code, work], stdin=subprocess.DEVNULL,
                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+
+
+def compile_while_awaiting(*kernels) -> int:
+    """While the helpers of :func:`compile_elsewhere` compile ``kernels`` (dispatchers of
+    :func:`njit`, needed next), compile in this process the listed kernels nobody has taken, from
+    the front of the listing, one at a time: this process's core does the work it would otherwise
+    wait through.  Returns when each of ``kernels`` is cached, when no helper is running, or when
+    every listed kernel is taken; the number compiled here.  A kernel that fails to compile (a
+    stale listing) is skipped: whoever needs it compiles it then."""
+    import importlib
+
+    done = 0
+    for key, (work, index) in sorted(_listed.items(), key=lambda item: item[1][1]):
+        if cached(*kernels) or not _helpers_running():
+            break
+        if not _take(work, index):
+            continue
+        _mine.add((work, index))  # compiled here: not awaited from a helper (_taken_elsewhere)
+        module, function, signature = key
+        try:
+            getattr(importlib.import_module(module), function).compile(_signature(signature))
+            done += 1
+        except Exception:  # noqa: BLE001, S112 -- compiled where it is needed instead
+            continue
+    return done
 
 
 def _signature(text: str):

@@ -383,3 +383,33 @@ def test_the_demo_runs_the_general_window_path_until_the_compiled_one_is_cached(
     assert asked == [window_kernel.window_update]
     state["cached"] = True
     assert pipeline.demo_options() == {}
+
+
+def test_kernels_compiled_while_awaiting_a_helper_are_compiled_here_not_awaited(kernel_source, tmp_path, monkeypatch):
+    """compile_while_awaiting: while a helper compiles what this process needs next, this process
+    compiles the listed kernels nobody has taken, from the front (a stale entry skipped, one the
+    helper took left to it), and never waits for a kernel it took itself."""
+    import sys
+
+    from flexforce import jit
+
+    monkeypatch.syspath_prepend(str(kernel_source))
+    monkeypatch.delitem(sys.modules, "tiny_kernel", raising=False)
+    work = str(tmp_path / "work")
+    os.mkdir(work)
+    listing = {("tiny_kernel", "add", "(int64, int64)"): (work, 0),
+               ("tiny_kernel", "add", "(float64, float64)"): (work, 1),
+               ("tiny_kernel", "gone", "(int64,)"): (work, 2)}
+    monkeypatch.setattr(jit, "_listed", listing)
+    monkeypatch.setattr(jit, "_mine", set())
+    monkeypatch.setattr(jit, "_helpers_running", lambda: True)  # a helper still compiling the awaited kernel
+    monkeypatch.setattr(jit, "cached", lambda *kernels: False)
+    assert jit._take(work, 1)  # the helper's
+    assert jit.compile_while_awaiting() == 1  # (int64, int64) here; the float64 one left to the helper
+    assert sorted(os.listdir(work)) == ["0.taken", "1.taken", "2.taken"]
+    add = sys.modules["tiny_kernel"].add
+    assert [tuple(map(str, s)) for s in add.signatures] == [("int64", "int64")]
+    from numba import float64, int64
+
+    assert not jit._taken_elsewhere(add.py_func, (int64, int64))  # its own: compiled here, not awaited
+    assert jit._taken_elsewhere(add.py_func, (float64, float64))  # the helper's: awaited
