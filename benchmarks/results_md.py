@@ -327,12 +327,30 @@ def icub_identification(r: Record) -> list[str]:
     return lines
 
 
+def demo_first_run(r: Record) -> list[str]:
+    rows = [(f"cold {i + 1}", *_demo_row(run)) for i, run in enumerate(r["cold"])]
+    if r.get("warm"):
+        rows.append(("warm", *_demo_row(r["warm"])))
+    t = r["targets"]
+    return [f"Runs: `{r['runs']}`; {r['usable_cores']} usable cores.  Targets on a "
+            f"first run: the first line within {fmt(t['first_line_s'])} s (met: {r['first_line_met']}), the "
+            f"whole demo within {fmt(t['wall_s'])} s (met: {r['wall_met']}).", ""] + table(
+        ("run", "wall [s]", "CPU [s]", "first line [s]", "EKF done [s]", "fixed-lag done [s]", "batch done [s]",
+         "fixed-lag path"), rows)
+
+
+def _demo_row(run: Record) -> list[Any]:
+    done = run.get("done_at_s", {})
+    return [run["wall_s"], run["cpu_s"], run["first_line_s"], done.get("ekf"), done.get("fixed-lag"),
+            done.get("batch"), "general" if run.get("fixed_lag_general_path") else "compiled"]
+
+
 SECTIONS: dict[str, Callable[[Record], list[str]]] = {
     "ekf_speed": ekf_speed, "smoother_speed": smoother_speed, "stream_memory": stream_memory,
     "physics_vs_pinocchio": physics_vs_pinocchio, "diagnose_speed": diagnose_speed,
     "diagnose_confusion": diagnose_confusion, "diagnose_confusion_wide": diagnose_confusion_wide,
     "diagnose_walks": diagnose_walks, "time_offset": time_offset, "walk": walk,
-    "icub_identification": icub_identification,
+    "icub_identification": icub_identification, "demo_first_run": demo_first_run,
 }
 """Benchmark -> its section's figures.  A record names its benchmark (``benchmark``); one that does
 not is known by its file name's stem."""
