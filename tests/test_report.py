@@ -206,6 +206,17 @@ def test_nees_sentence_only_out_of_band():
     assert "NIS above" in nis and "×2" in nis
 
 
+def test_option_sentences_say_which_rows_ran_with_their_own_options():
+    from flexforce.compare.reports.comparison import option_sentences
+
+    summary = {"estimators": {"ekf": {"extra": {}}, "fixed_lag": {"extra": {"options": {"compiled": False}}},
+                              "batch": {"extra": {"options": {"footholds": True}}}}}
+    fixed_lag, batch = option_sentences(summary)
+    assert fixed_lag.startswith("fixed_lag ran with compiled = False (its general window path")
+    assert batch == "batch ran with footholds = True."
+    assert option_sentences({"estimators": {"ekf": {}}}) == []
+
+
 def test_report_page_says_what_an_out_of_band_nees_means(report):
     comp, out = report
     page = (out / "index.html").read_text()

@@ -829,6 +829,28 @@ def _peer_rows(summary: dict) -> list[dict]:
     return out
 
 
+OPTION_NOTES = {("compiled", False): "its general window path: the same estimates as the compiled update, "
+                                     "at a slower step"}
+"""What an estimator option given to the comparison means for the row, where it is not obvious."""
+
+
+def option_sentences(summary: dict) -> list[str]:
+    """One sentence per estimator run with options of its own (summary.json ``extra.options``, e.g. the
+    demo's fixed-lag smoother on a first run, ``compiled = False``): the row's numbers are those of
+    that configuration."""
+    out = []
+    for key, m in (summary.get("estimators") or {}).items():
+        options = (m.get("extra") or {}).get("options") or {}
+        if not options:
+            continue
+        parts = []
+        for name, value in options.items():
+            note = OPTION_NOTES.get((name, value)) if isinstance(value, bool | int | str) else None
+            parts.append(f"{name} = {value}" + (f" ({note})" if note else ""))
+        out.append(f"{key} ran with {'; '.join(parts)}.")
+    return out
+
+
 CONSISTENCY_DOF = {"nees": 18, "nis": 6}
 """Dimension of the state error (NEES) and of the EKF's innovation (NIS): a consistent estimator's
 run mean equals it."""
@@ -1205,6 +1227,7 @@ def _write_report(comp, rec, out: Path, title: str | None) -> None:
         if d is not None:
             extra.append(f"Uncompensated, the flexibility moves the hands by up to {d * 1000:.1f} mm.")
             break
+    extra += option_sentences(summary)
     win = info.get("window")
     from flexforce.compare.runner import headline
 
