@@ -31,7 +31,7 @@ COMMANDS: dict[str, str] = {
     "diagnose_confusion_wide": "python benchmarks/diagnose_confusion_wide.py --jobs 2 --fresh",
     "diagnose_confusion_wide_all": "python benchmarks/diagnose_confusion_wide.py --jobs 2 --fresh --catalogue all "
                                    "--out benchmarks/results/diagnose_confusion_wide_all.json",
-    "diagnose_heldout": "python benchmarks/diagnose_heldout.py",
+    "diagnose_heldout": "python benchmarks/diagnose_heldout.py --jobs 2",
     "diagnose_speed": "python benchmarks/diagnose_speed.py",
     "diagnose_speed_jobs2": "python benchmarks/diagnose_speed.py --durations 20 --jobs 2 "
                             "--out benchmarks/results/diagnose_speed_jobs2.json",
