@@ -275,7 +275,8 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
     """Run each estimator on ``rec`` and evaluate it.
 
     Args:
-        estimators: names for :func:`flexforce.compare.estimators.run_estimator`.
+        estimators: names for :func:`flexforce.compare.estimators.run_estimator` (a list, or one
+            comma-separated string as the command line takes them).
         model: the model every estimator assumes; None: the recording's nominal model, its springs
             checked against toppling (:func:`flexforce.compare.estimators.nominal_model`, which
             raises ConfigError or warns).
@@ -300,6 +301,8 @@ def compare(rec, estimators=DEFAULT_ESTIMATORS, model=None, skip: float = 0.5,
     """
     from flexforce.compare.estimators import nominal_model, run_estimator
 
+    if isinstance(estimators, str):  # "ekf,fixed-lag,batch", as the command line takes them
+        estimators = [name.strip() for name in estimators.split(",") if name.strip()]
     rec.validate()
     if model is None:
         model = nominal_model(rec)

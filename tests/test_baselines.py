@@ -220,3 +220,10 @@ def test_robot_config_soles_reach_the_model_and_bad_ones_are_refused(tmp_path):
     p.write_text(bad.replace('urdf = "urdf/', f'urdf = "{robots}/urdf/'))
     with pytest.raises(ConfigError, match=r"contacts\[0\]\.sole = \[0\.01.*x_min < 0 < x_max"):
         RobotConfig.load(p)
+
+
+def test_compare_takes_a_comma_separated_string_of_estimators(rec):
+    """``compare(rec, "ekf, batch")`` runs those two, as the command line's ``--estimators`` does
+    (not one estimator per character)."""
+    comp = compare(rec, estimators="ekf, batch", crb=False, baseline=False, model_band=False)
+    assert list(comp.metrics) == ["ekf", "batch"] and not comp.failures

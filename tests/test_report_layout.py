@@ -83,6 +83,8 @@ def test_hidden_effect_text_units_and_spans():
                                         "4.50–4.80 s, half-sine profile")
     # shifted by the window's start and clipped to the recording
     assert "0.50–0.70 s" in hidden_effect_text(push, window_start_s=4.0, duration_s=0.7)
+    assert hidden_effect_text(push, duration_s=3.0).endswith("; after the recording's end (not in the data)")
+    assert hidden_effect_text(push, window_start_s=6.0).endswith("; before the recording's start (not in the data)")
     assert hidden_effect_text({"type": "time-offset", "delay": 0.02}) == "time offset: delay 20 ms; throughout"
     assert hidden_effect_text({"type": "gyro-bias", "value": [0.01, 0, 0]}).startswith(
         "gyro bias: value 0.01 rad/s (0.01, 0, 0)")

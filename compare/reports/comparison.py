@@ -937,8 +937,9 @@ def hidden_effect_text(effect: dict, window_start_s: float = 0.0, duration_s: fl
     """One hidden effect of a simulated recording (an entry of ``summary["recording"]["hidden_effects"]``)
     in words: its type, where it acts (link, contact), its parameters with units (:data:`EFFECT_UNITS`;
     vectors as norm and components, world or IMU axes as the simulator defines them) and its time span
-    in the recording's seconds (``start`` shifted by ``window_start_s``, clipped to ``duration_s``), or
-    ``throughout`` without a start."""
+    in the recording's seconds (``start`` shifted by ``window_start_s``, clipped to ``duration_s``; an
+    effect wholly before the start or after the end of the recording says so), or ``throughout``
+    without a start."""
     kind = str(effect.get("type", "effect"))
     where = []
     link = effect.get("link")
@@ -963,11 +964,16 @@ def hidden_effect_text(effect: dict, window_start_s: float = 0.0, duration_s: fl
     if "start" in effect:
         a = float(effect["start"]) - window_start_s
         b = a + float(effect.get("duration", math.inf))
-        a = max(a, 0.0)
-        if duration_s is not None:
-            b = min(b, duration_s)
-        span = f"{a:.2f}–{b:.2f} s" if math.isfinite(b) else f"from {a:.2f} s on"
-        if effect.get("profile"):
+        if b <= 0.0:
+            span = "before the recording's start (not in the data)"
+        elif duration_s is not None and a >= duration_s:
+            span = "after the recording's end (not in the data)"
+        else:
+            a = max(a, 0.0)
+            if duration_s is not None:
+                b = min(b, duration_s)
+            span = f"{a:.2f}–{b:.2f} s" if math.isfinite(b) else f"from {a:.2f} s on"
+        if effect.get("profile") and "not in the data" not in span:
             span += f", {effect['profile']} profile"
     else:
         span = "throughout"
