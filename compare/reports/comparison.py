@@ -829,8 +829,8 @@ def _peer_rows(summary: dict) -> list[dict]:
     return out
 
 
-OPTION_NOTES = {("compiled", False): "its general window path: the same estimates as the compiled update, "
-                                     "at a slower step"}
+OPTION_NOTES: dict[tuple[str, object], str] = {
+    ("compiled", False): "its general window path: the same estimates as the compiled update, at a slower step"}
 """What an estimator option given to the comparison means for the row, where it is not obvious."""
 
 
