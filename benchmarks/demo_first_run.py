@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import re
 import resource
 import subprocess
@@ -67,6 +66,7 @@ def main() -> None:
                         default=Path(__file__).resolve().parent / "results" / "demo_first_run.json")
     args = parser.parse_args()
 
+    from flexforce.compare.reports.comparison import machine
     from flexforce.compare.runner import usable_cores
 
     cold, warm = [], None
@@ -88,8 +88,7 @@ def main() -> None:
         "wall_met": all(r["wall_s"] <= TARGET_WALL_S for r in cold),
         "usable_cores": usable_cores(),
         "load_average_at_end": [round(x, 2) for x in os.getloadavg()],
-        "machine": {"python": platform.python_version(), "processor": platform.processor() or platform.machine(),
-                    "cpus": os.cpu_count()},
+        "machine": machine(),
     }
     text = json.dumps(record, indent=2)
     print(text)

@@ -206,8 +206,6 @@ def compile_while_awaiting(*kernels) -> int:
     wait through.  Returns when each of ``kernels`` is cached, when no helper is running, or when
     every listed kernel is taken; the number compiled here.  A kernel that fails to compile (a
     stale listing) is skipped: whoever needs it compiles it then."""
-    import importlib
-
     done = 0
     for key, (work, index) in sorted(_listed.items(), key=lambda item: item[1][1]):
         if cached(*kernels) or not _helpers_running():
@@ -215,13 +213,20 @@ def compile_while_awaiting(*kernels) -> int:
         if not _take(work, index):
             continue
         _mine.add((work, index))  # compiled here: not awaited from a helper (_taken_elsewhere)
-        module, function, signature = key
-        try:
-            getattr(importlib.import_module(module), function).compile(_signature(signature))
-            done += 1
-        except Exception:  # noqa: BLE001, S112 -- compiled where it is needed instead
-            continue
+        done += _compile_listed(*key)
     return done
+
+
+def _compile_listed(module: str, function: str, signature: str) -> bool:
+    """Compile one kernel of a listing (:func:`compile_elsewhere`) for its recorded signature;
+    False when it cannot be (a stale listing: whoever needs it compiles it then)."""
+    import importlib
+
+    try:
+        getattr(importlib.import_module(module), function).compile(_signature(signature))
+    except Exception:  # noqa: BLE001 -- compiled where it is needed instead
+        return False
+    return True
 
 
 def _signature(text: str):
@@ -237,20 +242,13 @@ def _signature(text: str):
 def _compile_taken(work: str) -> None:
     """A helper of :func:`compile_elsewhere`: compile each kernel of ``work``'s listing no other
     process has taken, from the end; a kernel that fails (a stale listing) is left to the caller."""
-    import importlib
-
     with open(os.path.join(work, "kernels.json"), encoding="utf-8") as f:
         kernels = json.load(f)
     for i in reversed(range(len(kernels))):
         if not os.path.isdir(work):  # the caller has finished
             return
-        if not _take(work, i):
-            continue
-        module, function, signature = kernels[i]
-        try:
-            getattr(importlib.import_module(module), function).compile(_signature(signature))
-        except Exception:  # noqa: BLE001, S112 -- the caller compiles what is missing
-            continue
+        if _take(work, i):
+            _compile_listed(*kernels[i])  # one that fails is left to the caller
 
 
 @contextlib.contextmanager

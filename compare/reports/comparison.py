@@ -973,8 +973,8 @@ def hidden_effect_text(effect: dict, window_start_s: float = 0.0, duration_s: fl
             if duration_s is not None:
                 b = min(b, duration_s)
             span = f"{a:.2f}–{b:.2f} s" if math.isfinite(b) else f"from {a:.2f} s on"
-        if effect.get("profile") and "not in the data" not in span:
-            span += f", {effect['profile']} profile"
+            if effect.get("profile"):
+                span += f", {effect['profile']} profile"
     else:
         span = "throughout"
     text = " ".join([kind.replace("-", " "), *where])
