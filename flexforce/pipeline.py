@@ -386,12 +386,12 @@ def demo_options() -> dict[str, dict[str, object]]:
     lacks the fixed-lag smoother's compiled window update
     (:func:`flexforce.smoother.window_kernel.window_update`), else none.
 
-    The general window path gives the same estimates (``tests/test_demo.py``) and needs no kernel of
-    its own beyond the batch smoother's, where the compiled update costs about 38 s of compilation
-    on a first run (its window kernels, of the demo's 72 s compiled one after another); the demo then
-    runs it in about 1.8 s instead of 0.6 s.  Once a fixed-lag run has compiled the update (``flexforce
-    run``, ``compare``), the demo uses it.  The choice is in summary.json (the estimator's
-    ``extra.options``) and in the demo's table footnote."""
+    The general window path gives the same estimates (``tests/test_window_update.py``) and needs
+    only the batch smoother's kernels and the window solvers, where the compiled update costs about
+    38 s of compilation on a first run; the demo then runs it in about 1.8 s instead of 0.6 s.  Once a
+    fixed-lag run has compiled the update (``flexforce run``, ``compare``), the demo uses it.  The
+    choice is said on the terminal, in summary.json (the estimator's ``extra.options``) and in the
+    report (:func:`flexforce.compare.reports.comparison.option_sentences`)."""
     from flexforce import jit
     from flexforce.smoother import window_kernel
 
